@@ -44,7 +44,39 @@ SUITES: dict[str, Suite] = {
             "Reach",
             "action",
             ("reach-xy", "reach-xz", "reach-yz", "reach-xyz"),
-            "Reaching along new displacement axes; the composition reaches in all three.",
+            "Reaching along new pairs of displacement axes; the composition reaches in all three.",
+        ),
+        Suite(
+            "Grasp",
+            "action",
+            ("pick-cube", "place-cube", "pnp-cube"),
+            "Picking and placing learnt apart, then chained into pick-and-place in one scene.",
+        ),
+        Suite(
+            "BinPnP",
+            "perception",
+            ("bin-red-blue", "bin-yellow-blue", "bin-red-purple", "bin-yellow-purple"),
+            "One bin-to-bin transfer under changing bin colours; the composition pairs the "
+            "source colour of one primitive with the target colour of another.",
+        ),
+        Suite(
+            "PnPBlock",
+            "perception",
+            ("pnp-red-block", "pnp-blue-block", "stack-blocks"),
+            "Pick-and-place of a red and of a blue block, then both in one scene: stack them.",
+        ),
+        Suite(
+            "DrawerPnP",
+            "full",
+            ("pnp-cube", "drawer-open", "drawer-pnp"),
+            "A cube task and a drawer task, then both in sequence: open the drawer, put the "
+            "cube inside.",
+        ),
+        Suite(
+            "PnPBoxClose",
+            "full",
+            ("pnp-cube", "box-close", "box-pnp-close"),
+            "A cube task and a box-lid task, then both in sequence: cube into the box, close it.",
         ),
     )
 }

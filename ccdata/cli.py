@@ -1,0 +1,239 @@
+"""ccdata: build, inspect and publish the benchmark's task suites and datasets.
+
+Example:
+    ccdata generate --suite PnPBoxClose
+
+Commands:
+    list          suites, tasks and composition matrices
+    render        the three camera views of a task (PNG) and optionally an oracle episode (MP4)
+    references    regenerate the oracle reference returns used by `ccdata.normalize`
+    generate      roll out oracle and exploration policies into one LeRobot v3 dataset per suite
+    card          render a suite's dataset card (Markdown with YAML header)
+    verify        check a dataset end to end (exit 1 with findings)
+    push          upload a dataset and its card to a Hugging Face Hub compatible endpoint
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+EXIT_USAGE = 2
+EXIT_FINDINGS = 1
+
+
+class CliError(Exception):
+    """A problem with the user's input or environment: one line, non-zero exit."""
+
+
+def _cmd_list(args: argparse.Namespace) -> None:
+    import ccdata
+
+    suites = [ccdata.get_suite(args.suite)] if args.suite else list(ccdata.SUITES.values())
+    for suite in suites:
+        print(f"{suite.name}  (axis: {suite.axis})  {suite.description}")
+        matrix = suite.composition_matrix()
+        width = max(len(t.id) for t in suite.tasks)
+        for i, task in enumerate(suite.tasks):
+            marks = " ".join("x" if m else "." for m in matrix[i])
+            role = "composition" if i == len(suite.tasks) - 1 else "primitive"
+            print(f"  {i}  {task.id:<{width}}  [{marks}]  {role}: {task.title}")
+        print()
+
+
+def _cmd_render(args: argparse.Namespace) -> None:
+    import imageio.v3 as iio
+    import numpy as np
+
+    import ccdata
+    from ccdata.policies import make_policy
+
+    env = ccdata.make_env(args.task, seed=args.seed, image_size=args.image_size)
+    obs, _ = env.reset()
+    frame = env.render()
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(out, frame)
+    print(f"wrote {out} ({' | '.join(ccdata.CAMERAS)})")
+    if args.video:
+        policy = make_policy("oracle", args.task, seed=args.seed)
+        policy.reset()
+        frames = [frame]
+        done = False
+        while not done:
+            obs, _, terminated, truncated, _ = env.step(policy.act(obs))
+            frames.append(env.render())
+            done = terminated or truncated
+        write_mp4(Path(args.video), np.stack(frames), fps=ccdata.env.FPS)
+        print(f"wrote {args.video} ({len(frames)} frames, oracle, success={terminated})")
+    env.close()
+
+
+def write_mp4(path: Path, frames, fps: int) -> None:
+    """H.264 MP4 of (T, H, W, 3) uint8 frames, written to a temp file then renamed."""
+    import av
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.mp4")
+    with av.open(str(tmp), mode="w") as container:
+        stream = container.add_stream("libx264", rate=fps)
+        stream.height, stream.width = frames.shape[1] // 2 * 2, frames.shape[2] // 2 * 2
+        stream.pix_fmt = "yuv420p"
+        for image in frames:
+            image = image[: stream.height, : stream.width]
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")))
+        container.mux(stream.encode())
+    tmp.replace(path)
+
+
+def _cmd_references(args: argparse.Namespace) -> None:
+    from ccdata.references import write_references
+
+    path = write_references(tasks=args.task or None, episodes=args.episodes)
+    print(f"wrote {path}")
+
+
+def _cmd_generate(args: argparse.Namespace) -> None:
+    from ccdata.record import GenerateConfig, generate
+
+    config = GenerateConfig(
+        suite=args.suite,
+        episodes=args.episodes,
+        explore_episodes=args.explore_episodes,
+        image_size=args.image_size,
+        seed=args.seed,
+        workers=args.workers,
+        root=args.root,
+        repo_id=args.repo_id,
+    )
+    path, summary = generate(config)
+    print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
+    print(f"dataset: {path}")
+
+
+def format_summary(summary) -> str:
+    rows = summary.get("rows", summary) if isinstance(summary, dict) else summary
+    if not isinstance(rows, list):
+        return json.dumps(summary, indent=2)
+    keys = list(rows[0]) if rows else []
+    lines = ["  ".join(f"{k:>12}" for k in keys)]
+    for row in rows:
+        cells = []
+        for k in keys:
+            v = row[k]
+            cells.append(f"{v:>12.3f}" if isinstance(v, float) else f"{v!s:>12}")
+        lines.append("  ".join(cells))
+    return "\n".join(lines)
+
+
+def _cmd_card(args: argparse.Namespace) -> None:
+    from ccdata.cards import render_card
+
+    text = render_card(args.suite)
+    if args.out:
+        Path(args.out).write_text(text)
+        print(f"wrote {args.out}")
+    else:
+        sys.stdout.write(text)
+
+
+def _cmd_verify(args: argparse.Namespace) -> int:
+    from ccdata.record import default_root
+    from ccdata.verify import verify_dataset
+
+    if args.root is None and args.suite is None:
+        raise CliError("give --suite or --root")
+    root = Path(args.root) if args.root else default_root(f"ccdata/{args.suite}")
+    findings = verify_dataset(root)
+    if findings:
+        print(f"{root}: {len(findings)} problem(s)")
+        for f in findings:
+            print(f"  - {f}")
+        return EXIT_FINDINGS
+    print(f"{root}: OK")
+    return 0
+
+
+def _cmd_push(args: argparse.Namespace) -> None:
+    from ccdata.hub import push_dataset
+    from ccdata.record import default_root
+
+    root = Path(args.root) if args.root else default_root(f"ccdata/{args.suite}")
+    url = push_dataset(root, args.repo_id, endpoint=args.endpoint, private=args.private)
+    print(f"pushed {root} -> {url}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="ccdata", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("list", help="suites, tasks and composition matrices")
+    p.add_argument("--suite")
+    p.set_defaults(func=_cmd_list)
+
+    p = sub.add_parser("render", help="render a task's three views (PNG) and an episode (MP4)")
+    p.add_argument("--task", required=True)
+    p.add_argument("--out", required=True, help="PNG file for the first frame")
+    p.add_argument("--video", help="also write an oracle episode as MP4")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--image-size", type=int, default=128)
+    p.set_defaults(func=_cmd_render)
+
+    p = sub.add_parser("references", help="regenerate oracle reference returns (package data)")
+    p.add_argument("--task", action="append", help="only these tasks (repeatable)")
+    p.add_argument("--episodes", type=int, default=50)
+    p.set_defaults(func=_cmd_references)
+
+    p = sub.add_parser("generate", help="generate a suite's LeRobot dataset")
+    p.add_argument("--suite", required=True)
+    p.add_argument("--episodes", type=int, default=50, help="oracle episodes per task")
+    p.add_argument(
+        "--explore-episodes", type=int, default=25, help="per task and exploration policy"
+    )
+    p.add_argument("--image-size", type=int, default=64)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--root", help="dataset directory (default: LeRobot's cache for the repo id)")
+    p.add_argument("--repo-id", help="default ccdata/<Suite>")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.set_defaults(func=_cmd_generate)
+
+    p = sub.add_parser("card", help="render a suite's dataset card")
+    p.add_argument("--suite", required=True)
+    p.add_argument("--out")
+    p.set_defaults(func=_cmd_card)
+
+    p = sub.add_parser("verify", help="check a dataset end to end")
+    p.add_argument("--suite")
+    p.add_argument("--root")
+    p.set_defaults(func=_cmd_verify)
+
+    p = sub.add_parser("push", help="upload a dataset to a Hub-compatible endpoint")
+    p.add_argument("--suite", required=True)
+    p.add_argument("--repo-id", required=True)
+    p.add_argument("--endpoint", help="default: HF_ENDPOINT or the public hub")
+    p.add_argument("--root", help="local dataset directory (default: from the suite)")
+    p.add_argument("--private", action="store_true")
+    p.set_defaults(func=_cmd_push)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        code = args.func(args)
+    except (CliError, ValueError, FileNotFoundError, FileExistsError) as err:
+        print(f"ccdata {args.command}: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print(f"ccdata {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return int(code or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

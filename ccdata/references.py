@@ -1,0 +1,90 @@
+"""Oracle reference returns: the '100' of the normalised score, stored as package data.
+
+Regenerate with `ccdata references`. Each task's reference is the oracle's mean discounted
+return over a fixed block of seeds that no other part of the toolkit uses.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+from ccdata.env import EPISODE_STEPS, make_env
+from ccdata.policies import make_policy
+from ccdata.scoring import GAMMA, REFERENCE_FILE, discounted_return, references
+from ccdata.tasks import TASKS, get_task
+
+REFERENCE_SEED_BASE = 900_000
+"""Reference episodes use seeds REFERENCE_SEED_BASE + i."""
+
+
+def oracle_rollouts(task_id: str, seeds) -> dict:
+    """Discounted return, success and length of the oracle on each seed (state only)."""
+    env = make_env(task_id, render=False)
+    policy = make_policy("oracle", task_id)
+    returns, successes, lengths = [], [], []
+    for seed in seeds:
+        obs, _ = env.reset(seed=int(seed))
+        policy.reset()
+        rewards = []
+        for _ in range(EPISODE_STEPS):
+            obs, reward, terminated, truncated, info = env.step(policy.act(obs))
+            rewards.append(reward)
+            if terminated or truncated:
+                break
+        returns.append(discounted_return(rewards))
+        successes.append(bool(info["success"]))
+        lengths.append(len(rewards))
+    env.close()
+    return {"returns": returns, "successes": successes, "lengths": lengths}
+
+
+def _versions() -> dict:
+    out = {}
+    for pkg in ("ccbench", "metaworld", "mujoco", "gymnasium", "numpy"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = None
+    return out
+
+
+def write_references(tasks=None, episodes: int = 50, path: Path | None = None) -> Path:
+    """Roll out the oracle on `episodes` fixed seeds per task and store the mean returns."""
+    task_ids = list(tasks) if tasks else list(TASKS)
+    for t in task_ids:
+        get_task(t)
+    if episodes < 1:
+        raise ValueError("episodes must be >= 1")
+    path = path or Path(__file__).with_name(REFERENCE_FILE)
+    data = json.loads(path.read_text()) if path.is_file() else {"tasks": {}}
+    seeds = [REFERENCE_SEED_BASE + i for i in range(episodes)]
+    for task_id in task_ids:
+        r = oracle_rollouts(task_id, seeds)
+        data["tasks"][task_id] = {
+            "mean_discounted_return": float(np.mean(r["returns"])),
+            "std_discounted_return": float(np.std(r["returns"])),
+            "success_rate": float(np.mean(r["successes"])),
+            "median_length": float(np.median(r["lengths"])),
+            "episodes": episodes,
+        }
+    data["tasks"] = dict(sorted(data["tasks"].items()))
+    data.update(
+        gamma=GAMMA,
+        episode_steps=EPISODE_STEPS,
+        seeds=f"{REFERENCE_SEED_BASE} + range(episodes)",
+        policy="oracle",
+        versions=_versions(),
+    )
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        json.dump(data, f, indent=2)
+        f.write("\n")
+    os.replace(tmp, path)
+    references.cache_clear()
+    return path

@@ -1,0 +1,150 @@
+"""The continual-method interface and its registry.
+
+A continual method acts on the task-agnostic backbone only (heads are never regularised,
+replayed or pruned) through five hooks, called by the training loop (ccfit.train):
+
+    method.before_task(t, backbone)                    # a new task starts
+    loss = out.total + method.penalty(backbone, model.backbone_loss)
+    loss.backward(); clip; opt.step(); method.after_step(backbone)
+    ...
+    method.after_task(t, backbone, task_data)          # task t's training ended
+    for _ in range(method.wants_retrain_steps): <one more update as above>   # PackNet only
+    with method.evaluating(i, backbone): <evaluate task i with its stored heads>
+
+A method never sees the trainer, the optimiser or the heads. It may keep state between hooks
+and exposes it through `state_dict` / `load_state_dict` so runs can resume.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import inspect
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from ccfit.models.base import Batch
+
+
+@dataclass
+class TaskData:
+    """What a method may read about a task when it ends (given to `after_task`)."""
+
+    task_index: int
+    """Curriculum index of the task that just ended."""
+    sample: Callable[[], Batch]
+    """Draws a fresh training batch from this task's replay buffer (EWC's Fisher batches)."""
+    num_transitions: int
+    """n, the number of transitions this task collected (ER's reservoir runs over them)."""
+    gather: Callable[[np.ndarray], Batch]
+    """Subsequences (as in a training batch) starting at the given transition indices in
+    [0, n); the batch size equals the number of indices. Lets ER keep a subset of transitions
+    after the trainer's buffer for this task is gone."""
+    backbone_loss: Callable[[Batch], torch.Tensor]
+    """The model's task-agnostic loss (`WorldModel.backbone_loss`)."""
+
+
+class ContinualMethod:
+    """Base class: every hook is a no-op, so it is also plain fine-tuning."""
+
+    name: str = "base"
+    """Registry name, set by `register_method`."""
+
+    def __init__(self, num_tasks: int | None = None) -> None:
+        if num_tasks is not None and num_tasks < 1:
+            raise ValueError(f"num_tasks must be >= 1, got {num_tasks}")
+        # The trainer passes the curriculum length to every method; PackNet needs it.
+        self.num_tasks = num_tasks
+
+    # ---- the five hooks
+    def before_task(self, task_index: int, backbone: nn.Module) -> None:
+        """Task `task_index` starts (fresh heads already made)."""
+
+    def penalty(
+        self, backbone: nn.Module, backbone_loss: Callable[[Batch], torch.Tensor]
+    ) -> torch.Tensor:
+        """Extra differentiable loss added to the update's total loss; zero by default."""
+        return zero_like_backbone(backbone)
+
+    def after_step(self, backbone: nn.Module) -> None:
+        """Called right after each optimiser step."""
+
+    def after_task(self, task_index: int, backbone: nn.Module, task_data: TaskData) -> None:
+        """Task `task_index`'s training ended."""
+
+    def evaluating(self, task_index: int, backbone: nn.Module) -> contextlib.AbstractContextManager:
+        """Context in which task `task_index` is evaluated with its stored heads."""
+        return contextlib.nullcontext()
+
+    # ---- a request to the trainer (not a hook)
+    @property
+    def wants_retrain_steps(self) -> int:
+        """Extra updates the trainer must run now, after `after_task` (PackNet's retraining);
+        every one goes through `penalty` and `after_step` as usual."""
+        return 0
+
+    # ---- checkpointing
+    def state_dict(self) -> dict[str, Any]:
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if state:
+            raise ValueError(f"{self.name}: unexpected state keys {sorted(state)}")
+
+
+def zero_like_backbone(backbone: nn.Module) -> torch.Tensor:
+    """A scalar 0 on the backbone's device (what a method without a penalty returns)."""
+    param = next(backbone.parameters(), None)
+    return torch.zeros((), device=param.device if param is not None else "cpu")
+
+
+def trainable_parameters(backbone: nn.Module) -> Iterator[tuple[str, nn.Parameter]]:
+    """The backbone's parameters that train (a frozen pretrained encoder is skipped)."""
+    for name, param in backbone.named_parameters():
+        if param.requires_grad:
+            yield name, param
+
+
+# ----------------------------------------------------------------------------- registry
+
+METHODS: dict[str, type[ContinualMethod]] = {}
+"""Registered continual methods by name."""
+
+
+def register_method(name: str) -> Callable[[type[ContinualMethod]], type[ContinualMethod]]:
+    """Class decorator: `@register_method("ewc")`."""
+
+    def decorate(cls: type[ContinualMethod]) -> type[ContinualMethod]:
+        if name in METHODS:
+            raise ValueError(f"continual method {name!r} is already registered")
+        if not (isinstance(cls, type) and issubclass(cls, ContinualMethod)):
+            raise TypeError(f"{cls!r} is not a ContinualMethod subclass")
+        cls.name = name
+        METHODS[name] = cls
+        return cls
+
+    return decorate
+
+
+def method_names() -> list[str]:
+    return sorted(METHODS)
+
+
+def make_method(name: str, **kwargs: Any) -> ContinualMethod:
+    """Build a registered method; unknown names or parameters -> ValueError."""
+    if name not in METHODS:
+        raise ValueError(
+            f"unknown continual method {name!r}; valid: {', '.join(method_names())}"
+        )
+    cls = METHODS[name]
+    signature = inspect.signature(cls)
+    try:
+        signature.bind(**kwargs)
+    except TypeError as err:
+        valid = ", ".join(signature.parameters)
+        raise ValueError(f"bad parameters for {name!r} ({err}); valid: {valid}") from None
+    return cls(**kwargs)

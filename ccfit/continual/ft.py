@@ -1,0 +1,10 @@
+"""Fine-tuning: the backbone simply keeps training on each new task (the lower baseline)."""
+
+from __future__ import annotations
+
+from ccfit.continual.base import ContinualMethod, register_method
+
+
+@register_method("ft")
+class FineTune(ContinualMethod):
+    """No hook does anything; forgetting is whatever plain training causes."""

@@ -1,0 +1,455 @@
+"""Continual methods on a small real backbone trained with a real Adam loop (and on TD-MPC2)."""
+
+import copy
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from ccfit.continual import METHODS, TaskData, make_method, method_names, register_method
+from ccfit.continual.base import ContinualMethod
+from ccfit.continual.er import reservoir_indices
+from ccfit.continual.packnet import FREE, Phase
+from ccfit.models.base import Batch
+
+STATE, ACT, H = 6, 2, 1
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    # These models are tiny: intra-op threads only add contention on a shared 2-core machine.
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+class TinyBackbone(nn.Module):
+    """Encoder (Linear + LayerNorm + Mish) and a linear latent dynamics."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.encoder = nn.Sequential(nn.Linear(STATE, 16), nn.LayerNorm(16), nn.Mish())
+        self.dynamics = nn.Linear(16 + ACT, 16)
+
+    def backbone_loss(self, batch: Batch) -> torch.Tensor:
+        s = batch.obs["state"]
+        z = self.encoder(s[0])
+        pred = self.dynamics(torch.cat([z, batch.action[0]], -1))
+        return (pred - self.encoder(s[1]).detach()).pow(2).mean() + z.pow(2).mean()
+
+
+def make_task_data(backbone: TinyBackbone, task: int, n: int, batch_size: int = 32) -> TaskData:
+    """n random subsequences of task `task` (a task-specific offset); obs['id'] names each."""
+    g = torch.Generator().manual_seed(100 + task)
+    state = torch.randn(H + 1, n, STATE, generator=g) + 2.0 * task
+    ids = torch.arange(n, dtype=torch.float32).view(1, n, 1).expand(H + 1, n, 1)
+    full = Batch(
+        obs={"state": state, "id": ids.clone()},
+        action=torch.randn(H, n, ACT, generator=g),
+        reward=torch.zeros(H, n, 1),
+        terminated=torch.zeros(H, n, 1),
+        task=torch.full((n,), task, dtype=torch.long),
+    )
+
+    def gather(indices) -> Batch:
+        rows = torch.as_tensor(np.asarray(indices), dtype=torch.long)
+        return Batch(
+            obs={k: v[:, rows] for k, v in full.obs.items()},
+            action=full.action[:, rows], reward=full.reward[:, rows],
+            terminated=full.terminated[:, rows], task=full.task[rows],
+        )
+
+    def sample() -> Batch:
+        return gather(torch.randint(n, (batch_size,), generator=g))
+
+    return TaskData(task, sample, n, gather, backbone.backbone_loss)
+
+
+def train(backbone, method, opt, data: TaskData, steps: int) -> None:
+    for _ in range(steps):
+        loss = data.backbone_loss(data.sample()) + method.penalty(backbone, data.backbone_loss)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        method.after_step(backbone)
+
+
+def snapshot(module: nn.Module) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in module.named_parameters()}
+
+
+# ----------------------------------------------------------------------------- registry
+
+
+def test_registry_names_and_errors():
+    assert method_names() == ["er", "ewc", "ft", "packnet"]
+    for name in method_names():
+        kwargs = {"num_tasks": 3}
+        assert isinstance(make_method(name, **kwargs), METHODS[name])
+        assert METHODS[name].name == name
+    with pytest.raises(ValueError, match="unknown continual method 'si'.*er, ewc, ft, packnet"):
+        make_method("si")
+    with pytest.raises(ValueError, match="bad parameters for 'ewc'.*valid: num_tasks, lam"):
+        make_method("ewc", lamda=1.0)
+    with pytest.raises(ValueError, match="already registered"):
+        register_method("ft")(ContinualMethod)
+    with pytest.raises(ValueError, match="needs num_tasks"):
+        make_method("packnet")
+    with pytest.raises(ValueError, match="fraction"):
+        make_method("er", fraction=0.0)
+
+
+def test_ft_changes_nothing():
+    torch.manual_seed(0)
+    bb = TinyBackbone()
+    ft = make_method("ft")
+    before = snapshot(bb)
+    ft.before_task(0, bb)
+    assert ft.penalty(bb, bb.backbone_loss).item() == 0.0
+    ft.after_step(bb)
+    ft.after_task(0, bb, make_task_data(bb, 0, 10))
+    with ft.evaluating(0, bb):
+        pass
+    assert all(torch.equal(before[k], v) for k, v in bb.named_parameters())
+    assert ft.wants_retrain_steps == 0 and ft.state_dict() == {}
+
+
+# ----------------------------------------------------------------------------- ER
+
+
+def test_reservoir_is_a_uniform_subset():
+    rng = np.random.default_rng(0)
+    counts = np.zeros(20)
+    for _ in range(4000):
+        idx = reservoir_indices(20, 5, rng)
+        assert len(idx) == 5 and len(set(idx.tolist())) == 5 and np.all(np.diff(idx) > 0)
+        counts[idx] += 1
+    # Each item is kept with probability 5/20 = 0.25 (binomial sd ~0.007 over 4000 draws).
+    np.testing.assert_allclose(counts / 4000, 0.25, atol=0.03)
+    assert reservoir_indices(7, 0, rng).size == 0
+    np.testing.assert_array_equal(reservoir_indices(7, 7, rng), np.arange(7))
+
+
+def test_er_keeps_fraction_and_replays_only_earlier_tasks():
+    torch.manual_seed(0)
+    bb = TinyBackbone()
+    er = make_method("er", fraction=0.05, replay_ratio=0.2, batch_size=64, seed=3)
+    assert er.penalty(bb, bb.backbone_loss).item() == 0.0  # nothing kept during task 0
+    data0, data1 = make_task_data(bb, 0, 1000), make_task_data(bb, 1, 620)
+    er.after_task(0, bb, data0)
+    assert er.memory.size == 50 and len(er.kept[0]) == round(0.05 * 1000)
+    # During task 1 only task 0 is replayed, and only its kept transitions.
+    batch = er.replay_batch()
+    assert batch.size == 64 and set(batch.task.tolist()) == {0}
+    assert set(batch.obs["id"][0, :, 0].long().tolist()) <= set(er.kept[0].tolist())
+    er.after_task(1, bb, data1)
+    assert len(er.kept[1]) == 31 and er.memory.size == 81  # round(0.05 * 620) = 31
+    with pytest.raises(ValueError, match="already added"):
+        er.after_task(1, bb, data1)
+    batch = er.replay_batch()
+    for task in (0, 1):
+        rows = batch.task == task
+        assert rows.any()
+        assert set(batch.obs["id"][0, rows, 0].long().tolist()) <= set(er.kept[task].tolist())
+    # The penalty is r / (1 - r) = 0.25 times the backbone loss on the next replay sample.
+    state = copy.deepcopy(er.state_dict())
+    pen = er.penalty(bb, bb.backbone_loss)
+    er.load_state_dict(state)
+    expected = 0.25 * bb.backbone_loss(er.replay_batch())
+    assert pen.item() == pytest.approx(expected.item(), rel=1e-6) and pen.item() > 0
+    pen.backward()
+    assert bb.dynamics.weight.grad.abs().sum() > 0
+
+
+def test_er_is_deterministic_per_seed():
+    bb = TinyBackbone()
+    runs = []
+    for seed in (5, 5, 6):
+        er = make_method("er", seed=seed, batch_size=16)
+        er.after_task(0, bb, make_task_data(bb, 0, 400))
+        runs.append((er.kept[0], er.replay_batch().obs["id"]))
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+    assert torch.equal(runs[0][1], runs[1][1])
+    assert not np.array_equal(runs[0][0], runs[2][0])
+
+
+# ----------------------------------------------------------------------------- EWC
+
+
+def test_ewc_fisher_anchor_and_quadratic_growth():
+    torch.manual_seed(0)
+    bb = TinyBackbone()
+    ewc = make_method("ewc", lam=10.0, fisher_batches=4)
+    assert ewc.penalty(bb, bb.backbone_loss).item() == 0.0
+    data = make_task_data(bb, 0, 200)
+    # Fisher by hand on the same four batches: mean of squared batch gradients.
+    batches = [data.sample() for _ in range(4)]
+    it = iter(batches)
+    fixed = TaskData(0, lambda: next(it), 200, data.gather, bb.backbone_loss)
+    manual = {k: torch.zeros_like(p) for k, p in bb.named_parameters()}
+    for b in batches:
+        bb.zero_grad()
+        bb.backbone_loss(b).backward()
+        for k, p in bb.named_parameters():
+            manual[k] += p.grad**2 / 4
+    bb.zero_grad()
+    ewc.after_task(0, bb, fixed)
+    for k in manual:
+        torch.testing.assert_close(ewc.fisher[k], manual[k])
+    assert sum(f.sum() for f in ewc.fisher.values()) > 0
+
+    assert ewc.penalty(bb, bb.backbone_loss).item() == 0.0  # at the anchor
+    anchor = snapshot(bb)
+    g = torch.Generator().manual_seed(1)
+    direction = {k: torch.randn(v.shape, generator=g) for k, v in anchor.items()}
+    values = []
+    for scale in (0.25, 0.5, 1.0, 2.0):
+        with torch.no_grad():
+            for k, p in bb.named_parameters():
+                p.copy_(anchor[k] + scale * direction[k])
+        values.append(ewc.penalty(bb, bb.backbone_loss).item())
+    # lambda / 2 * sum F d^2 * scale^2: monotone, and x4 per doubling.
+    quad = 0.5 * 10.0 * sum((manual[k] * direction[k] ** 2).sum().item() for k in manual)
+    assert values == pytest.approx([quad * s**2 for s in (0.25, 0.5, 1.0, 2.0)], rel=1e-5)
+    assert all(a < b for a, b in zip(values, values[1:], strict=False))
+    # Gradient of the penalty: lambda * F * (theta - theta*).
+    bb.zero_grad()
+    ewc.penalty(bb, bb.backbone_loss).backward()
+    expected = 10.0 * manual["dynamics.weight"] * 2.0 * direction["dynamics.weight"]
+    torch.testing.assert_close(bb.dynamics.weight.grad, expected)
+
+
+@pytest.mark.parametrize("decay", [1.0, 0.5])
+def test_ewc_accumulates_fisher_and_moves_anchor(decay):
+    torch.manual_seed(0)
+    bb = TinyBackbone()
+    ewc = make_method("ewc", fisher_batches=3, fisher_decay=decay)
+    data0, data1 = make_task_data(bb, 0, 100), make_task_data(bb, 1, 100)
+    ewc.after_task(0, bb, data0)
+    f0 = {k: v.clone() for k, v in ewc.fisher.items()}
+    opt = torch.optim.Adam(bb.parameters(), lr=1e-2)
+    train(bb, ewc, opt, data1, 10)
+    probe = make_method("ewc", fisher_batches=3)
+    # Two fresh samplers of task 1 with the same seed -> the same Fisher batches.
+    ewc.after_task(1, bb, make_task_data(bb, 1, 100))
+    probe.after_task(1, bb, make_task_data(bb, 1, 100))
+    for k in f0:
+        torch.testing.assert_close(ewc.fisher[k], decay * f0[k] + probe.fisher[k])
+        assert torch.equal(ewc.anchor[k], dict(bb.named_parameters())[k].detach())
+
+
+# ----------------------------------------------------------------------------- PackNet
+
+
+def linear_weights(bb: TinyBackbone) -> dict[str, torch.Tensor]:
+    return {"encoder.0.weight": bb.encoder[0].weight, "dynamics.weight": bb.dynamics.weight}
+
+
+SHARED = ["encoder.0.bias", "encoder.1.weight", "encoder.1.bias", "dynamics.bias"]
+
+
+def test_packnet_state_machine_freezing_and_masks():
+    torch.manual_seed(0)
+    bb = TinyBackbone()
+    pn = make_method("packnet", num_tasks=3, retrain_steps=5)
+    opt = torch.optim.Adam(bb.parameters(), lr=1e-2)
+    data = [make_task_data(bb, t, 256) for t in range(3)]
+
+    # ---- task 0: train, prune 75% of each layer by magnitude, retrain, freeze
+    pn.before_task(0, bb)
+    assert set(pn.owner) == set(linear_weights(bb))  # only Linear weights are prunable
+    train(bb, pn, opt, data[0], 20)
+    pre = {k: w.detach().clone() for k, w in linear_weights(bb).items()}
+    pn.after_task(0, bb, data[0])
+    assert pn.phase is Phase.PRUNED and pn.wants_retrain_steps == 5
+    for name, w in linear_weights(bb).items():
+        owner = pn.owner[name]
+        assert int((owner == 0).sum()) == round(0.25 * w.numel())
+        assert torch.all(w[owner == FREE] == 0)
+        assert pre[name][owner == 0].abs().min() >= pre[name][owner == FREE].abs().max()
+    with pytest.raises(RuntimeError, match="retrain steps still owed"):
+        pn.before_task(1, bb)
+    for _ in range(pn.wants_retrain_steps):
+        train(bb, pn, opt, data[0], 1)
+    assert pn.phase is Phase.FROZEN and pn.wants_retrain_steps == 0
+    task0 = snapshot(bb)
+    for name, w in linear_weights(bb).items():  # retraining left free weights at 0
+        assert torch.all(w[pn.owner[name] == FREE] == 0)
+        assert not torch.equal(w[pn.owner[name] == 0], pre[name][pn.owner[name] == 0])
+    with pytest.raises(RuntimeError, match="outside training"):
+        pn.after_step(bb)
+
+    # ---- task 1 with the same Adam (momentum of frozen entries is non-zero)
+    pn.before_task(1, bb)
+    loss = data[1].backbone_loss(data[1].sample())
+    opt.zero_grad()
+    loss.backward()
+    for name, w in linear_weights(bb).items():  # gradient hook: frozen entries get no gradient
+        assert torch.all(w.grad[pn.owner[name] == 0] == 0)
+        assert w.grad[pn.owner[name] == FREE].abs().sum() > 0
+    opt.step()
+    moved = [not torch.equal(w[pn.owner[n] == 0], task0[n][pn.owner[n] == 0])
+             for n, w in linear_weights(bb).items()]
+    assert all(moved), "Adam's momentum alone should move frozen entries"
+    pn.after_step(bb)  # ... and after_step writes them back exactly
+    train(bb, pn, opt, data[1], 30)
+    params = dict(bb.named_parameters())
+    for name, w in linear_weights(bb).items():
+        owned0 = pn.owner[name] == 0
+        assert torch.equal(w[owned0], task0[name][owned0])
+        assert w[~owned0].abs().sum() > 0  # the free weights did learn task 1
+    for name in SHARED:  # biases and LayerNorm frozen after task 0
+        assert torch.equal(params[name], task0[name])
+
+    # evaluating(0) hides everything task 0 did not use, then restores it bit for bit
+    before = snapshot(bb)
+    with pn.evaluating(0, bb):
+        for name in params:
+            assert torch.equal(params[name], task0[name]), name
+    assert all(torch.equal(before[k], v) for k, v in bb.named_parameters())
+    with pn.evaluating(1, bb):  # the task in training uses its free weights
+        assert all(torch.equal(before[k], v) for k, v in bb.named_parameters())
+    with pytest.raises(ValueError, match="cannot evaluate task 2"):
+        with pn.evaluating(2, bb):
+            pass
+
+    pn.after_task(1, bb, data[1])
+    for name, w in linear_weights(bb).items():
+        free_after_0 = w.numel() - round(0.25 * w.numel())
+        assert int((pn.owner[name] == 1).sum()) == round(0.25 * free_after_0)
+    for _ in range(pn.wants_retrain_steps):
+        train(bb, pn, opt, data[1], 1)
+    task1 = snapshot(bb)
+
+    # ---- task 2 (last): not pruned, owns every free entry
+    pn.before_task(2, bb)
+    train(bb, pn, opt, data[2], 10)
+    pn.after_task(2, bb, data[2])
+    assert pn.phase is Phase.FROZEN and pn.wants_retrain_steps == 0
+    for name, w in linear_weights(bb).items():
+        assert not torch.any(pn.owner[name] == FREE)
+        n1 = round(0.25 * (w.numel() - round(0.25 * w.numel())))
+        assert pn.owned_fraction(name, 2) == pytest.approx(
+            1 - (round(0.25 * w.numel()) + n1) / w.numel()
+        )
+    # Every earlier task's backbone is recovered exactly under its mask.
+    for task, snap in ((0, task0), (1, task1)):
+        with pn.evaluating(task, bb):
+            assert all(torch.equal(v, snap[k]) for k, v in bb.named_parameters()), task
+
+    # Checkpoint round trip gives the same masks.
+    twin = make_method("packnet", num_tasks=3, retrain_steps=5)
+    twin.load_state_dict(pn.state_dict())
+    with twin.evaluating(0, bb):
+        assert all(torch.equal(v, task0[k]) for k, v in bb.named_parameters())
+
+
+def test_packnet_without_retraining_freezes_at_once():
+    torch.manual_seed(0)
+    bb = TinyBackbone()
+    pn = make_method("packnet", num_tasks=2, retrain_steps=0, keep_fraction=0.5)
+    opt = torch.optim.Adam(bb.parameters(), lr=1e-2)
+    data = make_task_data(bb, 0, 64)
+    pn.before_task(0, bb)
+    train(bb, pn, opt, data, 3)
+    pn.after_task(0, bb, data)
+    assert pn.phase is Phase.FROZEN and pn.wants_retrain_steps == 0
+    assert pn.owned_fraction("dynamics.weight", 0) == pytest.approx(
+        round(0.5 * bb.dynamics.weight.numel()) / bb.dynamics.weight.numel()
+    )
+    with pytest.raises(RuntimeError, match="expected task 1"):
+        pn.before_task(2, bb)
+
+
+# ----------------------------------------------------------------------------- TD-MPC2
+
+
+def _tdmpc2_setup():
+    pytest.importorskip("ccfit.models.tdmpc2")
+    from ccfit.config import TDMPC2Config
+    from ccfit.models.tdmpc2 import TDMPC2
+    from ccfit.replay import ReplayBuffer
+
+    torch.manual_seed(0)
+    cfg = TDMPC2Config.preset("smoke")
+    model = TDMPC2(cfg, device="cpu")
+    rng = np.random.default_rng(0)
+    buffers = []
+    for task in range(2):
+        buf = ReplayBuffer(capacity=500, seed=task)
+        for _ in range(3):
+            steps = 30
+            buf.add_episode(
+                {"state": rng.normal(size=(steps + 1, cfg.state_dim)).astype(np.float32)
+                 + task},
+                rng.uniform(-1, 1, size=(steps, 4)).astype(np.float32),
+                -rng.uniform(size=steps).astype(np.float32),
+                np.zeros(steps, dtype=np.float32),
+                task=task,
+            )
+        buffers.append(buf)
+    return cfg, model, buffers
+
+
+def _task_data(model, buf, task, horizon):
+    # A fixed pool of real subsequences stands in for the buffer's transitions.
+    pool = buf.sample(80, horizon)
+
+    def gather(indices):
+        rows = torch.as_tensor(np.asarray(indices), dtype=torch.long)
+        return Batch({k: v[:, rows] for k, v in pool.obs.items()}, pool.action[:, rows],
+                     pool.reward[:, rows], pool.terminated[:, rows], pool.task[rows])
+
+    return TaskData(task, lambda: buf.sample(16, horizon), pool.size, gather,
+                    model.backbone_loss)
+
+
+@pytest.mark.parametrize("name", ["ft", "er", "ewc", "packnet"])
+def test_methods_on_tdmpc2_backbone(name):
+    cfg, model, buffers = _tdmpc2_setup()
+    kwargs = {"er": {"fraction": 0.25, "batch_size": 8}, "ewc": {"fisher_batches": 3},
+              "packnet": {"retrain_steps": 2}}.get(name, {})
+    method = make_method(name, num_tasks=2, **kwargs)
+    backbone = model.backbone
+    penalties = []
+    task0 = None
+    for task in range(2):
+        heads = model.new_heads()
+        opt = torch.optim.Adam(model.param_groups(heads))
+        head_params = snapshot(heads)
+        method.before_task(task, backbone)
+
+        def update(task=task, heads=heads, opt=opt):
+            out = model.loss(buffers[task].sample(16, cfg.horizon), heads)
+            pen = method.penalty(backbone, model.backbone_loss)
+            penalties.append(pen.item())
+            opt.zero_grad()
+            (out.total + pen).backward()
+            nn.utils.clip_grad_norm_(model.parameters(), 20.0)
+            opt.step()
+            method.after_step(backbone)
+
+        for _ in range(4):
+            update()
+        method.after_task(task, backbone, _task_data(model, buffers[task], task, cfg.horizon))
+        for _ in range(method.wants_retrain_steps):
+            update()
+        if task == 0:
+            task0 = snapshot(backbone)
+        assert not all(torch.equal(v, head_params[k]) for k, v in heads.named_parameters())
+        with method.evaluating(0, backbone):
+            if name == "packnet":  # task 0's backbone exactly, during and after task 1
+                assert all(torch.equal(v, task0[k]) for k, v in backbone.named_parameters())
+
+    assert all(math.isfinite(p) for p in penalties)
+    later = penalties[4 + (2 if name == "packnet" else 0):]
+    if name in ("ft", "packnet"):
+        assert all(p == 0.0 for p in penalties)
+    else:  # ER replays task 0 and EWC penalises drift during task 1
+        assert all(p > 0 for p in later[1:])
+    if name == "packnet":
+        linears = [m for m in backbone.modules() if isinstance(m, nn.Linear)]
+        assert len(method.owner) == len(linears) > 0

@@ -1,0 +1,81 @@
+"""Suites, their order, and composition matrices derived from declared components."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import ccdata
+
+EXPECTED_ORDER = {
+    "Reach": ["reach-xy", "reach-xz", "reach-yz", "reach-xyz"],
+    "Grasp": ["pick-cube", "place-cube", "pnp-cube"],
+    "BinPnP": ["bin-red-blue", "bin-yellow-blue", "bin-red-purple", "bin-yellow-purple"],
+    "PnPBlock": ["pnp-red-block", "pnp-blue-block", "stack-blocks"],
+    "DrawerPnP": ["pnp-cube", "drawer-open", "drawer-pnp"],
+    "PnPBoxClose": ["pnp-cube", "box-close", "box-pnp-close"],
+}
+AXES = {
+    "Reach": "action",
+    "Grasp": "action",
+    "BinPnP": "perception",
+    "PnPBlock": "perception",
+    "DrawerPnP": "full",
+    "PnPBoxClose": "full",
+}
+
+# By hand from the components each task declares (row i reuses column j).
+EXPECTED_MATRICES = {
+    # Every pair of reach planes shares a displacement axis.
+    "Reach": np.ones((4, 4)),
+    # pick and place share nothing; pick-and-place reuses both.
+    "Grasp": [[1, 0, 0], [0, 1, 0], [1, 1, 1]],
+    # Rows share a bin colour with earlier tasks: yellow->blue shares blue with red->blue,
+    # red->purple shares red with red->blue, yellow->purple shares yellow and purple.
+    "BinPnP": [[1, 1, 1, 0], [1, 1, 0, 1], [1, 0, 1, 1], [0, 1, 1, 1]],
+    "PnPBlock": [[1, 0, 1], [0, 1, 1], [1, 1, 1]],
+    "DrawerPnP": [[1, 0, 1], [0, 1, 1], [1, 1, 1]],
+}
+
+
+def test_six_suites_in_paper_order():
+    assert list(ccdata.SUITES) == list(EXPECTED_ORDER)
+    for name, order in EXPECTED_ORDER.items():
+        suite = ccdata.get_suite(name)
+        assert [t.id for t in suite.tasks] == order
+        assert suite.axis == AXES[name]
+        assert suite.composition is suite.tasks[-1]
+
+
+def test_pick_place_cube_is_one_task_everywhere():
+    specs = {ccdata.get_suite(s).tasks[0] for s in ("DrawerPnP", "PnPBoxClose")}
+    specs.add(ccdata.get_suite("Grasp").tasks[-1])
+    assert len({id(s) for s in specs}) == 1
+
+
+@pytest.mark.parametrize("name", EXPECTED_MATRICES)
+def test_composition_matrices(name):
+    matrix = ccdata.get_suite(name).composition_matrix()
+    assert matrix.dtype == bool
+    np.testing.assert_array_equal(matrix, np.asarray(EXPECTED_MATRICES[name], dtype=bool))
+
+
+@pytest.mark.parametrize("name", list(EXPECTED_ORDER))
+def test_matrix_properties(name):
+    m = ccdata.get_suite(name).composition_matrix()
+    assert m.shape == (len(EXPECTED_ORDER[name]),) * 2
+    assert m.diagonal().all(), "every task reuses itself"
+    assert (m == m.T).all(), "sharing a component is symmetric"
+    # The composition task reuses something of every primitive... except where the axis
+    # says otherwise (BinPnP's yellow->purple shares nothing with red->blue).
+    assert m[-1].sum() >= 2
+
+
+def test_box_close_reuses_grasping_on_the_full_axis():
+    m = ccdata.get_suite("PnPBoxClose").composition_matrix()
+    assert m[2].all()
+
+
+def test_unknown_suite_lists_valid_names():
+    with pytest.raises(ValueError, match="unknown suite 'Nope'.*PnPBoxClose"):
+        ccdata.get_suite("Nope")
