@@ -224,9 +224,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from ccdata.hub import HubError
+
     try:
         code = args.func(args)
-    except (CliError, ValueError, FileNotFoundError, FileExistsError) as err:
+    except (CliError, HubError, ValueError, FileNotFoundError, FileExistsError) as err:
         print(f"ccdata {args.command}: error: {err}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
