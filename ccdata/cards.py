@@ -34,10 +34,10 @@ def _yaml_list(items, indent: int = 2) -> str:
 
 
 def _generation_defaults():
-    from ccdata.record import GenerateConfig, video_settings
+    from ccdata.record import VIDEO_ENCODER, GenerateConfig
 
     fields = {f.name: f.default for f in dataclasses.fields(GenerateConfig)}
-    return fields, video_settings()
+    return fields, VIDEO_ENCODER
 
 
 def render_card(suite_name: str) -> str:

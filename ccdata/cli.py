@@ -113,19 +113,49 @@ def _cmd_generate(args: argparse.Namespace) -> None:
     print(f"dataset: {path}")
 
 
-def format_summary(summary) -> str:
-    rows = summary.get("rows", summary) if isinstance(summary, dict) else summary
-    if not isinstance(rows, list):
-        return json.dumps(summary, indent=2)
-    keys = list(rows[0]) if rows else []
-    lines = ["  ".join(f"{k:>12}" for k in keys)]
-    for row in rows:
+SUMMARY_COLUMNS = (
+    ("task", "task", "{:<18}"),
+    ("policy", "policy", "{:<13}"),
+    ("episodes", "episodes", "{:>8}"),
+    ("frames", "frames", "{:>8}"),
+    ("success_rate", "success", "{:>8.2f}"),
+    ("mean_normalized_return", "norm.ret", "{:>9.1f}"),
+    ("wall_time_s", "wall s", "{:>8.1f}"),
+    ("frames_per_s", "frames/s", "{:>9.1f}"),
+)
+
+
+def format_summary(summary: dict) -> str:
+    """The per task and policy table of `ccdata generate`, then the run's totals."""
+    lines = ["  ".join(_pad(title, fmt) for _, title, fmt in SUMMARY_COLUMNS)]
+    for row in summary["per_task_policy"]:
         cells = []
-        for k in keys:
-            v = row[k]
-            cells.append(f"{v:>12.3f}" if isinstance(v, float) else f"{v!s:>12}")
+        for key, _, fmt in SUMMARY_COLUMNS:
+            value = row[key]
+            cells.append(_pad("-", fmt) if value is None else fmt.format(value))
         lines.append("  ".join(cells))
+    fps = summary["frames_per_s"]
+    lines.append(
+        f"{summary['episodes']} episodes, {summary['frames']} frames; this run: "
+        f"{summary['new_episodes']} new episodes in {summary['wall_time_s'] or 0:.1f} s"
+        + (f" ({fps:.1f} frames/s)" if fps else "")
+    )
     return "\n".join(lines)
+
+
+def _pad(text: str, fmt: str) -> str:
+    width = int("".join(ch for ch in fmt.split(":")[1] if ch.isdigit()).split(".")[0] or 0)
+    return f"{text:>{width}}" if ">" in fmt else f"{text:<{width}}"
+
+
+def _dataset_root(args: argparse.Namespace) -> Path:
+    from ccdata.record import GenerateConfig
+
+    if args.root:
+        return Path(args.root)
+    if args.suite is None:
+        raise CliError("give --suite or --root")
+    return GenerateConfig(suite=args.suite).dataset_root
 
 
 def _cmd_card(args: argparse.Namespace) -> None:
@@ -140,12 +170,11 @@ def _cmd_card(args: argparse.Namespace) -> None:
 
 
 def _cmd_verify(args: argparse.Namespace) -> int:
-    from ccdata.record import default_root
     from ccdata.verify import verify_dataset
 
-    if args.root is None and args.suite is None:
-        raise CliError("give --suite or --root")
-    root = Path(args.root) if args.root else default_root(f"ccdata/{args.suite}")
+    root = _dataset_root(args)
+    if not root.exists():
+        raise CliError(f"no dataset at {root}: run `ccdata generate --suite {args.suite}` first")
     findings = verify_dataset(root)
     if findings:
         print(f"{root}: {len(findings)} problem(s)")
@@ -158,9 +187,8 @@ def _cmd_verify(args: argparse.Namespace) -> int:
 
 def _cmd_push(args: argparse.Namespace) -> None:
     from ccdata.hub import push_dataset
-    from ccdata.record import default_root
 
-    root = Path(args.root) if args.root else default_root(f"ccdata/{args.suite}")
+    root = _dataset_root(args)
     url = push_dataset(root, args.repo_id, endpoint=args.endpoint, private=args.private)
     print(f"pushed {root} -> {url}")
 

@@ -83,6 +83,13 @@ def add_free_box(
 ) -> None:
     """A free-floating cube `name` with geom `name + 'Geom'` (graspable by the Sawyer)."""
     body = spec.worldbody.add_body(name=name, pos=list(pos))
+    # Meta-World's files compile inertia from geom groups 4-5 only (their collision geoms), so a
+    # group-0 box would come out massless: give the body a solid cube's inertia explicitly.
+    body.explicitinertial = True
+    body.mass = mass
+    body.ipos = [0.0, 0.0, 0.0]
+    body.iquat = [1.0, 0.0, 0.0, 0.0]
+    body.inertia = [mass * (2 * half_size) ** 2 / 6.0] * 3
     body.add_freejoint(name=name + "joint")
     body.add_geom(
         name=name + "Geom",

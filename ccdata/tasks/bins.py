@@ -17,7 +17,7 @@ import numpy as np
 from metaworld.utils import reward_utils
 
 from ccdata.policies.base import Oracle, State, move, pose_action
-from ccdata.tasks.base import CUBE_HALF_SIZE, SceneEnv, add_cube
+from ccdata.tasks.base import SceneEnv, add_cube
 from ccdata.tasks.registry import TaskSpec, register_task
 
 BIN_RGBA: dict[str, tuple[float, float, float, float]] = {
@@ -30,7 +30,6 @@ BIN_RGBA: dict[str, tuple[float, float, float, float]] = {
 
 SOURCE_BIN, TARGET_BIN = "bin_start", "bin_goal"
 SUCCESS_RADIUS = 0.05
-CUBE_MASS = 0.1
 """Same as `add_free_box`'s default geom mass."""
 CUBE_REST_Z = 0.03
 """Cube centre when resting on a bin floor (floor top at z = 0.01, half size 0.02)."""
@@ -70,13 +69,6 @@ class BinScene(SceneEnv):
     def edit_spec(self, spec) -> None:
         spec.detach_body(spec.body("obj"))
         add_cube(spec, "cube", pos=(-0.12, 0.7, CUBE_REST_Z))
-        # This file compiles inertia from geom groups 4-5 only (Meta-World's collision
-        # groups); the cube's geom is group 0, so give its body the solid cube's inertia.
-        cube = spec.body("cube")
-        cube.explicitinertial = True
-        cube.mass = CUBE_MASS
-        cube.ipos, cube.iquat = [0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
-        cube.inertia = [CUBE_MASS * (2 * CUBE_HALF_SIZE) ** 2 / 6] * 3
         for bin_name, colour in self.colours.items():
             self._paint(spec.body(bin_name), BIN_RGBA[colour])
 

@@ -22,7 +22,6 @@ from ccdata.tasks.grasp import (
     TABLE_HIGH,
     TABLE_LOW,
     PickPlaceOracle,
-    give_box_inertia,
     pads_touch,
     sample_xy,
     transport_reward,
@@ -69,7 +68,6 @@ class BlockScene(SceneEnv):
         for i, colour in enumerate(self.colours):
             name = block_name(colour)
             add_free_box(spec, name, CUBE_HALF_SIZE, BLOCK_RGBA[colour], pos=(0.1 * i, 0.6, REST_Z))
-            give_box_inertia(spec, name, CUBE_HALF_SIZE)
         add_marker(spec, "goal")
 
     def _get_id_main_object(self) -> int:

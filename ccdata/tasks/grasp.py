@@ -14,7 +14,6 @@ transport reward and the scripted grasp-carry-release oracle.
 
 from __future__ import annotations
 
-import mujoco
 import numpy as np
 from metaworld.utils import reward_utils
 
@@ -38,19 +37,6 @@ PLACE_RADIUS = 0.07
 its marker is only 0.1-0.2 m above the cube."""
 GRASP_INIT_STEPS = 15
 """Meta-World steps of closing the gripper while the place-cube layout is built."""
-
-
-def give_box_inertia(spec: mujoco.MjSpec, name: str, half_size: float, mass: float = 0.1):
-    """Give free box `name` an explicit inertia.
-
-    Meta-World's MJCF compiles inertia only from geom groups 4-5 (`inertiagrouprange`), so a
-    box added in group 0 would otherwise compile with zero mass.
-    """
-    body = spec.body(name)
-    body.explicitinertial = True
-    body.mass = mass
-    body.ipos = [0.0, 0.0, 0.0]
-    body.inertia = [mass * (2 * half_size) ** 2 / 6.0] * 3
 
 
 def pads_touch(scene: SceneEnv, geom_id: int) -> bool:
@@ -129,7 +115,6 @@ class GraspScene(SceneEnv):
         spec.detach_body(spec.body("obj"))
         spec.site("goal").delete()
         add_cube(spec)
-        give_box_inertia(spec, "cube", CUBE_HALF_SIZE)
         add_marker(spec, "goal")
 
     def _get_id_main_object(self) -> int:
