@@ -1,0 +1,1 @@
+"""World models: one interface (base.py), TD-MPC2, PWM."""

@@ -1,0 +1,283 @@
+"""Observation encoders: `encoder(obs_dict) -> latent (..., latent_dim)`, SimNorm on the output.
+
+- `StateEncoder`: MLP on the 39-D 'state'.
+- `PixelEncoder`: the benchmark's fusion encoder. A TD-MPC2-style 4-conv branch reads the
+  9-channel 'pixels' (topview, frontview, gripperPOV stacked by `preprocess_frames`), an MLP
+  branch reads the 7-D 'proprio', and a fusion MLP maps both to the latent.
+
+Inputs may carry any number of leading dims (e.g. time-major (T, B, ...) batches).
+
+`save_encoder` / `load_frozen_encoder` store an encoder with the settings needed to rebuild it,
+for the frozen-encoder diagnostic (pretrain once with `ccfit.pretrain`, then plug the same
+weights into a model): safetensors weights with the settings in their header, and a JSON
+sidecar recording how they were made.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from ccfit.config import TDMPC2Config
+from ccfit.models.layers import NormedLinear, SimNorm, mlp
+from ccfit.obs import stack_cameras
+
+preprocess_frames = stack_cameras
+"""Camera dict of uint8 (..., H, W, 3) -> uint8 (..., 9, H, W) in topview, frontview,
+gripperPOV order. One implementation (`ccfit.obs.stack_cameras`) for dataset and live frames."""
+
+
+class StateEncoder(nn.Module):
+    """MLP on obs['state'] with `num_layers - 1` hidden layers (at least one)."""
+
+    def __init__(
+        self, state_dim: int, enc_dim: int, num_layers: int, latent_dim: int, simnorm_dim: int
+    ) -> None:
+        super().__init__()
+        self.state_dim = state_dim
+        hidden = [enc_dim] * max(num_layers - 1, 1)
+        self.net = mlp(state_dim, hidden, latent_dim, act=SimNorm(simnorm_dim))
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        x = _require(obs, "state")
+        if x.shape[-1] != self.state_dim:
+            raise ValueError(f"'state' must end in {self.state_dim}, got {tuple(x.shape)}")
+        return self.net(x.float())
+
+
+def random_shift(x: torch.Tensor, pad: int) -> torch.Tensor:
+    """Shift each image (N, C, H, W) by up to `pad` pixels each way, repeating edge pixels.
+
+    Same result as replicate-padding by `pad` and cropping at a random offset, but done with
+    clamped gathers so that it also runs on uint8 (4x less memory traffic than float).
+    """
+    n, c, h, w = x.shape
+    dy = torch.randint(-pad, pad + 1, (n, 1), device=x.device)
+    dx = torch.randint(-pad, pad + 1, (n, 1), device=x.device)
+    rows = (torch.arange(h, device=x.device) + dy).clamp(0, h - 1)  # (N, H)
+    cols = (torch.arange(w, device=x.device) + dx).clamp(0, w - 1)  # (N, W)
+    x = x.gather(2, rows[:, None, :, None].expand(n, c, h, w))
+    return x.gather(3, cols[:, None, None, :].expand(n, c, h, w))
+
+
+class PixelEncoder(nn.Module):
+    """Conv branch on obs['pixels'] (uint8, 9 x S x S) + MLP branch on obs['proprio'], fused.
+
+    Convs as TD-MPC2's 64 px encoder (7/2, 5/2, 3/2, 3/1, ReLU between); the flattened size is
+    computed for any S >= 32. The conv features go through a NormedLinear to `enc_dim`, are
+    concatenated with the proprio branch's `enc_dim` features, and a fusion MLP maps them to
+    the SimNorm latent. Random shifts (`shift` px) are applied in training mode only.
+    """
+
+    def __init__(
+        self,
+        image_size: int,
+        proprio_dim: int,
+        num_channels: int,
+        enc_dim: int,
+        num_layers: int,
+        latent_dim: int,
+        simnorm_dim: int,
+        shift: int = 4,
+    ) -> None:
+        super().__init__()
+        if image_size < 32:
+            raise ValueError(f"image_size must be >= 32, got {image_size}")
+        self.image_size, self.proprio_dim, self.shift = image_size, proprio_dim, shift
+        c = num_channels
+        # Unpadded, the stack needs S >= 40 (64 -> 29 -> 13 -> 6 -> 4); below that the last conv
+        # is padded so that 32 px still works (32 -> 13 -> 5 -> 2 -> 2).
+        last_pad = 0 if image_size >= 40 else 1
+        self.conv = nn.Sequential(
+            nn.Conv2d(9, c, 7, stride=2), nn.ReLU(),
+            nn.Conv2d(c, c, 5, stride=2), nn.ReLU(),
+            nn.Conv2d(c, c, 3, stride=2), nn.ReLU(),
+            nn.Conv2d(c, c, 3, stride=1, padding=last_pad), nn.Flatten(),
+        )  # fmt: skip
+        with torch.no_grad():
+            flat = self.conv(torch.zeros(1, 9, image_size, image_size)).shape[-1]
+        self.conv_out = flat
+        self.image_proj = NormedLinear(flat, enc_dim)
+        self.proprio = mlp(proprio_dim, [enc_dim] * max(num_layers - 1, 1), enc_dim, act=nn.Mish())
+        self.fuse = mlp(2 * enc_dim, [enc_dim], latent_dim, act=SimNorm(simnorm_dim))
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        pix, prop = _require(obs, "pixels"), _require(obs, "proprio")
+        s = self.image_size
+        if pix.shape[-3:] != (9, s, s):
+            raise ValueError(f"'pixels' must end in (9, {s}, {s}), got {tuple(pix.shape)}")
+        if prop.shape[-1] != self.proprio_dim:
+            raise ValueError(f"'proprio' must end in {self.proprio_dim}, got {tuple(prop.shape)}")
+        lead = pix.shape[:-3]
+        x = pix.reshape(-1, 9, s, s)
+        if self.training and self.shift > 0:
+            x = random_shift(x, self.shift)
+        x = x.float().div_(255.0).sub_(0.5)  # in place: these are the largest tensors here
+        img = self.image_proj(self.conv(x)).reshape(*lead, -1)
+        return self.fuse(torch.cat([img, self.proprio(prop.float())], dim=-1))
+
+
+def _require(obs: dict[str, torch.Tensor], key: str) -> torch.Tensor:
+    if key not in obs:
+        raise ValueError(f"observation lacks {key!r}; has {sorted(obs)}")
+    return obs[key]
+
+
+def build_encoder(cfg: TDMPC2Config) -> nn.Module:
+    """The encoder for `cfg.obs_mode` ('state' or 'pixels')."""
+    if cfg.obs_mode == "state":
+        return StateEncoder(
+            cfg.state_dim, cfg.enc_dim, cfg.num_enc_layers, cfg.latent_dim, cfg.simnorm_dim
+        )
+    if cfg.obs_mode == "pixels":
+        return PixelEncoder(
+            cfg.image_size, cfg.proprio_dim, cfg.num_channels, cfg.enc_dim, cfg.num_enc_layers,
+            cfg.latent_dim, cfg.simnorm_dim, cfg.image_shift,
+        )
+    raise ValueError(f"unknown obs_mode {cfg.obs_mode!r}; valid: state, pixels")
+
+
+ENCODER_FORMAT = "ccfit-encoder-v1"
+_SPEC_FIELDS = (
+    "obs_mode", "state_dim", "proprio_dim", "image_size", "enc_dim", "num_enc_layers",
+    "num_channels", "latent_dim", "simnorm_dim", "image_shift",
+)  # fmt: skip
+
+
+class FrozenEncoder(nn.Module):
+    """A pretrained encoder whose weights never change: no gradients, always in eval mode
+    (no augmentation), whatever `.train()` is called with."""
+
+    def __init__(self, encoder: nn.Module, cfg: TDMPC2Config) -> None:
+        super().__init__()
+        self.encoder = encoder.requires_grad_(False).eval()
+        self.obs_mode, self.latent_dim = cfg.obs_mode, cfg.latent_dim
+
+    def train(self, mode: bool = True) -> FrozenEncoder:
+        return super().train(False)
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        with torch.no_grad():
+            return self.encoder(obs)
+
+
+SIDECAR_SUFFIX = ".json"
+"""A safetensors encoder `X.safetensors` has its JSON sidecar at `X.json`."""
+
+
+def sidecar_path(path: str | Path) -> Path:
+    """The JSON sidecar of an encoder weights file (`enc.safetensors` -> `enc.json`)."""
+    return Path(path).with_suffix(SIDECAR_SUFFIX)
+
+
+def _atomic_write(path: Path, write) -> None:
+    """Call `write(tmp_path)`, then rename the temp file onto `path` (same directory)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def save_encoder(
+    encoder: nn.Module, cfg: TDMPC2Config, path: str | Path, metadata: dict | None = None
+) -> None:
+    """Write `encoder` (built by `build_encoder(cfg)`) and its settings atomically.
+
+    A path ending in `.safetensors` gets safetensors weights whose header metadata holds the
+    format and the settings (so the weights file alone rebuilds the encoder), plus a JSON sidecar
+    (`sidecar_path`) with the settings, the weights' SHA-256 and `metadata` (e.g. how it was
+    trained). Any other suffix gets the older single `torch.save` file (no sidecar).
+    """
+    if isinstance(encoder, FrozenEncoder):
+        encoder = encoder.encoder
+    spec = {k: getattr(cfg, k) for k in _SPEC_FIELDS}
+    state = {k: v.detach().cpu().contiguous() for k, v in encoder.state_dict().items()}
+    path = Path(path)
+    if path.suffix != ".safetensors":
+        payload = {"format": ENCODER_FORMAT, "spec": spec, "state_dict": state}
+        _atomic_write(path, lambda tmp: torch.save(payload, tmp))
+        return
+    from safetensors.torch import save_file
+
+    header = {"format": ENCODER_FORMAT, "spec": json.dumps(spec, sort_keys=True)}
+    _atomic_write(path, lambda tmp: save_file(state, tmp, metadata=header))
+    sidecar = {
+        "format": ENCODER_FORMAT,
+        "weights": path.name,
+        "weights_sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+        "spec": spec,
+        **(metadata or {}),
+    }
+    text = json.dumps(sidecar, indent=2, sort_keys=True) + "\n"
+    _atomic_write(sidecar_path(path), lambda tmp: Path(tmp).write_text(text))
+
+
+def read_encoder_sidecar(path: str | Path) -> dict:
+    """The JSON sidecar of a safetensors encoder (settings, training record); ValueError if
+    absent or unreadable."""
+    side = sidecar_path(path)
+    try:
+        return json.loads(side.read_text())
+    except (OSError, ValueError) as err:
+        raise ValueError(f"cannot read encoder sidecar {side}: {err}") from err
+
+
+def _read_checkpoint(path: Path) -> tuple[dict, dict]:
+    """(spec, state_dict) of either file format; ValueError for anything unreadable."""
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic == b"PK\x03\x04":  # torch.save's zip container
+        try:
+            ck = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as err:  # noqa: BLE001 - any unpickling failure means a bad file
+            raise ValueError(f"cannot read encoder checkpoint {path}: {err}") from err
+        if not isinstance(ck, dict) or ck.get("format") != ENCODER_FORMAT:
+            raise ValueError(f"{path} is not a {ENCODER_FORMAT} encoder checkpoint")
+        return dict(ck["spec"]), ck["state_dict"]
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            header = f.metadata() or {}
+            state = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 - not a dict
+    except Exception as err:  # noqa: BLE001 - a corrupt header raises various errors
+        raise ValueError(f"cannot read encoder checkpoint {path}: {err}") from err
+    if header.get("format") != ENCODER_FORMAT or "spec" not in header:
+        raise ValueError(f"{path} is not a {ENCODER_FORMAT} encoder checkpoint")
+    return json.loads(header["spec"]), state
+
+
+def load_frozen_encoder(
+    path: str | Path, device: torch.device | str = "cpu"
+) -> tuple[FrozenEncoder, dict]:
+    """Rebuild an encoder written by `save_encoder` (safetensors or torch file) and freeze it.
+
+    Returns (frozen encoder on `device`, its settings); pass the settings into the model's
+    config (e.g. `tdmpc2_preset(..., **spec)`) so latent size and inputs agree.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"encoder checkpoint not found: {path}")
+    spec, state = _read_checkpoint(path)
+    try:
+        cfg = dataclasses.replace(TDMPC2Config(), **spec)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"encoder checkpoint {path} has invalid settings: {err}") from err
+    encoder = build_encoder(cfg)
+    try:
+        encoder.load_state_dict(state)
+    except RuntimeError as err:
+        raise ValueError(f"encoder checkpoint {path} does not match its settings: {err}") from err
+    return FrozenEncoder(encoder, cfg).to(device), spec

@@ -1,0 +1,387 @@
+"""TD-MPC2: layers, encoders, losses, updates and planning at smoke size."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from ccfit.config import TDMPC2_SIZES, TDMPC2Config, tdmpc2_preset
+from ccfit.models.base import Batch
+from ccfit.models.encoders import preprocess_frames, random_shift
+from ccfit.models.layers import EnsembleMLP, SimNorm, TwoHot, mlp, symexp, symlog
+from ccfit.models.tdmpc2 import TDMPC2
+
+MODES = ("state", "pixels")
+SIZE = 32  # pixel side for tests
+B = 16
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    # Tiny networks: one thread avoids oversubscription on shared CPUs (10x slower otherwise).
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def make_cfg(mode: str, **kw) -> TDMPC2Config:
+    return tdmpc2_preset("smoke", mode, image_size=SIZE, **kw)
+
+
+def make_batch(cfg: TDMPC2Config, seed: int = 0, batch: int = B) -> Batch:
+    g = torch.Generator().manual_seed(seed)
+    t = cfg.horizon
+    if cfg.obs_mode == "state":
+        obs = {"state": torch.randn(t + 1, batch, cfg.state_dim, generator=g)}
+    else:
+        obs = {
+            "pixels": torch.randint(0, 256, (t + 1, batch, 9, SIZE, SIZE), generator=g).to(
+                torch.uint8
+            ),
+            "proprio": torch.randn(t + 1, batch, cfg.proprio_dim, generator=g),
+        }
+    action = torch.rand(t, batch, cfg.action_dim, generator=g) * 2 - 1
+    reward = -torch.rand(t, batch, 1, generator=g)
+    terminated = (torch.rand(t, batch, 1, generator=g) < 0.15).float()
+    reward = reward * (1 - terminated)  # success steps have reward 0
+    return Batch(obs, action, reward, terminated, torch.zeros(batch, dtype=torch.long))
+
+
+def build(mode: str, seed: int = 0, **kw):
+    torch.manual_seed(seed)
+    model = TDMPC2(make_cfg(mode, **kw), device="cpu")
+    heads = model.new_heads()
+    return model, heads
+
+
+def update(model, heads, opt, popt, batch):
+    out = model.loss(batch, heads)
+    opt.zero_grad(set_to_none=True)
+    out.total.backward()
+    torch.nn.utils.clip_grad_norm_([p for g in opt.param_groups for p in g["params"]], 20.0)
+    opt.step()
+    model.head_update(batch, heads, out, popt)
+    return out
+
+
+# ------------------------------------------------------------------------------------ layers
+
+
+def test_two_hot_round_trip_and_symlog():
+    th = TwoHot(101, -10.0, 10.0)
+    x = torch.tensor([-1.0, -0.37, 0.0, 0.25, 3.0, 120.0, -500.0]).unsqueeze(-1)
+    probs = th.encode(x)
+    assert probs.shape == (7, 101)
+    torch.testing.assert_close(probs.sum(-1), torch.ones(7))
+    assert ((probs > 0).sum(-1) <= 2).all()
+    torch.testing.assert_close(th.decode(probs), x, rtol=1e-4, atol=1e-5)
+    # Values beyond the support clamp to its ends.
+    big = th.decode(th.encode(torch.tensor([[1e9]])))
+    torch.testing.assert_close(big, symexp(torch.tensor([[10.0]])))
+    torch.testing.assert_close(symexp(symlog(x)), x)
+    # Cross-entropy is smallest for logits matching the target.
+    target = torch.tensor([[-0.5]])
+    good = torch.log(th.encode(target) + 1e-8)
+    bad = torch.log(th.encode(torch.tensor([[2.0]])) + 1e-8)
+    assert th.cross_entropy(good, target).item() < th.cross_entropy(bad, target).item() - 1.0
+    with pytest.raises(ValueError, match="num_bins"):
+        TwoHot(1, -1.0, 1.0)
+
+
+def test_simnorm_and_ensemble():
+    z = SimNorm(8)(torch.randn(5, 32))
+    torch.testing.assert_close(z.view(5, 4, 8).sum(-1), torch.ones(5, 4))
+    torch.manual_seed(0)
+    ens = EnsembleMLP(3, 6, [16, 16], 5)
+    with torch.no_grad():
+        for p in ens.parameters():
+            p.normal_()
+    x = torch.randn(2, 4, 6)
+    out = ens(x)
+    assert out.shape == (3, 2, 4, 5)
+    # Each member equals an ordinary MLP holding that member's weights.
+    ref = mlp(6, [16, 16], 5)
+    with torch.no_grad():
+        for k in range(3):
+            for i, layer in enumerate(ens.hidden):
+                ref[i].weight.copy_(layer.weight[k].T)
+                ref[i].bias.copy_(layer.bias[k, 0])
+                ref[i].ln.weight.copy_(layer.ln_weight[k, 0])
+                ref[i].ln.bias.copy_(layer.ln_bias[k, 0])
+            ref[-1].weight.copy_(ens.out.weight[k].T)
+            ref[-1].bias.copy_(ens.out.bias[k, 0])
+            torch.testing.assert_close(out[k], ref(x), rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(ens(x, members=torch.tensor([2, 0])), out[[2, 0]])
+    # detach=True: gradients reach the input, not the weights.
+    xi = x.clone().requires_grad_(True)
+    ens(xi, detach=True).sum().backward()
+    assert xi.grad is not None and all(p.grad is None for p in ens.parameters())
+
+
+def test_preprocess_frames_channel_order():
+    cams = ("topview", "frontview", "gripperPOV")
+    frames = {c: np.full((2, 8, 8, 3), 10 * (i + 1), dtype=np.uint8) for i, c in enumerate(cams)}
+    frames["frontview"][..., 1] = 99
+    out = preprocess_frames(frames)
+    assert out.shape == (2, 9, 8, 8) and out.dtype == np.uint8
+    assert out[:, 0:3].max() == 10 and out[:, 6:9].min() == 30
+    assert (out[:, 4] == 99).all() and (out[:, 3] == 20).all()
+    with pytest.raises(ValueError, match="gripperPOV"):
+        preprocess_frames({c: frames[c] for c in cams[:2]})
+
+
+def test_random_shift_is_edge_replicating_translation():
+    torch.manual_seed(0)
+    ramp = torch.arange(12, dtype=torch.uint8)
+    x = (ramp[None, :] * 16 + ramp[:, None]).expand(20, 3, 12, 12).contiguous()  # v = 16j + i
+    out = random_shift(x, 4)
+    assert out.dtype == torch.uint8 and out.shape == x.shape
+    i = (out.long() % 16)[:, :, :, 0]  # source row of each output row
+    j = (out.long() // 16)[:, :, 0, :]  # source column of each output column
+    for k in range(20):
+        for src, ref in ((i[k, 0], i[k]), (j[k, 0], j[k])):
+            shift = int(src[6]) - 6  # a middle pixel is never clamped
+            assert -4 <= shift <= 4 and (ref == src).all()
+            assert torch.equal(src, (torch.arange(12) + shift).clamp(0, 11))
+    assert len({int(i[k, 0, 6]) for k in range(20)}) > 1  # shifts differ across images
+
+
+# ------------------------------------------------------------------------------------ config
+
+
+def test_config_validation_and_presets():
+    with pytest.raises(ValueError, match="state"):
+        TDMPC2Config(obs_mode="rgb")
+    with pytest.raises(ValueError, match="smoke"):
+        tdmpc2_preset("huge")
+    with pytest.raises(ValueError, match="multiple"):
+        TDMPC2Config(latent_dim=30)
+    assert TDMPC2Config().discount == pytest.approx(0.98)
+    paper = tdmpc2_preset("paper", "pixels")
+    assert (paper.latent_dim, paper.mlp_dim, paper.num_q) == (512, 512, 5)
+    assert tdmpc2_preset("19M").latent_dim == TDMPC2_SIZES["19M"]["latent_dim"]
+
+
+# ------------------------------------------------------------------------------------ model
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_shapes_and_finiteness(mode):
+    model, heads = build(mode)
+    cfg = model.cfg
+    batch = make_batch(cfg)
+    z = model.encode(batch.obs)
+    assert z.shape == (cfg.horizon + 1, B, cfg.latent_dim)
+    torch.testing.assert_close(z.reshape(-1, 8).sum(-1), torch.ones(z.numel() // 8))  # SimNorm
+    z0, a0 = z[0], batch.action[0]
+    assert model.next(z0, a0).shape == (B, cfg.latent_dim)
+    assert model.reward(z0, a0, heads).shape == (B, cfg.num_bins)
+    assert model.termination(z0, heads).shape == (B, 1)
+    assert model.Q(z0, a0, heads, "all").shape == (cfg.num_q, B, cfg.num_bins)
+    assert model.Q(z0, a0, heads, "min").shape == (B, 1)
+    action, info = model.pi(z0, heads)
+    assert action.shape == (B, 4) and action.abs().max() <= 1
+    out = model.loss(batch, heads)
+    assert out.total.dim() == 0 and torch.isfinite(out.total)
+    assert set(out.logs) >= {"consistency", "reward", "value", "termination"}
+    assert all(np.isfinite(v) for v in out.logs.values())
+    with pytest.raises(ValueError, match="avg"):
+        model.Q(z0, a0, heads, "max")
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_overfit_one_batch(mode):
+    model, heads = build(mode, lr=1e-3)
+    batch = make_batch(model.cfg)
+    opt = torch.optim.Adam(model.param_groups(heads))
+    popt = model.make_policy_optimizer(heads)
+    first = update(model, heads, opt, popt, batch).total.item()
+    losses = [update(model, heads, opt, popt, batch).total.item() for _ in range(150)]
+    last = float(np.mean(losses[-10:]))  # the TD targets move, so average out the wobble
+    assert np.isfinite(last) and last < first / 3, (first, last)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_state_dict_round_trip(mode, tmp_path):
+    model, heads = build(mode, seed=0)
+    batch = make_batch(model.cfg)
+    opt = torch.optim.Adam(model.param_groups(heads))
+    update(model, heads, opt, model.make_policy_optimizer(heads), batch)
+    torch.save({"model": model.state_dict(), "heads": heads.state_dict()}, tmp_path / "ck.pt")
+
+    other, other_heads = build(mode, seed=1)
+    ck = torch.load(tmp_path / "ck.pt")
+    other.load_state_dict(ck["model"])
+    other_heads.load_state_dict(ck["heads"])
+    for m in (model, heads, other, other_heads):
+        m.eval()
+    with torch.no_grad():
+        z, z2 = model.encode(batch.obs), other.encode(batch.obs)
+        assert torch.equal(z, z2)
+        a = batch.action[0]
+        assert torch.equal(model.Q(z[0], a, heads, "all"), other.Q(z2[0], a, other_heads, "all"))
+        assert torch.equal(
+            model.Q(z[0], a, heads, "all", target=True),
+            other.Q(z2[0], a, other_heads, "all", target=True),
+        )
+        assert torch.equal(model.reward(z[0], a, heads), other.reward(z2[0], a, other_heads))
+        torch.manual_seed(3)
+        l1 = model.loss(batch, heads).total
+        torch.manual_seed(3)
+        l2 = other.loss(batch, other_heads).total
+        assert torch.equal(l1, l2)
+    assert torch.equal(heads.q_scale, other_heads.q_scale)
+
+
+def _three_updates(mode):
+    model, heads = build(mode, seed=7)
+    opt = torch.optim.Adam(model.param_groups(heads))
+    popt = model.make_policy_optimizer(heads)
+    for i in range(3):
+        update(model, heads, opt, popt, make_batch(model.cfg, seed=i))
+    return [p.detach().clone() for p in [*model.parameters(), *heads.parameters()]]
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_same_seed_same_updates(mode):
+    a, b = _three_updates(mode), _three_updates(mode)
+    assert len(a) == len(b)
+    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_plan_actions(mode):
+    model, heads = build(mode)
+    batch = make_batch(model.cfg)
+    obs = {k: v[0, 0] for k, v in batch.obs.items()}
+    for t0, ev in ((True, False), (False, False), (False, True)):
+        a = model.act(obs, heads, t0=t0, eval_mode=ev)
+        assert a.shape == (4,) and np.isfinite(a).all() and np.abs(a).max() <= 1.0
+    assert heads.prev_mean.abs().sum() > 0  # the plan is kept for the warm start
+    # Training mode is restored after acting.
+    assert model.training and heads.training and not heads.target_qs.training
+    # Eval actions are deterministic given the RNG state.
+    torch.manual_seed(5)
+    a1 = model.act(obs, heads, t0=True, eval_mode=True)
+    torch.manual_seed(5)
+    a2 = model.act(obs, heads, t0=True, eval_mode=True)
+    assert np.array_equal(a1, a2)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_backbone_loss_touches_only_backbone(mode):
+    model, heads = build(mode)
+    batch = make_batch(model.cfg)
+    loss = model.backbone_loss(batch)
+    loss.backward()
+    assert all(p.grad is None for p in heads.parameters())
+    grads = [p.grad for p in model.backbone.parameters()]
+    assert all(g is not None for g in grads)
+    assert sum(g.abs().sum().item() for g in grads) > 0
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_param_groups_and_head_update(mode):
+    model, heads = build(mode)
+    groups = model.param_groups(heads)
+    lrs = {g["name"]: g["lr"] for g in groups}
+    assert lrs["encoder"] == pytest.approx(model.cfg.lr * 0.3)
+    grouped = {id(p) for g in groups for p in g["params"]}
+    pi_ids = {id(p) for p in model.policy_parameters(heads)}
+    assert not grouped & pi_ids
+    assert {id(p) for p in model.backbone.parameters()} <= grouped
+    assert not {id(p) for p in heads.target_qs.parameters()} & grouped
+
+    batch = make_batch(model.cfg)
+    out = model.loss(batch, heads)
+    before = [p.detach().clone() for p in model.backbone.parameters()]
+    q_before = [p.detach().clone() for p in heads.qs.parameters()]
+    pi_before = [p.detach().clone() for p in heads.pi.parameters()]
+    with torch.no_grad():  # make online and target Qs differ so the Polyak step is visible
+        for p in heads.qs.parameters():
+            p.add_(0.1)
+    model.head_update(batch, heads, out, model.make_policy_optimizer(heads))
+    after = list(model.backbone.parameters())
+    assert all(torch.equal(x, y) for x, y in zip(before, after, strict=True))
+    assert all(
+        torch.allclose(p - 0.1, q) for p, q in zip(heads.qs.parameters(), q_before, strict=True)
+    )
+    assert any(not torch.equal(x, y) for x, y in zip(pi_before, heads.pi.parameters(), strict=True))
+    # Targets moved by tau towards the online Qs.
+    for t, q in zip(heads.target_qs.parameters(), q_before, strict=True):
+        torch.testing.assert_close(t, q + 0.1 * model.cfg.tau)
+
+
+@pytest.mark.parametrize("mode", ["state"])
+def test_terminal_masking(mode):
+    model, heads = build(mode)
+    batch = make_batch(model.cfg)
+    # TD target: a terminal transition's target is its reward, with no bootstrap.
+    z = model.encode(batch.obs)[1:]
+    ones = torch.ones_like(batch.reward)
+    with torch.no_grad():
+        for p in heads.target_qs.parameters():  # non-zero values so a bootstrap would show
+            p.normal_()
+        td = model._td_target(z, batch.reward, ones, heads)
+        td_live = model._td_target(z, batch.reward, torch.zeros_like(ones), heads)
+    assert torch.equal(td, batch.reward) and not torch.equal(td_live, batch.reward)
+    # Steps after a termination (another episode in the subsequence) carry no loss.
+    batch.terminated.zero_()
+    batch.terminated[0] = 1.0
+    torch.manual_seed(1)
+    a = model.loss(batch, heads).logs
+    batch.reward[1:] = -0.3
+    batch.action[1:] = 0.7
+    batch.obs["state"][2:] += 5.0
+    torch.manual_seed(1)
+    b = model.loss(batch, heads).logs
+    assert a == b
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_acts_in_real_env(mode):
+    import ccdata
+    from ccfit.obs import obs_to_tensors
+
+    env = ccdata.make_env("reach-xy", seed=0, image_size=SIZE, render=mode == "pixels")
+    obs, _ = env.reset(seed=0)
+    model, heads = build(mode)
+    for t in range(3):
+        action = model.act(obs_to_tensors(obs, mode), heads, t0=t == 0, eval_mode=False)
+        assert action.shape == (4,) and np.abs(action).max() <= 1.0
+        obs, reward, *_ = env.step(action.astype(np.float32))
+        assert -1.0 <= reward <= 0.0
+    env.close()
+
+
+def test_frozen_encoder_round_trip(tmp_path):
+    from ccfit.models.encoders import load_frozen_encoder, save_encoder
+
+    source, _ = build("pixels", seed=3)
+    save_encoder(source.backbone.encoder, source.cfg, tmp_path / "enc.pt")
+    frozen, spec = load_frozen_encoder(tmp_path / "enc.pt")
+    assert spec["image_size"] == SIZE and spec["latent_dim"] == source.cfg.latent_dim
+    torch.manual_seed(0)
+    model = TDMPC2(make_cfg("pixels"), device="cpu", encoder=frozen)
+    heads = model.new_heads()
+    model.train()
+    assert not frozen.training  # no augmentation, ever
+    batch = make_batch(model.cfg)
+    source.eval()
+    with torch.no_grad():
+        assert torch.equal(model.encode(batch.obs), source.encode(batch.obs))
+    groups = model.param_groups(heads)
+    assert "encoder" not in {g["name"] for g in groups}
+    before = [p.clone() for p in frozen.parameters()]
+    opt = torch.optim.Adam(groups)
+    update(model, heads, opt, model.make_policy_optimizer(heads), batch)
+    assert all(torch.equal(x, y) for x, y in zip(before, frozen.parameters(), strict=True))
+    with pytest.raises(ValueError, match="latent"):
+        TDMPC2(make_cfg("pixels", latent_dim=64), device="cpu", encoder=frozen)
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="cannot read"):
+        load_frozen_encoder(tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match="not found"):
+        load_frozen_encoder(tmp_path / "missing.pt")
