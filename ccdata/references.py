@@ -85,6 +85,7 @@ def write_references(tasks=None, episodes: int = 50, path: Path | None = None) -
     with os.fdopen(fd, "w") as f:
         json.dump(data, f, indent=2)
         f.write("\n")
+    os.chmod(tmp, 0o644)  # mkstemp makes it private; this is package data
     os.replace(tmp, path)
     references.cache_clear()
     return path

@@ -5,6 +5,11 @@ Example:
 
 Commands:
     train    online model-based RL on one task (resumes when --out holds its checkpoint)
+    run      a suite's continual curriculum (Algorithm 1) with one method; writes metrics.json
+    report   tables and plots over run directories (BWT / FWT per backbone, suite, method)
+
+    ccfit run --suite Reach --model tdmpc2 --method packnet --obs state --preset cpu --seed 0
+    ccfit report runs/ --out report/
 
 A run directory holds config.json (the resolved config), metrics.jsonl (one line per
 evaluation), tb/ (TensorBoard) and checkpoint.pt.
@@ -74,6 +79,59 @@ def _cmd_train(args: argparse.Namespace) -> None:
     )
 
 
+def _parse_options(items: list[str]) -> dict:
+    """KEY=VALUE pairs; values parsed as JSON when they can be (numbers, booleans)."""
+    import json
+
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise CliError(f"expected KEY=VALUE, got {item!r}")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def _cmd_run(args: argparse.Namespace) -> None:
+    from ccfit.curriculum import Curriculum, CurriculumConfig
+
+    seed_dataset = {"auto": "auto", "none": None}.get(args.seed_dataset, args.seed_dataset)
+    try:
+        cfg = CurriculumConfig(
+            suite=args.suite, model=args.model, method=args.method, preset=args.preset,
+            obs=args.obs, seed=args.seed, image_size=args.image_size, encoder=args.encoder,
+            seed_dataset=seed_dataset, method_options=_parse_options(args.method_option),
+            train_overrides=_parse_options(args.train),
+        )  # fmt: skip
+        out = Path(args.out) if args.out else (
+            Path("runs") / f"{args.suite}-{args.model}-{args.method}-{args.obs}-{args.preset}"
+            f"-s{args.seed}"
+        )  # fmt: skip
+        result = Curriculum(cfg, out, args.scratch_root, progress=not args.quiet).run()
+    except (ValueError, TypeError) as e:
+        raise CliError(str(e)) from None
+
+    def fmt(x):
+        return "n/a" if x is None else f"{x:.2f}"
+
+    print(f"{cfg.suite} {cfg.model} {cfg.method} seed {cfg.seed}: BWT {fmt(result['bwt'])}, "
+          f"FWT {fmt(result['fwt'])}  ->  {out}")  # fmt: skip
+
+
+def _cmd_report(args: argparse.Namespace) -> None:
+    from ccfit.report import write_report
+
+    try:
+        paths = write_report([Path(p) for p in args.runs], Path(args.out))
+    except ValueError as e:
+        raise CliError(str(e)) from None
+    for path in paths:
+        print(path)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="ccfit", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -94,6 +152,32 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("run", help="a suite's continual curriculum (Algorithm 1)")
+    p.add_argument("--suite", required=True, help="suite name (`ccdata list`)")
+    p.add_argument("--model", default="tdmpc2", help="tdmpc2 | pwm")
+    p.add_argument("--method", default="ft", help="ft | er | ewc | packnet | experts (PWM)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--preset", default="cpu", help="smoke | cpu | paper (default cpu)")
+    p.add_argument("--obs", default="state", help="state | pixels (default state)")
+    p.add_argument("--image-size", type=int, default=64)
+    p.add_argument("--encoder", default=None, help="frozen:PATH, a pretrained encoder")
+    p.add_argument("--seed-dataset", default="auto",
+                   help="auto (the suite's dataset when present) | none | SOURCE")  # fmt: skip
+    p.add_argument("--method-option", action="append", default=[], metavar="KEY=VALUE",
+                   help="method setting, e.g. lam=5000 (EWC), fraction=0.05 (ER)")  # fmt: skip
+    p.add_argument("--train", action="append", default=[], metavar="KEY=VALUE",
+                   help="TrainConfig override, e.g. steps=5000")  # fmt: skip
+    p.add_argument("--out", default=None, help="run directory")
+    p.add_argument("--scratch-root", default=None,
+                   help="where from-scratch reference runs are shared (default OUT/../scratch)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("report", help="tables and plots over run directories")
+    p.add_argument("runs", nargs="+", help="run directories (or folders holding them)")
+    p.add_argument("--out", required=True, help="output directory")
+    p.set_defaults(func=_cmd_report)
     return parser
 
 

@@ -165,11 +165,20 @@ class ReplayBuffer:
         """`batch_size` subsequences of H = `horizon` actions, uniform over valid starts."""
         if horizon < 1 or batch_size < 1:
             raise ValueError(f"horizon and batch_size must be >= 1, got {horizon}, {batch_size}")
-        ep, counts, cum = self._index(horizon)
-        total = int(cum[-1]) if len(cum) else 0
+        total = self.num_starts(horizon)
         if total == 0:
             raise ValueError(f"no stored episode has {horizon} transitions to sample from")
-        pick = torch.randint(0, total, (batch_size,), generator=self.generator)
+        starts = torch.randint(0, total, (batch_size,), generator=self.generator)
+        return self.gather(starts, horizon)
+
+    def gather(self, starts, horizon: int) -> Batch:
+        """The subsequences at start numbers `starts` in [0, num_starts(horizon)), in order
+        (start numbers count valid starts episode by episode, as `sample` draws them)."""
+        ep, counts, cum = self._index(horizon)
+        pick = torch.as_tensor(starts, dtype=torch.long).reshape(-1)
+        total = int(cum[-1]) if len(cum) else 0
+        if len(pick) and (int(pick.min()) < 0 or int(pick.max()) >= total):
+            raise ValueError(f"start numbers must be in [0, {total}) for horizon {horizon}")
         which = torch.searchsorted(cum, pick, right=True)
         offset = pick - (cum[which] - counts[which])
         first = ep[which, 0] + offset

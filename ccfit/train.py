@@ -21,6 +21,8 @@ import os
 import random
 import tempfile
 from collections import defaultdict
+from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -107,6 +109,11 @@ def derived_seed(seed: int, tag: int, index: int, task_index: int = 0) -> int:
     task `task_index`, independent of every other (seed, tag, task, index)."""
     entropy = [seed, tag, task_index, index]
     return int(np.random.SeedSequence(entropy).generate_state(1)[0] >> 1)
+
+
+def eval_seeds(seed: int, task_index: int, episodes: int) -> list[int]:
+    """The fixed evaluation layouts of curriculum task `task_index` (the same at every eval)."""
+    return [derived_seed(seed, _EVAL_TAG, j, task_index) for j in range(episodes)]
 
 
 def _rng_state(action_rng: np.random.Generator) -> dict:
@@ -278,6 +285,8 @@ class Trainer:
     method: optional continual method (see `ContinualMethod`).
     run_dir: where `checkpoint.pt` goes (None: no checkpoints, no resume).
     global_offset: global step at which this task starts in a curriculum.
+    extra_eval: called at every evaluation point with the global step; returns more records
+        to log beside this task's (a curriculum evaluates the earlier tasks there).
     """
 
     def __init__(
@@ -295,6 +304,7 @@ class Trainer:
         run_dir: str | Path | None = None,
         global_offset: int = 0,
         progress: bool = True,
+        extra_eval: Callable[[int], list[dict]] | None = None,
     ) -> None:
         self.env = env
         self.model = model
@@ -308,6 +318,7 @@ class Trainer:
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.global_offset = global_offset
         self.progress = progress
+        self.extra_eval = extra_eval
         self.device = next(model.parameters()).device
 
         # Optimisation hyperparameters belong to the model (its recipe): lr, grad_clip_norm.
@@ -430,6 +441,11 @@ class Trainer:
         self._train_logs["train/episode_return"].append(discounted_return(ep["reward"]))
         self._train_logs["train/episode_success"].append(float(ep["terminated"][-1]))
 
+    def extra_updates(self, n: int) -> None:
+        """`n` updates from replay with no environment steps (e.g. PackNet's retraining)."""
+        for _ in range(n):
+            self._update()
+
     def _update(self) -> None:
         batch = self.buffer.sample(self.cfg.batch_size, self.horizon).to(self.device)
         self.model.train()
@@ -458,19 +474,19 @@ class Trainer:
 
     def _evaluate(self) -> dict:
         self.model.eval()
-        seeds = [
-            derived_seed(self.cfg.seed, _EVAL_TAG, j, self.task_index)
-            for j in range(self.cfg.eval_episodes)
-        ]
-        res = evaluate(
-            self.env, self.model, self.heads, obs_mode=self.cfg.obs, seeds=seeds,
-            device=self.device,
-        )  # fmt: skip
-        self.model.train()
+        seeds = eval_seeds(self.cfg.seed, self.task_index, self.cfg.eval_episodes)
+        evaluating = getattr(self.method, "evaluating", None)
+        view = evaluating(self.task_index, self.model.backbone) if evaluating else nullcontext()
+        with view:
+            res = evaluate(
+                self.env, self.model, self.heads, obs_mode=self.cfg.obs, seeds=seeds,
+                device=self.device,
+            )  # fmt: skip
         ret = res.discounted_return
         record = {
             "task": self.task_id,
             "task_index": self.task_index,
+            "stage": self.task_index,
             "global_step": self.global_step,
             "task_step": self.task_step,
             "discounted_return": ret,
@@ -479,9 +495,12 @@ class Trainer:
             "episodes": len(seeds),
         }
         self.last_eval = self.task_step
-        self.evals.append(record)
-        if self.logger is not None:
-            self.logger.log_eval(record)
+        others = self.extra_eval(self.global_step) if self.extra_eval is not None else []
+        for rec in [record, *others]:
+            self.evals.append(rec)
+            if self.logger is not None:
+                self.logger.log_eval(rec)
+        self.model.train()
         return record
 
     # ------------------------------------------------------------------------- checkpoints
@@ -562,11 +581,13 @@ def model_config(name: str, preset: str, obs_mode: str, image_size: int = 64, **
     return tdmpc2_preset(preset, obs_mode, image_size=image_size, **overrides)
 
 
-def build_model(name: str, config, device: torch.device) -> WorldModel:
+def build_model(name: str, config, device: torch.device, encoder=None) -> WorldModel:
+    """`encoder`: a frozen pretrained encoder (`load_frozen_encoder`) to use instead of a
+    trainable one."""
     check_model(name)
     from ccfit.models.tdmpc2 import TDMPC2
 
-    return TDMPC2(config, device=device)
+    return TDMPC2(config, device=device, encoder=encoder)
 
 
 def seed_buffer(
