@@ -18,6 +18,10 @@ PAPER = {
     "url": "https://object814.github.io/Compositional-Continual-Learning/",
 }
 
+SIZE_PER_1000_FRAMES = {"videos_mb": 4.2, "data_mb": 0.20}
+"""Dataset size per 1000 frames at 64 px with the video settings below, measured by
+`bench/dataset_write.py` (Grasp suite, all three policies)."""
+
 AXIS_TEXT = {
     "action": "action composition: the scene stays the same while the composition task "
     "recombines the action primitives learnt before it",
@@ -152,6 +156,9 @@ Video encoding (chosen so a decoded frame matches the live render at PSNR >= 40 
 camera; colour is what tells the tasks of perception suites apart):
 
 {chr(10).join(video_lines)}
+
+Size: about {SIZE_PER_1000_FRAMES["videos_mb"]} MB of video and
+{SIZE_PER_1000_FRAMES["data_mb"]} MB of parquet per 1000 frames (64 px, three cameras).
 
 ## Policies and counts
 

@@ -556,6 +556,9 @@ def merge_pieces(config: GenerateConfig, order: list[str] | None = None) -> int:
     _quiet_libraries()
     _aggregate(sources, paths.new, config.repo_id, scratch)
     shutil.rmtree(scratch, ignore_errors=True)
+    from ccdata.cards import render_card
+
+    (paths.new / "README.md").write_text(render_card(config.suite))  # the dataset card
     _write_json(paths.new / CCDATA_META, ccdata_metadata(config))  # written last: "complete"
     if paths.root.exists():
         os.replace(paths.root, paths.old)

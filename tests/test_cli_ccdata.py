@@ -67,3 +67,30 @@ def test_references_are_reproducible(tmp_path):
     ref = a["tasks"]["reach-xy"]
     assert ref["success_rate"] == 1.0
     assert -5.0 < ref["mean_discounted_return"] < 0.0
+
+
+@pytest.mark.parametrize("suite", ["Reach", "Grasp", "BinPnP", "PnPBlock", "DrawerPnP",
+                                   "PnPBoxClose"])
+def test_checked_in_cards_are_current(suite):
+    from pathlib import Path
+
+    from ccdata.cards import render_card
+
+    card = Path(__file__).parent.parent / "cards" / f"{suite}.md"
+    assert card.read_text() == render_card(suite), f"regenerate: ccdata card --suite {suite}"
+
+
+def test_card_has_lerobot_header_and_suite_yaml():
+    import yaml
+
+    from ccdata.cards import render_card
+
+    text = render_card("BinPnP")
+    header = yaml.safe_load(text.split("---")[1])
+    assert header["task_categories"] == ["robotics"] and "LeRobot" in header["tags"]
+    assert header["configs"][0]["data_files"] == "data/*/*.parquet"
+    assert header["ccdata"]["tasks"][-1] == "bin-yellow-purple"
+    assert header["ccdata"]["composition_matrix"][3] == [0, 1, 1, 1]
+    for section in ("## Composition matrix", "## Oracle reference returns", "## Loading",
+                    "## Citation", "## Policies and counts", "## Rendering"):
+        assert section in text
