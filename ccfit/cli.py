@@ -7,6 +7,8 @@ Commands:
     train    online model-based RL on one task (resumes when --out holds its checkpoint)
     run      a suite's continual curriculum (Algorithm 1) with one method; writes metrics.json
     report   tables and plots over run directories (BWT / FWT per backbone, suite, method)
+    pretrain-encoder   the frozen-encoder diagnostic: an autoencoder on every task's oracle
+             episodes, saved for `ccfit run --obs pixels --encoder frozen:PATH`
 
     ccfit run --suite Reach --model tdmpc2 --method packnet --obs state --preset cpu --seed 0
     ccfit report runs/ --out report/
@@ -174,6 +176,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run)
 
+    from ccfit.pretrain import add_pretrain_parser
+
+    add_pretrain_parser(sub)
+
     p = sub.add_parser("report", help="tables and plots over run directories")
     p.add_argument("runs", nargs="+", help="run directories (or folders holding them)")
     p.add_argument("--out", required=True, help="output directory")
@@ -185,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         args.func(args)
-    except CliError as e:
+    except (CliError, ValueError) as e:
         print(f"ccfit: error: {e}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:

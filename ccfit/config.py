@@ -358,3 +358,99 @@ def tdmpc2_preset(name: str, obs_mode: str = "state", **overrides: Any) -> TDMPC
         valid = [*_TDMPC2_PRESETS, *TDMPC2_SIZES]
         raise ValueError(f"unknown TD-MPC2 preset {name!r}; valid: {', '.join(valid)}")
     return TDMPC2Config(obs_mode=obs_mode, **{**fields, **overrides})
+
+
+# ==================================================================================== PWM
+
+PWM_ROUTERS: tuple[str, ...] = ("task", "state")
+"""Gate inputs of PWM's router: the task identity, or the latent and action."""
+
+
+@dataclass
+class PWMConfig(TDMPC2Config):
+    """PWM (prismatic world model): TD-MPC2 whose latent dynamics is a mixture of experts.
+
+    Every TD-MPC2 field keeps its meaning; the fields below configure the mixture. Experts are
+    allocated in groups of `experts_per_task` (one group per task under the 'experts' continual
+    method, a single group otherwise); the temperature schedule follows the authors' code.
+    """
+
+    experts_per_task: int = 3
+    """K: experts in each group (the paper adds K = 3 per task)."""
+    max_tasks: int = 8
+    """Most expert groups (tasks) the model can hold; also the width of the task one-hot seen
+    by the router. Groups are allocated up front; only active ones are computed and trained."""
+    orthogonalize: bool = False
+    """Gram-Schmidt orthonormalise the expert features across experts (in activation order)
+    before mixing them."""
+    router: str = "task"
+    """Gate input: 'task' (one-hot task identity, as the authors) or 'state' ([z, a])."""
+    tau_init: float = 1.8
+    """Router temperature at the start of each task, held during the hold phase."""
+    tau_min: float = 0.5
+    """Lower clip of the temperature."""
+    tau_max: float = 2.0
+    """Upper clip of the temperature."""
+    tau_rate: float = 0.02
+    """Step of the entropy feedback: tau += tau_rate * tanh(H_target - H(w))."""
+    tau_target_frac: float = 0.75
+    """H_target = tau_target_frac * log(active experts)."""
+    tau_hold_min: int = 5000
+    """The temperature is held for max(tau_hold_min, tau_hold_frac * task_steps) updates."""
+    tau_hold_frac: float = 0.05
+    """Share of a task's steps during which the temperature is held (see tau_hold_min)."""
+    task_steps: int | None = None
+    """Steps of each task (TrainConfig.steps), for the hold length; None: tau_hold_min only.
+    `PWM.begin_task(i, task_steps)` overrides it per task."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.router not in PWM_ROUTERS:
+            raise ValueError(f"PWMConfig.router must be one of {PWM_ROUTERS}, got {self.router!r}")
+        checks = [
+            (self.experts_per_task >= 1, "experts_per_task must be >= 1"),
+            (self.max_tasks >= 1, "max_tasks must be >= 1"),
+            (0.0 < self.tau_min <= self.tau_init <= self.tau_max,
+             "need 0 < tau_min <= tau_init <= tau_max"),
+            (self.tau_rate >= 0.0, "tau_rate must be >= 0"),
+            (self.tau_target_frac >= 0.0, "tau_target_frac must be >= 0"),
+            (self.tau_hold_min >= 0, "tau_hold_min must be >= 0"),
+            (0.0 <= self.tau_hold_frac <= 1.0, "tau_hold_frac must be in [0, 1]"),
+            (self.task_steps is None or self.task_steps >= 1, "task_steps must be >= 1 or None"),
+        ]  # fmt: skip
+        for ok, msg in checks:
+            if not ok:
+                raise ValueError(f"PWMConfig: {msg} (got {self})")
+
+    def hold_steps(self, task_steps: int | None = None) -> int:
+        """Updates during which the temperature is held for a task of `task_steps` steps."""
+        steps = task_steps if task_steps is not None else self.task_steps
+        frac = int(round(self.tau_hold_frac * steps)) if steps is not None else 0
+        return max(self.tau_hold_min, frac)
+
+    @classmethod
+    def preset(cls, name: str, obs_mode: str = "state", **overrides: Any) -> PWMConfig:
+        """Same as `pwm_preset`."""
+        return pwm_preset(name, obs_mode, **overrides)
+
+
+_PWM_PRESETS: dict[str, dict[str, Any]] = {
+    # Short runs get a short hold, so that the entropy feedback runs at all.
+    "smoke": dict(tau_hold_min=100),
+    "cpu": dict(tau_hold_min=1000),
+    "paper": dict(),
+}
+"""PWM settings on top of the TD-MPC2 preset of the same name (sizes: paper's settings)."""
+
+
+def pwm_preset(name: str, obs_mode: str = "state", **overrides: Any) -> PWMConfig:
+    """PWM config: the TD-MPC2 preset `name` ('smoke', 'cpu', 'paper' or a size of
+    `TDMPC2_SIZES`), the mixture settings of that preset, then `overrides`."""
+    if name in _TDMPC2_PRESETS:
+        fields = {**_TDMPC2_PRESETS[name], **_PWM_PRESETS[name]}
+    elif name in TDMPC2_SIZES:
+        fields = dict(TDMPC2_SIZES[name])
+    else:
+        valid = [*_TDMPC2_PRESETS, *TDMPC2_SIZES]
+        raise ValueError(f"unknown PWM preset {name!r}; valid: {', '.join(valid)}")
+    return PWMConfig(obs_mode=obs_mode, **{**fields, **overrides})

@@ -183,6 +183,13 @@ def _build(cfg: CurriculumConfig, device: torch.device):
     return build_model(cfg.model, cfg.model_config(), device, encoder=encoder)
 
 
+def _begin_task(model, task_index: int, task_steps: int) -> None:
+    """Models with per-task state (PWM: routing task, temperature hold) learn which task
+    starts; new heads then belong to it."""
+    if hasattr(model, "begin_task"):
+        model.begin_task(task_index, task_steps)
+
+
 def _global_rng() -> dict:
     return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
             "python": random.getstate()}  # fmt: skip
@@ -235,16 +242,12 @@ def run_scratch(cfg: CurriculumConfig, out: Path, progress: bool = True) -> list
     resumed = (out / CHECKPOINT).exists()
     seed_everything(cfg.seed)
     model = _build(cfg, device)
-    method = None
-    if cfg.model == "pwm":
-        # PWM's first (and here only) task gets its experts as in the curriculum.
-        method = make_method("experts", num_tasks=1)
-        method.before_task(0, model.backbone)
+    _begin_task(model, n - 1, train.steps)
     env = make_env(task_id, render=cfg.obs == "pixels", image_size=cfg.image_size)
     trainer = Trainer(
         env=env, model=model, heads=model.new_heads(), config=train, task_id=task_id,
         buffer=_replay(cfg, train, task_id, n - 1, fresh=not resumed),
-        task_index=n - 1, logger=RunLogger(out), run_dir=out, method=method, progress=progress,
+        task_index=n - 1, logger=RunLogger(out), run_dir=out, progress=progress,
     )  # fmt: skip
     trainer.run()
     env.close()
@@ -318,6 +321,7 @@ class Curriculum:
             resumed = (task_dir / CHECKPOINT).exists()
             if not resumed:
                 _drop_records(logger, from_stage=i)
+            _begin_task(model, i, train.steps)
             method.before_task(i, model.backbone)
             heads = model.new_heads()
             buffer = _replay(cfg, train, tasks[i], i, fresh=not resumed)
@@ -366,9 +370,8 @@ class Curriculum:
         if state.get("version") != STATE_VERSION:
             raise ValueError(f"{path}: unsupported curriculum state version")
         completed = int(state["completed"])
-        # Rebuild the structure the finished tasks created (e.g. PWM's experts) before loading.
-        for i in range(completed):
-            method.before_task(i, model.backbone)
+        # Model structure never changes shape (PWM allocates its experts up front), so the
+        # states load directly; the next task's before_task continues from them.
         model.load_state_dict(state["model"])
         method.load_state_dict(state["method"])
         for heads_state in state["heads"]:

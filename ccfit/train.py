@@ -563,7 +563,7 @@ class Trainer:
 # ======================================================================= one run, built
 
 
-MODELS: tuple[str, ...] = ("tdmpc2",)
+MODELS: tuple[str, ...] = ("tdmpc2", "pwm")
 """World models `train_task` can build."""
 
 
@@ -576,6 +576,10 @@ def check_model(name: str) -> str:
 def model_config(name: str, preset: str, obs_mode: str, image_size: int = 64, **overrides):
     """The named model's config at `preset` for this observation mode."""
     check_model(name)
+    if name == "pwm":
+        from ccfit.config import pwm_preset
+
+        return pwm_preset(preset, obs_mode, image_size=image_size, **overrides)
     from ccfit.config import tdmpc2_preset
 
     return tdmpc2_preset(preset, obs_mode, image_size=image_size, **overrides)
@@ -585,6 +589,10 @@ def build_model(name: str, config, device: torch.device, encoder=None) -> WorldM
     """`encoder`: a frozen pretrained encoder (`load_frozen_encoder`) to use instead of a
     trainable one."""
     check_model(name)
+    if name == "pwm":
+        from ccfit.models.pwm import build_pwm
+
+        return build_pwm(config, device, encoder)
     from ccfit.models.tdmpc2 import TDMPC2
 
     return TDMPC2(config, device=device, encoder=encoder)
@@ -656,6 +664,8 @@ def train_task(
     seed_everything(cfg.seed)
     env = make_env(run.task, render=cfg.obs == "pixels", image_size=cfg.image_size)
     model = build_model(run.model, run.model_config, device)
+    if hasattr(model, "begin_task"):  # PWM: routing task and temperature hold
+        model.begin_task(0, cfg.steps)
     heads = model.new_heads()
     logger = RunLogger(out)
     trainer = Trainer(

@@ -4,7 +4,7 @@
     method = make_method("packnet", num_tasks=4, retrain_steps=500)
 """
 
-from ccfit.continual import er, ewc, ft, packnet  # noqa: F401  (registers the methods)
+from ccfit.continual import er, ewc, experts, ft, packnet  # noqa: F401  (registers the methods)
 from ccfit.continual.base import (
     METHODS,
     ContinualMethod,

@@ -138,7 +138,9 @@ class PackNet(ContinualMethod):
                     self._zeroed[name] = owner == FREE
                 else:
                     self._fixed[name] = owner != FREE
-            elif self.shared_frozen:
+            elif self.shared_frozen and name in self.stored:
+                # A parameter that became trainable after the last freeze (e.g. experts a
+                # mixture activated later) trains until the next freeze stores it.
                 self._fixed[name] = torch.ones(p.shape, dtype=torch.bool, device=p.device)
         self._grad_keep = {}
         for name, fixed in self._fixed.items():

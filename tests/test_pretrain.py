@@ -1,0 +1,299 @@
+"""Autoencoder pretraining of the frozen encoder (`ccfit.pretrain`) on a tiny real dataset."""
+
+import argparse
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from ccfit.pretrain import (
+    PretrainConfig,
+    add_pretrain_parser,
+    config_from_args,
+    episode_arrays,
+    load_oracle_frames,
+    pretrain_encoder,
+    split_episodes,
+)
+
+SIZE = 32
+STEPS = 40
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """One torch thread: fast on the shared 2-core machine, and a fixed reduction order."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def reach_root(tmp_path_factory):
+    """A real Reach suite dataset: one 8-step oracle episode per task (4 episodes), 32 px."""
+    from ccdata.record import GenerateConfig, generate
+
+    root = tmp_path_factory.mktemp("data") / "Reach"
+    generate(
+        GenerateConfig(suite="Reach", episodes=1, explore_episodes=0, image_size=SIZE,
+                       max_steps=8, root=root),
+        progress=False,
+    )  # fmt: skip
+    return root
+
+
+def make_config(root, **overrides):
+    base = dict(suites="Reach", dataset_roots={"Reach": str(root)}, image_size=SIZE,
+                steps=STEPS, checkpoint_interval=10, log_interval=5, holdout=0.25, device="cpu")
+    return PretrainConfig.preset("smoke", **{**base, **overrides})
+
+
+def weights(path):
+    from safetensors.torch import load_file
+
+    return load_file(str(path))
+
+
+def test_loss_falls_split_and_sidecar(reach_root, tmp_path):
+    out = tmp_path / "enc.safetensors"
+    metrics = pretrain_encoder(make_config(reach_root), out, progress=False)
+    side = json.loads(out.with_suffix(".json").read_text())
+
+    history = np.array(side["history"])
+    assert history[:, 0].tolist() == list(range(5, STEPS + 1, 5))
+    assert history[-2:, 1].mean() < 0.6 * history[:2, 1].mean()  # training loss falls
+    held, init = metrics["heldout"], metrics["heldout_initial"]
+    assert held["frames"] == 8 and held["image_mse"] < 0.7 * init["image_mse"]
+    for cam in ("topview", "frontview", "gripperPOV"):
+        assert 0 < held["cameras"][cam]["mse"] < init["cameras"][cam]["mse"]
+        assert held["cameras"][cam]["psnr_db"] == pytest.approx(
+            10 * np.log10(1 / held["cameras"][cam]["mse"])
+        )
+
+    # episode split: disjoint, complete, recorded
+    data = side["data"]
+    key = lambda e: (e["suite"], e["episode_index"])  # noqa: E731
+    held_keys, train_keys = {key(e) for e in data["held_out"]}, {key(e) for e in data["train"]}
+    assert len(held_keys) == 1 and len(train_keys) == 3 and not held_keys & train_keys
+    assert held_keys | train_keys == {("Reach", i) for i in range(4)}
+    assert data["frames"] == {"train": 24, "heldout": 8}
+    suite = data["suites"][0]
+    assert suite["repo_id"] == "ccdata/Reach" and suite["root"] == str(reach_root.resolve())
+    assert sum(suite["oracle_episodes"].values()) == 4
+    assert side["spec"]["latent_dim"] == make_config(reach_root).encoder_config().latent_dim
+    assert side["seed"] == 0 and torch.__version__.startswith(side["versions"]["torch"])
+    assert side["metrics"] == json.loads(json.dumps(metrics))
+
+    # a finished run is not redone; other settings at the same path are refused
+    mtime = out.stat().st_mtime_ns
+    again = pretrain_encoder(make_config(reach_root), out, progress=False)
+    assert again == side["metrics"] and out.stat().st_mtime_ns == mtime
+    with pytest.raises(ValueError, match="other settings"):
+        pretrain_encoder(make_config(reach_root, steps=STEPS + 1), out, progress=False)
+
+
+def test_resume_equals_uninterrupted_and_frozen_round_trip(reach_root, tmp_path):
+    from ccfit.config import tdmpc2_preset
+    from ccfit.models.encoders import build_encoder, load_frozen_encoder
+    from ccfit.models.tdmpc2 import TDMPC2
+
+    config = make_config(reach_root)
+    full = tmp_path / "full.safetensors"
+    pretrain_encoder(config, full, progress=False)
+
+    # Interrupted at step 25 (Ctrl-C writes a checkpoint); then, as after a SIGKILL, the
+    # periodic checkpoint of step 20 is all that is left. Rerunning resumes from it.
+    cut = tmp_path / "cut.safetensors"
+    ckpt = cut.with_suffix(".ckpt.pt")
+    backup = tmp_path / "step20.pt"
+
+    def interrupt(step, loss):
+        if step == 21:
+            shutil.copy(ckpt, backup)
+        if step == 25:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        pretrain_encoder(config, cut, progress=False, on_step=interrupt)
+    assert not cut.exists() and torch.load(ckpt, weights_only=True)["step"] == 25
+    shutil.copy(backup, ckpt)
+    assert torch.load(ckpt, weights_only=True)["step"] == 20
+    pretrain_encoder(config, cut, progress=False)
+    assert not ckpt.exists()  # removed once the result is written
+    a, b = weights(full), weights(cut)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    side_a = json.loads(full.with_suffix(".json").read_text())
+    side_b = json.loads(cut.with_suffix(".json").read_text())
+    assert side_a["history"] == side_b["history"]
+    assert side_a["metrics"]["heldout"] == side_b["metrics"]["heldout"]
+
+    # Round trip: the trained model state (a checkpoint at the last step) -> safetensors ->
+    # load_frozen_encoder gives the same function, with no trainable parameter.
+    last = tmp_path / "last.safetensors"
+
+    def stop_at_end(step, loss):
+        if step == STEPS:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        pretrain_encoder(config, last, progress=False, on_step=stop_at_end)
+    state = torch.load(last.with_suffix(".ckpt.pt"), weights_only=True)["model"]
+    trained = build_encoder(config.encoder_config())
+    trained.load_state_dict({k[len("encoder."):]: v for k, v in state.items()
+                             if k.startswith("encoder.")})  # fmt: skip
+    trained.eval()
+    pretrain_encoder(config, last, progress=False)  # finishes without further steps
+    frozen, spec = load_frozen_encoder(last)
+    assert not any(p.requires_grad for p in frozen.parameters())
+    frozen.train()
+    assert not frozen.training and not frozen.encoder.training
+    gen = torch.Generator().manual_seed(0)
+    obs = {"pixels": torch.randint(0, 256, (5, 9, SIZE, SIZE), dtype=torch.uint8, generator=gen),
+           "proprio": torch.randn(5, 7, generator=gen)}  # fmt: skip
+    with torch.no_grad():
+        assert torch.equal(frozen(obs), trained(obs))
+    assert torch.equal(frozen(obs), load_frozen_encoder(full)[0](obs))  # same run, same weights
+    # it plugs into the TD-MPC2 preset it was made for
+    model = TDMPC2(tdmpc2_preset("smoke", "pixels", image_size=SIZE), device="cpu",
+                   encoder=frozen)  # fmt: skip
+    assert spec["latent_dim"] == model.cfg.latent_dim
+    assert model.encode(obs).shape == (5, model.cfg.latent_dim)
+
+
+def test_dataset_frames_match_live_render(reach_root):
+    """A dataset frame and the live render of the same step give (nearly) the same encoder
+    input: same layout through `ccfit.obs`, only the video codec's rounding differs."""
+    from ccdata import make_env
+    from ccdata.record import read_ccdata_metadata
+    from ccdata.render import RenderSettings
+    from ccfit.data import load_episodes
+    from ccfit.obs import obs_to_arrays
+
+    episode = load_episodes(reach_root, task="reach-xz", policy="oracle")[0]
+    pixels, proprio = episode_arrays(episode)
+    render = RenderSettings(**read_ccdata_metadata(reach_root)["render"])
+    env = make_env("reach-xz", image_size=SIZE, render_settings=render)
+    try:
+        obs, _ = env.reset(seed=int(episode["episode_seed"][0]))
+        diffs = []
+        for t, action in enumerate(episode["action"]):
+            live = obs_to_arrays(obs, "pixels")
+            assert live["pixels"].shape == pixels[t].shape == (9, SIZE, SIZE)
+            assert live["pixels"].dtype == pixels[t].dtype == np.uint8
+            np.testing.assert_allclose(live["proprio"], proprio[t], atol=1e-6)
+            diffs.append(np.abs(live["pixels"].astype(int) - pixels[t].astype(int)))
+            obs, *_ = env.step(action)
+    finally:
+        env.close()
+    diffs = np.stack(diffs)
+    assert diffs.mean() < 0.5 and diffs.max() <= 3, (diffs.mean(), diffs.max())
+    # the cameras are in the same channel slots (a swap would give large errors)
+    per_cam = diffs.reshape(len(diffs), 3, 3, SIZE, SIZE).mean(axis=(0, 2, 3, 4))
+    assert per_cam.max() < 0.5
+
+
+def test_missing_datasets_name_the_command(reach_root, tmp_path):
+    config = PretrainConfig.preset(
+        "smoke", suites="Reach,Grasp,BinPnP", image_size=SIZE,
+        dataset_roots={"Reach": str(reach_root), "Grasp": str(tmp_path / "no" / "Grasp"),
+                       "BinPnP": str(tmp_path / "no" / "BinPnP")},
+    )  # fmt: skip
+    with pytest.raises(ValueError) as err:
+        pretrain_encoder(config, tmp_path / "enc.safetensors", progress=False)
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert f"ccdata generate --suite Grasp --root {tmp_path / 'no' / 'Grasp'}" in msg
+    assert f"ccdata generate --suite BinPnP --root {tmp_path / 'no' / 'BinPnP'}" in msg
+    assert "Reach" not in msg.split("run:")[1]
+    assert not (tmp_path / "enc.safetensors").exists()
+    # at the default location the command needs no --root
+    default = PretrainConfig.preset("smoke", suites="PnPBlock")
+    if not (default.resolved_roots()["PnPBlock"] / "meta").exists():
+        with pytest.raises(ValueError, match=r"run: ccdata generate --suite PnPBlock$"):
+            pretrain_encoder(default, tmp_path / "enc.safetensors", progress=False)
+    # a dataset at another image size is refused with the fix
+    with pytest.raises(ValueError, match="--image-size 64"):
+        load_oracle_frames(make_config(reach_root, image_size=64))
+
+
+def test_shared_task_counted_once(reach_root, tmp_path):
+    """A suite whose tasks were already read from an earlier suite adds no episodes (the
+    pnp-cube case). A copy of the Reach dataset, relabelled, stands in for a later suite here;
+    `test_shared_pnp_cube_read_once` (slow) checks the real suites."""
+    later = tmp_path / "Later"
+    shutil.copytree(reach_root, later)
+    meta_path = later / "meta" / "ccdata.json"
+    meta = json.loads(meta_path.read_text())
+    meta_path.write_text(json.dumps({**meta, "suite": "Grasp"}))
+    with pytest.raises(ValueError, match="holds suite 'Grasp', not 'BinPnP'"):
+        load_oracle_frames(make_config(reach_root, suites="BinPnP",
+                                       dataset_roots={"BinPnP": str(later)}))
+    config = make_config(reach_root, suites="Reach,Grasp",
+                         dataset_roots={"Reach": str(reach_root), "Grasp": str(later)})
+    store, manifest = load_oracle_frames(config)
+    assert len(store.episodes) == 4 and {e["suite"] for e in store.episodes} == {"Reach"}
+    assert [m["suite"] for m in manifest] == ["Reach", "Grasp"]
+    assert manifest[1]["oracle_episodes"] == {}
+    assert set(manifest[1]["shared_tasks_read_elsewhere"]) == {
+        "reach-xy", "reach-xz", "reach-yz", "reach-xyz"}
+
+
+@pytest.mark.slow
+def test_shared_pnp_cube_read_once(tmp_path):
+    """pnp-cube is in Grasp and DrawerPnP: its episodes come from Grasp only."""
+    from ccdata.record import GenerateConfig, generate
+
+    roots = {}
+    for suite in ("DrawerPnP", "Grasp"):
+        roots[suite] = str(tmp_path / suite)
+        generate(GenerateConfig(suite=suite, episodes=1, explore_episodes=0, image_size=SIZE,
+                                max_steps=2, root=roots[suite]), progress=False)  # fmt: skip
+    config = make_config(tmp_path, suites="DrawerPnP,Grasp", dataset_roots=roots)
+    store, manifest = load_oracle_frames(config)
+    tasks = [(e["suite"], e["task_id"]) for e in store.episodes]
+    assert sorted(tasks) == sorted([("Grasp", "pick-cube"), ("Grasp", "place-cube"),
+                                    ("Grasp", "pnp-cube"), ("DrawerPnP", "drawer-open"),
+                                    ("DrawerPnP", "drawer-pnp")])  # fmt: skip
+    assert manifest[1]["shared_tasks_read_elsewhere"] == {"pnp-cube": "Grasp"}
+
+
+def test_split_is_seeded_per_task_and_disjoint():
+    eps = [{"task_id": t, "episode_index": i} for i, t in enumerate(["a"] * 10 + ["b"] * 20)]
+    train, held = split_episodes(eps, 0.1, seed=0)
+    assert sorted(train + held) == list(range(30)) and not set(train) & set(held)
+    assert sum(eps[i]["task_id"] == "a" for i in held) == 1
+    assert sum(eps[i]["task_id"] == "b" for i in held) == 2
+    assert split_episodes(eps, 0.1, seed=0) == (train, held)
+    assert any(split_episodes(eps, 0.1, seed=s)[1] != held for s in range(1, 5))
+    assert split_episodes(eps, 0.0, seed=0) == (list(range(30)), [])
+    # too few episodes per task for the fraction: still one held out overall
+    assert len(split_episodes(eps[:1] + eps[10:11], 0.1, seed=0)[1]) == 1
+
+
+def test_config_and_parser():
+    from ccfit.config import tdmpc2_preset
+
+    parser = argparse.ArgumentParser()
+    add_pretrain_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["pretrain-encoder", "--preset", "smoke", "--steps", "7",
+                              "--seed", "3", "--suites", "Reach,Grasp"])  # fmt: skip
+    config = config_from_args(args)
+    assert (config.steps, config.seed, config.suites) == (7, 3, ("Reach", "Grasp"))
+    assert callable(args.func)
+    args = parser.parse_args(["pretrain-encoder"])
+    config = config_from_args(args)
+    assert config.suites == tuple(__import__("ccdata").SUITES) and config.model_preset == "cpu"
+    enc, ref = config.encoder_config(), tdmpc2_preset("cpu", "pixels")
+    assert (enc.latent_dim, enc.enc_dim, enc.num_channels, enc.num_enc_layers) == (
+        ref.latent_dim, ref.enc_dim, ref.num_channels, ref.num_enc_layers)
+    with pytest.raises(ValueError, match="valid: Reach"):
+        config_from_args(parser.parse_args(["pretrain-encoder", "--suites", "Nope"]))
+    with pytest.raises(ValueError, match="valid: smoke, cpu, paper"):
+        config_from_args(parser.parse_args(["pretrain-encoder", "--preset", "huge"]))
+    with pytest.raises(ValueError, match="steps must be >= 1"):
+        PretrainConfig.preset("smoke", steps=0)
+    with pytest.raises(ValueError, match="must end in .safetensors"):
+        pretrain_encoder(PretrainConfig.preset("smoke"), "enc.pt", progress=False)

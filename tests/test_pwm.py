@@ -1,0 +1,514 @@
+"""PWM (mixture-of-experts TD-MPC2) and the progressive-experts continual method, smoke size."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from ccfit.config import PWMConfig, TDMPC2Config, pwm_preset
+from ccfit.continual import TaskData, make_method
+from ccfit.models.base import Batch
+from ccfit.models.pwm import PWM, PWMHeads, gram_schmidt
+from ccfit.models.tdmpc2 import TDMPC2
+from ccfit.replay import ReplayBuffer
+
+SIZE = 32  # pixel side for tests
+B = 8
+K = 3
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    # Tiny networks: one thread avoids oversubscription on shared CPUs.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def make_cfg(mode: str = "state", **kw) -> PWMConfig:
+    kw = {"max_tasks": 4, **kw}
+    return pwm_preset("smoke", mode, image_size=SIZE, **kw)
+
+
+def build(mode: str = "state", seed: int = 0, **kw) -> PWM:
+    torch.manual_seed(seed)
+    return PWM(make_cfg(mode, **kw), device="cpu")
+
+
+def make_batch(cfg: PWMConfig, seed: int = 0, task: int = 0, batch: int = B) -> Batch:
+    g = torch.Generator().manual_seed(seed)
+    t = cfg.horizon
+    if cfg.obs_mode == "state":
+        obs = {"state": torch.randn(t + 1, batch, cfg.state_dim, generator=g)}
+    else:
+        pixels = torch.randint(0, 256, (t + 1, batch, 9, SIZE, SIZE), generator=g)
+        obs = {
+            "pixels": pixels.to(torch.uint8),
+            "proprio": torch.randn(t + 1, batch, cfg.proprio_dim, generator=g),
+        }
+    action = torch.rand(t, batch, cfg.action_dim, generator=g) * 2 - 1
+    terminated = (torch.rand(t, batch, 1, generator=g) < 0.15).float()
+    reward = -torch.rand(t, batch, 1, generator=g) * (1 - terminated)
+    return Batch(obs, action, reward, terminated, torch.full((batch,), task, dtype=torch.long))
+
+
+def make_buffer(task: int, episodes: int = 3, steps: int = 20) -> ReplayBuffer:
+    """A real replay buffer of random state episodes of task `task` (task-dependent offset)."""
+    rng = np.random.default_rng(10 + task)
+    buf = ReplayBuffer(1000, seed=task)
+    for _ in range(episodes):
+        buf.add_episode(
+            {"state": (rng.normal(size=(steps + 1, 39)) + task).astype(np.float32)},
+            rng.uniform(-1, 1, (steps, 4)).astype(np.float32),
+            -rng.uniform(0, 1, steps).astype(np.float32),
+            np.zeros(steps, np.float32),
+            task=task,
+        )
+    return buf
+
+
+def update(model, heads, opt, popt, batch, method=None, set_to_none=True):
+    out = model.loss(batch, heads)
+    total = out.total
+    if method is not None:
+        total = total + method.penalty(model.backbone, model.backbone_loss)
+    opt.zero_grad(set_to_none=set_to_none)
+    total.backward()
+    nn.utils.clip_grad_norm_([p for g in opt.param_groups for p in g["params"]], 20.0)
+    opt.step()
+    if method is not None:
+        method.after_step(model.backbone)
+    model.head_update(batch, heads, out, popt)
+    return out
+
+
+def snapshot(module: nn.Module) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in module.named_parameters()}
+
+
+def latent_and_action(model: PWM, n: int = 5, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    z = model.encode({"state": torch.randn(n, 39, generator=g)})
+    return z, torch.rand(n, 4, generator=g) * 2 - 1
+
+
+def randomise_router(model: PWM, seed: int = 0) -> None:
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        w = model.dynamics.router.weight
+        w.copy_(torch.randn(w.shape, generator=g))
+
+
+# ------------------------------------------------------------------------------ config
+
+
+def test_config_validation_and_presets():
+    cfg = pwm_preset("smoke", "state")
+    assert isinstance(cfg, PWMConfig) and cfg.experts_per_task == 3 and cfg.router == "task"
+    assert (cfg.latent_dim, cfg.tau_init, cfg.tau_hold_min) == (32, 1.8, 100)
+    paper = PWMConfig.preset("paper", "pixels")
+    assert (paper.latent_dim, paper.mlp_dim, paper.tau_hold_min) == (512, 512, 5000)
+    assert paper.hold_steps() == 5000 and paper.hold_steps(1_000_000) == 50_000
+    for bad, match in [
+        ({"router": "token"}, "router must be one of"),
+        ({"experts_per_task": 0}, "experts_per_task"),
+        ({"tau_min": 1.9}, "tau_min <= tau_init"),
+        ({"tau_hold_frac": 1.5}, "tau_hold_frac"),
+        ({"task_steps": 0}, "task_steps"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            pwm_preset("smoke", "state", **bad)
+    with pytest.raises(ValueError, match="valid: smoke, cpu, paper"):
+        pwm_preset("huge")
+    with pytest.raises(ValueError, match="PWMConfig"):
+        PWM(TDMPC2Config(), device="cpu")
+
+
+# ------------------------------------------------------------------------------ model
+
+
+@pytest.mark.parametrize("mode", ["state", "pixels"])
+def test_shapes_and_finiteness(mode):
+    model = build(mode)
+    heads = model.new_heads()
+    cfg = model.cfg
+    batch = make_batch(cfg)
+    out = model.loss(batch, heads)
+    assert out.total.ndim == 0 and torch.isfinite(out.total)
+    assert out.logs["routing_entropy"] == pytest.approx(math.log(K), abs=0.01)  # near uniform
+    out.total.backward()
+    grads = [p.grad for p in model.dynamics.experts[0].parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    z = model.encode({k: v[0] for k, v in batch.obs.items()})
+    nxt = model.next(z, batch.action[0])
+    assert nxt.shape == (B, cfg.latent_dim)
+    groups = nxt.view(B, -1, cfg.simnorm_dim).sum(-1)  # SimNorm output
+    assert torch.allclose(groups, torch.ones_like(groups), atol=1e-5)
+    w = model.routing_weights(z, batch.action[0], 0)
+    assert w.shape == (B, K * cfg.max_tasks)
+    a = model.act({k: v[0, 0] for k, v in batch.obs.items()}, heads, t0=True, eval_mode=True)
+    assert a.shape == (4,) and np.all(np.abs(a) <= 1) and np.isfinite(a).all()
+
+
+def test_overfit_one_batch():
+    model = build(lr=1e-3)
+    heads = model.new_heads()
+    batch = make_batch(model.cfg)
+    opt = torch.optim.Adam(model.param_groups(heads))
+    popt = model.make_policy_optimizer(heads)
+    first = update(model, heads, opt, popt, batch).total.item()
+    losses = [update(model, heads, opt, popt, batch).total.item() for _ in range(120)]
+    last = float(np.mean(losses[-10:]))
+    assert np.isfinite(last) and last < first / 3, (first, last)
+
+
+def test_gram_schmidt_orthonormalises_in_order():
+    x = torch.randn(4, 5, 16)
+    q = gram_schmidt(x)
+    gram = q @ q.transpose(-1, -2)
+    assert torch.allclose(gram, torch.eye(5).expand(4, 5, 5), atol=1e-5)
+    assert torch.equal(gram_schmidt(x[:, :3]), q[:, :3])  # earlier vectors ignore later ones
+
+    model = build(orthogonalize=True)
+    model.dynamics.add_group()
+    z, a = latent_and_action(model)
+    feats = model.dynamics.features(torch.cat([z, a], -1))
+    assert feats.shape == (5, 2 * K, model.cfg.mlp_dim)
+    gram = feats @ feats.transpose(-1, -2)
+    assert torch.allclose(gram, torch.eye(2 * K).expand(5, -1, -1), atol=1e-5)
+    plain = build(orthogonalize=False)
+    plain.dynamics.add_group()
+    raw = plain.dynamics.features(torch.cat([z, a], -1))
+    off = (raw @ raw.transpose(-1, -2)) * (1 - torch.eye(2 * K))
+    assert off.abs().max() > 1.0  # without the flag the features are far from orthogonal
+
+
+def test_state_dict_round_trip(tmp_path):
+    model = build(seed=0)
+    method = make_method("experts", num_tasks=3)
+    for task in range(2):
+        model.begin_task(task)
+        method.before_task(task, model.backbone)
+    heads = model.new_heads()
+    randomise_router(model)
+    model.dynamics.tau[1] = 0.9
+    batch = make_batch(model.cfg, task=1)
+    opt = torch.optim.Adam(model.param_groups(heads))
+    update(model, heads, opt, model.make_policy_optimizer(heads), batch, method)
+    torch.save({"model": model.state_dict(), "heads": heads.state_dict()}, tmp_path / "ck.pt")
+
+    other = build(seed=1)
+    other_heads = other.new_heads()
+    ck = torch.load(tmp_path / "ck.pt")
+    other.load_state_dict(ck["model"])
+    other_heads.load_state_dict(ck["heads"])
+    dyn, odyn = model.dynamics, other.dynamics
+    assert (odyn.num_active, int(odyn.num_frozen), int(other_heads.task_index)) == (2 * K, 1, 1)
+    assert torch.equal(odyn.tau, dyn.tau) and torch.equal(odyn.tau_updates, dyn.tau_updates)
+    flags = [p.requires_grad for p in odyn.experts.parameters()]
+    assert flags == [p.requires_grad for p in dyn.experts.parameters()]
+    assert not any(p.requires_grad for p in odyn.experts[0].parameters())  # frozen group 0
+    assert all(p.requires_grad for p in odyn.experts[K].parameters())
+    model.eval()
+    other.eval()
+    with torch.no_grad():
+        torch.manual_seed(3)
+        l1 = model.loss(batch, heads).total
+        torch.manual_seed(3)
+        l2 = other.loss(batch, other_heads).total
+    assert torch.equal(l1, l2)
+    z, a = latent_and_action(model)
+    assert torch.equal(model.routing_weights(z, a, 1), other.routing_weights(z, a, 1))
+
+
+def test_heads_route_planning_and_must_match_the_batch():
+    model = build()
+    model.dynamics.add_group()
+    randomise_router(model)
+    model.begin_task(1)
+    heads = model.new_heads()
+    assert isinstance(heads, PWMHeads) and int(heads.task_index) == 1
+    seen = []
+    forward = model.dynamics.forward
+    model.dynamics.forward = lambda z, a, task=None: seen.append(task) or forward(z, a, task)
+    obs = {"state": torch.randn(39)}
+    model.act(obs, heads, t0=True, eval_mode=True)
+    assert seen and all(int(t) == 1 for t in seen)
+    with pytest.raises(ValueError, match="heads of task 1 trained on a batch of tasks"):
+        model.loss(make_batch(model.cfg, task=0), heads)
+    with pytest.raises(ValueError, match="outside 0..3"):
+        model.begin_task(4)
+    with pytest.raises(TypeError, match="PWMHeads"):
+        model.loss(make_batch(model.cfg, task=1), TDMPC2(model.cfg, device="cpu").new_heads())
+
+
+def test_state_router_depends_on_the_latent():
+    model = build(router="state")
+    randomise_router(model)
+    z, a = latent_and_action(model)
+    w = model.routing_weights(z, a, 0)
+    assert not torch.allclose(w[0], w[1])  # per-sample routing
+    assert model.dynamics.router.in_features == model.cfg.latent_dim + 4 + 1
+    task_model = build()
+    randomise_router(task_model)
+    w = task_model.routing_weights(z, a, 0)
+    assert torch.equal(w[0], w[1])  # task routing ignores the state
+
+
+# ------------------------------------------------------------------------------ routing
+
+
+def test_expert_growth_and_masking():
+    model = build()
+    method = make_method("experts", num_tasks=4)
+    z, a = latent_and_action(model)
+    dyn = model.dynamics
+    for task in range(3):
+        method.before_task(task, model.backbone)
+        assert dyn.num_active == K * (task + 1)
+        randomise_router(model, seed=task)
+        w = model.routing_weights(z, a, task)
+        assert torch.all(w[:, : dyn.num_active] > 0)
+        assert torch.all(w[:, dyn.num_active :] == 0)  # inactive experts: exactly 0
+        assert torch.allclose(w.sum(-1), torch.ones(5))
+        for e, expert in enumerate(dyn.experts):
+            trainable = task * K <= e < (task + 1) * K
+            assert all(p.requires_grad == trainable for p in expert.parameters()), (task, e)
+    per_expert = sum(p.numel() for p in dyn.experts[0].parameters())
+    shared = sum(p.numel() for p in [*dyn.router.parameters(), *dyn.head.parameters()])
+    enc = sum(p.numel() for p in model.backbone.encoder.parameters())
+    assert model.num_parameters()["backbone"] == enc + shared + K * per_expert
+    with pytest.raises(RuntimeError, match="expected task 3"):
+        method.before_task(4, model.backbone)
+
+
+def test_routing_overrides():
+    model = build()
+    dyn = model.dynamics
+    z, a = latent_and_action(model)
+    with pytest.raises(ValueError, match="only one expert group"):
+        with model.routing_override("prior"):
+            pass
+    for _ in range(2):
+        dyn.add_group()
+    randomise_router(model)
+    n = dyn.num_active
+    learnt = model.routing_weights(z, a, 2)[:, :n]
+    prior, new = learnt[:, : n - K], learnt[:, n - K :]
+    with model.routing_override("prior"):
+        w = model.routing_weights(z, a, 2)
+    assert torch.all(w[:, n - K :] == 0)
+    assert torch.allclose(w[:, : n - K], prior / prior.sum(-1, keepdim=True), atol=1e-6)
+    with model.routing_override("new"), model.routing_task(2):
+        w = model.routing_weights(z, a, 2)
+        out_new = model.next(z, a)
+    assert torch.all(w[:, : n - K] == 0)
+    assert torch.allclose(w[:, n - K : n], new / new.sum(-1, keepdim=True), atol=1e-6)
+    with model.routing_override("uniform"):
+        w = model.routing_weights(z, a, 2)
+    assert torch.all(w[:, :n] == 1.0 / n) and torch.all(w[:, n:] == 0)
+    with model.routing_override(None):
+        assert torch.equal(model.routing_weights(z, a, 2)[:, :n], learnt)
+    # The ablation reaches the dynamics: 'new' mixes only the newest experts' features.
+    feats = dyn.features(torch.cat([z, a], -1))
+    w_new = (new / new.sum(-1, keepdim=True)).unsqueeze(-1)
+    expected = dyn.head((w_new * feats[:, n - K :]).sum(-2))
+    assert torch.allclose(out_new.detach(), expected.detach(), atol=1e-6)
+    with pytest.raises(ValueError, match="valid:"):
+        with model.routing_override("old"):
+            pass
+
+
+def test_temperature_schedule():
+    hold = 3
+    model = build(tau_hold_min=hold, tau_hold_frac=0.0, tau_rate=0.05)
+    heads = model.new_heads()
+    cfg = model.cfg
+    opt = torch.optim.Adam(model.param_groups(heads))
+    popt = model.make_policy_optimizer(heads)
+    target = 0.75 * math.log(K)
+    expected = cfg.tau_init
+    for i in range(8):
+        out = update(model, heads, opt, popt, make_batch(cfg, seed=i))
+        if i >= hold:
+            step = cfg.tau_rate * math.tanh(target - out.logs["routing_entropy"])
+            expected = min(max(expected + step, cfg.tau_min), cfg.tau_max)
+        else:
+            assert model.tau == pytest.approx(cfg.tau_init)
+        assert model.tau == pytest.approx(expected, abs=1e-6), i
+    assert model.tau < cfg.tau_init  # near-uniform routing: entropy above target, tau falls
+    assert torch.all(model.dynamics.tau[1:] == cfg.tau_init)  # other tasks keep theirs
+    # No update outside training updates.
+    before = model.dynamics.tau.clone()
+    with torch.no_grad():
+        model.loss(make_batch(cfg), heads)
+    model.backbone_loss(make_batch(cfg))
+    assert torch.equal(model.dynamics.tau, before)
+    # Clipping at tau_min, and the hold from the task's steps.
+    fast = build(tau_hold_min=0, tau_rate=10.0)
+    fast_heads = fast.new_heads()
+    fast.loss(make_batch(cfg), fast_heads)
+    assert fast.tau == fast.cfg.tau_min
+    fast.begin_task(1, task_steps=400_000)
+    assert int(fast.dynamics.tau_hold[1]) == 20_000 and int(fast.dynamics.tau_hold[0]) == 0
+
+
+# ------------------------------------------------------------------------------ continual
+
+
+def _task_data(model: PWM, buf: ReplayBuffer, task: int) -> TaskData:
+    return TaskData(
+        task, lambda: buf.sample(B, model.cfg.horizon), buf.num_transitions,
+        lambda idx: buf.sample(len(idx), model.cfg.horizon), model.backbone_loss,
+    )  # fmt: skip
+
+
+def test_progressive_experts_freeze_prior_experts_exactly():
+    model = build()
+    method = make_method("experts", num_tasks=2)
+    dyn = model.dynamics
+    buffers = [make_buffer(0), make_buffer(1)]
+    moved_before_restore = False
+    for task in range(2):
+        model.begin_task(task)
+        method.before_task(task, model.backbone)
+        heads = model.new_heads()
+        opt = torch.optim.Adam(model.param_groups(heads))
+        popt = model.make_policy_optimizer(heads)
+        if task == 1:
+            prior = snapshot(dyn.experts[:K])
+            router, head = snapshot(dyn.router), snapshot(dyn.head)
+            new = snapshot(dyn.experts[K : 2 * K])
+            # Stale gradients + Adam state on the frozen experts: Adam would move them.
+            for p in dyn.experts[:K].parameters():
+                p.grad = torch.zeros_like(p)
+            opt.add_param_group({"params": list(dyn.experts[:K].parameters())})
+        for step in range(4):
+            batch = buffers[task].sample(B, model.cfg.horizon)
+            out = model.loss(batch, heads)
+            opt.zero_grad(set_to_none=False)
+            out.total.backward()
+            if task == 1 and step == 0:  # momentum from a fake earlier step
+                for p in dyn.experts[:K].parameters():
+                    opt.state[p] = {"step": torch.tensor(1.0), "exp_avg": torch.ones_like(p),
+                                    "exp_avg_sq": torch.ones_like(p)}  # fmt: skip
+            opt.step()
+            if task == 1:
+                moved_before_restore |= any(
+                    not torch.equal(v, prior[k]) for k, v in dyn.experts[:K].named_parameters()
+                )
+            method.after_step(model.backbone)
+            model.head_update(batch, heads, out, popt)
+        method.after_task(task, model.backbone, _task_data(model, buffers[task], task))
+    assert moved_before_restore  # the restore is what keeps them fixed
+    assert all(torch.equal(v, prior[k]) for k, v in dyn.experts[:K].named_parameters())
+    assert not any(torch.equal(v, new[k]) for k, v in dyn.experts[K : 2 * K].named_parameters())
+    assert not torch.equal(dyn.router.weight, router["weight"])  # the router keeps training
+    assert not torch.equal(dyn.head.weight, head["weight"])  # and so does the shared head
+    state = method.state_dict()
+    fresh = make_method("experts", num_tasks=2)
+    fresh.load_state_dict(state)
+    assert fresh.task == 1 and set(fresh.stored) == set(method.stored)
+
+
+def test_experts_needs_a_pwm_model():
+    torch.manual_seed(0)
+    tdmpc2 = TDMPC2(TDMPC2Config.preset("smoke"), device="cpu")
+    method = make_method("experts", num_tasks=2)
+    with pytest.raises(ValueError, match="method 'experts' needs a PWM model"):
+        method.before_task(0, tdmpc2.backbone)
+
+
+@pytest.mark.parametrize("name", ["er", "ewc", "packnet"])
+def test_pwm_under_monolithic_methods(name):
+    model = build()
+    kwargs = {"er": {"fraction": 0.25, "batch_size": 4}, "ewc": {"fisher_batches": 2},
+              "packnet": {"retrain_steps": 2}}[name]  # fmt: skip
+    method = make_method(name, num_tasks=2, **kwargs)
+    backbone = model.backbone
+    buffers = [make_buffer(0), make_buffer(1)]
+    penalties, task0 = [], None
+    for task in range(2):
+        model.begin_task(task)
+        method.before_task(task, backbone)
+        heads = model.new_heads()
+        opt = torch.optim.Adam(model.param_groups(heads))
+        popt = model.make_policy_optimizer(heads)
+
+        def step(task=task, heads=heads, opt=opt, popt=popt):
+            batch = buffers[task].sample(B, model.cfg.horizon)
+            out = update(model, heads, opt, popt, batch, method)
+            penalties.append(float(method.penalty(backbone, model.backbone_loss).detach()))
+            return out
+
+        for _ in range(3):
+            assert torch.isfinite(step().total)
+        method.after_task(task, backbone, _task_data(model, buffers[task], task))
+        for _ in range(method.wants_retrain_steps):
+            step()
+        if task == 0:
+            task0 = snapshot(backbone)
+    assert model.dynamics.num_active == K  # no growth outside the 'experts' method
+    assert all(math.isfinite(p) for p in penalties)
+    if name in ("er", "ewc"):
+        assert all(p > 0 for p in penalties[-3:])
+    else:
+        with method.evaluating(0, backbone):
+            assert all(torch.equal(v, task0[k]) for k, v in backbone.named_parameters())
+        linears = [m for m in backbone.modules() if isinstance(m, nn.Linear)]
+        active = [m for m in linears if m.weight.requires_grad]
+        assert len(method.owner) == len(active) < len(linears)  # inactive experts skipped
+
+
+def test_packnet_with_experts_activated_later():
+    """Parameters that become trainable after task 0 (a manually grown mixture) are picked up
+    by PackNet: they train in task 1 while task 0's weights stay exact."""
+    model = build()
+    method = make_method("packnet", num_tasks=2, retrain_steps=1)
+    backbone = model.backbone
+    buffers = [make_buffer(0), make_buffer(1)]
+    task0 = None
+    for task in range(2):
+        model.begin_task(task)
+        if task == 1:
+            model.dynamics.add_group()
+            new = snapshot(model.dynamics.experts[K : 2 * K])
+        method.before_task(task, backbone)
+        heads = model.new_heads()
+        opt = torch.optim.Adam(model.param_groups(heads))
+        popt = model.make_policy_optimizer(heads)
+        for _ in range(3 if task == 0 else 2):
+            update(model, heads, opt, popt, buffers[task].sample(B, 3), method)
+        if task == 0:
+            method.after_task(task, backbone, _task_data(model, buffers[task], task))
+            for _ in range(method.wants_retrain_steps):
+                update(model, heads, opt, popt, buffers[task].sample(B, 3), method)
+            task0 = {k: v.detach().clone() for k, v in backbone.named_parameters()
+                     if v.requires_grad}  # fmt: skip
+    experts = model.dynamics.experts[K : 2 * K]
+    assert not any(torch.equal(v, new[k]) for k, v in experts.named_parameters())
+    for k, v in backbone.named_parameters():
+        if k in task0:  # what task 0 trained: its kept weights and every shared parameter
+            owner = method.owner.get(k)
+            fixed = torch.ones_like(v, dtype=torch.bool) if owner is None else owner == 0
+            assert torch.equal(v[fixed], task0[k][fixed]), k
+
+
+def _three_updates():
+    model = build(seed=7, orthogonalize=True)
+    heads = model.new_heads()
+    opt = torch.optim.Adam(model.param_groups(heads))
+    popt = model.make_policy_optimizer(heads)
+    for i in range(3):
+        update(model, heads, opt, popt, make_batch(model.cfg, seed=i))
+    return [p.detach().clone() for p in [*model.parameters(), *heads.parameters()]]
+
+
+def test_same_seed_same_updates():
+    a, b = _three_updates(), _three_updates()
+    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
