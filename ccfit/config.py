@@ -109,8 +109,8 @@ class TrainConfig:
                 checkpoint_interval=300, buffer_capacity=5_000,
             ),
             "cpu": dict(
-                steps=20_000, seed_steps=1_000, batch_size=64, eval_interval=2_000,
-                eval_episodes=5, checkpoint_interval=2_000, buffer_capacity=50_000,
+                steps=6_000, seed_steps=1_000, batch_size=64, eval_interval=1_000,
+                eval_episodes=5, checkpoint_interval=1_000, buffer_capacity=50_000,
             ),
             "paper": dict(
                 steps=1_000_000, seed_steps=5_000, batch_size=256, eval_interval=10_000,
@@ -335,12 +335,13 @@ _TDMPC2_PRESETS: dict[str, dict[str, Any]] = {
         latent_dim=32, enc_dim=64, mlp_dim=64, num_enc_layers=2, num_channels=8, num_q=2,
         num_bins=21, iterations=2, num_samples=32, num_elites=8, num_pi_trajs=4,
     ),
-    # Lighter than the official 1M for 2 CPU cores (0.62M params in state mode vs 1.41M;
-    # ~4x fewer FLOPs per update); MPPI keeps the paper's structure with 3 iterations of 128
-    # samples instead of 6 of 512 (~25x cheaper per plan).
+    # Sized by measurement for 2 CPU cores (bench/learn_reach.py, 1 torch thread): an update
+    # (batch 64) plus a plan costs ~30 ms, so 30k online steps take ~15-20 min. Against the
+    # previous choice (MLP 256, MPPI 3 x 128) that halves the update and cuts a plan ~4x;
+    # MPPI keeps the paper's structure (policy-guided, warm-started) at 2 iterations of 64.
     "cpu": dict(
-        latent_dim=64, enc_dim=128, mlp_dim=256, num_enc_layers=2, num_channels=16, num_q=2,
-        iterations=3, num_samples=128, num_elites=16, num_pi_trajs=8,
+        latent_dim=64, enc_dim=128, mlp_dim=128, num_enc_layers=2, num_channels=16, num_q=2,
+        iterations=2, num_samples=64, num_elites=8, num_pi_trajs=8,
     ),
     # Official single-task TD-MPC2 at 5M.
     "paper": dict(TDMPC2_SIZES["5M"]),

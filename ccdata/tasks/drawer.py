@@ -21,6 +21,7 @@ from metaworld.utils import reward_utils
 
 from ccdata.policies.base import Oracle, State, move, pose_action
 from ccdata.tasks.base import CUBE_HALF_SIZE, SceneEnv, add_cube, add_marker
+from ccdata.tasks.grasp import transport_reward
 from ccdata.tasks.registry import TaskSpec, register_task
 
 DRAWER_Y = 0.9
@@ -59,32 +60,12 @@ DRAWER_MATERIALS = ("drawer_beige", "drawer_red")
 
 
 def carry_score(scene: SceneEnv, action, obj: np.ndarray, target: np.ndarray) -> float:
-    """Meta-World pick-place shaping for carrying `obj` to `target`, scaled to [0, 1].
-
-    Uses `scene.obj_init_pos` (the object's start) as pick-place v3 does: caging/grasp reward
-    times closeness to the target, plus a bonus when the object is held off its start height.
-    """
-    obj_to_target = float(np.linalg.norm(obj - target))
-    tcp_to_obj = float(np.linalg.norm(obj - scene.tcp_center))
-    in_place = reward_utils.tolerance(
-        obj_to_target,
-        bounds=(0, PLACE_RADIUS),
-        margin=float(np.linalg.norm(scene.obj_init_pos - target)),
-        sigmoid="long_tail",
+    """The cube's pick-and-place shaping (`grasp.transport_reward`) scaled to [0, 1]: 7 is the
+    most it gives before success (caging x closeness 1, held bonus 1 + 5)."""
+    shaped = transport_reward(
+        scene, action, "cubeGeom", obj, scene.obj_init_pos, target, PLACE_RADIUS
     )
-    grasped = scene._gripper_caging_reward(
-        action,
-        obj,
-        obj_radius=0.015,
-        pad_success_thresh=0.05,
-        object_reach_radius=0.01,
-        xz_thresh=0.005,
-        high_density=True,
-    )
-    score = reward_utils.hamacher_product(grasped, in_place)
-    if tcp_to_obj < 0.02 and obj[2] - 0.01 > scene.obj_init_pos[2]:
-        score += 1.0 + 5.0 * in_place
-    return float(np.clip(score / 7.0, 0.0, 1.0))
+    return float(np.clip(shaped / 7.0, 0.0, 1.0))
 
 
 class DrawerScene(SceneEnv):
