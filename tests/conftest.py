@@ -21,3 +21,15 @@ def hub_server(tmp_path_factory):
         yield server
     finally:
         server.close()
+
+
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """One torch thread in every test: tiny networks on a shared 2-core machine run ~10x faster
+    than oversubscribed, and one thread fixes the reduction order (determinism checks)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

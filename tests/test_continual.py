@@ -17,15 +17,6 @@ from ccfit.models.base import Batch
 STATE, ACT, H = 6, 2, 1
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # These models are tiny: intra-op threads only add contention on a shared 2-core machine.
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 class TinyBackbone(nn.Module):
     """Encoder (Linear + LayerNorm + Mish) and a linear latent dynamics."""
 
@@ -85,7 +76,7 @@ def snapshot(module: nn.Module) -> dict[str, torch.Tensor]:
 
 
 def test_registry_names_and_errors():
-    assert method_names() == ["er", "ewc", "ft", "packnet"]
+    assert method_names() == ["er", "ewc", "experts", "ft", "packnet"]
     for name in method_names():
         kwargs = {"num_tasks": 3}
         assert isinstance(make_method(name, **kwargs), METHODS[name])

@@ -22,14 +22,6 @@ SIZE = 32
 STEPS = 40
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """One torch thread: fast on the shared 2-core machine, and a fixed reduction order."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
 
 @pytest.fixture(scope="module")
 def reach_root(tmp_path_factory):

@@ -21,14 +21,6 @@ B = 8
 K = 3
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # Tiny networks: one thread avoids oversubscription on shared CPUs.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def make_cfg(mode: str = "state", **kw) -> PWMConfig:
     kw = {"max_tasks": 4, **kw}

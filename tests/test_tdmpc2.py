@@ -17,14 +17,6 @@ SIZE = 32  # pixel side for tests
 B = 16
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # Tiny networks: one thread avoids oversubscription on shared CPUs (10x slower otherwise).
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def make_cfg(mode: str, **kw) -> TDMPC2Config:
     return tdmpc2_preset("smoke", mode, image_size=SIZE, **kw)
