@@ -21,6 +21,7 @@ Run directory:
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import hashlib
 import json
 import random
@@ -227,8 +228,21 @@ def _task_data(task_index: int, buffer: ReplayBuffer, train: TrainConfig, horizo
 
 
 def run_scratch(cfg: CurriculumConfig, out: Path, progress: bool = True) -> list[dict]:
-    """The composition task learnt from scratch with the curriculum's per-task budget."""
+    """The composition task learnt from scratch with the curriculum's per-task budget.
+
+    Shared by every method's run: concurrent runs (a sweep) take a file lock, so the first
+    trains it and the others wait and read its records."""
     out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out.parent / f".{out.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            return _train_scratch(cfg, out, progress)
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def _train_scratch(cfg: CurriculumConfig, out: Path, progress: bool) -> list[dict]:
     train = cfg.train_config()
     n = len(cfg.tasks)
     task_id = cfg.tasks[-1]
