@@ -114,26 +114,28 @@ def _cmd_generate(args: argparse.Namespace) -> None:
 
 
 SUMMARY_COLUMNS = (
-    ("task", "task", "{:<18}"),
-    ("policy", "policy", "{:<13}"),
-    ("episodes", "episodes", "{:>8}"),
-    ("frames", "frames", "{:>8}"),
-    ("success_rate", "success", "{:>8.2f}"),
-    ("mean_normalized_return", "norm.ret", "{:>9.1f}"),
-    ("wall_time_s", "wall s", "{:>8.1f}"),
-    ("frames_per_s", "frames/s", "{:>9.1f}"),
+    # key in a summary row, header, width, number format
+    ("task", "task", -18, ""),
+    ("policy", "policy", -13, ""),
+    ("episodes", "episodes", 8, "d"),
+    ("frames", "frames", 8, "d"),
+    ("success_rate", "success", 8, ".2f"),
+    ("mean_normalized_return", "norm.ret", 9, ".1f"),
+    ("wall_time_s", "wall s", 8, ".1f"),
+    ("frames_per_s", "frames/s", 9, ".1f"),
 )
+
+
+def _cell(value, width: int, number: str) -> str:
+    text = "-" if value is None else format(value, number)
+    return text.ljust(-width) if width < 0 else text.rjust(width)
 
 
 def format_summary(summary: dict) -> str:
     """The per task and policy table of `ccdata generate`, then the run's totals."""
-    lines = ["  ".join(_pad(title, fmt) for _, title, fmt in SUMMARY_COLUMNS)]
+    lines = ["  ".join(_cell(title, w, "") for _, title, w, _ in SUMMARY_COLUMNS)]
     for row in summary["per_task_policy"]:
-        cells = []
-        for key, _, fmt in SUMMARY_COLUMNS:
-            value = row[key]
-            cells.append(_pad("-", fmt) if value is None else fmt.format(value))
-        lines.append("  ".join(cells))
+        lines.append("  ".join(_cell(row[k], w, n) for k, _, w, n in SUMMARY_COLUMNS))
     fps = summary["frames_per_s"]
     lines.append(
         f"{summary['episodes']} episodes, {summary['frames']} frames; this run: "
@@ -141,11 +143,6 @@ def format_summary(summary: dict) -> str:
         + (f" ({fps:.1f} frames/s)" if fps else "")
     )
     return "\n".join(lines)
-
-
-def _pad(text: str, fmt: str) -> str:
-    width = int("".join(ch for ch in fmt.split(":")[1] if ch.isdigit()).split(".")[0] or 0)
-    return f"{text:>{width}}" if ">" in fmt else f"{text:<{width}}"
 
 
 def _dataset_root(args: argparse.Namespace) -> Path:

@@ -1,0 +1,92 @@
+"""`ccdata generate / verify / push` from the command line on a tiny real dataset, and the
+explore notebook executed on it."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+from ccdata.cli import main
+
+NOTEBOOK = Path(__file__).parent.parent / "notebooks" / "explore_dataset.ipynb"
+
+
+@pytest.fixture(scope="module")
+def tiny_reach(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ds") / "Reach"
+    code = main(["generate", "--suite", "Reach", "--episodes", "1", "--explore-episodes", "0",
+                 "--image-size", "32", "--root", str(root)])  # fmt: skip
+    assert code == 0
+    return root
+
+
+def test_generate_prints_summary_and_writes_card(tiny_reach, capsys):
+    # Re-running the same command finds every episode present: nothing new, same dataset.
+    assert main(["generate", "--suite", "Reach", "--episodes", "1", "--explore-episodes", "0",
+                 "--image-size", "32", "--root", str(tiny_reach)]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "reach-xyz" in out and "oracle" in out
+    assert "4 episodes" in out and "0 new episodes" in out
+    card = (tiny_reach / "README.md").read_text()
+    assert card.startswith("---\nlicense: mit") and "composition_matrix" in card
+
+
+def test_generate_refuses_other_settings(tiny_reach, capsys):
+    code = main(["generate", "--suite", "Reach", "--episodes", "1", "--explore-episodes", "0",
+                 "--image-size", "48", "--root", str(tiny_reach)])  # fmt: skip
+    assert code == 2
+    assert "image_size" in capsys.readouterr().err
+
+
+def test_verify_ok_then_finds_a_missing_video(tiny_reach, tmp_path, capsys):
+    assert main(["verify", "--root", str(tiny_reach)]) == 0
+    assert "OK" in capsys.readouterr().out
+    broken = tmp_path / "broken"
+    shutil.copytree(tiny_reach, broken)
+    next((broken / "videos").rglob("*.mp4")).unlink()
+    assert main(["verify", "--root", str(broken)]) == 1
+    assert "problem" in capsys.readouterr().out
+
+
+def test_verify_missing_dataset_is_one_line(tmp_path, capsys):
+    assert main(["verify", "--root", str(tmp_path / "nothing")]) == 2
+    err = capsys.readouterr().err
+    assert "no dataset at" in err and len(err.strip().splitlines()) == 1
+
+
+def test_push_to_loopback_hub_and_errors(tiny_reach, hub_server, monkeypatch, capsys):
+    monkeypatch.setenv("HF_TOKEN", hub_server.token("write"))
+    args = ["push", "--suite", "Reach", "--root", str(tiny_reach), "--repo-id", "org/reach-tiny"]
+    assert main([*args, "--endpoint", hub_server.url]) == 0
+    assert "pushed" in capsys.readouterr().out
+    assert ("dataset", "org/reach-tiny") in hub_server.state.repos
+    assert main([*args, "--endpoint", "http://127.0.0.1:9"]) == 2
+    assert "cannot reach" in capsys.readouterr().err
+    bad = ["push", "--suite", "Reach", "--root", str(tiny_reach), "--repo-id", "no slash"]
+    assert main([*bad, "--endpoint", hub_server.url]) == 2
+    monkeypatch.setenv("HF_TOKEN", "hf_wrong")
+    assert main([*args, "--endpoint", hub_server.url]) == 2
+    err = capsys.readouterr().err
+    assert "hf_wrong" not in err and err.count("\n") == 2
+
+
+def test_explore_notebook_runs_on_the_dataset(tiny_reach):
+    nbformat = pytest.importorskip("nbformat")
+    from nbclient import NotebookClient
+
+    nb = nbformat.read(NOTEBOOK, as_version=4)
+    env = {"CCDATA_SUITE": "Reach", "CCDATA_ROOT": str(tiny_reach)}
+    old = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        NotebookClient(nb, timeout=300, kernel_name="python3").execute()
+    finally:
+        for k, v in old.items():
+            os.environ.pop(k) if v is None else os.environ.__setitem__(k, v)
+    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+    assert not [o for o in outputs if o.get("output_type") == "error"]
+    assert any("image/png" in o.get("data", {}) for o in outputs), "no figure rendered"
+
