@@ -6,7 +6,9 @@ import os as _os
 _os.environ.setdefault("MUJOCO_GL", "egl")
 
 from ccdata.env import TaskEnv, make_env, register_gym_ids  # noqa: E402
+from ccdata.policies import make_policy  # noqa: E402
 from ccdata.render import CAMERAS, RenderSettings  # noqa: E402
+from ccdata.scoring import GAMMA, normalize  # noqa: E402
 from ccdata.suites import SUITES, Suite, get_suite  # noqa: E402
 from ccdata.tasks import TASKS, TaskSpec, get_task  # noqa: E402
 
@@ -14,6 +16,7 @@ register_gym_ids()
 
 __all__ = [
     "CAMERAS",
+    "GAMMA",
     "SUITES",
     "TASKS",
     "RenderSettings",
@@ -23,4 +26,6 @@ __all__ = [
     "get_suite",
     "get_task",
     "make_env",
+    "make_policy",
+    "normalize",
 ]

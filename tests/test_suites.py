@@ -79,3 +79,24 @@ def test_box_close_reuses_grasping_on_the_full_axis():
 def test_unknown_suite_lists_valid_names():
     with pytest.raises(ValueError, match="unknown suite 'Nope'.*PnPBoxClose"):
         ccdata.get_suite("Nope")
+
+
+def test_normalize_floor_and_reference():
+    from ccdata.scoring import floor_return, oracle_reference
+
+    assert ccdata.normalize("reach-xy", floor_return()) == pytest.approx(0.0)
+    assert ccdata.normalize("reach-xy", oracle_reference("reach-xy")) == pytest.approx(100.0)
+    # Not capped: better than the oracle's mean scores above 100.
+    assert ccdata.normalize("reach-xy", 0.0) > 100.0
+    with pytest.raises(ValueError, match="unknown task"):
+        ccdata.normalize("nope", -1.0)
+
+
+def test_every_task_has_an_oracle_reference():
+    from ccdata.scoring import references
+
+    refs = references()
+    assert set(refs["tasks"]) == set(ccdata.TASKS)
+    assert refs["gamma"] == ccdata.GAMMA == 0.99
+    for task_id, ref in refs["tasks"].items():
+        assert ref["success_rate"] >= 0.95, task_id
