@@ -7,6 +7,7 @@ Commands:
     train    online model-based RL on one task (resumes when --out holds its checkpoint)
     run      a suite's continual curriculum (Algorithm 1) with one method; writes metrics.json
     report   tables and plots over run directories (BWT / FWT per backbone, suite, method)
+    ablate   a finished PWM run's expert ablation on the composition task (the paper's Fig. 6)
     pretrain-encoder   the frozen-encoder diagnostic: an autoencoder on every task's oracle
              episodes, saved for `ccfit run --obs pixels --encoder frozen:PATH`
 
@@ -63,6 +64,8 @@ def _cmd_train(args: argparse.Namespace) -> None:
             overrides["device"] = args.device
         if args.seed_dataset is not None:
             overrides["seed_dataset"] = args.seed_dataset or _default_dataset(args.task)
+        if args.endpoint is not None:
+            overrides["dataset_endpoint"] = args.endpoint
         train = TrainConfig.preset(args.preset, **overrides)
         mcfg = model_config(args.model, args.preset, args.obs, image_size=args.image_size)
         run = RunConfig(task=args.task, model=args.model, model_config=mcfg, train=train)
@@ -106,7 +109,8 @@ def _cmd_run(args: argparse.Namespace) -> None:
             suite=args.suite, model=args.model, method=args.method, preset=args.preset,
             obs=args.obs, seed=args.seed, image_size=args.image_size, encoder=args.encoder,
             seed_dataset=seed_dataset, method_options=_parse_options(args.method_option),
-            train_overrides=_parse_options(args.train),
+            train_overrides={**_parse_options(args.train), **(
+                {"dataset_endpoint": args.endpoint} if args.endpoint else {})},
         )  # fmt: skip
         out = Path(args.out) if args.out else (
             Path("runs") / f"{args.suite}-{args.model}-{args.method}-{args.obs}-{args.preset}"
@@ -134,6 +138,24 @@ def _cmd_report(args: argparse.Namespace) -> None:
         print(path)
 
 
+def _cmd_ablate(args: argparse.Namespace) -> None:
+    from ccfit.analysis import ABLATION_JSON, ABLATION_PNG, ablate
+
+    run = Path(args.run)
+    try:
+        result = ablate(run, episodes=args.episodes, horizon=args.horizon)
+    except (ValueError, TypeError) as e:
+        raise CliError(str(e)) from None
+
+    def fmt(x):
+        return "n/a" if x is None else f"{x:.2f}"
+
+    for name, m in result["modes"].items():
+        print(f"{name:8s} return x{fmt(m['return_ratio'])} (normalised "
+              f"{fmt(m['normalized_return'])}), latent error x{fmt(m['latent_error_ratio'])}")
+    print(f"-> {run / ABLATION_JSON}, {run / ABLATION_PNG}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="ccfit", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -152,6 +174,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="preload the task's episodes from a LeRobot dataset (directory or repo id; "
         "without a value: the task's suite dataset ccdata/<Suite>)",
     )  # fmt: skip
+    p.add_argument("--endpoint", default=None,
+                   help="Hub endpoint to download a repo-id seed dataset from (as ccdata push)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_train)
 
@@ -170,6 +194,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="method setting, e.g. lam=5000 (EWC), fraction=0.05 (ER)")  # fmt: skip
     p.add_argument("--train", action="append", default=[], metavar="KEY=VALUE",
                    help="TrainConfig override, e.g. steps=5000")  # fmt: skip
+    p.add_argument("--endpoint", default=None,
+                   help="Hub endpoint to download a repo-id seed dataset from (as ccdata push)")
     p.add_argument("--out", default=None, help="run directory")
     p.add_argument("--scratch-root", default=None,
                    help="where from-scratch reference runs are shared (default OUT/../scratch)")
@@ -184,6 +210,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("runs", nargs="+", help="run directories (or folders holding them)")
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=_cmd_report)
+
+    p = sub.add_parser("ablate", help="expert ablation of a finished PWM run (prior / new / "
+                       "uniform routing on the composition task)")  # fmt: skip
+    p.add_argument("run", help="run directory of a finished `ccfit run --model pwm` curriculum")
+    p.add_argument("--episodes", type=int, default=None,
+                   help="evaluation layouts (default: the run's eval_episodes)")  # fmt: skip
+    p.add_argument("--horizon", type=int, default=None,
+                   help="open-loop prediction steps (default: the model's horizon)")  # fmt: skip
+    p.set_defaults(func=_cmd_ablate)
     return parser
 
 

@@ -70,6 +70,9 @@ class TrainConfig:
     seed_dataset: str | None = None
     """LeRobot dataset (local directory or repo id) whose episodes of the task preload replay
     before training; None: start empty."""
+    dataset_endpoint: str | None = None
+    """Hub endpoint a repo-id `seed_dataset` is downloaded from when it is not in LeRobot's
+    local cache (the same option as `ccdata push --endpoint`); None: HF_ENDPOINT or the hub."""
 
     def __post_init__(self) -> None:
         positive = (

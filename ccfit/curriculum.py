@@ -36,6 +36,7 @@ import torch
 from ccdata.env import make_env
 from ccdata.suites import get_suite
 from ccfit import metrics as M
+from ccfit.analysis import record_stage_routing
 from ccfit.config import PRESETS, TrainConfig
 from ccfit.continual import TaskData, make_method, method_names
 from ccfit.obs import check_mode
@@ -43,6 +44,7 @@ from ccfit.replay import ReplayBuffer
 from ccfit.train import (
     CHECKPOINT,
     CONFIG,
+    METRICS,
     RunLogger,
     Trainer,
     atomic_torch_save,
@@ -115,6 +117,8 @@ class CurriculumConfig:
                 raise ValueError("a frozen pretrained encoder needs --obs pixels")
             if not Path(self.encoder_path).is_file():
                 raise ValueError(f"encoder checkpoint not found: {self.encoder_path}")
+        # Bad method options fail here, before a run directory is written.
+        make_method(self.method, num_tasks=len(self.tasks), **self.method_options)
         train = self.train_config()
         if train.steps % train.eval_interval:
             raise ValueError(
@@ -209,7 +213,8 @@ def _replay(cfg: CurriculumConfig, train: TrainConfig, task_id: str, task_index:
     source = cfg.dataset_source()
     if source is not None and fresh:
         # Only this task's own episodes: later tasks' data never leaks into earlier ones.
-        seed_buffer(buffer, source, task_id, cfg.obs, cfg.image_size, task_index=task_index)
+        seed_buffer(buffer, source, task_id, cfg.obs, cfg.image_size, task_index=task_index,
+                    endpoint=train.dataset_endpoint)  # fmt: skip
     return buffer
 
 
@@ -254,6 +259,8 @@ def _train_scratch(cfg: CurriculumConfig, out: Path, progress: bool) -> list[dic
         torch.set_num_threads(train.torch_threads)
     device = resolve_device(train.device)
     resumed = (out / CHECKPOINT).exists()
+    if not resumed:  # records of a run killed before its first checkpoint
+        (out / METRICS).unlink(missing_ok=True)
     seed_everything(cfg.seed)
     model = _build(cfg, device)
     _begin_task(model, n - 1, train.steps)
@@ -356,16 +363,18 @@ class Curriculum:
             heads.requires_grad_(False)
             heads.eval()
             stored.append(heads)
+            record_stage_routing(self.out, cfg, model, stored, method, self.device)  # PWM only
             self._save(state_path, i + 1, model, method, stored)
             shutil.rmtree(task_dir, ignore_errors=True)
         for env in eval_envs.values():
             env.close()
         logger.close()
-        scratch = run_scratch(cfg, self.scratch_root / cfg.scratch_key(), self.progress)
+        scratch_dir = (self.scratch_root / cfg.scratch_key()).resolve()
+        scratch = run_scratch(cfg, scratch_dir, self.progress)
         result = compute_metrics(logger.read_evals(), scratch, len(tasks), train.steps)
+        # Absolute: `ccfit report` may run from another working directory.
         result.update(suite=cfg.suite, model=cfg.model, method=cfg.method, seed=cfg.seed,
-                      obs=cfg.obs, preset=cfg.preset,
-                      scratch_dir=str(self.scratch_root / cfg.scratch_key()))  # fmt: skip
+                      obs=cfg.obs, preset=cfg.preset, scratch_dir=str(scratch_dir))  # fmt: skip
         atomic_write_text(self.out / METRICS_JSON, json.dumps(result, indent=2) + "\n")
         return result
 

@@ -50,32 +50,38 @@ TASK_INDEX = "task_index"
 """LeRobot's index into meta/tasks.parquet (the instruction string)."""
 
 
-def _open_metadata(source: str | Path):
+def resolve_source(source: str | Path, endpoint: str | None = None) -> Path:
+    """A dataset's local root: a directory as given; a repo id from LeRobot's cache
+    (`$HF_LEROBOT_HOME/<repo_id>`, where `ccdata generate` writes), else downloaded from the
+    Hub endpoint (`endpoint`, else HF_ENDPOINT, else the public hub) through ccdata.hub."""
+    path = Path(source)
+    if path.is_dir():
+        return path
+    from lerobot.utils.constants import HF_LEROBOT_HOME
+
+    from ccdata.hub import HubError, download_dataset
+
+    local = HF_LEROBOT_HOME / str(source)
+    if (local / "meta" / "info.json").is_file():
+        return local
+    try:
+        return download_dataset(str(source), endpoint=endpoint)
+    except HubError as e:
+        raise ValueError(
+            f"cannot read LeRobot dataset {str(source)!r}: no such directory, and {e}"
+        ) from None
+
+
+def _open_metadata(source: str | Path, endpoint: str | None = None):
     """(metadata, root) for a local dataset directory or a Hub repo id."""
     from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 
-    path = Path(source)
+    root = resolve_source(source, endpoint)
     try:
-        if path.is_dir():
-            return LeRobotDatasetMetadata(f"local/{path.name}", root=path), path
-        meta = LeRobotDatasetMetadata(str(source))
-        root = Path(meta.root)
-        if not (root / "data").is_dir():  # metadata only so far: fetch the rest from the Hub
-            from huggingface_hub import snapshot_download
-
-            root = Path(
-                snapshot_download(
-                    str(source), repo_type="dataset", revision=meta.revision,
-                    allow_patterns=["meta/*", "data/*", "videos/*"],
-                )
-            )  # fmt: skip
-    except Exception as e:  # missing dir, bad repo id, unreachable hub, corrupt metadata
+        return LeRobotDatasetMetadata(f"local/{root.name}", root=root), root
+    except Exception as e:  # noqa: BLE001 - corrupt or partial metadata: one clear message
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise ValueError(
-            f"cannot read LeRobot dataset {str(source)!r} (a local directory or a Hub repo "
-            f"id): {msg}"
-        ) from e
-    return meta, root
+        raise ValueError(f"cannot read LeRobot dataset at {root}: {msg}") from e
 
 
 def _id_maps(root: Path) -> tuple[dict[str, int], dict[str, int]]:
@@ -137,6 +143,7 @@ def load_episodes(
     policy: str | None = None,
     *,
     images: bool = True,
+    endpoint: str | None = None,
 ) -> list[dict[str, np.ndarray]]:
     """Episodes of a LeRobot v3 dataset (local directory or Hub repo id), in episode order.
 
@@ -147,7 +154,7 @@ def load_episodes(
     (names, when the dataset says them) and, per camera feature, uint8 (T, H, W, 3) frames when
     `images` is true.
     """
-    meta, root = _open_metadata(source)
+    meta, root = _open_metadata(source, endpoint)
     meta.ensure_readable()
     if meta.total_episodes == 0:
         raise ValueError(f"dataset {str(source)!r} has no episodes")

@@ -8,6 +8,8 @@ metric (the paper's protocol), and the per-seed metrics give the min/max. Output
 - `curves_<backbone>_<suite>_<method>.png`: every task's normalised return over the
   curriculum, the forgetting (BWT) region shaded after each task's end and the forward
   transfer (FWT) region between the composition curve and its from-scratch reference.
+- `routing_<suite>_<method>_s<seed>.png`: the paper's Fig. 5 for every PWM run with a
+  `routing.jsonl` (`ccfit.analysis`); summary.json gets the top-expert statement per seed.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ccfit import metrics as M
+from ccfit.analysis import report_routing
 from ccfit.curriculum import METRICS_JSON, metrics_from_curves, task_curves
 from ccfit.train import CONFIG, METRICS
 
@@ -57,9 +60,22 @@ def find_runs(paths: list[Path]) -> list[Run]:
     for d in dict.fromkeys(dirs):
         metrics = json.loads((d / METRICS_JSON).read_text())
         records = [json.loads(x) for x in (d / METRICS).read_text().splitlines() if x.strip()]
-        scratch = json.loads((Path(metrics["scratch_dir"]) / "done.json").read_text())
+        scratch = json.loads((_scratch_dir(d, metrics) / "done.json").read_text())
         runs.append(Run(d, json.loads((d / CONFIG).read_text()), records, scratch, metrics))
     return runs
+
+
+def _scratch_dir(run_dir: Path, metrics: dict) -> Path:
+    """The run's from-scratch reference: where the run wrote it or, when that path does not
+    resolve from here (a relative path from another working directory, a moved tree), the
+    default location beside the run (`<run>/../scratch/<key>`)."""
+    stored = Path(metrics["scratch_dir"])
+    if (stored / "done.json").is_file():
+        return stored
+    beside = run_dir.parent / "scratch" / stored.name
+    if (beside / "done.json").is_file():
+        return beside
+    raise ValueError(f"{run_dir}: its from-scratch reference {stored} is missing")
 
 
 def group_metrics(runs: list[Run]) -> dict:
@@ -207,14 +223,38 @@ def plot_curves(key: tuple[str, str, str], g: dict, task_ids: list[str], out: Pa
     return path
 
 
+def load_groups(paths: list[Path]) -> dict[tuple[str, str, str], dict]:
+    """Finished runs under `paths`, grouped by (backbone, suite, method) (`group_metrics`)."""
+    by_key: dict[tuple, list[Run]] = defaultdict(list)
+    for r in find_runs([Path(p) for p in paths]):
+        by_key[r.key].append(r)
+    return {k: group_metrics(v) for k, v in sorted(by_key.items())}
+
+
+def table_frame(groups: dict, backbone: str):
+    """One backbone's table as a pandas DataFrame: suites x (method, BWT / FWT), the metric of
+    the seed-averaged curves (numbers; `table_<backbone>.md` adds the per-seed [min, max])."""
+    import pandas as pd
+
+    keys = [k for k in groups if k[0] == backbone]
+    if not keys:
+        valid = ", ".join(sorted({k[0] for k in groups}))
+        raise ValueError(f"no runs of backbone {backbone!r}; valid: {valid}")
+    suites = sorted({k[1] for k in keys})
+    methods = [m for m in METHOD_ORDER if any(k[2] == m for k in keys)]
+    columns = pd.MultiIndex.from_product([methods, ["BWT", "FWT"]], names=["method", "metric"])
+    frame = pd.DataFrame(index=pd.Index(suites, name="suite"), columns=columns, dtype=float)
+    for _, suite, method in keys:
+        g = groups[(backbone, suite, method)]
+        frame.loc[suite, (method, "BWT")] = np.nan if g["bwt"] is None else g["bwt"]
+        frame.loc[suite, (method, "FWT")] = np.nan if g["fwt"] is None else g["fwt"]
+    return frame
+
+
 def write_report(paths: list[Path], out: Path) -> list[Path]:
     """Tables and plots for every (backbone, suite, method) group of finished runs."""
-    runs = find_runs(paths)
+    groups = load_groups(paths)
     out.mkdir(parents=True, exist_ok=True)
-    by_key: dict[tuple, list[Run]] = defaultdict(list)
-    for r in runs:
-        by_key[r.key].append(r)
-    groups = {k: group_metrics(v) for k, v in by_key.items()}
     written = write_tables(groups, out) + plot_bars(groups, out)
     for k, g in groups.items():
         written.append(plot_curves(k, g, _task_ids(k[1]), out))
@@ -223,6 +263,10 @@ def write_report(paths: list[Path], out: Path) -> list[Path]:
                                          "fwt_max")}  # fmt: skip
         for k, g in groups.items()
     }
+    pngs, routing = report_routing(find_runs([Path(p) for p in paths]), out)  # Fig. 5, PWM runs
+    for key, per_seed in routing.items():
+        summary["/".join(key)]["routing"] = per_seed
+    written += pngs
     path = out / "summary.json"
     path.write_text(json.dumps(summary, indent=2) + "\n")
     return written + [path]

@@ -607,6 +607,7 @@ def seed_buffer(
     obs_mode: str,
     image_size: int | None = None,
     task_index: int = 0,
+    endpoint: str | None = None,
 ) -> int:
     """Preload `task_id`'s episodes of a LeRobot dataset; returns how many were added.
 
@@ -616,7 +617,7 @@ def seed_buffer(
     """
     from ccfit.data import SUCCESS_KEY, episode_to_replay, final_observation, load_episodes
 
-    episodes = load_episodes(source, task=task_id, images=obs_mode == "pixels")
+    episodes = load_episodes(source, task=task_id, images=obs_mode == "pixels", endpoint=endpoint)
     added = 0
     for ep in episodes:
         final = None
@@ -660,7 +661,8 @@ def train_task(
     buffer = ReplayBuffer(cfg.buffer_capacity, seed=derived_seed(cfg.seed, _REPLAY_TAG, 0))
     if cfg.seed_dataset is not None and not (out / CHECKPOINT).exists():
         # Before anything is written: a bad dataset leaves no half-made run directory.
-        seed_buffer(buffer, cfg.seed_dataset, run.task, cfg.obs, cfg.image_size)
+        seed_buffer(buffer, cfg.seed_dataset, run.task, cfg.obs, cfg.image_size,
+                    endpoint=cfg.dataset_endpoint)  # fmt: skip
     if not saved.exists():
         run.save(saved)
     seed_everything(cfg.seed)

@@ -7,6 +7,7 @@ import os
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from ccdata.cli import main
@@ -90,3 +91,27 @@ def test_explore_notebook_runs_on_the_dataset(tiny_reach):
     assert not [o for o in outputs if o.get("output_type") == "error"]
     assert any("image/png" in o.get("data", {}) for o in outputs), "no figure rendered"
 
+
+
+def test_ccfit_reads_a_pushed_dataset_by_repo_id_from_the_endpoint(
+    tiny_reach, hub_server, monkeypatch, tmp_path
+):
+    from ccdata.hub import push_dataset
+    from ccfit import data
+    from ccfit.replay import ReplayBuffer
+    from ccfit.train import seed_buffer
+
+    push_dataset(tiny_reach, "org/reach-seed", endpoint=hub_server.url,
+                 token=hub_server.token("write"))  # fmt: skip
+    monkeypatch.setattr("lerobot.utils.constants.HF_LEROBOT_HOME", tmp_path / "empty-home")
+    monkeypatch.setattr("lerobot.utils.constants.HF_LEROBOT_HUB_CACHE", tmp_path / "hub-cache")
+    episodes = data.load_episodes("org/reach-seed", task="reach-xz", endpoint=hub_server.url)
+    local = data.load_episodes(tiny_reach, task="reach-xz")
+    assert len(episodes) == len(local) == 1
+    np.testing.assert_array_equal(episodes[0]["action"], local[0]["action"])
+    buffer = ReplayBuffer(1000)
+    added = seed_buffer(buffer, "org/reach-seed", "reach-xz", "state",
+                        endpoint=hub_server.url)  # fmt: skip
+    assert added == 1 and buffer.num_episodes == 1
+    with pytest.raises(ValueError, match="cannot read LeRobot dataset 'org/missing'"):
+        data.load_episodes("org/missing", endpoint=hub_server.url)
