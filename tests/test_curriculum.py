@@ -1,0 +1,494 @@
+"""Algorithm 1 end to end on a real suite (Grasp, 3 tasks) at smoke size, for ft, er, ewc and
+packnet: metrics, evaluation records, stored heads, the shared from-scratch reference, PackNet's
+frozen weights, ER's kept fraction, EWC's anchor, no data leakage between tasks, resume after
+SIGKILL, CLI errors, `ccfit report` and the results notebook.
+
+One module-scoped fixture runs the four curricula once (about 100 s on a loaded 2-core machine;
+evaluation episodes dominate). Spies wrap the real classes and functions (they record what they
+see and call through); nothing is mocked.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+import ccfit.curriculum as C
+from ccfit.curriculum import Curriculum, CurriculumConfig
+from ccfit.train import CONFIG, METRICS, derived_seed
+
+SUITE = "Grasp"
+TASKS = ("pick-cube", "place-cube", "pnp-cube")
+METHODS = ("ft", "er", "ewc", "packnet")
+STEPS, EVAL = 100, 100
+TRAIN = {"steps": STEPS, "seed_steps": 50, "eval_interval": EVAL, "checkpoint_interval": 50}
+OPTIONS = {
+    "ft": {},
+    "er": {"batch_size": 16},
+    "ewc": {"fisher_batches": 4},
+    "packnet": {"retrain_steps": 20},
+}
+NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "results.ipynb"
+
+
+def _config(method: str) -> CurriculumConfig:
+    return CurriculumConfig(suite=SUITE, method=method, preset="smoke", seed_dataset=None,
+                            train_overrides=dict(TRAIN), method_options=dict(OPTIONS[method]))
+
+
+def _cli_argv(method: str, out: Path, scratch_root: Path) -> list[str]:
+    argv = ["run", "--suite", SUITE, "--method", method, "--preset", "smoke",
+            "--seed-dataset", "none", "--out", str(out), "--scratch-root", str(scratch_root),
+            "--quiet"]  # fmt: skip
+    argv += [a for k, v in TRAIN.items() for a in ("--train", f"{k}={v}")]
+    argv += [a for k, v in OPTIONS[method].items() for a in ("--method-option", f"{k}={v}")]
+    return argv
+
+
+def _records(run_dir: Path) -> list[dict]:
+    return [json.loads(x) for x in (run_dir / METRICS).read_text().splitlines() if x.strip()]
+
+
+@dataclass
+class Seen:
+    """What the spies saw during one method's curriculum."""
+
+    trainers: list = field(default_factory=list)
+    """Every Trainer built (the curriculum's tasks, then the scratch reference if trained)."""
+    buffers: list = field(default_factory=list)
+    """Every replay buffer built."""
+    evals: list = field(default_factory=list)
+    """(env task id, heads, heads trainable?, heads in train mode?) per earlier-task evaluation."""
+    saves: list = field(default_factory=list)
+    """Per `curriculum.pt` write: completed tasks, backbone parameters, method and heads states."""
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp("curriculum")
+    current: list[Seen] = []
+
+    class SpyBuffer(C.ReplayBuffer):
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, **kwargs)
+            self.added: list[tuple[int, np.ndarray]] = []
+            current[-1].buffers.append(self)
+
+        def add_episode(self, obs, action, reward, terminated, task=0) -> None:
+            self.added.append((int(task), np.array(obs["state"][0])))
+            super().add_episode(obs, action, reward, terminated, task=task)
+
+    class SpyTrainer(C.Trainer):
+        def __init__(self, **kwargs) -> None:
+            super().__init__(**kwargs)
+            current[-1].trainers.append(self)
+
+    real_evaluate, real_save = C.evaluate, Curriculum._save
+
+    def spy_evaluate(env, model, heads, **kwargs):
+        trainable = any(p.requires_grad for p in heads.parameters())
+        current[-1].evals.append((env.task_id, heads, trainable, heads.training))
+        return real_evaluate(env, model, heads, **kwargs)
+
+    def spy_save(self, path, completed, model, method, stored):
+        current[-1].saves.append({
+            "completed": completed,
+            "backbone": {n: p.detach().clone() for n, p in model.backbone.named_parameters()},
+            "method": copy.deepcopy(method.state_dict()),
+            "heads": [copy.deepcopy(h.state_dict()) for h in stored],
+        })  # fmt: skip
+        real_save(self, path, completed, model, method, stored)
+
+    out = {}
+    done_mtimes = []
+    start = time.monotonic()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(C, "ReplayBuffer", SpyBuffer)
+        mp.setattr(C, "Trainer", SpyTrainer)
+        mp.setattr(C, "evaluate", spy_evaluate)
+        mp.setattr(Curriculum, "_save", spy_save)
+        for method in METHODS:
+            current.append(Seen())
+            cfg = _config(method)
+            result = Curriculum(cfg, root / method, root / "scratch", progress=False).run()
+            done_mtimes.append((Path(result["scratch_dir"]) / "done.json").stat().st_mtime_ns)
+            out[method] = SimpleNamespace(cfg=cfg, dir=root / method, result=result,
+                                          seen=current[-1])  # fmt: skip
+    wall = time.monotonic() - start
+    print(f"\ncurriculum fixture: {len(METHODS)} methods in {wall:.0f} s")
+    return SimpleNamespace(root=root, scratch_root=root / "scratch", runs=out,
+                           done_mtimes=done_mtimes, wall=wall)  # fmt: skip
+
+
+def _final_model(run):
+    """The model and method state of a finished run, rebuilt from its curriculum.pt."""
+    state = torch.load(run.dir / C.STATE, map_location="cpu", weights_only=False)
+    model = C._build(run.cfg, torch.device("cpu"))
+    model.load_state_dict(state["model"])
+    return model, state
+
+
+# ============================================================================ metrics
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_each_method_writes_metrics_and_resolved_config(runs, method):
+    run = runs.runs[method]
+    metrics = json.loads((run.dir / C.METRICS_JSON).read_text())
+    assert metrics == json.loads(json.dumps(run.result))
+    assert (metrics["suite"], metrics["method"], metrics["model"]) == (SUITE, method, "tdmpc2")
+    assert metrics["task_ends"] == [STEPS, 2 * STEPS, 3 * STEPS] and metrics["budget"] == STEPS
+
+    # BWT: finite, or None only when every earlier task is excluded with its reason.
+    if metrics["bwt"] is None:
+        assert set(metrics["bwt_excluded"]) == {"0", "1"}
+    else:
+        per_task = metrics["bwt_per_task"]
+        assert set(per_task) | set(metrics["bwt_excluded"]) == {"0", "1"}
+        assert metrics["bwt"] == pytest.approx(np.mean(list(per_task.values())))
+        assert all(np.isfinite(v) for v in per_task.values())
+    assert all("never learnt" in why for why in metrics["bwt_excluded"].values())
+
+    # The other metrics, checked against the evaluation records they come from.
+    recs = _records(run.dir)
+
+    def score(task, stage, step):
+        (r,) = [r for r in recs if (r["task_index"], r["stage"], r["global_step"])
+                == (task, stage, step)]  # fmt: skip
+        return r["normalized_return"]
+
+    final = [score(i, 2, 3 * STEPS) for i in range(3)]
+    # At a task's end the next stage's first evaluation supersedes the end record.
+    end = [score(0, 1, STEPS), score(1, 2, 2 * STEPS), score(2, 2, 3 * STEPS)]
+    assert metrics["final_per_task"] == pytest.approx(final)
+    assert metrics["end_of_task"] == pytest.approx(end)
+    lopez = np.mean([final[i] - end[i] for i in range(2)])
+    assert metrics["lopez_paz_bwt"] == pytest.approx(lopez)
+    assert metrics["cw_forgetting"] == pytest.approx(-lopez)
+    # FWT: composition task from its start vs the shared scratch curve (both at 0 and 100).
+    scratch = json.loads((Path(metrics["scratch_dir"]) / "done.json").read_text())
+    scr = {r["task_step"]: r["normalized_return"] for r in scratch}
+    seq = {0: score(2, 2, 2 * STEPS), STEPS: score(2, 2, 3 * STEPS)}
+    assert metrics["fwt"] == pytest.approx((seq[0] - scr[0] + seq[STEPS] - scr[STEPS]) / 2)
+    assert np.isfinite(metrics["cw_forward_transfer"])
+
+    cfg = json.loads((run.dir / CONFIG).read_text())
+    assert cfg == json.loads(json.dumps(run.cfg.to_dict()))
+    assert cfg["train"]["steps"] == STEPS and cfg["train"]["eval_interval"] == EVAL
+    assert cfg["train"]["batch_size"] == 16  # the smoke preset under the overrides
+    assert cfg["model_config"]["latent_dim"] == 32 and cfg["resolved_seed_dataset"] is None
+    assert cfg["method_options"] == OPTIONS[method]
+    # A finished run leaves no per-task trainer checkpoint behind.
+    assert not list((run.dir / "tasks").glob("*/checkpoint.pt"))
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_every_seen_task_is_evaluated_at_every_eval_point(runs, method):
+    recs = _records(runs.runs[method].dir)
+    expected = sorted(
+        (j, stage, g)
+        for stage in range(3)
+        for g in range(stage * STEPS, (stage + 1) * STEPS + 1, EVAL)
+        for j in range(stage + 1)
+    )
+    assert sorted((r["task_index"], r["stage"], r["global_step"]) for r in recs) == expected
+    for r in recs:
+        assert r["global_step"] % EVAL == 0
+        assert r["task"] == TASKS[r["task_index"]]
+        own = r["task_index"] == r["stage"]
+        assert r["task_step"] == (r["global_step"] - r["stage"] * STEPS if own else None)
+        assert r["normalized_return"] is not None and 0.0 <= r["success_rate"] <= 1.0
+        assert r["episodes"] == 1
+    # Logged in training order: stages and global steps never go back.
+    order = [(r["stage"], r["global_step"]) for r in recs]
+    assert order == sorted(order)
+    # Task 0 is evaluated through stage 2 (with its stored heads, see the next test).
+    assert {r["global_step"] for r in recs if r["task_index"] == 0 and r["stage"] == 2} == {
+        2 * STEPS, 3 * STEPS
+    }
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_earlier_tasks_are_evaluated_with_their_stored_heads(runs, method):
+    run = runs.runs[method]
+    seen = run.seen
+    trainers = [t for t in seen.trainers if t.run_dir.parent == run.dir / "tasks"]
+    assert [t.task_id for t in trainers] == list(TASKS)
+    earlier = [r for r in _records(run.dir) if r["task_index"] < r["stage"]]
+    assert len(seen.evals) == len(earlier) == 2 * 1 + 2 * 2  # 2 points in stage 1, 2 in stage 2
+    for (env_task, heads, trainable, training), r in zip(seen.evals, earlier, strict=True):
+        assert env_task == r["task"]
+        assert heads is trainers[r["task_index"]].heads, "not the task's own (stored) heads"
+        assert not trainable and not training, "stored heads must be frozen, in eval mode"
+    # Stored heads never change after their task.
+    final = torch.load(run.dir / C.STATE, map_location="cpu", weights_only=False)["heads"]
+    assert [s["completed"] for s in seen.saves] == [1, 2, 3]
+    for j in range(3):
+        after_j = seen.saves[j]["heads"][j]
+        assert all(torch.equal(after_j[k], final[j][k]) for k in after_j)
+
+
+def test_scratch_reference_is_trained_once_and_shared(runs):
+    dirs = {run.result["scratch_dir"] for run in runs.runs.values()}
+    assert len(dirs) == 1
+    (scratch_dir,) = dirs
+    assert Path(scratch_dir).is_absolute()
+    assert Path(scratch_dir).parent == runs.scratch_root.resolve()
+    scratch_trainers = [
+        (m, t) for m, run in runs.runs.items() for t in run.seen.trainers
+        if t.run_dir == Path(scratch_dir)
+    ]  # fmt: skip
+    assert [(m, t.task_id, t.task_index) for m, t in scratch_trainers] == [("ft", "pnp-cube", 2)]
+    assert len(set(runs.done_mtimes)) == 1, "a later run rewrote the shared scratch reference"
+    done = json.loads((Path(scratch_dir) / "done.json").read_text())
+    assert [(r["task"], r["global_step"]) for r in done] == [("pnp-cube", 0), ("pnp-cube", STEPS)]
+    assert not (Path(scratch_dir) / "checkpoint.pt").exists()
+
+
+# ========================================================================= the methods
+
+
+def test_packnet_keeps_finished_tasks_weights_bit_identical(runs):
+    run = runs.runs["packnet"]
+    model, state = _final_model(run)
+    final = dict(model.backbone.named_parameters())
+    owner_end = state["method"]["owner"]
+    assert owner_end and all((o >= 0).all() for o in owner_end.values()), "last task owns the rest"
+    for t, snap in enumerate(run.seen.saves[:2]):
+        owner = snap["method"]["owner"]
+        for name, own in owner.items():
+            mine = own == t
+            n_free = int((own == t).sum() + (own == -1).sum())
+            # keep_fraction 0.25 of the entries still free before task t
+            assert int(mine.sum()) == round(0.25 * n_free), name
+            assert torch.equal(final[name].detach()[mine], snap["backbone"][name][mine]), (
+                f"{name}: weights owned by task {t} changed after task {t}"
+            )
+            assert torch.equal(owner_end[name][mine], own[mine])
+    # Biases and other shared parameters are frozen with task 0.
+    shared = [n for n in final if n not in owner_end]
+    assert shared
+    for name in shared:
+        assert torch.equal(final[name].detach(), run.seen.saves[0]["backbone"][name]), name
+    # Not vacuous: the entries left free after task 0 did train in tasks 1 and 2.
+    moved = sum(
+        int((final[n].detach() != run.seen.saves[0]["backbone"][n])[o == -1].sum())
+        for n, o in run.seen.saves[0]["method"]["owner"].items()
+    )
+    assert moved > 0
+
+
+def test_er_keeps_the_stated_fraction_of_each_task(runs):
+    run = runs.runs["er"]
+    trainers = [t for t in run.seen.trainers if t.run_dir.parent == run.dir / "tasks"]
+    state = torch.load(run.dir / C.STATE, map_location="cpu", weights_only=False)["method"]
+    fraction = 0.05  # ER's default
+    assert sorted(state["kept"]) == [0, 1, 2]
+    for i, trainer in enumerate(trainers):
+        n = trainer.buffer.num_starts(trainer.horizon)
+        assert n > 0 and len(state["kept"][i]) == round(fraction * n)
+        assert len(set(state["kept"][i].tolist())) == len(state["kept"][i])
+    tasks = state["memory"]["task"]
+    counts = {i: int((tasks == i).sum()) for i in range(3)}
+    assert counts == {i: len(state["kept"][i]) for i in range(3)} and counts[0] > 0
+    # After task 0 only task 0 was in memory (a later task never enters an earlier replay).
+    after_0 = run.seen.saves[0]["method"]["memory"]["task"]
+    assert set(after_0.tolist()) == {0}
+
+
+def test_ewc_anchors_at_the_last_task_and_penalty_grows_with_drift(runs):
+    from ccfit.continual import make_method
+
+    run = runs.runs["ewc"]
+    model, state = _final_model(run)
+    method = make_method("ewc", num_tasks=3, **OPTIONS["ewc"])
+    method.load_state_dict(state["method"])
+    assert float(method.penalty(model.backbone, model.backbone_loss).detach()) == 0.0
+    # Fisher accumulates over tasks (decay 1): never smaller than after the previous task.
+    fishers = [s["method"]["fisher"] for s in run.seen.saves]
+    for before, after in zip(fishers, fishers[1:], strict=False):
+        assert all((after[n] >= before[n]).all() for n in before)
+    assert sum(float(f.sum()) for f in fishers[-1].values()) > 0
+    penalties = []
+    for scale in (1e-3, 2e-3):
+        with torch.no_grad():
+            for name, p in model.backbone.named_parameters():
+                if name in method.anchor:
+                    p.copy_(method.anchor[name] + scale)
+        penalties.append(float(method.penalty(model.backbone, model.backbone_loss).detach()))
+    assert 0 < penalties[0] < penalties[1]
+    assert penalties[1] == pytest.approx(4 * penalties[0], rel=1e-3)  # quadratic in the drift
+
+
+# ============================================================================ leakage
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_each_task_trains_only_on_its_own_env_and_data(runs, method):
+    from ccdata.env import make_env
+    from ccfit.obs import obs_to_arrays
+
+    run = runs.runs[method]
+    trainers = [t for t in run.seen.trainers if t.run_dir.parent == run.dir / "tasks"]
+    buffers = [t.buffer for t in trainers]
+    assert len({id(b) for b in buffers}) == 3, "each task gets a fresh replay buffer"
+    firsts = []
+    for i, (trainer, buffer) in enumerate(zip(trainers, buffers, strict=True)):
+        assert trainer.env.task_id == TASKS[i] and trainer.task_index == i
+        assert buffer.added and {t for t, _ in buffer.added} == {i}, (
+            f"buffer of task {i} holds episodes of tasks {sorted({t for t, _ in buffer.added})}"
+        )
+        # Its first episode starts from task i's own training layout.
+        env = make_env(TASKS[i], render=False)
+        obs, _ = env.reset(seed=derived_seed(0, 0, 0, i))
+        env.close()
+        assert np.array_equal(buffer.added[0][1], obs_to_arrays(obs, "state")["state"])
+        firsts.append(buffer.added[0][1])
+    assert not np.array_equal(firsts[0], firsts[2])  # the check can tell tasks apart
+
+
+# ============================================================================= resume
+
+
+def test_killed_run_resumes_to_the_uninterrupted_result(runs, tmp_path):
+    """SIGKILL a `ccfit run` once task 1 has a checkpoint (task 0 finished), rerun the same
+    command, and compare with the fixture's uninterrupted run of the same seed."""
+    method = "packnet"
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "ccfit.cli", *_cli_argv(method, out, runs.scratch_root)]
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    ckpt = out / "tasks" / f"1-{TASKS[1]}" / "checkpoint.pt"
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 300
+        while not ckpt.exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert proc.poll() is None, "the run ended before it could be killed"
+        assert ckpt.exists(), "no task checkpoint within 300 s"
+        proc.kill()  # SIGKILL: no cleanup runs
+    finally:
+        proc.kill()
+        proc.communicate()
+    state = torch.load(out / C.STATE, map_location="cpu", weights_only=False)
+    assert state["completed"] == 1 and not (out / C.METRICS_JSON).exists()
+
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    ref = runs.runs[method].dir
+    for name in (C.METRICS_JSON, CONFIG):
+        assert json.loads((out / name).read_text()) == json.loads((ref / name).read_text()), name
+    assert _records(out) == _records(ref)
+    assert not list((out / "tasks").glob("*/checkpoint.pt"))
+    assert len(set(runs.done_mtimes)) == 1
+    done_json = Path(runs.runs[method].result["scratch_dir"]) / "done.json"
+    assert done_json.stat().st_mtime_ns == runs.done_mtimes[0], "scratch retrained"
+
+
+# ================================================================================ CLI
+
+
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["--suite", "Nope"], "valid suites: Reach, Grasp"),
+        (["--suite", SUITE, "--method", "nope"], "valid: er, ewc, experts, ft, packnet"),
+        (["--suite", SUITE, "--method", "experts", "--model", "tdmpc2"], "--model pwm"),
+        (["--suite", SUITE, "--encoder", "frozen:/missing", "--obs", "pixels"], "not found"),
+        (["--suite", SUITE, "--encoder", "frozen:/missing"], "needs --obs pixels"),
+        (["--suite", SUITE, "--method", "ewc", "--method-option", "lamda=1"], "valid:"),
+        (["--suite", SUITE, "--train", "steps=150"], "multiple of eval_interval"),
+    ],
+)
+def test_cli_run_bad_input_exits_2_with_one_line(argv, needle, capsys, tmp_path):
+    from ccfit.cli import main
+
+    try:
+        code = main(["run", *argv, "--out", str(tmp_path / "x"), "--preset", "smoke"])
+    except SystemExit as e:
+        code = e.code
+    err = capsys.readouterr().err
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and needle in err, err
+    assert "Traceback" not in err
+    assert not (tmp_path / "x").exists(), "bad input must not leave a run directory"
+
+
+def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
+    from ccfit.cli import main
+
+    out = tmp_path / "report"
+    assert main(["report", str(runs.root), "--out", str(out)]) == 0
+    printed = set(capsys.readouterr().out.split())
+    expected = {"table_tdmpc2.md", "table_tdmpc2.csv", "bars_tdmpc2.png", "summary.json"}
+    expected |= {f"curves_tdmpc2_{SUITE}_{m}.png" for m in METHODS}
+    assert {p.name for p in out.iterdir()} == expected
+    assert printed == {str(out / name) for name in expected}
+
+    with (out / "table_tdmpc2.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert sorted(r["method"] for r in rows) == sorted(METHODS)
+    for r in rows:
+        assert (r["backbone"], r["suite"], r["seeds"]) == ("tdmpc2", SUITE, "1")
+        metrics = runs.runs[r["method"]].result
+        for name in ("bwt", "fwt"):  # one seed: the group's metric is the run's
+            value = None if r[name] == "" else float(r[name])
+            assert value == pytest.approx(metrics[name])
+    md = (out / "table_tdmpc2.md").read_text().splitlines()
+    header = next(line for line in md if line.startswith("| suite"))
+    assert all(f"{m} BWT" in header and f"{m} FWT" in header for m in METHODS)
+    assert [line.split("|")[1].strip() for line in md if line.startswith(f"| {SUITE}")] == [SUITE]
+    summary = json.loads((out / "summary.json").read_text())
+    assert sorted(summary) == sorted(f"tdmpc2/{SUITE}/{m}" for m in METHODS)
+    assert all(summary[f"tdmpc2/{SUITE}/{m}"]["seeds"] == [0] for m in METHODS)
+    for name in expected:
+        if name.endswith(".png"):
+            data = (out / name).read_bytes()
+            assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000, name
+
+
+def test_report_table_frame_matches_runs(runs):
+    from ccfit.report import load_groups, table_frame
+
+    groups = load_groups([runs.root])
+    frame = table_frame(groups, "tdmpc2")
+    assert list(frame.index) == [SUITE]
+    assert list(frame.columns.get_level_values(0)[::2]) == list(METHODS)
+    for m in METHODS:
+        for name in ("bwt", "fwt"):
+            value = runs.runs[m].result[name]
+            cell = frame.loc[SUITE, (m, name.upper())]
+            assert np.isnan(cell) if value is None else cell == pytest.approx(value)
+    with pytest.raises(ValueError, match="valid: tdmpc2"):
+        table_frame(groups, "pwm")
+
+
+def test_results_notebook_runs_on_smoke_runs(runs, tmp_path, monkeypatch):
+    import nbformat
+    from nbclient import NotebookClient
+
+    monkeypatch.setenv("CCFIT_RUNS", str(runs.root))
+    monkeypatch.setenv("CCFIT_FIGURES", str(tmp_path / "figures"))
+    nb = nbformat.read(NOTEBOOK, as_version=4)
+    assert all(not c.get("outputs") for c in nb.cells if c.cell_type == "code"), "stored outputs"
+    NotebookClient(nb, timeout=300, kernel_name="python3",
+                   resources={"metadata": {"path": str(tmp_path)}}).execute()  # fmt: skip
+    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs]
+    assert not [o for o in outputs if o.output_type == "error"]
+    html = "".join(o.get("data", {}).get("text/html", "") for o in outputs)
+    assert all(m in html for m in METHODS) and SUITE in html and "BWT" in html
+    pngs = [o for o in outputs if "image/png" in o.get("data", {})]
+    assert len(pngs) == 1 + len(METHODS)  # the bars and one curve plot per group
+    assert len(list((tmp_path / "figures").glob("*.png"))) == 1 + len(METHODS)
