@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import os
 import shutil
 import time
@@ -381,6 +382,9 @@ def _quiet_libraries() -> None:
     av.logging.set_level(av.logging.ERROR)
     av.logging.set_libav_level(av.logging.ERROR)
     datasets.disable_progress_bars()
+    # Without system FFmpeg libraries LeRobot logs a page-long torchcodec traceback per process
+    # before falling back to PyAV, which is what ccdata reads and writes with anyway.
+    logging.getLogger("lerobot.utils.import_utils").setLevel(logging.ERROR)
 
 
 def write_shard(
