@@ -378,8 +378,10 @@ def _quiet_libraries() -> None:
     import datasets
 
     # LeRobot re-installs FFmpeg's own printer (restore_default_callback), which then prints
-    # every encoder's statistics: silence it at the libav level too.
-    av.logging.set_level(av.logging.ERROR)
+    # every encoder's statistics: raise FFmpeg's own threshold. PyAV's Python log callback
+    # stays off (level None): with it on, FFmpeg's decoder threads take the GIL to log and
+    # can deadlock a later decode in the same process.
+    av.logging.set_level(None)
     av.logging.set_libav_level(av.logging.ERROR)
     datasets.disable_progress_bars()
     # Without system FFmpeg libraries LeRobot logs a page-long torchcodec traceback per process
