@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import json
 from collections import defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
@@ -72,16 +74,50 @@ def resolve_source(source: str | Path, endpoint: str | None = None) -> Path:
         ) from None
 
 
-def _open_metadata(source: str | Path, endpoint: str | None = None):
-    """(metadata, root) for a local dataset directory or a Hub repo id."""
-    from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
+@dataclass
+class _Metadata:
+    """The parts of a v3 dataset's meta/ the reader needs, read straight with pyarrow (LeRobot's
+    metadata class goes through `datasets` and costs ~2 s even for a tiny dataset)."""
 
+    info: dict
+    episodes: pd.DataFrame
+    """One row per episode (index: episode_index): data and video file locations, timestamps."""
+    tasks: pd.DataFrame
+    """Index: the task string; column task_index."""
+
+    @property
+    def fps(self) -> float:
+        return float(self.info["fps"])
+
+    @property
+    def data_path(self) -> str:
+        return self.info["data_path"]
+
+    @property
+    def video_path(self) -> str:
+        return self.info["video_path"]
+
+    @property
+    def video_keys(self) -> list[str]:
+        return [k for k, f in self.info["features"].items() if f["dtype"] == "video"]
+
+
+def _open_metadata(source: str | Path, endpoint: str | None = None) -> tuple[_Metadata, Path]:
+    """(metadata, root) for a local dataset directory or a Hub repo id."""
     root = resolve_source(source, endpoint)
     try:
-        return LeRobotDatasetMetadata(f"local/{root.name}", root=root), root
-    except Exception as e:  # noqa: BLE001 - corrupt or partial metadata: one clear message
+        info = json.loads((root / "meta" / "info.json").read_text())
+        if info.get("codebase_version") != "v3.0":
+            raise ValueError(f"codebase_version {info.get('codebase_version')!r}, not v3.0")
+        files = sorted((root / "meta" / "episodes").rglob("*.parquet"))
+        if not files:
+            raise ValueError("no meta/episodes/*.parquet")
+        episodes = pa.concat_tables([pq.read_table(f) for f in files]).to_pandas()
+        tasks = pq.read_table(root / "meta" / "tasks.parquet").to_pandas()
+    except Exception as e:  # noqa: BLE001 - missing or corrupt metadata: one clear message
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise ValueError(f"cannot read LeRobot dataset at {root}: {msg}") from e
+    return _Metadata(info, episodes.set_index(EPISODE_INDEX), tasks), root
 
 
 def _id_maps(root: Path) -> tuple[dict[str, int], dict[str, int]]:
@@ -155,10 +191,9 @@ def load_episodes(
     `images` is true.
     """
     meta, root = _open_metadata(source, endpoint)
-    meta.ensure_readable()
-    if meta.total_episodes == 0:
+    if len(meta.episodes) == 0:
         raise ValueError(f"dataset {str(source)!r} has no episodes")
-    ep_meta = meta.episodes.to_pandas().set_index(EPISODE_INDEX)
+    ep_meta = meta.episodes
     fps = float(meta.fps)
     tasks_by_index = {int(i): str(t) for t, i in meta.tasks["task_index"].items()}
     task_ids, policies = _id_maps(root)
