@@ -109,6 +109,7 @@ def _cmd_run(args: argparse.Namespace) -> None:
             suite=args.suite, model=args.model, method=args.method, preset=args.preset,
             obs=args.obs, seed=args.seed, image_size=args.image_size, encoder=args.encoder,
             seed_dataset=seed_dataset, method_options=_parse_options(args.method_option),
+            model_overrides=_parse_options(args.model_option),
             train_overrides={**_parse_options(args.train), **(
                 {"dataset_endpoint": args.endpoint} if args.endpoint else {})},
         )  # fmt: skip
@@ -192,6 +193,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="auto (the suite's dataset when present) | none | SOURCE")  # fmt: skip
     p.add_argument("--method-option", action="append", default=[], metavar="KEY=VALUE",
                    help="method setting, e.g. lam=5000 (EWC), fraction=0.05 (ER)")  # fmt: skip
+    p.add_argument("--model-option", action="append", default=[], metavar="KEY=VALUE",
+                   help="model config override, e.g. router=state (PWM)")  # fmt: skip
     p.add_argument("--train", action="append", default=[], metavar="KEY=VALUE",
                    help="TrainConfig override, e.g. steps=5000")  # fmt: skip
     p.add_argument("--endpoint", default=None,
