@@ -58,8 +58,9 @@ def dir_bytes(root: Path, sub: str) -> int:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--suite", default="Grasp")
-    parser.add_argument("--episodes", type=int, default=3)
-    parser.add_argument("--explore-episodes", type=int, default=1)
+    # The default dataset's 2:1:1 mix of oracle, noisy-oracle and random episodes.
+    parser.add_argument("--episodes", type=int, default=4)
+    parser.add_argument("--explore-episodes", type=int, default=2)
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         results = {}
