@@ -23,38 +23,43 @@ from gymnasium.envs.mujoco.mujoco_rendering import MujocoRenderer  # noqa: E402
 import ccdata  # noqa: E402
 
 
-def benchmark_steps(task_id: str, steps: int, seed: int = 0) -> float:
-    env = ccdata.make_env(task_id, seed=seed, image_size=64)
+def steps_per_second(env, steps: int, seed: int, after_step=None) -> float:
+    """Agent steps/s under seeded random actions; `after_step` runs after every step."""
     rng = np.random.default_rng(seed)
     env.reset()
     start = time.perf_counter()
     for _ in range(steps):
         _, _, terminated, truncated, _ = env.step(rng.uniform(-1, 1, 4))
+        if after_step is not None:
+            after_step()
         if terminated or truncated:
             env.reset()
-    rate = steps / (time.perf_counter() - start)
+    return steps / (time.perf_counter() - start)
+
+
+def benchmark_steps(task_id: str, steps: int, seed: int = 0) -> float:
+    """The benchmark's own renderer: three 64 px cameras in every observation."""
+    env = ccdata.make_env(task_id, seed=seed, image_size=64)
+    rate = steps_per_second(env, steps, seed)
     env.close()
     return rate
 
 
 def metaworld_render_steps(task_id: str, steps: int, seed: int = 0) -> float:
+    """Physics without our cameras, plus Meta-World's MujocoEnv.render() of the same views."""
     env = ccdata.make_env(task_id, seed=seed, render=False)
     scene = env.scene
     scene.render_mode = "rgb_array"
     scene.mujoco_renderer = MujocoRenderer(scene.model, scene.data, width=64, height=64)
     camera = mujoco.mjtObj.mjOBJ_CAMERA
     cam_ids = [mujoco.mj_name2id(scene.model, camera, c) for c in ccdata.CAMERAS]
-    rng = np.random.default_rng(seed)
-    env.reset()
-    start = time.perf_counter()
-    for _ in range(steps):
-        _, _, terminated, truncated, _ = env.step(rng.uniform(-1, 1, 4))
+
+    def render_three_views() -> None:
         for cam in cam_ids:
             scene.mujoco_renderer.camera_id = cam
             scene.render()
-        if terminated or truncated:
-            env.reset()
-    rate = steps / (time.perf_counter() - start)
+
+    rate = steps_per_second(env, steps, seed, render_three_views)
     scene.mujoco_renderer.close()
     env.close()
     return rate
@@ -70,13 +75,8 @@ def main() -> None:
     ours = [benchmark_steps(args.task, args.steps) for _ in range(args.repeats)]
     theirs = [metaworld_render_steps(args.task, args.baseline_steps) for _ in range(args.repeats)]
     state_only = ccdata.make_env(args.task, seed=0, render=False)
-    state_only.reset()
-    t0 = time.perf_counter()
-    for _ in range(args.steps):
-        _, _, te, tr, _ = state_only.step(np.zeros(4, np.float32))
-        if te or tr:
-            state_only.reset()
-    physics = args.steps / (time.perf_counter() - t0)
+    physics = steps_per_second(state_only, args.steps, seed=0)
+    state_only.close()
     result = {
         "task": args.task,
         "cameras": list(ccdata.CAMERAS),
