@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -20,10 +21,11 @@ from ccdata.policies import make_policy  # noqa: E402
 from ccdata.record import GenerateConfig, generate, plan, policy_seed  # noqa: E402
 
 
-def env_only_rate(config: GenerateConfig) -> tuple[float, int]:
-    """Steps/s of rolling out the plan with cameras on, writing nothing."""
+def env_only_rate(config: GenerateConfig) -> tuple[float, int, float]:
+    """Steps/s of rolling out the plan with cameras on, writing nothing; also the frames and
+    the cores it kept busy (CPU seconds of all its threads per wall second)."""
     frames = 0
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     env, env_task = None, None
     for spec in plan(config):
         if env_task != spec.task_id:
@@ -48,7 +50,21 @@ def env_only_rate(config: GenerateConfig) -> tuple[float, int]:
             if terminated or truncated:
                 break
     env.close()
-    return frames / (time.perf_counter() - start), frames
+    wall = time.perf_counter() - start
+    return frames / wall, frames, (time.process_time() - cpu) / wall
+
+
+def generate_rate(args, workers: int, root: Path) -> tuple[float, int]:
+    config = GenerateConfig(
+        suite=args.suite,
+        episodes=args.episodes,
+        explore_episodes=args.explore_episodes,
+        workers=workers,
+        root=root,
+    )
+    start = time.perf_counter()
+    _, summary = generate(config, progress=False)
+    return summary["frames"] / (time.perf_counter() - start), summary["frames"]
 
 
 def dir_bytes(root: Path, sub: str) -> int:
@@ -61,29 +77,30 @@ def main() -> None:
     # The default dataset's 2:1:1 mix of oracle, noisy-oracle and random episodes.
     parser.add_argument("--episodes", type=int, default=4)
     parser.add_argument("--explore-episodes", type=int, default=2)
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="rounds of (1 worker, 2 workers, env-only); medians are reported",
+    )
     args = parser.parse_args()
+    rates: dict[str, list[float]] = {"w1": [], "w2": [], "env": [], "env_cores": []}
     with tempfile.TemporaryDirectory() as tmp:
-        results = {}
-        for workers in (1, 2):
+        for r in range(args.repeats):
+            for workers in (1, 2):
+                root = Path(tmp) / f"r{r}-w{workers}"
+                rate, frames = generate_rate(args, workers, root)
+                rates[f"w{workers}"].append(rate)
             config = GenerateConfig(
-                suite=args.suite,
-                episodes=args.episodes,
-                explore_episodes=args.explore_episodes,
-                workers=workers,
-                root=Path(tmp) / f"w{workers}",
+                suite=args.suite, episodes=args.episodes, explore_episodes=args.explore_episodes
             )
-            start = time.perf_counter()
-            root, summary = generate(config, progress=False)
-            wall = time.perf_counter() - start
-            results[workers] = {
-                "frames": summary["frames"],
-                "wall_s": wall,
-                "frames_per_s": summary["frames"] / wall,
-            }
-        env_rate, env_frames = env_only_rate(config)
-        root = Path(tmp) / "w1"
+            env_rate, env_frames, cores = env_only_rate(config)
+            rates["env"].append(env_rate)
+            rates["env_cores"].append(cores)
+            ratios = [w / e for w, e in zip(rates["w1"], rates["env"], strict=True)]
+        root = Path(tmp) / "r0-w1"
         video, data = dir_bytes(root, "videos"), dir_bytes(root, "data")
-    one = results[1]
+    med = {k: statistics.median(v) for k, v in rates.items()}
     print(
         json.dumps(
             {
@@ -93,14 +110,17 @@ def main() -> None:
                     "noisy-oracle": args.explore_episodes,
                     "random": args.explore_episodes,
                 },
-                "frames": one["frames"],
-                "generate_frames_per_s_1_worker": one["frames_per_s"],
-                "env_only_steps_per_s": env_rate,
-                "ratio_generate_to_env_only": one["frames_per_s"] / env_rate,
-                "generate_frames_per_s_2_workers": results[2]["frames_per_s"],
-                "scaling_1_to_2_workers": results[2]["frames_per_s"] / one["frames_per_s"],
-                "video_bytes_per_1000_frames": 1000 * video / one["frames"],
-                "data_bytes_per_1000_frames": 1000 * data / one["frames"],
+                "frames": frames,
+                "repeats": args.repeats,
+                "generate_frames_per_s_1_worker": med["w1"],
+                "env_only_steps_per_s": med["env"],
+                "ratio_generate_to_env_only": statistics.median(ratios),
+                "ratio_per_repeat": ratios,
+                "generate_frames_per_s_2_workers": med["w2"],
+                "scaling_1_to_2_workers": med["w2"] / med["w1"],
+                "env_only_cores_busy": med["env_cores"],
+                "video_bytes_per_1000_frames": 1000 * video / frames,
+                "data_bytes_per_1000_frames": 1000 * data / frames,
                 "env_only_frames": env_frames,
                 "targets": {"ratio_generate_to_env_only": 0.7},
                 "cpu_count": os.cpu_count(),

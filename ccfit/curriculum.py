@@ -206,9 +206,11 @@ def _set_global_rng(state: dict) -> None:
     random.setstate(state["python"])
 
 
-def _replay(cfg: CurriculumConfig, train: TrainConfig, task_id: str, task_index: int, fresh: bool):
+def _replay(cfg: CurriculumConfig, train: TrainConfig, task_id: str, task_index: int, fresh: bool,
+            model) -> ReplayBuffer:  # fmt: skip
     buffer = ReplayBuffer(
-        train.buffer_capacity, seed=derived_seed(cfg.seed, _REPLAY_TAG, 0, task_index)
+        train.buffer_capacity, seed=derived_seed(cfg.seed, _REPLAY_TAG, 0, task_index),
+        obs_transform=model.replay_obs,
     )
     source = cfg.dataset_source()
     if source is not None and fresh:
@@ -267,7 +269,7 @@ def _train_scratch(cfg: CurriculumConfig, out: Path, progress: bool) -> list[dic
     env = make_env(task_id, render=cfg.obs == "pixels", image_size=cfg.image_size)
     trainer = Trainer(
         env=env, model=model, heads=model.new_heads(), config=train, task_id=task_id,
-        buffer=_replay(cfg, train, task_id, n - 1, fresh=not resumed),
+        buffer=_replay(cfg, train, task_id, n - 1, fresh=not resumed, model=model),
         task_index=n - 1, logger=RunLogger(out), run_dir=out, progress=progress,
     )  # fmt: skip
     trainer.run()
@@ -345,7 +347,7 @@ class Curriculum:
             _begin_task(model, i, train.steps)
             method.before_task(i, model.backbone)
             heads = model.new_heads()
-            buffer = _replay(cfg, train, tasks[i], i, fresh=not resumed)
+            buffer = _replay(cfg, train, tasks[i], i, fresh=not resumed, model=model)
             env = make_env(tasks[i], render=cfg.obs == "pixels", image_size=cfg.image_size)
             trainer = Trainer(
                 env=env, model=model, heads=heads, buffer=buffer, config=train,

@@ -10,7 +10,7 @@ oldest episodes are dropped whole.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 import numpy as np
 import torch
@@ -29,12 +29,21 @@ class ReplayBuffer:
 
     capacity: rows (about one per transition; an episode of T steps uses T+1).
     seed: seeds the sampling generator, so the same adds and seed give the same batches.
+    obs_transform: applied to each episode's observations (tensors (T+1, ...)) before they
+        are stored, e.g. `WorldModel.replay_obs`, which swaps a frozen encoder's inputs for
+        its latents.
     """
 
-    def __init__(self, capacity: int, seed: int = 0) -> None:
+    def __init__(
+        self,
+        capacity: int,
+        seed: int = 0,
+        obs_transform: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]] | None = None,
+    ) -> None:
         if capacity < 2:
             raise ValueError(f"capacity must be >= 2 rows, got {capacity}")
         self.capacity = int(capacity)
+        self.obs_transform = obs_transform
         self.generator = torch.Generator().manual_seed(int(seed))
         self._obs: dict[str, torch.Tensor] = {}
         self._action = torch.empty(0, ACTION_DIM)
@@ -77,6 +86,8 @@ class ReplayBuffer:
                 raise ValueError(f"obs[{k!r}] has {v.shape[0]} rows, expected T+1 = {steps + 1}")
         if bool(term[:-1].any()):
             raise ValueError("terminated is set before the last transition of the episode")
+        if self.obs_transform is not None:
+            obs_t = self.obs_transform(obs_t)
         rows = steps + 1
         if rows > self.capacity:
             raise ValueError(f"episode of {rows} rows exceeds the buffer capacity {self.capacity}")

@@ -658,16 +658,17 @@ def train_task(
     if cfg.torch_threads > 0:
         torch.set_num_threads(cfg.torch_threads)
     device = resolve_device(cfg.device)
-    buffer = ReplayBuffer(cfg.buffer_capacity, seed=derived_seed(cfg.seed, _REPLAY_TAG, 0))
+    seed_everything(cfg.seed)
+    model = build_model(run.model, run.model_config, device)
+    buffer = ReplayBuffer(cfg.buffer_capacity, seed=derived_seed(cfg.seed, _REPLAY_TAG, 0),
+                          obs_transform=model.replay_obs)  # fmt: skip
     if cfg.seed_dataset is not None and not (out / CHECKPOINT).exists():
         # Before anything is written: a bad dataset leaves no half-made run directory.
         seed_buffer(buffer, cfg.seed_dataset, run.task, cfg.obs, cfg.image_size,
                     endpoint=cfg.dataset_endpoint)  # fmt: skip
     if not saved.exists():
         run.save(saved)
-    seed_everything(cfg.seed)
     env = make_env(run.task, render=cfg.obs == "pixels", image_size=cfg.image_size)
-    model = build_model(run.model, run.model_config, device)
     if hasattr(model, "begin_task"):  # PWM: routing task and temperature hold
         model.begin_task(0, cfg.steps)
     heads = model.new_heads()

@@ -53,6 +53,15 @@ def decode_all(root: Path, key: str) -> np.ndarray:
     return np.stack(frames)
 
 
+def alive(pid: int) -> bool:
+    """The process exists and is not a zombie."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return False
+    return "\nState:\tZ" not in status
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory) -> tuple[Path, dict]:
     root = tmp_path_factory.mktemp("tiny") / "Reach"
@@ -202,8 +211,9 @@ def test_sigkill_loses_at_most_the_episode_in_progress(tmp_path):
     root = tmp_path / "Reach"
     kwargs = dict(suite="Reach", episodes=1, explore_episodes=0, image_size=32, max_steps=40)
     script = textwrap.dedent(f"""
-        from ccdata.record import GenerateConfig, generate
-        generate(GenerateConfig(**{kwargs!r}, root={str(root)!r}), progress=False)
+        from ccdata import record
+        record.GROUP = 2  # so that a merger process is running when the kill comes
+        record.generate(record.GenerateConfig(**{kwargs!r}, root={str(root)!r}), progress=False)
     """)
     proc = subprocess.Popen([sys.executable, "-c", script], env={**os.environ},
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -217,9 +227,15 @@ def test_sigkill_loses_at_most_the_episode_in_progress(tmp_path):
             time.sleep(0.05)
         else:
             pytest.fail("the generating subprocess made no progress")
+        children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()
+    assert children, "the merger process should be running"
+    deadline = time.time() + 10
+    while time.time() < deadline and any(alive(int(c)) for c in children):
+        time.sleep(0.1)
+    assert not any(alive(int(c)) for c in children), "a child outlived the killed generate"
     saved = [p.name for p in pieces.iterdir() if not p.name.startswith(".")]
     assert len(saved) >= 2 and not root.exists()  # nothing merged yet, nothing half-written
 
@@ -262,3 +278,53 @@ def test_verify_reports_corruption(tiny, tmp_path):
     findings = verify_dataset(truncated)
     assert any("last frame is not done" in f for f in findings)
     assert any("frames in data" in f for f in findings)
+
+
+def test_merger_batches_complete_chunks_only(tiny, tmp_path):
+    """`merge_chunks` batches each chunk whose pieces are all written; the final merge puts
+    batches and loose pieces in plan order."""
+    import threading
+
+    from ccdata import record
+
+    cfg = GenerateConfig(**TINY, root=tmp_path / "Reach")
+    specs = plan(cfg)
+    paths = record._prepare(cfg)
+    record.write_shard(cfg, specs[:6], paths.pieces)  # chunk 2 of 4 incomplete
+    chunks = [[s.key for s in specs[i:i + 4]] for i in (0, 4)]
+    stop = threading.Event()
+    timer = threading.Timer(20.0, stop.set)  # the second chunk never completes
+    timer.start()
+    record.merge_chunks(cfg, chunks, stop)
+    timer.cancel()
+    batches = record._batches(paths)
+    assert list(batches) == [tuple(chunks[0])]
+    record.write_shard(cfg, specs[6:], paths.pieces)
+    assert record.merge_pieces(cfg, [s.key for s in specs]) == len(specs)
+    assert existing_keys(cfg.dataset_root) == [s.key for s in specs]
+    assert verify_dataset(cfg.dataset_root) == []
+    a, b = data_table(tiny[0]), data_table(cfg.dataset_root)
+    for col in a:
+        np.testing.assert_array_equal(a[col], b[col], err_msg=col)
+    assert not paths.batches.exists() and not any(paths.pieces.iterdir())
+
+
+def test_batched_generation_is_byte_identical_across_workers(tmp_path, monkeypatch):
+    """With chunks of 4, the merge tree is fixed by the plan: one worker or two, merger fast
+    or slow, the dataset's data files are the same bytes and its statistics the same numbers."""
+    from ccdata import record
+
+    monkeypatch.setattr(record, "GROUP", 4)
+    roots = []
+    for workers in (1, 2):
+        cfg = GenerateConfig(**TINY, root=tmp_path / f"w{workers}" / "Reach", workers=workers)
+        root, summary = generate(cfg, progress=False)
+        assert summary["episodes"] == 12 and verify_dataset(root) == []
+        roots.append(root)
+    # Same numbers to the last bit (LeRobot writes the stats' keys in no fixed order).
+    stats = [json.loads((r / "meta/stats.json").read_text()) for r in roots]
+    assert stats[0] == stats[1]
+    for path in sorted((roots[0] / "data").rglob("*.parquet")):
+        rel = path.relative_to(roots[0])
+        assert path.read_bytes() == (roots[1] / rel).read_bytes(), rel
+    assert existing_keys(roots[0]) == [s.key for s in plan(cfg)]

@@ -377,3 +377,48 @@ def test_frozen_encoder_round_trip(tmp_path):
         load_frozen_encoder(tmp_path / "bad.pt")
     with pytest.raises(ValueError, match="not found"):
         load_frozen_encoder(tmp_path / "missing.pt")
+
+
+def test_frozen_encoder_latents_cached_in_replay(tmp_path):
+    """With a frozen encoder, replay stores latents; losses equal those from stored frames."""
+    from ccfit.models.base import LATENT_KEY
+    from ccfit.models.encoders import load_frozen_encoder, save_encoder
+    from ccfit.replay import ReplayBuffer
+
+    source, _ = build("pixels", seed=3)
+    save_encoder(source.backbone.encoder, source.cfg, tmp_path / "enc.pt")
+    frozen, _ = load_frozen_encoder(tmp_path / "enc.pt")
+    torch.manual_seed(0)
+    model = TDMPC2(make_cfg("pixels"), device="cpu", encoder=frozen)
+    heads = model.new_heads()
+    frames = ReplayBuffer(1000, seed=5)
+    cached = ReplayBuffer(1000, seed=5, obs_transform=model.replay_obs)
+    g = torch.Generator().manual_seed(1)
+    for steps in (7, 12):
+        ep = {
+            "obs": {
+                "pixels": torch.randint(0, 256, (steps + 1, 9, SIZE, SIZE), generator=g).byte(),
+                "proprio": torch.randn(steps + 1, model.cfg.proprio_dim, generator=g),
+            },
+            "action": torch.rand(steps, 4, generator=g) * 2 - 1,
+            "reward": -torch.rand(steps, generator=g),
+            "terminated": torch.zeros(steps),
+        }
+        frames.add_episode(**ep)
+        cached.add_episode(**ep)
+    a = frames.sample(B, model.cfg.horizon)
+    b = cached.sample(B, model.cfg.horizon)
+    assert set(b.obs) == {LATENT_KEY}
+    assert b.obs[LATENT_KEY].shape == (model.cfg.horizon + 1, B, model.cfg.latent_dim)
+    with torch.no_grad():
+        torch.testing.assert_close(model.encode(b.obs), model.encode(a.obs))
+        torch.manual_seed(2)
+        loss_frames = model.loss(a, heads).total
+        torch.manual_seed(2)
+        loss_cached = model.loss(b, heads).total
+    torch.testing.assert_close(loss_cached, loss_frames)
+    # A trainable encoder stores frames and refuses latents.
+    plain, _ = build("pixels")
+    assert plain.replay_obs(a.obs) is a.obs
+    with pytest.raises(ValueError, match="frozen encoder"):
+        plain.encode(b.obs)

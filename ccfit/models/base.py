@@ -27,6 +27,9 @@ import numpy as np
 import torch
 from torch import nn
 
+LATENT_KEY = "latent"
+"""Observation key of a frozen encoder's output cached in replay (`WorldModel.replay_obs`)."""
+
 
 @dataclass
 class Batch:
@@ -107,6 +110,11 @@ class WorldModel(nn.Module, ABC):
         self, batch: Batch, heads: nn.Module, out: LossOutput, policy_optim: torch.optim.Optimizer
     ) -> dict[str, float]:
         """Policy/actor step and target-network updates; must not change the backbone."""
+
+    def replay_obs(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """What replay stores for an episode's observations (T+1, ...): by default the
+        observations themselves; `encode` must accept whatever this returns."""
+        return obs
 
     @abstractmethod
     def act(

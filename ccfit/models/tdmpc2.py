@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ccfit.config import TDMPC2Config
-from ccfit.models.base import Batch, LossOutput, WorldModel
+from ccfit.models.base import LATENT_KEY, Batch, LossOutput, WorldModel
 from ccfit.models.encoders import FrozenEncoder, build_encoder
 from ccfit.models.layers import EnsembleMLP, SimNorm, TwoHot, init_weights, mlp
 
@@ -165,8 +165,24 @@ class TDMPC2(WorldModel):
     # ---------------------------------------------------------------- verbs
 
     def encode(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """Observation dict (leading dims ...) -> latent (..., latent_dim)."""
+        """Observation dict (leading dims ...) -> latent (..., latent_dim). A dict holding
+        LATENT_KEY carries a frozen encoder's output already (see `replay_obs`)."""
+        if LATENT_KEY in obs:
+            if not isinstance(self.backbone.encoder, FrozenEncoder):
+                raise ValueError(f"{LATENT_KEY!r} observations need a frozen encoder")
+            return obs[LATENT_KEY]
         return self.backbone.encoder(obs)
+
+    @torch.no_grad()
+    def replay_obs(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """With a frozen encoder, replay stores its latents instead of the frames: the encoder
+        never changes and never augments, so encoding once at insertion gives the same latents
+        as encoding every sampled batch, for a fraction of the compute and memory."""
+        encoder = self.backbone.encoder
+        if not isinstance(encoder, FrozenEncoder):
+            return obs
+        z = encoder({k: v.to(self.device) for k, v in obs.items()})
+        return {LATENT_KEY: z.float().cpu()}
 
     def next(self, z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         """Latent dynamics."""
