@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import statistics
 import tempfile
 import time
@@ -54,7 +55,8 @@ def env_only_rate(config: GenerateConfig) -> tuple[float, int, float]:
     return frames / wall, frames, (time.process_time() - cpu) / wall
 
 
-def generate_rate(args, workers: int, root: Path) -> tuple[float, int]:
+def generate_rate(args, workers: int, root: Path) -> tuple[float, int, float]:
+    """Frames/s of `generate`, the frames, and the cores it kept busy."""
     config = GenerateConfig(
         suite=args.suite,
         episodes=args.episodes,
@@ -62,9 +64,16 @@ def generate_rate(args, workers: int, root: Path) -> tuple[float, int]:
         workers=workers,
         root=root,
     )
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), _cpu_seconds()
     _, summary = generate(config, progress=False)
-    return summary["frames"] / (time.perf_counter() - start), summary["frames"]
+    wall = time.perf_counter() - start
+    return summary["frames"] / wall, summary["frames"], (_cpu_seconds() - cpu) / wall
+
+
+def _cpu_seconds() -> float:
+    """CPU time of this process (all threads) and of its finished children (workers, merger)."""
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
 
 
 def dir_bytes(root: Path, sub: str) -> int:
@@ -84,13 +93,21 @@ def main() -> None:
         help="rounds of (1 worker, 2 workers, env-only); medians are reported",
     )
     args = parser.parse_args()
-    rates: dict[str, list[float]] = {"w1": [], "w2": [], "env": [], "env_cores": []}
+    rates: dict[str, list[float]] = {
+        "w1": [],
+        "w2": [],
+        "env": [],
+        "env_cores": [],
+        "w1_cores": [],
+        "w2_cores": [],
+    }
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.repeats):
             for workers in (1, 2):
                 root = Path(tmp) / f"r{r}-w{workers}"
-                rate, frames = generate_rate(args, workers, root)
+                rate, frames, cores = generate_rate(args, workers, root)
                 rates[f"w{workers}"].append(rate)
+                rates[f"w{workers}_cores"].append(cores)
             config = GenerateConfig(
                 suite=args.suite, episodes=args.episodes, explore_episodes=args.explore_episodes
             )
@@ -119,6 +136,8 @@ def main() -> None:
                 "generate_frames_per_s_2_workers": med["w2"],
                 "scaling_1_to_2_workers": med["w2"] / med["w1"],
                 "env_only_cores_busy": med["env_cores"],
+                "generate_cores_busy_1_worker": med["w1_cores"],
+                "generate_cores_busy_2_workers": med["w2_cores"],
                 "video_bytes_per_1000_frames": 1000 * video / frames,
                 "data_bytes_per_1000_frames": 1000 * data / frames,
                 "env_only_frames": env_frames,
