@@ -144,6 +144,13 @@ class CurriculumConfig:
             from ccfit.models.encoders import load_frozen_encoder
 
             _, spec = load_frozen_encoder(self.encoder_path)
+            size = spec.pop("image_size")
+            if size != self.image_size:
+                raise ValueError(
+                    f"the encoder {self.encoder_path} reads {size} px images but "
+                    f"the run renders {self.image_size} px (--image-size)"
+                )
+            spec.pop("obs_mode")  # 'pixels', checked in __post_init__
             overrides.update(spec)
         return model_config(
             self.model, self.preset, self.obs, image_size=self.image_size, **overrides

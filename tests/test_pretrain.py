@@ -289,3 +289,45 @@ def test_config_and_parser():
         PretrainConfig.preset("smoke", steps=0)
     with pytest.raises(ValueError, match="must end in .safetensors"):
         pretrain_encoder(PretrainConfig.preset("smoke"), "enc.pt", progress=False)
+
+
+def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeypatch):
+    """PWM + experts on pixels with a frozen encoder, seeded from the dataset: replay holds the
+    encoder's latents (dataset and live episodes alike) and the encoder ends bit-identical."""
+    import ccdata.env
+    import ccfit.curriculum as C
+    from ccfit.config import tdmpc2_preset
+    from ccfit.models.base import LATENT_KEY
+    from ccfit.models.encoders import build_encoder, load_frozen_encoder, save_encoder
+
+    enc_cfg = tdmpc2_preset("smoke", "pixels", image_size=SIZE)
+    torch.manual_seed(0)
+    path = tmp_path / "enc.safetensors"
+    save_encoder(build_encoder(enc_cfg), enc_cfg, path)
+    buffers = []
+
+    class SpyBuffer(C.ReplayBuffer):
+        def add_episode(self, *args, **kwargs):
+            super().add_episode(*args, **kwargs)
+            buffers.append(self)
+
+    monkeypatch.setattr(C, "ReplayBuffer", SpyBuffer)
+    monkeypatch.setattr(ccdata.env, "EPISODE_STEPS", 30)
+    cfg = C.CurriculumConfig(
+        suite="Reach", model="pwm", method="experts", obs="pixels", image_size=SIZE,
+        preset="smoke", seed_dataset=str(reach_root), encoder=f"frozen:{path}",
+        train_overrides=dict(steps=60, seed_steps=30, eval_interval=60, checkpoint_interval=60),
+    )  # fmt: skip
+    result = C.Curriculum(cfg, tmp_path / "run", tmp_path / "scratch", progress=False).run()
+    assert len(set(map(id, buffers))) == 5  # four tasks and the from-scratch reference
+    for buf in buffers:
+        assert set(buf._obs) == {LATENT_KEY}
+        assert buf._obs[LATENT_KEY].shape[1:] == (enc_cfg.latent_dim,)
+    assert all(np.isfinite(result[k]) for k in ("bwt", "fwt"))
+    state = torch.load(tmp_path / "run" / C.STATE, map_location="cpu", weights_only=False)
+    frozen, _ = load_frozen_encoder(path)
+    for name, value in frozen.state_dict().items():
+        assert torch.equal(state["model"][f"backbone.encoder.{name}"], value), name
+    with pytest.raises(ValueError, match="reads 32 px images but the run renders 48 px"):
+        C.CurriculumConfig(suite="Reach", obs="pixels", image_size=48, preset="smoke",
+                           encoder=f"frozen:{path}").model_config()  # fmt: skip
