@@ -1,5 +1,6 @@
 """TD-MPC2 updates/s and MPPI plans/s: state and pixel modes, `cpu` and `paper` sizes (plus the
-official 1M size), with and without a frozen encoder. Prints JSON.
+official 1M size), with and without a frozen encoder, and with the frozen encoder's latents cached
+in replay (what `ccfit run --encoder frozen:PATH` does). Prints JSON.
 
 Reference (the official TD-MPC2, eager mode, 2 threads, batch 256, on these machines):
 1M state 0.156 s/update and 0.214 s/plan; 5M state 0.546 and 0.558; 5M 64 px 1.21 s/update.
@@ -9,6 +10,7 @@ Our `paper` preset is the official 5M configuration.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import statistics
@@ -52,7 +54,9 @@ def synthetic_batch(cfg, batch_size: int, generator: torch.Generator) -> Batch:
     )
 
 
-def time_model(preset: str, mode: str, frozen: bool, batch_size: int, repeats: int) -> dict:
+def time_model(
+    preset: str, mode: str, frozen: bool, cached: bool, batch_size: int, repeats: int
+) -> dict:
     torch.manual_seed(0)
     cfg = tdmpc2_preset(preset, mode)
     encoder = None
@@ -66,6 +70,9 @@ def time_model(preset: str, mode: str, frozen: bool, batch_size: int, repeats: i
     optim = torch.optim.Adam(model.param_groups(heads), lr=cfg.lr)
     policy_optim = model.make_policy_optimizer(heads)
     batch = synthetic_batch(cfg, batch_size, torch.Generator().manual_seed(0))
+    if cached:  # replay then holds latents, encoded once when the episode was stored
+        batch = dataclasses.replace(batch, obs=model.replay_obs(batch.obs))
+    obs = {k: v[0, 0] for k, v in synthetic_batch(cfg, 1, torch.Generator()).obs.items()}
 
     def update() -> None:
         out = model.loss(batch, heads)
@@ -76,8 +83,6 @@ def time_model(preset: str, mode: str, frozen: bool, batch_size: int, repeats: i
         )
         optim.step()
         model.head_update(batch, heads, out, policy_optim)
-
-    obs = {k: v[0, 0] for k, v in batch.obs.items()}
 
     def plan() -> None:
         model.act(obs, heads, t0=False, eval_mode=False)
@@ -110,11 +115,18 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     rows = []
     for preset in args.presets.split(","):
-        for mode, frozen in (("state", False), ("pixels", False), ("pixels", True)):
+        variants = (("state", False, False), ("pixels", False, False), ("pixels", True, False),
+                    ("pixels", True, True))  # fmt: skip
+        for mode, frozen, cached in variants:
             if preset == "1M" and mode == "pixels":
                 continue  # the official reference at 1M is state only
-            row = {"preset": preset, "obs": mode, "frozen_encoder": frozen}
-            row.update(time_model(preset, mode, frozen, args.batch_size, args.repeats))
+            row = {
+                "preset": preset,
+                "obs": mode,
+                "frozen_encoder": frozen,
+                "latents_cached": cached,
+            }
+            row.update(time_model(preset, mode, frozen, cached, args.batch_size, args.repeats))
             rows.append(row)
     print(
         json.dumps(
