@@ -100,19 +100,31 @@ def _parse_options(items: list[str]) -> dict:
     return out
 
 
-def _cmd_run(args: argparse.Namespace) -> None:
-    from ccfit.curriculum import Curriculum, CurriculumConfig
+def run_config(args: argparse.Namespace):
+    """The `CurriculumConfig` of parsed `ccfit run` arguments (ValueError/CliError if bad)."""
+    from ccfit.curriculum import CurriculumConfig
 
     seed_dataset = {"auto": "auto", "none": None}.get(args.seed_dataset, args.seed_dataset)
+    model_overrides = _parse_options(args.model_option)
+    if args.router is not None:
+        if args.model != "pwm":
+            raise CliError("--router needs --model pwm (TD-MPC2 has no router)")
+        model_overrides["router"] = args.router
+    return CurriculumConfig(
+        suite=args.suite, model=args.model, method=args.method, preset=args.preset,
+        obs=args.obs, seed=args.seed, image_size=args.image_size, encoder=args.encoder,
+        seed_dataset=seed_dataset, method_options=_parse_options(args.method_option),
+        model_overrides=model_overrides,
+        train_overrides={**_parse_options(args.train), **(
+            {"dataset_endpoint": args.endpoint} if args.endpoint else {})},
+    )  # fmt: skip
+
+
+def _cmd_run(args: argparse.Namespace) -> None:
+    from ccfit.curriculum import Curriculum
+
     try:
-        cfg = CurriculumConfig(
-            suite=args.suite, model=args.model, method=args.method, preset=args.preset,
-            obs=args.obs, seed=args.seed, image_size=args.image_size, encoder=args.encoder,
-            seed_dataset=seed_dataset, method_options=_parse_options(args.method_option),
-            model_overrides=_parse_options(args.model_option),
-            train_overrides={**_parse_options(args.train), **(
-                {"dataset_endpoint": args.endpoint} if args.endpoint else {})},
-        )  # fmt: skip
+        cfg = run_config(args)
         out = Path(args.out) if args.out else (
             Path("runs") / f"{args.suite}-{args.model}-{args.method}-{args.obs}-{args.preset}"
             f"-s{args.seed}"
@@ -193,6 +205,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="auto (the suite's dataset when present) | none | SOURCE")  # fmt: skip
     p.add_argument("--method-option", action="append", default=[], metavar="KEY=VALUE",
                    help="method setting, e.g. lam=5000 (EWC), fraction=0.05 (ER)")  # fmt: skip
+    p.add_argument("--router", default=None, choices=("task", "state"),
+                   help="PWM's router input: the task identity (default, as the paper) or the "
+                   "latent and action (same as --model-option router=state)")  # fmt: skip
     p.add_argument("--model-option", action="append", default=[], metavar="KEY=VALUE",
                    help="model config override, e.g. router=state (PWM)")  # fmt: skip
     p.add_argument("--train", action="append", default=[], metavar="KEY=VALUE",

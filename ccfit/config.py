@@ -18,6 +18,28 @@ OBS_MODES: tuple[str, ...] = ("state", "pixels")
 DEVICES: tuple[str, ...] = ("auto", "cpu", "cuda")
 
 
+_SIMPLE_TYPES: dict[str, tuple[type, ...]] = {
+    "int": (int,), "float": (int, float), "bool": (bool,), "str": (str,), "None": (type(None),),
+}  # fmt: skip
+
+
+def check_field_types(config: Any) -> None:
+    """ValueError naming the field when a value does not have its annotated simple type
+    (int, float, bool, str, or unions of them with None); other annotations are not checked."""
+    for f in dataclasses.fields(config):
+        names = [part.strip() for part in str(f.type).split("|")]
+        if not all(n in _SIMPLE_TYPES for n in names):
+            continue
+        allowed = tuple(t for n in names for t in _SIMPLE_TYPES[n])
+        value = getattr(config, f.name)
+        if isinstance(value, bool) and bool not in allowed:
+            allowed = ()  # True is an int to Python, not to a config
+        if not isinstance(value, allowed):
+            raise ValueError(
+                f"{type(config).__name__}.{f.name} must be {f.type}, got {value!r}"
+            )
+
+
 def _check_preset(name: str) -> str:
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; valid: {', '.join(PRESETS)}")
@@ -75,6 +97,7 @@ class TrainConfig:
     local cache (the same option as `ccdata push --endpoint`); None: HF_ENDPOINT or the hub."""
 
     def __post_init__(self) -> None:
+        check_field_types(self)
         positive = (
             "steps", "updates_per_step", "batch_size", "eval_interval",
             "eval_episodes", "checkpoint_interval", "image_size",
@@ -286,6 +309,7 @@ class TDMPC2Config:
     """MPPI softmax temperature on elite values."""
 
     def __post_init__(self) -> None:
+        check_field_types(self)
         if self.obs_mode not in OBS_MODES:
             raise ValueError(
                 f"TDMPC2Config.obs_mode must be one of {OBS_MODES}, got {self.obs_mode!r}"

@@ -406,6 +406,8 @@ def test_killed_run_resumes_to_the_uninterrupted_result(runs, tmp_path):
         (["--suite", "Nope"], "valid suites: Reach, Grasp"),
         (["--suite", SUITE, "--method", "nope"], "valid: er, ewc, experts, ft, packnet"),
         (["--suite", SUITE, "--method", "experts", "--model", "tdmpc2"], "--model pwm"),
+        (["--suite", SUITE, "--router", "state"], "--router needs --model pwm"),
+        (["--suite", SUITE, "--model", "pwm", "--router", "latent"], "invalid choice"),
         (["--suite", SUITE, "--encoder", "frozen:/missing", "--obs", "pixels"], "not found"),
         (["--suite", SUITE, "--encoder", "frozen:/missing"], "needs --obs pixels"),
         (["--suite", SUITE, "--method", "ewc", "--method-option", "lamda=1"], "valid:"),
@@ -424,6 +426,19 @@ def test_cli_run_bad_input_exits_2_with_one_line(argv, needle, capsys, tmp_path)
     assert len(err.strip().splitlines()) == 1 and needle in err, err
     assert "Traceback" not in err
     assert not (tmp_path / "x").exists(), "bad input must not leave a run directory"
+
+
+def test_cli_run_router_and_model_options_reach_the_config():
+    from ccfit.cli import build_parser, run_config
+
+    def model_config(*extra):
+        argv = ["run", "--suite", SUITE, "--model", "pwm", "--method", "experts", *extra]
+        return run_config(build_parser().parse_args(argv)).model_config()
+
+    assert model_config().router == "task"
+    assert model_config("--router", "state").router == "state"
+    assert model_config("--model-option", "router=state").router == "state"
+    assert model_config("--model-option", "experts_per_task=2").experts_per_task == 2
 
 
 def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
@@ -492,3 +507,13 @@ def test_results_notebook_runs_on_smoke_runs(runs, tmp_path, monkeypatch):
     pngs = [o for o in outputs if "image/png" in o.get("data", {})]
     assert len(pngs) == 1 + len(METHODS)  # the bars and one curve plot per group
     assert len(list((tmp_path / "figures").glob("*.png"))) == 1 + len(METHODS)
+
+
+def test_cli_run_option_of_wrong_type_names_the_field(capsys, tmp_path):
+    from ccfit.cli import main
+
+    argv = ["run", "--suite", SUITE, "--preset", "smoke", "--out", str(tmp_path / "x")]
+    assert main([*argv, "--train", "steps=abc"]) == 2
+    assert "TrainConfig.steps must be int, got 'abc'" in capsys.readouterr().err
+    assert main([*argv, "--model-option", "lr=fast"]) == 2
+    assert "TDMPC2Config.lr must be float, got 'fast'" in capsys.readouterr().err
