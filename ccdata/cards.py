@@ -38,7 +38,8 @@ def _yaml_list(items, indent: int = 2) -> str:
 
 
 def _generation_defaults():
-    from ccdata.record import VIDEO_ENCODER, GenerateConfig
+    from ccdata.dataset_format import VIDEO_ENCODER
+    from ccdata.record import GenerateConfig
 
     fields = {f.name: f.default for f in dataclasses.fields(GenerateConfig)}
     return fields, VIDEO_ENCODER

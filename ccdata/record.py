@@ -1,87 +1,56 @@
 """`ccdata generate`'s engine: roll out a suite's policies and write one LeRobot v3 dataset.
 
-How the work is laid out on disk (target root `R`, e.g. `$HF_LEROBOT_HOME/ccdata/Reach`):
-
-- `R/` is always a finalized, readable LeRobot dataset (or absent). It is only ever replaced by
-  an atomic rename of a freshly merged copy, so no interruption can leave it half-written.
-- `R/../.<name>.ccdata-work/` is the journal of the run in progress: `settings.json` (the
-  generation settings it belongs to) and `pieces/`, one small finalized LeRobot dataset per
-  completed episode. An episode is written to `pieces/.tmp-<key>` and renamed to
-  `pieces/<key>` only after LeRobot's `finalize()`, so a SIGKILL loses at most the episode in
-  progress (its `.tmp-` directory is deleted by the next run).
-- While episodes are being rolled out, a merger process (`merge_chunks`) aggregates each
-  complete chunk of `GROUP` consecutive episodes into `batches/<n>` (again finalized before it
-  is renamed into place, with `batch.json` naming its episodes), so most merging overlaps the
-  rollouts instead of following them.
-- At the end of a run, on Ctrl-C, or at the start of the next run after a SIGKILL, the batches
-  and the remaining pieces are merged (with the existing `R`, if any) by
-  `lerobot.datasets.aggregate` into `.<name>.ccdata-new`, which then replaces `R` (`R` ->
-  `.ccdata-old`, new -> `R`, old deleted; a run killed between the renames is repaired on the
-  next start).
-
-Episodes are identified by (task id, policy, episode seed); a run skips every episode whose key
-is already in `R` or in the journal, so re-running the same command completes the requested
-counts without duplicates. Workers (`workers > 1`) are spawned processes, each running
-`write_shard` on a contiguous slice of the plan with its own environment; the merge puts pieces
-in plan order, so the result does not depend on the number of workers.
+Each episode is recorded into its own small finalized LeRobot dataset (a piece) in a journal
+beside the target, and the pieces are merged into the target in plan order (`ccdata.journal`
+describes the layout and why no interruption can leave a half-written dataset). Episodes are
+identified by (task id, policy, episode seed); a run skips every episode already in the target
+or the journal, so re-running the same command completes the requested counts without
+duplicates. Workers (`workers > 1`) are spawned processes, each running `write_shard` on a
+contiguous slice of the plan with its own environment; the merge puts pieces in plan order, so
+the result does not depend on the number of workers.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import logging
 import os
 import shutil
-import sys
 import time
 import zlib
 from collections.abc import Callable, Iterable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
-from importlib import metadata
 from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
 
-from ccdata.env import ACTION_REPEAT, EPISODE_STEPS, FPS, PROPRIO_DIM, make_env
+from ccdata.dataset_format import (
+    FORMAT_VERSION,
+    IDENTITY_KEYS,
+    POLICY_ORDER,
+    VIDEO_ENCODER,
+    camera_key,
+    episode_table,
+    existing_keys,
+    features,
+    quiet_libraries,
+    read_ccdata_metadata,
+    write_json,
+)
+from ccdata.env import EPISODE_STEPS, FPS, make_env
+from ccdata.journal import (
+    JournalPaths,
+    Merger,
+    chunks_of,
+    die_with_parent,
+    finished_pieces,
+    merge_pieces,
+    prepare,
+)
 from ccdata.render import CAMERAS, RenderSettings
 from ccdata.suites import SUITES, get_suite
-from ccdata.tasks.base import STATE_DIM
-
-POLICY_ORDER: tuple[str, ...] = ("oracle", "noisy-oracle", "random")
-"""Policies in plan order; a frame's `policy_index` indexes this tuple."""
-
-CCDATA_META = "meta/ccdata.json"
-"""Generation settings stored inside every dataset (relative to its root)."""
-
-FORMAT_VERSION = 1
-
-VIDEO_ENCODER: dict = {
-    "vcodec": "h264",
-    "pix_fmt": "yuv444p",
-    "crf": 0,
-    "g": 10,
-    "preset": "medium",
-    "extra_options": {"bf": 0},
-}
-"""Camera video encoding. libx264 with crf 0 is lossless in YUV 4:4:4, so the only loss is the
-RGB<->YUV rounding: ~52 dB PSNR on every frame (LeRobot's default AV1 4:2:0 crf 30 gives ~27 dB).
-No B-frames keep presentation and decoding order equal, which keeps concatenated episode videos'
-timestamps exact; a keyframe every 10 frames bounds the decoding work per random access."""
-
-IDENTITY_KEYS = ("suite", "seed", "image_size", "noise_std", "random_prob", "max_steps")
-"""Config fields that must match to append to an existing dataset (plus render, fps, video)."""
-
-GROUP = 16
-"""Datasets merged per `aggregate_datasets` call, and episodes per batch of the merger process;
-merges are grouped in a tree because each call rewrites its growing output once per source
-(quadratic in the number of sources)."""
-
-
-def camera_key(camera: str) -> str:
-    return f"observation.images.{camera}"
 
 
 @dataclass
@@ -236,105 +205,7 @@ def plan(config: GenerateConfig) -> list[EpisodeSpec]:
     return specs
 
 
-# ── Features and metadata ─────────────────────────────────────────────────────────────────
-
-
-def features(image_size: int) -> dict:
-    """LeRobot feature spec of a ccdata dataset."""
-    image = {"dtype": "video", "shape": (image_size, image_size, 3),
-             "names": ["height", "width", "channels"]}
-    feats = {camera_key(c): dict(image) for c in CAMERAS}
-    feats.update({
-        "observation.state": {"dtype": "float32", "shape": (PROPRIO_DIM,), "names": [
-            "ee_x", "ee_y", "ee_z", "ee_vx", "ee_vy", "ee_vz", "gripper_opening"]},
-        "observation.environment_state": {"dtype": "float32", "shape": (STATE_DIM,),
-                                          "names": None},
-        "action": {"dtype": "float32", "shape": (4,), "names": ["dx", "dy", "dz", "grip"]},
-        "next.reward": {"dtype": "float32", "shape": (1,), "names": None},
-        "next.done": {"dtype": "bool", "shape": (1,), "names": None},
-        "next.success": {"dtype": "bool", "shape": (1,), "names": None},
-        "task_id_index": {"dtype": "int64", "shape": (1,), "names": None},
-        "policy_index": {"dtype": "int64", "shape": (1,), "names": None},
-        "episode_seed": {"dtype": "int64", "shape": (1,), "names": None},
-    })
-    return feats
-
-
-def _versions() -> dict:
-    out = {}
-    for dist in ("ccbench", "lerobot", "metaworld", "mujoco", "torch", "av"):
-        try:
-            out[dist] = metadata.version(dist)
-        except metadata.PackageNotFoundError:
-            out[dist] = None
-    return out
-
-
-def ccdata_metadata(config: GenerateConfig) -> dict:
-    """The content of `meta/ccdata.json`: how the dataset was made, and how to read its ids."""
-    suite = get_suite(config.suite)
-    return {
-        "format": FORMAT_VERSION,
-        "suite": suite.name,
-        "axis": suite.axis,
-        "repo_id": config.repo_id,
-        "identity": config.identity(),
-        "config": {k: v for k, v in config.to_dict().items() if k not in ("root", "workers")},
-        "tasks": [
-            {"index": i, "id": t.id, "title": t.title, "instruction": t.instruction}
-            for i, t in enumerate(suite.tasks)
-        ],
-        "instruction_to_task_id": {t.instruction: t.id for t in suite.tasks},
-        "composition_matrix": suite.composition_matrix().astype(int).tolist(),
-        "policies": list(POLICY_ORDER),
-        "policy_params": {
-            "oracle": {"kind": "scripted privileged-state oracle"},
-            "noisy-oracle": {"noise_std": config.noise_std, "random_prob": config.random_prob},
-            "random": {"kind": "uniform in [-1, 1]^4"},
-        },
-        "seeds": {
-            "base": config.seed,
-            "episode_seed": "SeedSequence([base, crc32(task_id), policy_index, index]) -> 62 bits",
-            "policy_seed": "SeedSequence([episode_seed, 0x9E3779B9]) -> 64 bits",
-        },
-        "render": config.render_settings.to_dict(),
-        "cameras": {c: camera_key(c) for c in CAMERAS},
-        "video": VIDEO_ENCODER,
-        "env": {"fps": FPS, "action_repeat": ACTION_REPEAT, "episode_steps": EPISODE_STEPS,
-                "max_steps": config.max_steps},
-        "frame_convention": "obs_t, action_t, next.reward_t, next.done_t, next.success_t",
-        "versions": _versions(),
-    }
-
-
-def read_ccdata_metadata(root: Path) -> dict:
-    path = Path(root) / CCDATA_META
-    if not path.is_file():
-        raise ValueError(f"{root} holds no {CCDATA_META}: not a ccdata dataset")
-    return json.loads(path.read_text())
-
-
-def _write_json(path: Path, content: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(content, indent=2, sort_keys=False))
-    os.replace(tmp, path)
-
-
-def _check_identity(found: dict, config: GenerateConfig, where: Path) -> None:
-    expected = config.identity()
-    diffs = [
-        f"{k}: found {found.get(k)!r}, requested {expected[k]!r}"
-        for k in expected
-        if found.get(k) != expected[k]
-    ]
-    if diffs:
-        raise ValueError(
-            f"{where} was generated with other settings; refusing to mix them "
-            f"(use another --root, or delete it): " + "; ".join(diffs)
-        )
-
-
-# ── Recording one episode ─────────────────────────────────────────────────────────────────
+# ── Recording ─────────────────────────────────────────────────────────────────────────────
 
 
 def _video_encoder():
@@ -380,22 +251,6 @@ def record_episode(dataset, env, spec: EpisodeSpec, config: GenerateConfig,
     raise AssertionError("unreachable: the loop ends on done")
 
 
-def _quiet_libraries() -> None:
-    import av
-    import datasets
-
-    # LeRobot re-installs FFmpeg's own printer (restore_default_callback), which then prints
-    # every encoder's statistics: raise FFmpeg's own threshold. PyAV's Python log callback
-    # stays off (level None): with it on, FFmpeg's decoder threads take the GIL to log and
-    # can deadlock a later decode in the same process.
-    av.logging.set_level(None)
-    av.logging.set_libav_level(av.logging.ERROR)
-    datasets.disable_progress_bars()
-    # Without system FFmpeg libraries LeRobot logs a page-long torchcodec traceback per process
-    # before falling back to PyAV, which is what ccdata reads and writes with anyway.
-    logging.getLogger("lerobot.utils.import_utils").setLevel(logging.ERROR)
-
-
 def write_shard(
     config: GenerateConfig,
     specs: list[EpisodeSpec],
@@ -408,7 +263,7 @@ def write_shard(
     before the next episode when `<pieces_dir>/../STOP` exists. Returns the pieces' records."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    _quiet_libraries()
+    quiet_libraries()
     pieces_dir = Path(pieces_dir)
     stop_file = pieces_dir.parent / "STOP"
     suite = get_suite(config.suite)
@@ -445,7 +300,7 @@ def write_shard(
                 raise
             record = {**dataclasses.asdict(spec), "key": spec.key, "frames": frames,
                       "seconds": time.perf_counter() - start}
-            _write_json(tmp / "piece.json", record)
+            write_json(tmp / "piece.json", record)
             os.replace(tmp, final)
             done.append(record)
             if on_piece is not None:
@@ -466,238 +321,6 @@ def _abandon(ds, tmp: Path) -> None:
     shutil.rmtree(tmp, ignore_errors=True)
 
 
-# ── Journal, merge, swap ──────────────────────────────────────────────────────────────────
-
-
-@dataclass(frozen=True)
-class _Paths:
-    root: Path
-
-    @property
-    def work(self) -> Path:
-        return self.root.parent / f".{self.root.name}.ccdata-work"
-
-    @property
-    def pieces(self) -> Path:
-        return self.work / "pieces"
-
-    @property
-    def batches(self) -> Path:
-        return self.work / "batches"
-
-    @property
-    def new(self) -> Path:
-        return self.root.parent / f".{self.root.name}.ccdata-new"
-
-    @property
-    def old(self) -> Path:
-        return self.root.parent / f".{self.root.name}.ccdata-old"
-
-
-BATCH_RECORD = "batch.json"
-"""In a finished batch: the keys of its episodes, in order."""
-
-
-def _recover(paths: _Paths) -> None:
-    """Finish or undo a swap that a killed run left half-done; drop incomplete leftovers."""
-    if not paths.root.exists():
-        if (paths.new / CCDATA_META).is_file():
-            os.replace(paths.new, paths.root)
-        elif paths.old.exists():
-            os.replace(paths.old, paths.root)
-    shutil.rmtree(paths.new, ignore_errors=True)
-    shutil.rmtree(paths.old, ignore_errors=True)
-    shutil.rmtree(paths.work / "merge", ignore_errors=True)
-    (paths.work / "STOP").unlink(missing_ok=True)
-    for journal in (paths.pieces, paths.batches):
-        if journal.exists():
-            for tmp in journal.glob(".tmp-*"):
-                shutil.rmtree(tmp, ignore_errors=True)
-
-
-def existing_keys(root: Path) -> list[str]:
-    """Keys (task__policy__seed) of the episodes in a ccdata dataset, in episode order."""
-    import pyarrow.parquet as pq
-
-    meta = read_ccdata_metadata(root)
-    task_ids = [t["id"] for t in meta["tasks"]]
-    policies = meta["policies"]
-    cols = ["episode_index", "task_id_index", "policy_index", "episode_seed"]
-    first: dict[int, str] = {}
-    for path in sorted((root / "data").rglob("*.parquet")):
-        table = pq.read_table(path, columns=cols).to_pydict()
-        for e, t, p, s in zip(*(table[c] for c in cols), strict=True):
-            first.setdefault(int(e), f"{task_ids[int(t)]}__{policies[int(p)]}__{int(s)}")
-    return [first[e] for e in sorted(first)]
-
-
-def _pieces(paths: _Paths) -> dict[str, Path]:
-    if not paths.pieces.exists():
-        return {}
-    return {p.name: p for p in paths.pieces.iterdir()
-            if p.is_dir() and not p.name.startswith(".") and (p / "piece.json").is_file()}
-
-
-def _batches(paths: _Paths) -> dict[tuple[str, ...], Path]:
-    """Finished batches: their episode keys (in order) -> directory."""
-    if not paths.batches.exists():
-        return {}
-    return {tuple(json.loads((b / BATCH_RECORD).read_text())["keys"]): b
-            for b in paths.batches.iterdir()
-            if b.is_dir() and not b.name.startswith(".") and (b / BATCH_RECORD).is_file()}
-
-
-def chunks_of(keys: list[str]) -> list[list[str]]:
-    """The batches a run's episodes (in plan order) are merged in: consecutive runs of `GROUP`;
-    a shorter remainder is left to the final merge. Fixed by the run's episode list alone, so
-    the merge tree, and with it every byte of the result, does not depend on timing."""
-    return [keys[i:i + GROUP] for i in range(0, len(keys) - GROUP + 1, GROUP)]
-
-
-def merge_batch(config: GenerateConfig, keys: list[str]) -> Path:
-    """Aggregate the journal's pieces of `keys` (all finished) into one batch, atomically."""
-    from lerobot.datasets.aggregate import aggregate_datasets
-
-    paths = _Paths(config.dataset_root)
-    final, tmp = paths.batches / keys[0], paths.batches / f".tmp-{keys[0]}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    paths.batches.mkdir(parents=True, exist_ok=True)
-    try:
-        aggregate_datasets([config.repo_id] * len(keys), config.repo_id,
-                           roots=[paths.pieces / k for k in keys], aggr_root=tmp)
-        _write_json(tmp / BATCH_RECORD, {"keys": list(keys)})
-        os.replace(tmp, final)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return final
-
-
-def merge_chunks(config: GenerateConfig, chunks: list[list[str]], finished) -> None:
-    """What the merger process runs: batch each chunk, in order, as soon as all its pieces
-    exist; return when all are batched or `finished` (an Event) is set, leaving the rest to the
-    final merge. Needs only its arguments and the journal (an independent job)."""
-    _quiet_libraries()
-    paths = _Paths(config.dataset_root)
-    done = set(_batches(paths))
-    try:
-        for keys in chunks:
-            if tuple(keys) in done:
-                continue
-            while not all((paths.pieces / k / "piece.json").is_file() for k in keys):
-                if finished.wait(0.25):
-                    return
-            if finished.is_set():
-                return
-            merge_batch(config, keys)
-    except KeyboardInterrupt:
-        return  # Ctrl-C reaches the whole process group; the main process merges the rest
-
-
-def _merger_main(config: GenerateConfig, chunks: list[list[str]], finished, parent: int) -> None:
-    _die_with_parent(parent)
-    merge_chunks(config, chunks, finished)
-
-
-def _die_with_parent(parent: int) -> None:
-    """On Linux, be SIGKILLed when the generating process dies, so that killing it leaves no
-    orphan writing into its journal."""
-    if not sys.platform.startswith("linux"):
-        return
-    import ctypes
-    import signal
-
-    libc = ctypes.CDLL(None, use_errno=True)
-    libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    if os.getppid() != parent:  # it died before prctl took effect
-        os._exit(1)
-
-
-def _aggregate(sources: list[Path], dst: Path, repo_id: str, scratch: Path) -> None:
-    """Merge finalized datasets, in order, into a new dataset at `dst` (grouped in a tree)."""
-    from lerobot.datasets.aggregate import aggregate_datasets
-
-    level = 0
-    while len(sources) > GROUP:
-        groups = [sources[i:i + GROUP] for i in range(0, len(sources), GROUP)]
-        merged = []
-        for g, group in enumerate(groups):
-            out = scratch / f"level{level}-{g:05d}"
-            shutil.rmtree(out, ignore_errors=True)
-            aggregate_datasets([repo_id] * len(group), repo_id, roots=group, aggr_root=out)
-            merged.append(out)
-        if level > 0:
-            for s in sources:
-                shutil.rmtree(s, ignore_errors=True)
-        sources, level = merged, level + 1
-    aggregate_datasets([repo_id] * len(sources), repo_id, roots=sources, aggr_root=dst)
-
-
-def merge_pieces(config: GenerateConfig, order: list[str] | None = None) -> int:
-    """Merge the journal (batches and pieces) after the episodes already at the root; swap
-    atomically. `order`: the plan's keys, which fixes the episode order and the chunks.
-
-    Journal entries whose episodes are already at the root are dropped. Returns the episodes
-    added."""
-    paths = _Paths(config.dataset_root)
-    present = set(existing_keys(paths.root)) if paths.root.exists() else set()
-    pieces, batches = _pieces(paths), _batches(paths)
-    for keys in list(batches):
-        if set(keys) & present:  # a run killed after its swap, before its clean-up
-            shutil.rmtree(batches.pop(keys))
-    for key in [k for k in pieces if k in present]:
-        shutil.rmtree(pieces.pop(key))
-    if not pieces and not batches:
-        return 0
-    _quiet_libraries()
-    # Complete chunks the merger did not get to are batched here: the same tree either way.
-    batched = {k for keys in batches for k in keys}
-    for keys in chunks_of([k for k in order or [] if k not in present]):
-        if all(k in pieces and k not in batched for k in keys):
-            batches[tuple(keys)] = merge_batch(config, keys)
-            batched.update(keys)
-    rank = {k: i for i, k in enumerate(order or [])}
-    entries = [(keys[0], path, list(keys)) for keys, path in batches.items()]
-    entries += [(k, p, [k]) for k, p in pieces.items() if k not in batched]
-    entries.sort(key=lambda e: (rank.get(e[0], len(rank)), e[0]))
-    sources = ([paths.root] if paths.root.exists() else []) + [e[1] for e in entries]
-    shutil.rmtree(paths.new, ignore_errors=True)
-    scratch = paths.work / "merge"
-    scratch.mkdir(parents=True, exist_ok=True)
-    _aggregate(sources, paths.new, config.repo_id, scratch)
-    shutil.rmtree(scratch, ignore_errors=True)
-    from ccdata.cards import render_card
-
-    (paths.new / "README.md").write_text(render_card(config.suite))  # the dataset card
-    _write_json(paths.new / CCDATA_META, ccdata_metadata(config))  # written last: "complete"
-    if paths.root.exists():
-        os.replace(paths.root, paths.old)
-    os.replace(paths.new, paths.root)
-    shutil.rmtree(paths.old, ignore_errors=True)
-    shutil.rmtree(paths.batches, ignore_errors=True)
-    for p in pieces.values():
-        shutil.rmtree(p, ignore_errors=True)
-    return sum(len(e[2]) for e in entries)
-
-
-def _prepare(config: GenerateConfig) -> _Paths:
-    """Check the target and the journal belong to these settings; repair leftovers."""
-    paths = _Paths(config.dataset_root)
-    _recover(paths)
-    if paths.root.exists():
-        if not any(paths.root.iterdir()):
-            paths.root.rmdir()
-        else:
-            _check_identity(read_ccdata_metadata(paths.root).get("identity", {}), config,
-                            paths.root)
-    settings = paths.work / "settings.json"
-    if settings.is_file():
-        _check_identity(json.loads(settings.read_text()), config, paths.work)
-    paths.pieces.mkdir(parents=True, exist_ok=True)
-    _write_json(settings, config.identity())
-    return paths
-
-
 # ── generate ──────────────────────────────────────────────────────────────────────────────
 
 
@@ -713,7 +336,7 @@ def generate(
     episode, merges every completed episode into a valid dataset, and is re-raised."""
     from tqdm.auto import tqdm
 
-    paths = _prepare(config)
+    paths = prepare(config)
     full_plan = plan(config)
     order = [s.key for s in full_plan]
     merge_pieces(config, order)  # pieces a killed run left behind
@@ -731,7 +354,7 @@ def generate(
             on_episode(record)
 
     interrupted = False
-    merger = _Merger(config, chunks_of([s.key for s in todo]))
+    merger = Merger(config, chunks_of([s.key for s in todo]))
     try:
         if config.workers == 1 or len(todo) <= 1:
             write_shard(config, todo, paths.pieces, on_piece=done_one)
@@ -751,49 +374,23 @@ def generate(
     return paths.root, summarize(paths.root, new_records, wall)
 
 
-class _Merger:
-    """`merge_chunks` in a spawned process beside the rollouts (none when nothing is to batch)."""
-
-    def __init__(self, config: GenerateConfig, chunks: list[list[str]]) -> None:
-        self.process = None
-        if not chunks:
-            return
-        ctx = get_context("spawn")
-        self.finished = ctx.Event()
-        self.process = ctx.Process(target=_merger_main, name="ccdata-merger", daemon=True,
-                                   args=(config, chunks, self.finished, os.getpid()))
-        self.process.start()
-
-    def finish(self) -> None:
-        """Let the merger complete the batch it is writing, then stop it."""
-        if self.process is None:
-            return
-        self.finished.set()
-        while True:
-            try:
-                self.process.join()
-                return
-            except KeyboardInterrupt:  # a second Ctrl-C: still wait, the batch is atomic
-                continue
-
-
-def _run_workers(config: GenerateConfig, todo: list[EpisodeSpec], paths: _Paths,
+def _run_workers(config: GenerateConfig, todo: list[EpisodeSpec], paths: JournalPaths,
                  done_one: Callable[[dict], None]) -> None:
     slices = [list(s) for s in np.array_split(np.array(todo, dtype=object), config.workers)
               if len(s)]
-    seen: set[str] = set(_pieces(paths))
+    seen: set[str] = set(finished_pieces(paths))
     wanted = {s.key for s in todo}
     records = {}
 
     def poll() -> None:
-        for key, piece in _pieces(paths).items():
+        for key, piece in finished_pieces(paths).items():
             if key in wanted and key not in seen:
                 seen.add(key)
                 records[key] = json.loads((piece / "piece.json").read_text())
                 done_one(records[key])
 
     pool = ProcessPoolExecutor(len(slices), mp_context=get_context("spawn"),
-                               initializer=_die_with_parent, initargs=(os.getpid(),))
+                               initializer=die_with_parent, initargs=(os.getpid(),))
     try:
         futures = [pool.submit(write_shard, config, s, paths.pieces) for s in slices]
         pending = set(futures)
@@ -808,35 +405,6 @@ def _run_workers(config: GenerateConfig, todo: list[EpisodeSpec], paths: _Paths,
         raise
     pool.shutdown(wait=True)
     poll()
-
-
-# ── Summary ───────────────────────────────────────────────────────────────────────────────
-
-
-def episode_table(root: Path) -> dict[str, np.ndarray]:
-    """Per-episode arrays read from the data parquet files: task_id_index, policy_index,
-    episode_seed, frames, success, discounted return, in episode order."""
-    import pyarrow.parquet as pq
-
-    from ccdata.scoring import discounted_return
-
-    cols = ["episode_index", "task_id_index", "policy_index", "episode_seed", "next.reward",
-            "next.success"]
-    tables = [pq.read_table(p, columns=cols).to_pydict()
-              for p in sorted((Path(root) / "data").rglob("*.parquet"))]
-    merged = {c: np.concatenate([np.asarray(t[c]) for t in tables]) for c in cols}
-    episodes = np.unique(merged["episode_index"])
-    out = {k: [] for k in ("episode_index", "task_id_index", "policy_index", "episode_seed",
-                           "frames", "success", "return")}
-    for e in episodes:
-        m = merged["episode_index"] == e
-        out["episode_index"].append(int(e))
-        for c in ("task_id_index", "policy_index", "episode_seed"):
-            out[c].append(int(merged[c][m][0]))
-        out["frames"].append(int(m.sum()))
-        out["success"].append(bool(merged["next.success"][m].any()))
-        out["return"].append(discounted_return(merged["next.reward"][m]))
-    return {k: np.asarray(v) for k, v in out.items()}
 
 
 def summarize(root: Path, new_records: Iterable[dict] = (), wall_time: float | None = None

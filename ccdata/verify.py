@@ -59,7 +59,7 @@ def _check_info(info: dict, ccmeta: dict | None, findings: list[str]) -> None:
             findings.append(f"info.json lacks {key!r}")
     if ccmeta is None:
         return
-    from ccdata.record import features
+    from ccdata.dataset_format import features
     from ccdata.suites import SUITES
 
     identity = ccmeta.get("identity", {})

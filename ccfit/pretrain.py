@@ -306,7 +306,7 @@ class FrameStore:
 
 def missing_datasets(config: PretrainConfig) -> dict[str, Path]:
     """Suite -> expected root of every requested suite whose dataset is absent."""
-    from ccdata.record import CCDATA_META
+    from ccdata.dataset_format import CCDATA_META
 
     return {s: r for s, r in config.resolved_roots().items() if not (r / CCDATA_META).is_file()}
 
@@ -335,7 +335,7 @@ def load_oracle_frames(config: PretrainConfig, progress: bool = False) -> tuple[
     """Oracle episodes of every task of the config's suites, each task once.
 
     Returns (frames, per-suite manifest entries)."""
-    from ccdata.record import read_ccdata_metadata
+    from ccdata.dataset_format import read_ccdata_metadata
     from ccfit.data import load_episodes
 
     check_datasets(config)

@@ -159,7 +159,7 @@ def test_dataset_frames_match_live_render(reach_root):
     """A dataset frame and the live render of the same step give (nearly) the same encoder
     input: same layout through `ccfit.obs`, only the video codec's rounding differs."""
     from ccdata import make_env
-    from ccdata.record import read_ccdata_metadata
+    from ccdata.dataset_format import read_ccdata_metadata
     from ccdata.render import RenderSettings
     from ccfit.data import load_episodes
     from ccfit.obs import obs_to_arrays

@@ -17,14 +17,8 @@ import pyarrow.parquet as pq
 import pytest
 
 import ccdata
-from ccdata.record import (
-    POLICY_ORDER,
-    GenerateConfig,
-    existing_keys,
-    features,
-    generate,
-    plan,
-)
+from ccdata.dataset_format import POLICY_ORDER, existing_keys, features
+from ccdata.record import GenerateConfig, generate, plan
 from ccdata.verify import verify_dataset
 
 TINY = dict(suite="Reach", episodes=1, explore_episodes=1, image_size=32, max_steps=12)
@@ -211,8 +205,8 @@ def test_sigkill_loses_at_most_the_episode_in_progress(tmp_path):
     root = tmp_path / "Reach"
     kwargs = dict(suite="Reach", episodes=1, explore_episodes=0, image_size=32, max_steps=40)
     script = textwrap.dedent(f"""
-        from ccdata import record
-        record.GROUP = 2  # so that a merger process is running when the kill comes
+        from ccdata import journal, record
+        journal.GROUP = 2  # so that a merger process is running when the kill comes
         record.generate(record.GenerateConfig(**{kwargs!r}, root={str(root)!r}), progress=False)
     """)
     proc = subprocess.Popen([sys.executable, "-c", script], env={**os.environ},
@@ -285,22 +279,22 @@ def test_merger_batches_complete_chunks_only(tiny, tmp_path):
     batches and loose pieces in plan order."""
     import threading
 
-    from ccdata import record
+    from ccdata import journal, record
 
     cfg = GenerateConfig(**TINY, root=tmp_path / "Reach")
     specs = plan(cfg)
-    paths = record._prepare(cfg)
+    paths = journal.prepare(cfg)
     record.write_shard(cfg, specs[:6], paths.pieces)  # chunk 2 of 4 incomplete
     chunks = [[s.key for s in specs[i:i + 4]] for i in (0, 4)]
     stop = threading.Event()
     timer = threading.Timer(20.0, stop.set)  # the second chunk never completes
     timer.start()
-    record.merge_chunks(cfg, chunks, stop)
+    journal.merge_chunks(cfg, chunks, stop)
     timer.cancel()
-    batches = record._batches(paths)
+    batches = journal.finished_batches(paths)
     assert list(batches) == [tuple(chunks[0])]
     record.write_shard(cfg, specs[6:], paths.pieces)
-    assert record.merge_pieces(cfg, [s.key for s in specs]) == len(specs)
+    assert journal.merge_pieces(cfg, [s.key for s in specs]) == len(specs)
     assert existing_keys(cfg.dataset_root) == [s.key for s in specs]
     assert verify_dataset(cfg.dataset_root) == []
     a, b = data_table(tiny[0]), data_table(cfg.dataset_root)
@@ -313,9 +307,9 @@ def test_batched_generation_is_byte_identical_across_workers(tmp_path, monkeypat
     """With chunks of 2 (6 batches, merged in a tree of pairs), the merge tree is fixed by the
     plan: one worker or two, merger fast or slow, the dataset's data files are the same bytes
     and its statistics the same numbers."""
-    from ccdata import record
+    from ccdata import journal
 
-    monkeypatch.setattr(record, "GROUP", 2)
+    monkeypatch.setattr(journal, "GROUP", 2)
     roots = []
     for workers in (1, 2):
         cfg = GenerateConfig(**TINY, root=tmp_path / f"w{workers}" / "Reach", workers=workers)

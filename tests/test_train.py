@@ -122,8 +122,9 @@ def tiny_dataset(tmp_path_factory):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from ccdata import make_env
+    from ccdata.dataset_format import VIDEO_ENCODER, ccdata_metadata, features
     from ccdata.policies import make_policy
-    from ccdata.record import VIDEO_ENCODER, GenerateConfig, ccdata_metadata, features
+    from ccdata.record import GenerateConfig
 
     root = tmp_path_factory.mktemp("ds") / "Reach"
     size = 32

@@ -1,0 +1,289 @@
+"""The on-disk journal that makes `ccdata generate` interruptible, and the merges out of it.
+
+How the work is laid out on disk (target root `R`, e.g. `$HF_LEROBOT_HOME/ccdata/Reach`):
+
+- `R/` is always a finalized, readable LeRobot dataset (or absent). It is only ever replaced by
+  an atomic rename of a freshly merged copy, so no interruption can leave it half-written.
+- `R/../.<name>.ccdata-work/` is the journal of the run in progress: `settings.json` (the
+  generation settings it belongs to) and `pieces/`, one small finalized LeRobot dataset per
+  completed episode. An episode is written to `pieces/.tmp-<key>` and renamed to
+  `pieces/<key>` only after LeRobot's `finalize()`, so a SIGKILL loses at most the episode in
+  progress (its `.tmp-` directory is deleted by the next run).
+- While episodes are being rolled out, a merger process (`merge_chunks`) aggregates each
+  complete chunk of `GROUP` consecutive episodes into `batches/<first key>` (finalized before it
+  is renamed into place, with `batch.json` naming its episodes), so most merging overlaps the
+  rollouts instead of following them.
+- At the end of a run, on Ctrl-C, or at the start of the next run after a SIGKILL, the batches
+  and the remaining pieces are merged (with the existing `R`, if any) by
+  `lerobot.datasets.aggregate` into `.<name>.ccdata-new`, which then replaces `R` (`R` ->
+  `.ccdata-old`, new -> `R`, old deleted; a run killed between the renames is repaired on the
+  next start).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from ccdata.dataset_format import (
+    CCDATA_META,
+    ccdata_metadata,
+    check_identity,
+    existing_keys,
+    quiet_libraries,
+    read_ccdata_metadata,
+    write_json,
+)
+
+if TYPE_CHECKING:
+    from ccdata.record import GenerateConfig
+
+GROUP = 16
+"""Datasets merged per `aggregate_datasets` call, and episodes per batch of the merger process;
+merges are grouped in a tree because each call rewrites its growing output once per source
+(quadratic in the number of sources)."""
+
+
+@dataclass(frozen=True)
+class JournalPaths:
+    root: Path
+
+    @property
+    def work(self) -> Path:
+        return self.root.parent / f".{self.root.name}.ccdata-work"
+
+    @property
+    def pieces(self) -> Path:
+        return self.work / "pieces"
+
+    @property
+    def batches(self) -> Path:
+        return self.work / "batches"
+
+    @property
+    def new(self) -> Path:
+        return self.root.parent / f".{self.root.name}.ccdata-new"
+
+    @property
+    def old(self) -> Path:
+        return self.root.parent / f".{self.root.name}.ccdata-old"
+
+
+BATCH_RECORD = "batch.json"
+"""In a finished batch: the keys of its episodes, in order."""
+
+
+def _recover(paths: JournalPaths) -> None:
+    """Finish or undo a swap that a killed run left half-done; drop incomplete leftovers."""
+    if not paths.root.exists():
+        if (paths.new / CCDATA_META).is_file():
+            os.replace(paths.new, paths.root)
+        elif paths.old.exists():
+            os.replace(paths.old, paths.root)
+    shutil.rmtree(paths.new, ignore_errors=True)
+    shutil.rmtree(paths.old, ignore_errors=True)
+    shutil.rmtree(paths.work / "merge", ignore_errors=True)
+    (paths.work / "STOP").unlink(missing_ok=True)
+    for journal in (paths.pieces, paths.batches):
+        if journal.exists():
+            for tmp in journal.glob(".tmp-*"):
+                shutil.rmtree(tmp, ignore_errors=True)
+
+
+def finished_pieces(paths: JournalPaths) -> dict[str, Path]:
+    if not paths.pieces.exists():
+        return {}
+    return {p.name: p for p in paths.pieces.iterdir()
+            if p.is_dir() and not p.name.startswith(".") and (p / "piece.json").is_file()}
+
+
+def finished_batches(paths: JournalPaths) -> dict[tuple[str, ...], Path]:
+    """Finished batches: their episode keys (in order) -> directory."""
+    if not paths.batches.exists():
+        return {}
+    return {tuple(json.loads((b / BATCH_RECORD).read_text())["keys"]): b
+            for b in paths.batches.iterdir()
+            if b.is_dir() and not b.name.startswith(".") and (b / BATCH_RECORD).is_file()}
+
+
+def chunks_of(keys: list[str]) -> list[list[str]]:
+    """The batches a run's episodes (in plan order) are merged in: consecutive runs of `GROUP`;
+    a shorter remainder is left to the final merge. Fixed by the run's episode list alone, so
+    the merge tree, and with it every byte of the result, does not depend on timing."""
+    return [keys[i:i + GROUP] for i in range(0, len(keys) - GROUP + 1, GROUP)]
+
+
+def merge_batch(config: GenerateConfig, keys: list[str]) -> Path:
+    """Aggregate the journal's pieces of `keys` (all finished) into one batch, atomically."""
+    from lerobot.datasets.aggregate import aggregate_datasets
+
+    paths = JournalPaths(config.dataset_root)
+    final, tmp = paths.batches / keys[0], paths.batches / f".tmp-{keys[0]}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    paths.batches.mkdir(parents=True, exist_ok=True)
+    try:
+        aggregate_datasets([config.repo_id] * len(keys), config.repo_id,
+                           roots=[paths.pieces / k for k in keys], aggr_root=tmp)
+        write_json(tmp / BATCH_RECORD, {"keys": list(keys)})
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return final
+
+
+def merge_chunks(config: GenerateConfig, chunks: list[list[str]], finished) -> None:
+    """What the merger process runs: batch each chunk, in order, as soon as all its pieces
+    exist; return when all are batched or `finished` (an Event) is set, leaving the rest to the
+    final merge. Needs only its arguments and the journal (an independent job)."""
+    quiet_libraries()
+    paths = JournalPaths(config.dataset_root)
+    done = set(finished_batches(paths))
+    try:
+        for keys in chunks:
+            if tuple(keys) in done:
+                continue
+            while not all((paths.pieces / k / "piece.json").is_file() for k in keys):
+                if finished.wait(0.25):
+                    return
+            if finished.is_set():
+                return
+            merge_batch(config, keys)
+    except KeyboardInterrupt:
+        return  # Ctrl-C reaches the whole process group; the main process merges the rest
+
+
+def _merger_main(config: GenerateConfig, chunks: list[list[str]], finished, parent: int) -> None:
+    die_with_parent(parent)
+    merge_chunks(config, chunks, finished)
+
+
+def die_with_parent(parent: int) -> None:
+    """On Linux, be SIGKILLed when the generating process dies, so that killing it leaves no
+    orphan writing into its journal."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    import signal
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent:  # it died before prctl took effect
+        os._exit(1)
+
+
+def _aggregate(sources: list[Path], dst: Path, repo_id: str, scratch: Path) -> None:
+    """Merge finalized datasets, in order, into a new dataset at `dst` (grouped in a tree)."""
+    from lerobot.datasets.aggregate import aggregate_datasets
+
+    level = 0
+    while len(sources) > GROUP:
+        groups = [sources[i:i + GROUP] for i in range(0, len(sources), GROUP)]
+        merged = []
+        for g, group in enumerate(groups):
+            out = scratch / f"level{level}-{g:05d}"
+            shutil.rmtree(out, ignore_errors=True)
+            aggregate_datasets([repo_id] * len(group), repo_id, roots=group, aggr_root=out)
+            merged.append(out)
+        if level > 0:
+            for s in sources:
+                shutil.rmtree(s, ignore_errors=True)
+        sources, level = merged, level + 1
+    aggregate_datasets([repo_id] * len(sources), repo_id, roots=sources, aggr_root=dst)
+
+
+def merge_pieces(config: GenerateConfig, order: list[str] | None = None) -> int:
+    """Merge the journal (batches and pieces) after the episodes already at the root; swap
+    atomically. `order`: the plan's keys, which fixes the episode order and the chunks.
+
+    Journal entries whose episodes are already at the root are dropped. Returns the episodes
+    added."""
+    paths = JournalPaths(config.dataset_root)
+    present = set(existing_keys(paths.root)) if paths.root.exists() else set()
+    pieces, batches = finished_pieces(paths), finished_batches(paths)
+    for keys in list(batches):
+        if set(keys) & present:  # a run killed after its swap, before its clean-up
+            shutil.rmtree(batches.pop(keys))
+    for key in [k for k in pieces if k in present]:
+        shutil.rmtree(pieces.pop(key))
+    if not pieces and not batches:
+        return 0
+    quiet_libraries()
+    # Complete chunks the merger did not get to are batched here: the same tree either way.
+    batched = {k for keys in batches for k in keys}
+    for keys in chunks_of([k for k in order or [] if k not in present]):
+        if all(k in pieces and k not in batched for k in keys):
+            batches[tuple(keys)] = merge_batch(config, keys)
+            batched.update(keys)
+    rank = {k: i for i, k in enumerate(order or [])}
+    entries = [(keys[0], path, list(keys)) for keys, path in batches.items()]
+    entries += [(k, p, [k]) for k, p in pieces.items() if k not in batched]
+    entries.sort(key=lambda e: (rank.get(e[0], len(rank)), e[0]))
+    sources = ([paths.root] if paths.root.exists() else []) + [e[1] for e in entries]
+    shutil.rmtree(paths.new, ignore_errors=True)
+    scratch = paths.work / "merge"
+    scratch.mkdir(parents=True, exist_ok=True)
+    _aggregate(sources, paths.new, config.repo_id, scratch)
+    shutil.rmtree(scratch, ignore_errors=True)
+    from ccdata.cards import render_card
+
+    (paths.new / "README.md").write_text(render_card(config.suite))  # the dataset card
+    write_json(paths.new / CCDATA_META, ccdata_metadata(config))  # written last: "complete"
+    if paths.root.exists():
+        os.replace(paths.root, paths.old)
+    os.replace(paths.new, paths.root)
+    shutil.rmtree(paths.old, ignore_errors=True)
+    shutil.rmtree(paths.batches, ignore_errors=True)
+    for p in pieces.values():
+        shutil.rmtree(p, ignore_errors=True)
+    return sum(len(e[2]) for e in entries)
+
+
+def prepare(config: GenerateConfig) -> JournalPaths:
+    """Check the target and the journal belong to these settings; repair leftovers."""
+    paths = JournalPaths(config.dataset_root)
+    _recover(paths)
+    if paths.root.exists():
+        if not any(paths.root.iterdir()):
+            paths.root.rmdir()
+        else:
+            check_identity(read_ccdata_metadata(paths.root).get("identity", {}), config,
+                            paths.root)
+    settings = paths.work / "settings.json"
+    if settings.is_file():
+        check_identity(json.loads(settings.read_text()), config, paths.work)
+    paths.pieces.mkdir(parents=True, exist_ok=True)
+    write_json(settings, config.identity())
+    return paths
+
+
+class Merger:
+    """`merge_chunks` in a spawned process beside the rollouts (none when nothing is to batch)."""
+
+    def __init__(self, config: GenerateConfig, chunks: list[list[str]]) -> None:
+        self.process = None
+        if not chunks:
+            return
+        ctx = get_context("spawn")
+        self.finished = ctx.Event()
+        self.process = ctx.Process(target=_merger_main, name="ccdata-merger", daemon=True,
+                                   args=(config, chunks, self.finished, os.getpid()))
+        self.process.start()
+
+    def finish(self) -> None:
+        """Let the merger complete the batch it is writing, then stop it."""
+        if self.process is None:
+            return
+        self.finished.set()
+        while True:
+            try:
+                self.process.join()
+                return
+            except KeyboardInterrupt:  # a second Ctrl-C: still wait, the batch is atomic
+                continue
