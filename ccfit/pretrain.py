@@ -57,11 +57,12 @@ from ccfit.models.encoders import (
     sidecar_path,
 )
 from ccfit.models.layers import mlp
+from ccfit.pretrain_data import FrameStore, check_datasets, load_oracle_frames, split_episodes
 
 KIND = "ccfit-pretrained-encoder"
 """The sidecar's 'kind': an encoder made by this module."""
 CHECKPOINT_VERSION = 1
-_SPLIT_TAG, _SAMPLE_TAG = 1, 2  # independent seed streams (episode split, batch sampling)
+_SAMPLE_TAG = 2  # seed stream of batch sampling, independent of the split's (SPLIT_TAG)
 _NOT_IDENTITY = ("device", "torch_threads", "checkpoint_interval", "log_interval")
 """Config fields that may change between a run and its resumption (they do not change what is
 learnt, up to floating-point differences across devices)."""
@@ -261,163 +262,6 @@ class Autoencoder(nn.Module):
         self, pixels: torch.Tensor, proprio: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         return self.decoder(self.encoder({"pixels": pixels, "proprio": proprio}))
-
-
-# ================================================================================ data
-
-
-def episode_arrays(episode: dict, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """One loaded episode -> (pixels uint8 (T, 9, S, S), proprio float32 (T, 7)), through
-    `ccfit.obs.obs_to_arrays`, the path live observations take."""
-    from ccfit.data import CAMERA_KEYS, PROPRIO_KEY
-    from ccfit.obs import obs_to_arrays
-
-    missing = [key for key in CAMERA_KEYS.values() if key not in episode]
-    if missing:
-        raise ValueError(f"episode {episode.get('episode_index')} lacks {missing}")
-    obs = {cam: episode[key][::stride] for cam, key in CAMERA_KEYS.items()}
-    obs["proprio"] = np.asarray(episode[PROPRIO_KEY], dtype=np.float32)[::stride]
-    arrays = obs_to_arrays(obs, "pixels")
-    return arrays["pixels"], arrays["proprio"]
-
-
-@dataclass
-class FrameStore:
-    """Frames of the selected episodes, kept per episode (no big concatenation)."""
-
-    pixels: list[np.ndarray]
-    """Per episode uint8 (T, 9, S, S)."""
-    proprio: list[np.ndarray]
-    """Per episode float32 (T, 7)."""
-    episodes: list[dict]
-    """Per episode: suite, task_id, episode_index, episode_seed, frames."""
-
-    def index(self, which: list[int]) -> np.ndarray:
-        """(N, 2) int64 (episode, frame) pairs of every frame of episodes `which`."""
-        parts = [np.stack([np.full(len(self.pixels[e]), e), np.arange(len(self.pixels[e]))], 1)
-                 for e in which]  # fmt: skip
-        return np.concatenate(parts) if parts else np.zeros((0, 2), dtype=np.int64)
-
-    def batch(self, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        pix = np.stack([self.pixels[e][t] for e, t in pairs])
-        prop = np.stack([self.proprio[e][t] for e, t in pairs])
-        return pix, prop
-
-
-def missing_datasets(config: PretrainConfig) -> dict[str, Path]:
-    """Suite -> expected root of every requested suite whose dataset is absent."""
-    from ccdata.dataset_format import CCDATA_META
-
-    return {s: r for s, r in config.resolved_roots().items() if not (r / CCDATA_META).is_file()}
-
-
-def _generate_command(suite: str, root: Path) -> str:
-    from ccdata.record import GenerateConfig
-
-    cmd = f"ccdata generate --suite {suite}"
-    if root != GenerateConfig(suite=suite).dataset_root:
-        cmd += f" --root {root}"
-    return cmd
-
-
-def check_datasets(config: PretrainConfig) -> None:
-    """ValueError naming every missing suite dataset and the command that makes it."""
-    missing = missing_datasets(config)
-    if missing:
-        cmds = "; ".join(_generate_command(s, r) for s, r in missing.items())
-        raise ValueError(
-            f"missing suite dataset(s) {', '.join(missing)} "
-            f"(looked in {', '.join(str(r) for r in missing.values())}); run: {cmds}"
-        )
-
-
-def load_oracle_frames(config: PretrainConfig, progress: bool = False) -> tuple[FrameStore, list]:
-    """Oracle episodes of every task of the config's suites, each task once.
-
-    Returns (frames, per-suite manifest entries)."""
-    from ccdata.dataset_format import read_ccdata_metadata
-    from ccfit.data import load_episodes
-
-    check_datasets(config)
-    store = FrameStore([], [], [])
-    manifest = []
-    taken: dict[str, str] = {}  # task id -> suite it was read from
-    # Shared tasks are read from the first suite in ccdata's order, whatever order was asked.
-    for suite in sorted(config.suites, key=list(SUITES).index):
-        root = config.resolved_roots()[suite]
-        meta = read_ccdata_metadata(root)
-        if meta.get("suite") != suite:
-            raise ValueError(f"dataset {root} holds suite {meta.get('suite')!r}, not {suite!r}")
-        size = int(meta.get("identity", {}).get("image_size", -1))
-        if size != config.image_size:
-            raise ValueError(
-                f"dataset {root} ({suite}) has {size} px images but the encoder is for "
-                f"{config.image_size} px; regenerate it with `ccdata generate --suite {suite} "
-                f"--image-size {config.image_size}` or set the image size to {size}"
-            )
-        task_ids = [t["id"] for t in meta["tasks"]]
-        wanted = [t for t in task_ids if t not in taken]
-        if len(wanted) == len(task_ids):  # one pass over each video file
-            episodes = _load_oracle(load_episodes, root)
-        else:  # skip the shared task's frames rather than decode them twice
-            episodes = [e for t in wanted for e in _load_oracle(load_episodes, root, t)]
-        counts = {t: 0 for t in wanted}
-        for ep in episodes:
-            if ep["task_id"] not in counts:
-                continue
-            pix, prop = episode_arrays(ep, config.frame_stride)
-            store.pixels.append(pix)
-            store.proprio.append(prop)
-            store.episodes.append({
-                "suite": suite, "task_id": ep["task_id"],
-                "episode_index": int(ep["episode_index"]),
-                "episode_seed": int(np.asarray(ep["episode_seed"]).reshape(-1)[0]),
-                "frames": len(pix),
-            })  # fmt: skip
-            counts[ep["task_id"]] += 1
-        absent = [t for t, n in counts.items() if n == 0]
-        if absent:
-            raise ValueError(
-                f"dataset {root} ({suite}) has no oracle episodes of {absent}; run "
-                f"`{_generate_command(suite, root)} --episodes 50`"
-            )
-        for t in wanted:
-            taken[t] = suite
-        manifest.append({
-            "suite": suite, "repo_id": meta.get("repo_id"), "root": str(root),
-            "render": meta.get("render"), "oracle_episodes": counts,
-            "shared_tasks_read_elsewhere": {t: taken[t] for t in task_ids if t not in wanted},
-        })  # fmt: skip
-        if progress:
-            print(f"{suite}: {sum(counts.values())} oracle episodes of {len(counts)} task(s)")
-    return store, manifest
-
-
-def _load_oracle(load_episodes: Callable, root: Path, task_id: str | None = None) -> list:
-    try:
-        return load_episodes(root, task=task_id, policy="oracle")
-    except ValueError as err:
-        if "no episodes" in str(err):
-            return []  # reported below with the command that fixes it
-        raise
-
-
-def split_episodes(episodes: list[dict], fraction: float, seed: int) -> tuple[list, list]:
-    """(train, held-out) episode positions: per task, round(fraction * n) held out (at most
-    n - 1); if that holds out nothing while there are >= 2 episodes, one random episode."""
-    rng = np.random.default_rng([seed, _SPLIT_TAG])
-    by_task: dict[str, list[int]] = {}
-    for i, ep in enumerate(episodes):
-        by_task.setdefault(ep["task_id"], []).append(i)
-    held: list[int] = []
-    for task in sorted(by_task):
-        idx = by_task[task]
-        n = min(int(math.floor(fraction * len(idx) + 0.5)), len(idx) - 1)
-        held += [idx[j] for j in rng.permutation(len(idx))[:n]]
-    if not held and fraction > 0 and len(episodes) >= 2:
-        held = [int(rng.integers(len(episodes)))]
-    held_set = set(held)
-    return [i for i in range(len(episodes)) if i not in held_set], sorted(held)
 
 
 # ============================================================================ evaluation
