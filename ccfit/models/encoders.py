@@ -184,6 +184,7 @@ def _atomic_write(path: Path, write) -> None:
     os.close(fd)
     try:
         write(tmp)
+        os.chmod(tmp, 0o644)  # mkstemp files are private; encoders are meant to be shared
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
