@@ -365,8 +365,8 @@ def generate(
     finally:
         bar.close()
         merger.finish()
-        wall = time.perf_counter() - start
         merge_pieces(config, order)
+        wall = time.perf_counter() - start  # end to end: the merge is part of the work
         (paths.work / "STOP").unlink(missing_ok=True)
     if interrupted:
         raise KeyboardInterrupt
