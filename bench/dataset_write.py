@@ -114,9 +114,9 @@ def main() -> None:
             env_rate, env_frames, cores = env_only_rate(config)
             rates["env"].append(env_rate)
             rates["env_cores"].append(cores)
-            ratios = [w / e for w, e in zip(rates["w1"], rates["env"], strict=True)]
         root = Path(tmp) / "r0-w1"
         video, data = dir_bytes(root, "videos"), dir_bytes(root, "data")
+    ratios = [w / e for w, e in zip(rates["w1"], rates["env"], strict=True)]
     med = {k: statistics.median(v) for k, v in rates.items()}
     print(
         json.dumps(

@@ -109,6 +109,9 @@ def run_config(args: argparse.Namespace):
     if args.router is not None:
         if args.model != "pwm":
             raise CliError("--router needs --model pwm (TD-MPC2 has no router)")
+        if model_overrides.get("router", args.router) != args.router:
+            raise CliError(f"--router {args.router} contradicts --model-option "
+                           f"router={model_overrides['router']}")  # fmt: skip
         model_overrides["router"] = args.router
     return CurriculumConfig(
         suite=args.suite, model=args.model, method=args.method, preset=args.preset,

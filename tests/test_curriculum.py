@@ -408,6 +408,8 @@ def test_killed_run_resumes_to_the_uninterrupted_result(runs, tmp_path):
         (["--suite", SUITE, "--method", "experts", "--model", "tdmpc2"], "--model pwm"),
         (["--suite", SUITE, "--router", "state"], "--router needs --model pwm"),
         (["--suite", SUITE, "--model", "pwm", "--router", "latent"], "invalid choice"),
+        (["--suite", SUITE, "--model", "pwm", "--router", "task", "--model-option",
+          "router=state"], "contradicts"),
         (["--suite", SUITE, "--encoder", "frozen:/missing", "--obs", "pixels"], "not found"),
         (["--suite", SUITE, "--encoder", "frozen:/missing"], "needs --obs pixels"),
         (["--suite", SUITE, "--method", "ewc", "--method-option", "lamda=1"], "valid:"),
