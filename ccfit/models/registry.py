@@ -1,0 +1,166 @@
+"""The world-model registry: one decorator makes a model and its config known everywhere.
+
+    @register_model("tdmpc2", TDMPC2Config)
+    class TDMPC2(WorldModel): ...
+
+`--model.type=tdmpc2` on the command line picks the config class (draccus' choice registry);
+`make_model(cfg, device)` builds the model it belongs to. Presets live on the config class.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import draccus
+import torch
+
+from ccfit.models.base import WorldModel
+
+OBS_MODES: tuple[str, ...] = ("state", "pixels")
+"""Observation modes every model supports."""
+PRESETS: tuple[str, ...] = ("smoke", "cpu", "paper")
+"""Preset names every model config defines (more, such as sizes, may be added per model)."""
+
+
+class ConfigError(ValueError):
+    """Bad user input in a config (unknown name, out-of-range value, contradiction): the CLI
+    prints it on one line and exits 2. Anything else raised while building is a bug."""
+
+
+def check(ok: bool, message: str) -> None:
+    """Raise ConfigError(message) unless `ok`: the one-liner configs validate with."""
+    if not ok:
+        raise ConfigError(message)
+
+
+@dataclass
+class ModelConfig(draccus.ChoiceRegistry):
+    """Fields every world model has; a model's config subclasses this and is registered with
+    its model by `register_model`. Subclasses list presets in `PRESETS` (name -> fields)."""
+
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {}
+
+    obs_mode: str = "state"
+    """'state' (39-D privileged state) or 'pixels' (9-channel images + 7-D proprio). Set from
+    the run's top-level --obs."""
+    state_dim: int = 39
+    """Size of the 'state' vector."""
+    proprio_dim: int = 7
+    """Size of the 'proprio' vector (pixel mode)."""
+    image_size: int = 64
+    """Side S of the square (9, S, S) pixel input. Set from the run's --image-size."""
+    action_dim: int = 4
+    """Action size; actions live in [-1, 1]."""
+    batch_size: int = 256
+    """Replay windows per update."""
+    seq_len: int = 4
+    """Rows per replay window (a window may cross episode boundaries, see `Batch`)."""
+    train_ratio: float = 1.0
+    """Updates per env step after the seed phase; fractions accumulate (0.5 = one update every
+    second step)."""
+    grad_clip: float = 20.0
+    """Global-norm clip of the world-model update (`WorldModel.world_model_optimizer`)."""
+
+    def __post_init__(self) -> None:
+        check_types(self)
+        name = type(self).__name__
+        check(self.obs_mode in OBS_MODES, f"{name}.obs_mode must be one of {OBS_MODES}")
+        for f in ("state_dim", "proprio_dim", "action_dim", "batch_size", "seq_len"):
+            check(getattr(self, f) >= 1, f"{name}.{f} must be >= 1, got {getattr(self, f)}")
+        check(self.image_size >= 32, f"{name}.image_size must be >= 32, got {self.image_size}")
+        check(self.seq_len >= 2, f"{name}.seq_len must be >= 2 (one transition), got "
+                                 f"{self.seq_len}")  # fmt: skip
+        check(self.train_ratio > 0, f"{name}.train_ratio must be > 0, got {self.train_ratio}")
+        check(self.grad_clip > 0, f"{name}.grad_clip must be > 0, got {self.grad_clip}")
+
+    @property
+    def type(self) -> str:
+        """The registered model name (what `--model.type` selects)."""
+        return self.get_choice_name(type(self))
+
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> ModelConfig:
+        """This config at preset `name` (a key of `PRESETS`), then `overrides`."""
+        check(name in cls.PRESETS,
+              f"unknown preset {name!r} for {cls.__name__}; valid: {', '.join(cls.PRESETS)}")  # fmt: skip
+        return cls(**{**cls.PRESETS[name], **overrides})
+
+
+_SIMPLE = {int: (int,), float: (int, float), bool: (bool,), str: (str,), type(None): (type(None),)}
+
+
+def check_types(config: Any) -> None:
+    """ConfigError naming the field when a value does not have its annotated simple type
+    (int, float, bool, str, or unions of them with None); other annotations are skipped."""
+    hints = _resolved_hints(type(config))
+    for f in dataclasses.fields(config):
+        parts = getattr(hints.get(f.name), "__args__", None) or (hints.get(f.name),)
+        if not all(p in _SIMPLE for p in parts):
+            continue
+        allowed = tuple(t for p in parts for t in _SIMPLE[p])
+        value = getattr(config, f.name)
+        if isinstance(value, bool) and bool not in allowed:
+            allowed = ()  # True is an int to Python, not to a config
+        check(isinstance(value, allowed),
+              f"{type(config).__name__}.{f.name} must be {f.type}, got {value!r}")  # fmt: skip
+
+
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def _resolved_hints(cls: type) -> dict[str, Any]:
+    if cls not in _HINTS:
+        import typing
+
+        _HINTS[cls] = typing.get_type_hints(cls)
+    return _HINTS[cls]
+
+
+# ------------------------------------------------------------------------------- registry
+
+MODELS: dict[str, type[WorldModel]] = {}
+"""Registered world models by name."""
+
+
+def register_model(
+    name: str, config_class: type[ModelConfig]
+) -> Callable[[type[WorldModel]], type[WorldModel]]:
+    """Class decorator: registers the model under `name` and its config as the `name` choice
+    of `--model.type`. The model's constructor is `(cfg, device, encoder=None)`."""
+
+    def decorate(cls: type[WorldModel]) -> type[WorldModel]:
+        if name in MODELS:
+            raise ValueError(f"world model {name!r} is already registered")
+        if not (isinstance(cls, type) and issubclass(cls, WorldModel)):
+            raise TypeError(f"{cls!r} is not a WorldModel subclass")
+        missing = [p for p in PRESETS if p not in config_class.PRESETS]
+        if missing:
+            raise TypeError(f"{config_class.__name__}.PRESETS lacks {missing}")
+        ModelConfig.register_subclass(name)(config_class)
+        MODELS[name] = cls
+        cls.config_class = config_class
+        return cls
+
+    return decorate
+
+
+def model_names() -> list[str]:
+    return sorted(MODELS)
+
+
+def model_class(name: str) -> type[WorldModel]:
+    check(name in MODELS, f"unknown model {name!r}; valid: {', '.join(sorted(MODELS))}")
+    return MODELS[name]
+
+
+def config_class(name: str) -> type[ModelConfig]:
+    return model_class(name).config_class
+
+
+def make_model(cfg: ModelConfig, device: torch.device | str, encoder=None) -> WorldModel:
+    """The registered model of `cfg`'s type. `encoder`: a frozen pretrained encoder
+    (`ccfit.models.encoders.load_frozen_encoder`) to use instead of a trainable one."""
+    return model_class(cfg.type)(cfg, device=device, encoder=encoder)
