@@ -1,7 +1,7 @@
 """ccfit: fit world models online on the benchmark's tasks.
 
 Example:
-    ccfit train --task reach-xy --model tdmpc2 --obs state --preset smoke --out runs/smoke
+    ccfit train --task reach-xy --preset smoke --out runs/smoke
 
 Commands:
     train    online model-based RL on one task (resumes when --out holds its checkpoint)
@@ -11,11 +11,15 @@ Commands:
     pretrain-encoder   the frozen-encoder diagnostic: an autoencoder on every task's oracle
              episodes, saved for `ccfit run --obs pixels --encoder frozen:PATH`
 
-    ccfit run --suite Reach --model tdmpc2 --method packnet --obs state --preset cpu --seed 0
+    ccfit run --suite Reach --preset cpu --seed 0 --model.type=pwm --model.router=state \
+        --method.type=ewc --method.lam=5000 --train.steps=6000
+    ccfit run --config_path runs/X/config.json      # a saved config, run (or resumed) again
     ccfit report runs/ --out report/
 
-A run directory holds config.json (the resolved config), metrics.jsonl (one line per
-evaluation), tb/ (TensorBoard) and checkpoint.pt.
+`train` and `run` take the typed config tree (`ccfit run --help` lists every field with its
+meaning); a preset fills the defaults and flags override them. A run directory holds
+config.json (the resolved config), metrics.jsonl (one line per evaluation), tb/ (TensorBoard)
+and checkpoints.
 """
 
 from __future__ import annotations
@@ -23,6 +27,8 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+
+from ccdata.errors import InputError
 
 EXIT_USAGE = 2
 
@@ -37,110 +43,62 @@ class _Parser(argparse.ArgumentParser):
         sys.exit(EXIT_USAGE)
 
 
-def _default_dataset(task_id: str) -> str:
-    """The repo id of the first suite that contains `task_id` (ccdata's naming)."""
-    from ccdata import SUITES
+def _split_flags(argv: list[str], flags: dict[str, bool]) -> tuple[dict[str, str | bool], list]:
+    """Pull the non-config options `flags` (name -> takes a value) out of `argv`."""
+    found: dict[str, str | bool] = {}
+    rest, it = [], iter(argv)
+    for a in it:
+        name, sep, value = a.partition("=")
+        key = name.lstrip("-").replace("-", "_")
+        if a.startswith("--") and key in flags:
+            if flags[key]:
+                found[key] = value if sep else next(it, "")
+            else:
+                found[key] = True
+        else:
+            rest.append(a)
+    return found, rest
 
-    for suite in SUITES.values():
-        if task_id in suite.task_ids:
-            return f"ccdata/{suite.name}"
-    raise CliError(f"task {task_id!r} is in no suite; pass --seed-dataset SOURCE")
+
+def _fmt(x) -> str:
+    return "n/a" if x is None else f"{x:.2f}"
 
 
-def _cmd_train(args: argparse.Namespace) -> None:
-    from ccdata.tasks import get_task
-    from ccfit.config import PRESETS, RunConfig, TrainConfig
-    from ccfit.train import check_model, model_config, train_task
+def cmd_train(argv: list[str]) -> None:
+    """ccfit train --task reach-xy --preset smoke --out runs/smoke  (see --help)"""
+    from ccfit.config import TaskRunConfig, parse_cli
+    from ccfit.train.run import default_out, train_task
 
-    try:
-        get_task(args.task)
-        check_model(args.model)
-        if args.preset not in PRESETS:
-            raise ValueError(f"unknown preset {args.preset!r}; valid: {', '.join(PRESETS)}")
-        overrides = {"obs": args.obs, "seed": args.seed, "image_size": args.image_size}
-        if args.steps is not None:
-            overrides["steps"] = args.steps
-        if args.device is not None:
-            overrides["device"] = args.device
-        if args.seed_dataset is not None:
-            overrides["seed_dataset"] = args.seed_dataset or _default_dataset(args.task)
-        if args.endpoint is not None:
-            overrides["dataset_endpoint"] = args.endpoint
-        train = TrainConfig.preset(args.preset, **overrides)
-        mcfg = model_config(args.model, args.preset, args.obs, image_size=args.image_size)
-        run = RunConfig(task=args.task, model=args.model, model_config=mcfg, train=train)
-    except ValueError as e:
-        raise CliError(str(e)) from None
-    out = Path(args.out) if args.out else Path("runs") / f"{args.task}-{args.model}-s{args.seed}"
-    try:
-        record = train_task(run, out, progress=not args.quiet)
-    except ValueError as e:  # e.g. another config in --out, unreadable seed dataset
-        raise CliError(str(e)) from None
+    extra, argv = _split_flags(argv, {"quiet": False})
+    cfg = parse_cli(TaskRunConfig, argv, prog="ccfit train")
+    record = train_task(cfg, progress=not extra.get("quiet"))
     norm = record["normalized_return"]
-    print(
-        f"{args.task} step {record['global_step']}: return {record['discounted_return']:.2f}, "
-        f"normalised {'n/a' if norm is None else f'{norm:.1f}'}, "
-        f"success {record['success_rate']:.2f}  ->  {out}"
-    )
+    print(f"{cfg.task} step {record['global_step']}: return {record['discounted_return']:.2f}, "
+          f"normalised {'n/a' if norm is None else f'{norm:.1f}'}, "
+          f"success {record['success_rate']:.2f}  ->  {cfg.out or default_out(cfg)}")
 
 
-def _parse_options(items: list[str]) -> dict:
-    """KEY=VALUE pairs; values parsed as JSON when they can be (numbers, booleans)."""
-    import json
-
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise CliError(f"expected KEY=VALUE, got {item!r}")
-        try:
-            out[key] = json.loads(value)
-        except json.JSONDecodeError:
-            out[key] = value
-    return out
+def run_dir(cfg) -> Path:
+    """Where a curriculum run goes: `--out`, else a name made from its config."""
+    if cfg.out:
+        return Path(cfg.out)
+    return Path("runs") / (f"{cfg.suite}-{cfg.model.type}-{cfg.method.type}-{cfg.obs}-"
+                           f"{cfg.preset}-s{cfg.seed}")  # fmt: skip
 
 
-def run_config(args: argparse.Namespace):
-    """The `CurriculumConfig` of parsed `ccfit run` arguments (ValueError/CliError if bad)."""
-    from ccfit.curriculum import CurriculumConfig
-
-    seed_dataset = {"auto": "auto", "none": None}.get(args.seed_dataset, args.seed_dataset)
-    model_overrides = _parse_options(args.model_option)
-    if args.router is not None:
-        if args.model != "pwm":
-            raise CliError("--router needs --model pwm (TD-MPC2 has no router)")
-        if model_overrides.get("router", args.router) != args.router:
-            raise CliError(f"--router {args.router} contradicts --model-option "
-                           f"router={model_overrides['router']}")  # fmt: skip
-        model_overrides["router"] = args.router
-    return CurriculumConfig(
-        suite=args.suite, model=args.model, method=args.method, preset=args.preset,
-        obs=args.obs, seed=args.seed, image_size=args.image_size, encoder=args.encoder,
-        seed_dataset=seed_dataset, method_options=_parse_options(args.method_option),
-        model_overrides=model_overrides,
-        train_overrides={**_parse_options(args.train), **(
-            {"dataset_endpoint": args.endpoint} if args.endpoint else {})},
-    )  # fmt: skip
-
-
-def _cmd_run(args: argparse.Namespace) -> None:
+def cmd_run(argv: list[str]) -> None:
+    """ccfit run --suite Reach --preset cpu --method.type=packnet  (see --help)"""
+    from ccfit.analysis import stage_callbacks
+    from ccfit.config import CurriculumConfig, parse_cli
     from ccfit.curriculum import Curriculum
 
-    try:
-        cfg = run_config(args)
-        out = Path(args.out) if args.out else (
-            Path("runs") / f"{args.suite}-{args.model}-{args.method}-{args.obs}-{args.preset}"
-            f"-s{args.seed}"
-        )  # fmt: skip
-        result = Curriculum(cfg, out, args.scratch_root, progress=not args.quiet).run()
-    except (ValueError, TypeError) as e:
-        raise CliError(str(e)) from None
-
-    def fmt(x):
-        return "n/a" if x is None else f"{x:.2f}"
-
-    print(f"{cfg.suite} {cfg.model} {cfg.method} seed {cfg.seed}: BWT {fmt(result['bwt'])}, "
-          f"FWT {fmt(result['fwt'])}  ->  {out}")  # fmt: skip
+    extra, argv = _split_flags(argv, {"quiet": False, "scratch_root": True})
+    cfg = parse_cli(CurriculumConfig, argv, prog="ccfit run")
+    out = run_dir(cfg)
+    result = Curriculum(cfg, out, extra.get("scratch_root") or None,
+                        progress=not extra.get("quiet"), callbacks=stage_callbacks(cfg)).run()
+    print(f"{cfg.suite} {cfg.model.type} {cfg.method.type} seed {cfg.seed}: "
+          f"BWT {_fmt(result['bwt'])}, FWT {_fmt(result['fwt'])}  ->  {out}")
 
 
 def _cmd_report(args: argparse.Namespace) -> None:
@@ -175,54 +133,8 @@ def _cmd_ablate(args: argparse.Namespace) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="ccfit", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    p = sub.add_parser("train", help="online model-based RL on one task")
-    p.add_argument("--task", required=True, help="task id, e.g. reach-xy (`ccdata list`)")
-    p.add_argument("--model", default="tdmpc2", help="world model (default tdmpc2)")
-    p.add_argument("--obs", default="state", help="observation mode: state | pixels")
-    p.add_argument("--preset", default="cpu", help="smoke | cpu | paper (default cpu)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--steps", type=int, default=None, help="override the preset's steps")
-    p.add_argument("--image-size", type=int, default=64, help="pixel mode image side")
-    p.add_argument("--device", default=None, help="auto | cpu | cuda (default auto)")
-    p.add_argument("--out", default=None, help="run directory (default runs/TASK-MODEL-sSEED)")
-    p.add_argument(
-        "--seed-dataset", nargs="?", const="", default=None, metavar="SOURCE",
-        help="preload the task's episodes from a LeRobot dataset (directory or repo id; "
-        "without a value: the task's suite dataset ccdata/<Suite>)",
-    )  # fmt: skip
-    p.add_argument("--endpoint", default=None,
-                   help="Hub endpoint to download a repo-id seed dataset from (as ccdata push)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=_cmd_train)
-
-    p = sub.add_parser("run", help="a suite's continual curriculum (Algorithm 1)")
-    p.add_argument("--suite", required=True, help="suite name (`ccdata list`)")
-    p.add_argument("--model", default="tdmpc2", help="tdmpc2 | pwm")
-    p.add_argument("--method", default="ft", help="ft | er | ewc | packnet | experts (PWM)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--preset", default="cpu", help="smoke | cpu | paper (default cpu)")
-    p.add_argument("--obs", default="state", help="state | pixels (default state)")
-    p.add_argument("--image-size", type=int, default=64)
-    p.add_argument("--encoder", default=None, help="frozen:PATH, a pretrained encoder")
-    p.add_argument("--seed-dataset", default="auto",
-                   help="auto (the suite's dataset when present) | none | SOURCE")  # fmt: skip
-    p.add_argument("--method-option", action="append", default=[], metavar="KEY=VALUE",
-                   help="method setting, e.g. lam=5000 (EWC), fraction=0.05 (ER)")  # fmt: skip
-    p.add_argument("--router", default=None, choices=("task", "state"),
-                   help="PWM's router input: the task identity (default, as the paper) or the "
-                   "latent and action (same as --model-option router=state)")  # fmt: skip
-    p.add_argument("--model-option", action="append", default=[], metavar="KEY=VALUE",
-                   help="model config override, e.g. router=state (PWM)")  # fmt: skip
-    p.add_argument("--train", action="append", default=[], metavar="KEY=VALUE",
-                   help="TrainConfig override, e.g. steps=5000")  # fmt: skip
-    p.add_argument("--endpoint", default=None,
-                   help="Hub endpoint to download a repo-id seed dataset from (as ccdata push)")
-    p.add_argument("--out", default=None, help="run directory")
-    p.add_argument("--scratch-root", default=None,
-                   help="where from-scratch reference runs are shared (default OUT/../scratch)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=_cmd_run)
-
+    for name, fn in CONFIG_COMMANDS.items():  # listed in --help; parsed by draccus in main()
+        sub.add_parser(name, help=fn.__doc__.split("  (")[0], add_help=False)
     from ccfit.pretrain import add_pretrain_parser
 
     add_pretrain_parser(sub)
@@ -243,11 +155,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+CONFIG_COMMANDS = {"train": cmd_train, "run": cmd_run}
+"""Commands whose options are the typed config tree (draccus): `ccfit run --help` lists it."""
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        args.func(args)
-    except (CliError, ValueError) as e:
+        if argv and argv[0] in CONFIG_COMMANDS:
+            CONFIG_COMMANDS[argv[0]](argv[1:])
+        else:
+            args = build_parser().parse_args(argv)
+            args.func(args)
+    except (CliError, InputError) as e:
         print(f"ccfit: error: {e}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:

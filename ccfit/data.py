@@ -340,3 +340,38 @@ def episode_to_replay(
 
 def _stack(values) -> np.ndarray:
     return np.asarray(values, dtype=np.float32)
+
+
+def seed_buffer(
+    buffer,
+    source,
+    task_id: str,
+    obs_mode: str,
+    image_size: int | None = None,
+    task_index: int = 0,
+    endpoint: str | None = None,
+) -> int:
+    """Preload `task_id`'s episodes of a LeRobot dataset; returns how many were added.
+
+    In state mode, episodes that ended in success get their unrecorded final observation back
+    by replaying them (`ccfit.data.final_observation`), so the terminal transition is kept; in
+    pixel mode (and for other episodes) the last transition is dropped.
+    """
+    episodes = load_episodes(source, task=task_id, images=obs_mode == "pixels", endpoint=endpoint)
+    added = 0
+    for ep in episodes:
+        final = None
+        if obs_mode == "state" and bool(np.asarray(ep[SUCCESS_KEY]).reshape(-1)[-1]):
+            final = final_observation(ep, task_id)
+        if final is None and len(ep["action"]) < 2:
+            continue  # one frame: no transition once the unobserved last one is dropped
+        item = episode_to_replay(ep, obs_mode, final)
+        if obs_mode == "pixels" and image_size is not None:
+            side = item["obs"]["pixels"].shape[-1]
+            if side != image_size:
+                raise ValueError(
+                    f"seed dataset images are {side} px but the run uses {image_size} px"
+                )
+        buffer.add_episode(**item, task=task_index)
+        added += 1
+    return added

@@ -305,3 +305,58 @@ def cw_forward_transfer(
     if a_ref >= 1.0:
         return math.nan
     return (a_seq - a_ref) / (1.0 - a_ref)
+
+
+# ================================================================ from run records
+
+
+def task_curves(records: list[dict], num_tasks: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per task (steps, normalised returns); of several records at one global step the last
+    logged wins (a task's end record is superseded by the next stage's first evaluation,
+    which sees e.g. PackNet's pruned and retrained weights)."""
+    curves = []
+    for t in range(num_tasks):
+        by_step: dict[int, float] = {}
+        for r in records:
+            if r["task_index"] == t and r["normalized_return"] is not None:
+                by_step[int(r["global_step"])] = float(r["normalized_return"])
+        steps = np.array(sorted(by_step), dtype=np.float64)
+        curves.append((steps, np.array([by_step[int(s)] for s in steps])))
+    return curves
+
+
+def compute_metrics(records: list[dict], scratch: list[dict], num_tasks: int,
+                    steps_per_task: int) -> dict:  # fmt: skip
+    """The paper's BWT and FWT plus Lopez-Paz BWT and Continual World metrics, one run."""
+    curves = task_curves(records, num_tasks)
+    if any(len(c[0]) == 0 for c in curves):
+        raise ValueError("normalised returns missing: run `ccdata references` first")
+    ends = [(i + 1) * steps_per_task for i in range(num_tasks)]
+    scratch_curve = task_curves(scratch, num_tasks)[-1]
+    return metrics_from_curves(curves, ends, scratch_curve, steps_per_task)
+
+
+def metrics_from_curves(curves, ends, scratch_curve, budget: float) -> dict:
+    n = len(curves)
+    bwt_result = bwt(curves, ends)
+    seq = rebase(curves[-1], ends[-1] - budget)
+    matrix = performance_matrix(curves, ends)
+    forgetting_result = cw_forgetting(curves, ends)
+    return {
+        "bwt": _finite(float(bwt_result)),
+        "bwt_per_task": {str(i): _finite(d) for i, d in bwt_result.per_task.items()},
+        "bwt_excluded": {str(i): why for i, why in bwt_result.excluded.items()},
+        "fwt": _finite(fwt(seq, scratch_curve, budget)),
+        "final_per_task": [_finite(x) for x in matrix[-1]],
+        "end_of_task": [_finite(matrix[i, i]) for i in range(n)],
+        "lopez_paz_bwt": _finite(lopez_paz_bwt(matrix)),
+        "cw_forgetting": _finite(float(forgetting_result)),
+        "cw_forward_transfer": _finite(cw_forward_transfer(seq, scratch_curve, budget)),
+        "task_ends": list(ends),
+        "budget": budget,
+    }
+
+
+def _finite(x) -> float | None:
+    x = float(x)
+    return x if np.isfinite(x) else None

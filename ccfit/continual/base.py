@@ -18,11 +18,13 @@ and exposes it through `state_dict` / `load_state_dict` so runs can resume.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import inspect
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
+import draccus
 import numpy as np
 import torch
 from torch import nn
@@ -46,6 +48,18 @@ class TaskData:
     after the trainer's buffer for this task is gone."""
     backbone_loss: Callable[[Batch], torch.Tensor]
     """The model's task-agnostic loss (`WorldModel.backbone_loss`)."""
+
+    @classmethod
+    def from_buffer(cls, task_index: int, buffer, model, device) -> TaskData:
+        """The view of a finished task's replay `buffer` that methods get."""
+        seq = model.cfg.seq_len
+        return cls(
+            task_index=task_index,
+            sample=lambda: buffer.sample(model.cfg.batch_size, seq).to(device),
+            num_transitions=buffer.num_starts(seq),
+            gather=lambda starts: buffer.gather(starts, seq).to(device),
+            backbone_loss=model.backbone_loss,
+        )
 
 
 class ContinualMethod:
@@ -107,6 +121,56 @@ def trainable_parameters(backbone: nn.Module) -> Iterator[tuple[str, nn.Paramete
     for name, param in backbone.named_parameters():
         if param.requires_grad:
             yield name, param
+
+
+# ----------------------------------------------------------------------------- configs
+
+
+@dataclass
+class MethodConfig(draccus.ChoiceRegistry):
+    """A method's options (`--method.type=NAME --method.OPTION=...`): one dataclass per
+    method, beside it, registered with `MethodConfig.register_subclass(NAME)`. Its fields are
+    the method's keyword arguments; the run adds `num_tasks` and `seed`."""
+
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {}
+    """Option defaults per size preset (e.g. shorter PackNet retraining at `smoke`)."""
+    MODELS: ClassVar[tuple[str, ...] | None] = None
+    """World models the method works with (None: any)."""
+
+    @property
+    def type(self) -> str:
+        return self.get_choice_name(type(self))
+
+    def options(self) -> dict[str, Any]:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+    def check_model(self, model_type: str) -> None:
+        from ccfit.models.registry import check
+
+        check(self.MODELS is None or model_type in self.MODELS,
+              f"method {self.type!r} needs --model.type in {self.MODELS}, got {model_type!r}")
+
+
+def method_config_class(name: str) -> type[MethodConfig]:
+    """The config class of registered method `name` (ValueError listing valid names)."""
+    from ccfit.models.registry import check
+
+    check(name in METHODS, f"unknown continual method {name!r}; valid: {', '.join(method_names())}")
+    return MethodConfig.get_choice_class(name)
+
+
+def build_method(cfg: MethodConfig, num_tasks: int, seed: int) -> ContinualMethod:
+    """The method of `cfg` for a curriculum of `num_tasks` tasks; `seed` reaches methods that
+    draw random numbers (ER's reservoir and sampler)."""
+    kwargs = {**cfg.options(), "num_tasks": num_tasks}
+    if "seed" in inspect.signature(METHODS[cfg.type]).parameters:
+        kwargs["seed"] = seed
+    try:
+        return METHODS[cfg.type](**kwargs)
+    except ValueError as e:
+        from ccfit.models.registry import ConfigError
+
+        raise ConfigError(f"method {cfg.type!r}: {e}") from None
 
 
 # ----------------------------------------------------------------------------- registry

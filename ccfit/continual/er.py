@@ -17,13 +17,20 @@ each kept start index), on the CPU: memory is (H+1) x the raw transitions kept.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 
-from ccfit.continual.base import ContinualMethod, TaskData, register_method, zero_like_backbone
+from ccfit.continual.base import (
+    ContinualMethod,
+    MethodConfig,
+    TaskData,
+    register_method,
+    zero_like_backbone,
+)
 from ccfit.models.base import Batch
 
 
@@ -157,3 +164,16 @@ class ExperienceReplay(ContinualMethod):
         self.memory = None if memory is None else Batch(**memory)
         self.kept = {int(k): np.asarray(v) for k, v in state["kept"].items()}
         self._generator.set_state(state["generator"])
+
+
+@MethodConfig.register_subclass("er")
+@dataclass
+class ExperienceReplayConfig(MethodConfig):
+    """Options of experience replay (`--method.type=er`); the reservoir is seeded by the run."""
+
+    fraction: float = 0.05
+    """Share of each finished task's transitions kept (reservoir sampling)."""
+    replay_ratio: float = 0.5
+    """Share r of replayed samples in the equivalent mixed batch (weight r / (1 - r))."""
+    batch_size: int = 256
+    """Replayed windows per update."""

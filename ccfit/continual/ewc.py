@@ -19,6 +19,7 @@ later) is not penalised. Frozen parameters (requires_grad False) are ignored.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -26,6 +27,7 @@ from torch import nn
 
 from ccfit.continual.base import (
     ContinualMethod,
+    MethodConfig,
     TaskData,
     register_method,
     trainable_parameters,
@@ -104,3 +106,16 @@ class EWC(ContinualMethod):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.fisher = dict(state["fisher"])
         self.anchor = dict(state["anchor"])
+
+
+@MethodConfig.register_subclass("ewc")
+@dataclass
+class EWCConfig(MethodConfig):
+    """Options of EWC (`--method.type=ewc`)."""
+
+    lam: float = 5000.0
+    """Penalty strength lambda (the paper's 5000)."""
+    fisher_batches: int = 50
+    """Batches of squared gradients averaged per task."""
+    fisher_decay: float = 1.0
+    """Factor on the previous tasks' Fisher before adding the new one (1 = sum)."""

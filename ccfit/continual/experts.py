@@ -16,12 +16,13 @@ The method sees only the backbone; it finds the `MixtureDynamics` inside it.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 from torch import nn
 
-from ccfit.continual.base import ContinualMethod, TaskData, register_method
+from ccfit.continual.base import ContinualMethod, MethodConfig, TaskData, register_method
 from ccfit.models.pwm import MixtureDynamics, find_mixture
 
 
@@ -83,3 +84,11 @@ class ProgressiveExperts(ContinualMethod):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.task = int(state["task"])
         self.stored = {k: v.clone() for k, v in state["stored"].items()}
+
+
+@MethodConfig.register_subclass("experts")
+@dataclass
+class ProgressiveExpertsConfig(MethodConfig):
+    """Progressive experts has no options; the expert count per task is PWM's
+    `--model.experts_per_task`."""
+    MODELS = ("pwm",)

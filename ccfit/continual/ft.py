@@ -2,9 +2,17 @@
 
 from __future__ import annotations
 
-from ccfit.continual.base import ContinualMethod, register_method
+from dataclasses import dataclass
+
+from ccfit.continual.base import ContinualMethod, MethodConfig, register_method
 
 
 @register_method("ft")
 class FineTune(ContinualMethod):
     """No hook does anything; forgetting is whatever plain training causes."""
+
+
+@MethodConfig.register_subclass("ft")
+@dataclass
+class FineTuneConfig(MethodConfig):
+    """Fine-tuning has no options."""

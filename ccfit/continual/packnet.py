@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
+from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
@@ -38,6 +39,7 @@ from torch import nn
 
 from ccfit.continual.base import (
     ContinualMethod,
+    MethodConfig,
     TaskData,
     register_method,
     trainable_parameters,
@@ -298,3 +300,16 @@ class PackNet(ContinualMethod):
         # Masks and hooks are rebuilt on the next hook call, which sees the backbone.
         self._fixed, self._zeroed, self._grad_keep = {}, {}, {}
         self._detach_hooks()
+
+
+@MethodConfig.register_subclass("packnet")
+@dataclass
+class PackNetConfig(MethodConfig):
+    """Options of PackNet (`--method.type=packnet`)."""
+
+    PRESETS = {"smoke": {"retrain_steps": 20}}
+
+    keep_fraction: float = 0.25
+    """Share of each layer's still-free weights kept for a task (by magnitude)."""
+    retrain_steps: int = 1000
+    """Updates after pruning, before freezing."""

@@ -17,6 +17,7 @@ from typing import Any, ClassVar
 import draccus
 import torch
 
+from ccdata.errors import InputError
 from ccfit.models.base import WorldModel
 
 OBS_MODES: tuple[str, ...] = ("state", "pixels")
@@ -25,7 +26,7 @@ PRESETS: tuple[str, ...] = ("smoke", "cpu", "paper")
 """Preset names every model config defines (more, such as sizes, may be added per model)."""
 
 
-class ConfigError(ValueError):
+class ConfigError(InputError):
     """Bad user input in a config (unknown name, out-of-range value, contradiction): the CLI
     prints it on one line and exits 2. Anything else raised while building is a bug."""
 
@@ -84,8 +85,8 @@ class ModelConfig(draccus.ChoiceRegistry):
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> ModelConfig:
         """This config at preset `name` (a key of `PRESETS`), then `overrides`."""
-        check(name in cls.PRESETS,
-              f"unknown preset {name!r} for {cls.__name__}; valid: {', '.join(cls.PRESETS)}")  # fmt: skip
+        valid = ", ".join(cls.PRESETS)
+        check(name in cls.PRESETS, f"unknown preset {name!r} for {cls.__name__}; valid: {valid}")
         return cls(**{**cls.PRESETS[name], **overrides})
 
 

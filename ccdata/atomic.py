@@ -1,0 +1,33 @@
+"""The one atomic file write of the project: a temp file beside the target, then rename.
+
+A reader (or a resumed run) sees the old file or the new one, never half of one. ccfit
+imports this too (ccdata never imports ccfit).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+
+def atomic_write(path: str | Path, write: Callable[[str], object], mode: int = 0o644) -> None:
+    """Call `write(tmp_path)` to fill a temp file in `path`'s directory, then rename it over
+    `path`. The temp file is removed if `write` fails."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(tmp)
+        os.chmod(tmp, mode)  # mkstemp files are private; outputs are meant to be shared
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    """Write `text` to `path` atomically."""
+    atomic_write(path, lambda tmp: Path(tmp).write_text(text))

@@ -1,0 +1,125 @@
+"""Evaluation episodes of a PWM run replayed and recorded, and what is measured on them:
+mean routing weights and the open-loop latent error."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ccfit.models.pwm import PWM
+from ccfit.obs import obs_to_arrays
+
+ROUTING = "routing.jsonl"
+ABLATION_JSON = "ablation.json"
+ABLATION_PNG = "ablation.png"
+ABLATION_MODES: dict[str, str | None] = {
+    "full": None, "prior": "prior", "new": "new", "uniform": "uniform",
+}  # fmt: skip
+"""Ablation name -> `PWM.routing_override` mode."""
+_ROUTING_TAG, _ABLATION_TAG = 10, 11  # seed streams beside ccfit.train's 0..3
+
+
+
+# ====================================================================== playing episodes
+
+
+@dataclass
+class Episode:
+    """One evaluation episode as played."""
+
+    obs: dict[str, np.ndarray]
+    """Observation arrays (T + 1, ...), as stored in replay."""
+    action: np.ndarray
+    """Actions (T, action_dim)."""
+    rewards: list[float]
+    """Rewards of the T steps."""
+    success: bool
+    """Whether the task was solved at some step."""
+
+
+def play_episodes(env, model, heads, *, obs_mode: str, seeds: list[int],
+                  device: torch.device) -> list[Episode]:  # fmt: skip
+    """`ccfit.train.evaluate`'s episodes (eval-mode planning, one per layout seed), recorded."""
+    episodes = []
+    for seed in seeds:
+        obs, _ = env.reset(seed=int(seed))
+        state = model.initial_state(heads)
+        frames = [obs_to_arrays(obs, obs_mode)]
+        actions, rewards, success, done = [], [], False, False
+        while not done:
+            x = {k: torch.from_numpy(v).to(device) for k, v in frames[-1].items()}
+            action, state = model.act(x, heads, state, eval_mode=True)
+            action = np.asarray(action, np.float32)
+            obs, reward, terminated, truncated, info = env.step(action)
+            frames.append(obs_to_arrays(obs, obs_mode))
+            actions.append(action)
+            rewards.append(float(reward))
+            success = success or bool(info["success"])
+            done = terminated or truncated
+        stacked = {k: np.stack([f[k] for f in frames]) for k in frames[0]}
+        episodes.append(Episode(stacked, np.stack(actions), rewards, success))
+    return episodes
+
+
+@contextlib.contextmanager
+def _eval_mode(model: torch.nn.Module) -> Iterator[None]:
+    was = model.training
+    model.eval()
+    try:
+        yield
+    finally:
+        model.train(was)
+
+
+@contextlib.contextmanager
+def _seeded(seed: int, device: torch.device) -> Iterator[None]:
+    """A private torch RNG stream: the caller's RNG state is untouched afterwards."""
+    devices = [device.index or 0] if device.type == "cuda" else []
+    with torch.random.fork_rng(devices=devices):
+        torch.manual_seed(seed)
+        yield
+
+
+@torch.no_grad()
+def _encode(model: PWM, ep: Episode, device: torch.device) -> torch.Tensor:
+    with _eval_mode(model):
+        return model.encode({k: torch.from_numpy(v).to(device) for k, v in ep.obs.items()})
+
+
+@torch.no_grad()
+def mean_routing(model: PWM, episodes: list[Episode], task: int,
+                 device: torch.device) -> np.ndarray:  # fmt: skip
+    """Mean routing weights (K * max_tasks,) over every visited (z_t, a_t) of `episodes`."""
+    z = torch.cat([_encode(model, ep, device)[:-1] for ep in episodes])
+    a = torch.cat([torch.from_numpy(ep.action).to(device) for ep in episodes])
+    w = model.routing_weights(z, a, task)
+    return w.double().mean(0).cpu().numpy()
+
+
+@torch.no_grad()
+def latent_error(model: PWM, episodes: list[Episode], task: int, horizon: int,
+                 device: torch.device) -> float:  # fmt: skip
+    """Open-loop latent prediction error: from encode(o_t), `horizon` dynamics steps with the
+    recorded actions; squared error to encode(o_{t+k}) averaged over latent dims, k and t."""
+    errors = []
+    with _eval_mode(model), model.routing_task(task):
+        for ep in episodes:
+            steps = len(ep.action)
+            if steps < horizon:
+                continue
+            target = _encode(model, ep, device)
+            starts = steps - horizon + 1
+            actions = torch.from_numpy(ep.action).to(device)
+            z = target[:starts]
+            per_k = []
+            for k in range(1, horizon + 1):
+                z = model.next(z, actions[k - 1 : k - 1 + starts])
+                per_k.append((z - target[k : k + starts]).pow(2).mean(-1))
+            errors.append(torch.stack(per_k).mean(0))
+    if not errors:
+        raise ValueError(f"no evaluation episode is at least {horizon} steps long")
+    return float(torch.cat(errors).double().mean())

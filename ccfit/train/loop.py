@@ -1,0 +1,305 @@
+"""The one online training loop, for every world model and continual method.
+
+`Trainer` is handed its collaborators (env, model, heads, replay, config, logger, optional
+continual method) and runs Algorithm 1's inner loop on one task: random actions for the seed
+steps (the model observes them), then `model.cfg.train_ratio` updates per env step (fractions
+accumulate), evaluation at a fixed interval, atomic checkpoints, and resume.
+
+Determinism: every episode's layout seed is derived from (seed, episode index), evaluation uses
+a fixed set of layouts, and the checkpoint stores every RNG state. The training episode in
+progress is cut (stored as truncated) at every evaluation and step-interval checkpoint, so a
+checkpoint never holds a half-played episode; wall-clock checkpoints wait for an episode end.
+A resumed run therefore continues exactly as an uninterrupted one. Evaluation plays on the
+training env itself (after that cut), so one process renders with one MuJoCo context.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from contextlib import nullcontext
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from ccdata.scoring import discounted_return
+from ccfit.config import TrainConfig
+from ccfit.continual.base import ContinualMethod
+from ccfit.io import atomic_torch_save, derived_seed, rng_state, set_rng_state
+from ccfit.models.base import WorldModel
+from ccfit.obs import obs_to_arrays
+from ccfit.replay import ReplayBuffer
+from ccfit.train.evaluate import (
+    ACTION_TAG,
+    TRAIN_TAG,
+    eval_record,
+    eval_seeds,
+    evaluate,
+)
+from ccfit.train.records import RunLogger
+
+CHECKPOINT = "checkpoint.pt"
+TRAIN_LOG_EVERY = 250
+"""Env steps between TensorBoard points of the averaged training losses."""
+CHECKPOINT_VERSION = 2
+
+
+class Trainer:
+    """Online model-based RL on one task; `run()` trains (resuming if a checkpoint exists).
+
+    env: the task's env (its obs must carry what `obs_mode` needs; pixels need rendering).
+    model, heads: a `WorldModel` and this task's heads.
+    buffer: replay, possibly preloaded; episodes are added as `task_index`.
+    config: the loop's settings; seed and obs_mode: the run's.
+    logger: evaluation records and scalars (None: keep them in `self.evals` only).
+    method: optional continual method (penalty, after_step, evaluating).
+    run_dir: where `checkpoint.pt` goes (None: no checkpoints, no resume).
+    global_offset: global step at which this task starts in a curriculum.
+    extra_eval: called at every evaluation point with the global step; returns more records
+        to log beside this task's (a curriculum evaluates the earlier tasks there).
+    """
+
+    def __init__(
+        self, *, env, model: WorldModel, heads: nn.Module, buffer: ReplayBuffer,
+        config: TrainConfig, seed: int, obs_mode: str, task_id: str, task_index: int = 0,
+        logger: RunLogger | None = None, method: ContinualMethod | None = None,
+        run_dir: str | Path | None = None, global_offset: int = 0, progress: bool = True,
+        extra_eval: Callable[[int], list[dict]] | None = None,
+    ) -> None:  # fmt: skip
+        self.env, self.model, self.heads, self.buffer = env, model, heads, buffer
+        self.cfg, self.seed, self.obs_mode = config, seed, obs_mode
+        self.task_id, self.task_index = task_id, task_index
+        self.logger, self.method, self.extra_eval = logger, method, extra_eval
+        self.run_dir = Path(run_dir) if run_dir is not None else None
+        self.global_offset, self.progress = global_offset, progress
+        self.device = model.device
+        self.optim = model.world_model_optimizer(heads)
+        self._clip_params = [p for g in self.optim.param_groups for p in g["params"]]
+        self.head_optims = model.head_optimizers(heads)
+        self.action_rng = np.random.default_rng(derived_seed(seed, ACTION_TAG, 0, task_index))
+
+        self.task_step = 0
+        self.updates = 0
+        self.update_credit = 0.0
+        self.episode_index = 0
+        self.last_eval = -1
+        self.last_checkpoint = -1
+        self.evals: list[dict] = []
+        self._episode: dict | None = None
+        self._act_state: Any = None
+        self._last_save = time.monotonic()
+        self._train_logs: dict[str, list[float]] = defaultdict(list)
+
+    @property
+    def global_step(self) -> int:
+        return self.global_offset + self.task_step
+
+    # -------------------------------------------------------------------------- main loop
+
+    def run(self) -> dict:
+        """Train to `config.steps` task steps; returns the last evaluation record."""
+        from tqdm.auto import tqdm
+
+        cfg = self.cfg
+        if self.run_dir is not None and (self.run_dir / CHECKPOINT).exists():
+            self.load_checkpoint(self.run_dir / CHECKPOINT)
+            if self.logger is not None:
+                self.logger.rewind(self.global_step)
+        bar = tqdm(total=cfg.steps, initial=self.task_step, desc=self.task_id, unit="step",
+                   disable=not self.progress, dynamic_ncols=True, mininterval=1.0)  # fmt: skip
+        try:
+            while True:
+                at_end = self.task_step >= cfg.steps
+                if (self.task_step % cfg.eval_interval == 0 or at_end) and (
+                    self.last_eval != self.task_step
+                ):
+                    self._cut_episode()
+                    rec = self._evaluate()
+                    bar.set_postfix(ret=f"{rec['discounted_return']:.1f}",
+                                    succ=f"{rec['success_rate']:.2f}")  # fmt: skip
+                if (
+                    (self.task_step % cfg.checkpoint_interval == 0 and self.task_step > 0) or at_end
+                ) and self.last_checkpoint != self.task_step:
+                    self._cut_episode()
+                    self._checkpoint()
+                if at_end:
+                    break
+                self._env_step()
+                if self.task_step >= cfg.seed_steps and self.buffer.can_sample(
+                    self.model.cfg.seq_len
+                ):
+                    self.update_credit += self.model.cfg.train_ratio
+                    while self.update_credit >= 1.0:
+                        self.update_credit -= 1.0
+                        self._update()
+                self.task_step += 1
+                bar.update(1)
+                if self.task_step % TRAIN_LOG_EVERY == 0:
+                    self._flush_train_logs()
+                if self._episode is None and self._wall_clock_due():
+                    self._checkpoint()  # at an episode end: nothing is cut
+        finally:
+            bar.close()
+        return self.evals[-1]
+
+    def _wall_clock_due(self) -> bool:
+        minutes = self.cfg.checkpoint_minutes
+        return minutes > 0 and time.monotonic() - self._last_save >= 60.0 * minutes
+
+    def _checkpoint(self) -> None:
+        self.last_checkpoint = self.task_step
+        self._last_save = time.monotonic()
+        if self.run_dir is not None:
+            self.save_checkpoint(self.run_dir / CHECKPOINT)
+
+    def _env_step(self) -> None:
+        model, heads = self.model, self.heads
+        if self._episode is None:
+            seed = derived_seed(self.seed, TRAIN_TAG, self.episode_index, self.task_index)
+            obs, _ = self.env.reset(seed=seed)
+            self._episode = {"obs": [obs_to_arrays(obs, self.obs_mode)], "action": [],
+                             "reward": [], "terminated": []}  # fmt: skip
+            self._act_state = model.initial_state(heads)
+        ep = self._episode
+        last = {k: torch.from_numpy(v).to(self.device) for k, v in ep["obs"][-1].items()}
+        with torch.no_grad():
+            if self.task_step < self.cfg.seed_steps:
+                action = self.action_rng.uniform(-1.0, 1.0, 4).astype(np.float32)
+                self._act_state = model.observe(last, action, heads, self._act_state)
+            else:
+                action, self._act_state = model.act(last, heads, self._act_state,
+                                                    eval_mode=False)  # fmt: skip
+                action = np.asarray(action, dtype=np.float32)
+        obs, reward, terminated, truncated, _ = self.env.step(action)
+        ep["obs"].append(obs_to_arrays(obs, self.obs_mode))
+        ep["action"].append(action)
+        ep["reward"].append(reward)
+        ep["terminated"].append(bool(terminated))
+        if terminated or truncated:
+            self._cut_episode()
+
+    def _cut_episode(self) -> None:
+        """Store the episode in progress (as it stands) and start a fresh one next step."""
+        ep, self._episode, self._act_state = self._episode, None, None
+        if ep is None or not ep["action"]:
+            return
+        obs = {k: np.stack([o[k] for o in ep["obs"]]) for k in ep["obs"][0]}
+        self.buffer.add_episode(
+            obs, np.stack(ep["action"]), np.asarray(ep["reward"], np.float32),
+            np.asarray(ep["terminated"], np.float32), task=self.task_index,
+        )  # fmt: skip
+        self.episode_index += 1
+        self._train_logs["train/episode_return"].append(discounted_return(ep["reward"]))
+        self._train_logs["train/episode_success"].append(float(ep["terminated"][-1]))
+
+    def extra_updates(self, n: int) -> None:
+        """`n` updates from replay with no environment steps (e.g. PackNet's retraining)."""
+        for _ in range(n):
+            self._update()
+
+    def _update(self) -> None:
+        mcfg = self.model.cfg
+        batch = self.buffer.sample(mcfg.batch_size, mcfg.seq_len).to(self.device)
+        self.model.train()
+        out = self.model.loss(batch, self.heads)
+        total = out.total
+        if self.method is not None:
+            total = total + self.method.penalty(self.model.backbone, self.model.backbone_loss)
+        self.optim.zero_grad(set_to_none=True)
+        total.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(self._clip_params, mcfg.grad_clip)
+        self.optim.step()
+        if self.method is not None:
+            self.method.after_step(self.model.backbone)
+        head_logs = self.model.head_update(batch, self.heads, out, self.head_optims)
+        self.updates += 1
+        logs = {**out.logs, **head_logs, "total": float(total.detach()),
+                "grad_norm": float(grad_norm)}  # fmt: skip
+        for k, v in logs.items():
+            self._train_logs[f"train/{k}"].append(float(v))
+
+    def _flush_train_logs(self) -> None:
+        if self.logger is not None and self._train_logs:
+            means = {k: float(np.mean(v)) for k, v in self._train_logs.items() if v}
+            self.logger.log_scalars(means, self.global_step)
+        self._train_logs.clear()
+
+    def _evaluate(self) -> dict:
+        self.model.eval()
+        seeds = eval_seeds(self.seed, self.task_index, self.cfg.eval_episodes)
+        evaluating = getattr(self.method, "evaluating", None)
+        view = evaluating(self.task_index, self.model.backbone) if evaluating else nullcontext()
+        with view:
+            res = evaluate(self.env, self.model, self.heads, obs_mode=self.obs_mode, seeds=seeds,
+                           device=self.device)  # fmt: skip
+        record = eval_record(self.task_id, self.task_index, self.task_index, self.global_step,
+                             self.task_step, res)  # fmt: skip
+        self.last_eval = self.task_step
+        others = self.extra_eval(self.global_step) if self.extra_eval is not None else []
+        for rec in [record, *others]:
+            self.evals.append(rec)
+            if self.logger is not None:
+                self.logger.log_eval(rec)
+        self.model.train()
+        return record
+
+    # ------------------------------------------------------------------------- checkpoints
+
+    def state_dict(self) -> dict:
+        if self._episode is not None:
+            raise RuntimeError("checkpoint with an episode in progress (cut it first)")
+        state = {
+            "version": CHECKPOINT_VERSION,
+            "train_config": dataclasses.asdict(self.cfg),
+            "seed": self.seed,
+            "task_id": self.task_id,
+            "global_offset": self.global_offset,
+            "task_step": self.task_step,
+            "updates": self.updates,
+            "update_credit": self.update_credit,
+            "episode_index": self.episode_index,
+            "last_eval": self.last_eval,
+            "last_checkpoint": self.last_checkpoint,
+            "evals": self.evals,
+            "model": self.model.state_dict(),
+            "heads": self.heads.state_dict(),
+            "optim": self.optim.state_dict(),
+            "head_optims": {k: o.state_dict() for k, o in self.head_optims.items()},
+            "buffer": self.buffer.state_dict(),
+            "rng": rng_state(actions=self.action_rng),
+        }
+        if self.method is not None:
+            state["method"] = self.method.state_dict()
+        return state
+
+    def save_checkpoint(self, path: str | Path) -> None:
+        atomic_torch_save(self.state_dict(), Path(path))
+
+    def load_checkpoint(self, path: str | Path) -> None:
+        # Our own file: it holds numpy RNG tuples and Python objects, so not weights_only.
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        if state.get("version") != CHECKPOINT_VERSION:
+            raise ValueError(f"{path}: unsupported checkpoint version {state.get('version')}")
+        mine = (dataclasses.asdict(self.cfg), self.seed, self.task_id, self.global_offset)
+        theirs = (state["train_config"], state["seed"], state["task_id"], state["global_offset"])
+        if mine != theirs:
+            raise ValueError(f"{path} was written by another run (config, seed or task differ)")
+        self.model.load_state_dict(state["model"])
+        self.heads.load_state_dict(state["heads"])
+        self.optim.load_state_dict(state["optim"])
+        for k, o in self.head_optims.items():
+            o.load_state_dict(state["head_optims"][k])
+        self.buffer.load_state_dict(state["buffer"])
+        if "method" in state and self.method is not None:
+            self.method.load_state_dict(state["method"])
+        for key in ("task_step", "updates", "episode_index", "last_eval", "last_checkpoint"):
+            setattr(self, key, int(state[key]))
+        self.update_credit = float(state["update_credit"])
+        self.evals = list(state["evals"])
+        self._episode = None
+        set_rng_state(state["rng"], actions=self.action_rng)

@@ -1,0 +1,159 @@
+"""The observation path and the LeRobot reader that seeds replay."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from ccfit.obs import obs_to_tensors, stack_cameras
+from ccfit.replay import ReplayBuffer
+
+H = 3
+
+
+def test_obs_path_stacks_cameras_in_order_for_live_frames():
+    from ccdata import make_env
+
+    env = make_env("reach-xy", seed=0, image_size=32)
+    obs, _ = env.reset(seed=0)
+    x = obs_to_tensors(obs, "pixels")
+    env.close()
+    assert x["pixels"].shape == (9, 32, 32) and x["pixels"].dtype == torch.uint8
+    for i, cam in enumerate(("topview", "frontview", "gripperPOV")):
+        chw = torch.from_numpy(obs[cam]).permute(2, 0, 1)
+        assert torch.equal(x["pixels"][3 * i : 3 * i + 3], chw)
+    assert torch.equal(x["proprio"], torch.from_numpy(obs["proprio"]))
+    assert set(obs_to_tensors(obs, "state")) == {"state"}
+    seq = {c: np.stack([obs[c]] * 2) for c in ("topview", "frontview", "gripperPOV")}
+    assert np.array_equal(stack_cameras(seq)[1], x["pixels"].numpy())
+    with pytest.raises(ValueError, match="valid: state, pixels"):
+        obs_to_tensors(obs, "rgb")
+
+
+# ======================================================================== LeRobot reader
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory):
+    """A finalized LeRobot v3 dataset in ccdata's schema from real rollouts (32 px cameras):
+    an oracle reach-xy episode that ends in success, and 12 random steps of reach-xyz."""
+    from lerobot.configs import RGBEncoderConfig
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from ccdata import make_env
+    from ccdata.dataset_format import VIDEO_ENCODER, ccdata_metadata, features
+    from ccdata.policies import make_policy
+    from ccdata.record import GenerateConfig
+
+    root = tmp_path_factory.mktemp("ds") / "Reach"
+    size = 32
+    ds = LeRobotDataset.create(
+        "ccdata/Reach", fps=40, features=features(size), root=root, use_videos=True,
+        rgb_encoder=RGBEncoderConfig(**json.loads(json.dumps(VIDEO_ENCODER))),
+    )  # fmt: skip
+    meta = ccdata_metadata(GenerateConfig(suite="Reach", root=root))
+    written = []
+    # (task id, task_id_index, policy, policy_index, episode seed, step limit)
+    plan = [("reach-xy", 0, "oracle", 0, 101, 250), ("reach-xyz", 3, "random", 2, 102, 12)]
+    for task_id, task_i, policy_name, pol_i, seed, limit in plan:
+        env = make_env(task_id, image_size=size)
+        policy = make_policy(policy_name, task_id, seed=0)
+        policy.reset()
+        obs, _ = env.reset(seed=seed)
+        rec = {"state": [], "img": []}
+        for t in range(limit):
+            action = np.asarray(policy.act(obs), np.float32)
+            nxt, reward, terminated, truncated, info = env.step(action)
+            last = terminated or truncated or t + 1 == limit
+            imgs = [obs[c] for c in ("topview", "frontview", "gripperPOV")]
+            rec["state"].append(obs["state"])
+            rec["img"].append(imgs)
+            ds.add_frame({
+                "observation.images.topview": imgs[0],
+                "observation.images.frontview": imgs[1],
+                "observation.images.gripperPOV": imgs[2],
+                "observation.state": obs["proprio"],
+                "observation.environment_state": obs["state"],
+                "action": action,
+                "next.reward": np.array([reward], np.float32),
+                "next.done": np.array([last]),
+                "next.success": np.array([bool(info["success"])]),
+                "task_id_index": np.array([task_i]),
+                "policy_index": np.array([pol_i]),
+                "episode_seed": np.array([seed]),
+                "task": meta["tasks"][task_i]["instruction"],
+            })  # fmt: skip
+            obs = nxt
+            if last:
+                break
+        rec["final_state"], rec["success"] = obs["state"], bool(info["success"])
+        env.close()
+        ds.save_episode()
+        written.append(rec)
+    ds.finalize()
+    (root / "meta" / "ccdata.json").write_text(json.dumps(meta))
+    assert written[0]["success"] and not written[1]["success"]
+    return root, written
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float("inf") if mse == 0 else 10 * np.log10(255.0**2 / mse)
+
+
+def test_load_episodes_matches_written_frames(tiny_dataset):
+    from ccfit.data import episode_to_replay, load_episodes
+
+    root, written = tiny_dataset
+    eps = load_episodes(root)
+    assert [e["episode_index"] for e in eps] == [0, 1]
+    assert [e["task_id"] for e in eps] == ["reach-xy", "reach-xyz"]
+    assert [e["policy"] for e in eps] == ["oracle", "random"]
+    for ep, rec in zip(eps, written, strict=True):
+        assert np.array_equal(ep["observation.environment_state"], np.stack(rec["state"]))
+        for c, cam in enumerate(("topview", "frontview", "gripperPOV")):
+            decoded = ep[f"observation.images.{cam}"]
+            truth = np.stack([imgs[c] for imgs in rec["img"]])
+            assert decoded.shape == truth.shape and decoded.dtype == np.uint8
+            assert min(_psnr(d, w) for d, w in zip(decoded, truth, strict=True)) >= 40.0
+    only = load_episodes(root, task="reach-xyz", policy="random", images=False)
+    assert [e["episode_index"] for e in only] == [1]
+    assert "observation.images.topview" not in only[0]
+    with pytest.raises(ValueError, match="valid: reach-xy"):
+        load_episodes(root, task="pick-cube")
+    with pytest.raises(ValueError, match="match"):
+        load_episodes(root, task="reach-xy", policy="random")
+
+    # Into replay: T frames -> T observations and T-1 transitions, pixels via ccfit.obs.
+    steps = len(written[1]["state"])
+    r = episode_to_replay(eps[1], "pixels")
+    assert r["obs"]["pixels"].shape == (steps, 9, 32, 32) and r["action"].shape == (steps - 1, 4)
+    assert np.array_equal(r["obs"]["pixels"][:, 3:6], np.moveaxis(
+        eps[1]["observation.images.frontview"], -1, 1))  # fmt: skip
+    buf = ReplayBuffer(1000)
+    buf.add_episode(**r)
+    assert buf.num_transitions == steps - 1
+
+
+def test_seed_buffer_preloads_the_tasks_episodes(tiny_dataset):
+    from ccfit.data import final_observation, load_episodes, seed_buffer
+
+    root, written = tiny_dataset
+    steps = len(written[0]["state"])
+    buf = ReplayBuffer(1000)
+    assert seed_buffer(buf, root, "reach-xy", "state") == 1
+    # The success ended the episode: its final observation is replayed, the terminal kept.
+    assert buf.num_episodes == 1 and buf.num_transitions == steps
+    b = buf.sample(256, 1)
+    final = b.terminated[0, :, 0] == 1
+    assert final.any()
+    assert torch.equal(b.obs["state"][1, final][0], torch.from_numpy(written[0]["final_state"]))
+    ep = load_episodes(root, task="reach-xy", images=False)[0]
+    ep["observation.environment_state"][2, 0] += 0.01
+    with pytest.raises(ValueError, match="departs from the recorded states at step 2"):
+        final_observation(ep, "reach-xy")
+    with pytest.raises(ValueError, match="32 px but the run uses 64"):
+        seed_buffer(ReplayBuffer(1000), root, "reach-xyz", "pixels", image_size=64)

@@ -1,0 +1,204 @@
+"""The one online loop with a real model: resume, the `ccfit train` CLI, bad input, hooks."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from ccfit.config import TaskRunConfig, TrainConfig, parse_cli, resolve
+from ccfit.models.registry import ConfigError
+from ccfit.replay import ReplayBuffer
+
+
+def _run_config(out: Path, steps=120, checkpoint_interval=60) -> TaskRunConfig:
+    return resolve(TaskRunConfig, {
+        "task": "reach-xy", "preset": "smoke", "seed": 3, "seed_dataset": None,
+        "out": str(out), "model": {"type": "tdmpc2", "batch_size": 8},
+        "train": dict(steps=steps, seed_steps=40, eval_interval=60, eval_episodes=1,
+                      checkpoint_interval=checkpoint_interval, buffer_capacity=2_000,
+                      device="cpu"),
+    })  # fmt: skip
+
+
+def _params(out: Path) -> dict[str, torch.Tensor]:
+    state = torch.load(out / "checkpoint.pt", weights_only=False)
+    flat = {f"model.{k}": v for k, v in state["model"].items()}
+    flat.update({f"heads.{k}": v for k, v in state["heads"].items()})
+    return flat
+
+
+def test_resume_after_interruption_matches_uninterrupted_run(tmp_path, monkeypatch):
+    from ccfit.models.tdmpc2 import TDMPC2
+    from ccfit.train import train_task
+
+    full, broken = tmp_path / "full", tmp_path / "broken"
+    train_task(_run_config(full), progress=False)
+
+    # Kill the second run mid-way between its checkpoint (step 60) and the end.
+    original = TDMPC2.loss
+    calls = {"n": 0}
+
+    def dying_loss(self, batch, heads):
+        calls["n"] += 1
+        if calls["n"] == 45:  # updates start at step 40: this is step ~85
+            raise KeyboardInterrupt
+        return original(self, batch, heads)
+
+    monkeypatch.setattr(TDMPC2, "loss", dying_loss)
+    with pytest.raises(KeyboardInterrupt):
+        train_task(_run_config(broken), progress=False)
+    monkeypatch.setattr(TDMPC2, "loss", original)
+    assert torch.load(broken / "checkpoint.pt", weights_only=False)["task_step"] == 60
+    train_task(_run_config(broken), progress=False)
+
+    a, b = _params(full), _params(broken)
+    assert a.keys() == b.keys()
+    assert all(torch.equal(a[k], b[k]) for k in a), "resumed run diverged"
+    rec_a = (full / "metrics.jsonl").read_text().splitlines()
+    rec_b = (broken / "metrics.jsonl").read_text().splitlines()
+    assert rec_a == rec_b and [json.loads(x)["task_step"] for x in rec_a] == [0, 60, 120]
+    # A different config must not silently reuse the directory.
+    with pytest.raises(ConfigError, match="different config"):
+        train_task(_run_config(broken, steps=180), progress=False)
+
+
+def test_wall_clock_checkpoints_do_not_change_the_run(tmp_path):
+    """A checkpoint written at an episode end (checkpoint_minutes) cuts nothing: the run's
+    parameters equal those of a run without it."""
+    from ccfit.train import train_task
+
+    plain = _run_config(tmp_path / "plain", steps=300, checkpoint_interval=300)
+    timed = _run_config(tmp_path / "timed", steps=300, checkpoint_interval=300)
+    timed.train.checkpoint_minutes = 1e-9  # due at every episode end
+    train_task(plain, progress=False)
+    train_task(timed, progress=False)
+    a, b = _params(tmp_path / "plain"), _params(tmp_path / "timed")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_cli_smoke_run_writes_config_metrics_checkpoint(tmp_path):
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "ccfit.cli", "train", "--task", "reach-xy", "--obs", "state",
+           "--preset", "smoke", "--seed_dataset", "null", "--out", str(out), "--quiet"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    cfg = json.loads((out / "config.json").read_text())
+    assert cfg["task"] == "reach-xy" and cfg["model"]["type"] == "tdmpc2"
+    assert cfg["model"]["seq_len"] == cfg["model"]["horizon"] + 1 == 4
+    assert cfg["model"]["obs_mode"] == cfg["obs"] == "state"
+    assert cfg["train"] == {**cfg["train"], **TrainConfig.PRESETS["smoke"]}
+    records = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+    steps = TrainConfig.preset("smoke").steps
+    interval = TrainConfig.preset("smoke").eval_interval
+    assert [r["global_step"] for r in records] == list(range(0, steps + 1, interval))
+    from ccdata.scoring import floor_return
+
+    for r in records:
+        assert r["task"] == "reach-xy" and 0.0 <= r["success_rate"] <= 1.0
+        assert floor_return() - 1e-6 <= r["discounted_return"] <= 0.0
+    ckpt = torch.load(out / "checkpoint.pt", weights_only=False)
+    assert ckpt["task_step"] == steps and ckpt["buffer"]["episodes"].shape[0] >= 2
+    assert list((out / "tb").glob("events.out.tfevents.*"))
+    assert "reach-xy step 600" in proc.stdout
+    # The saved config runs again as it is: same directory, nothing to redo.
+    again = subprocess.run([sys.executable, "-m", "ccfit.cli", "train", "--config_path",
+                            str(out / "config.json"), "--quiet"],
+                           capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert "reach-xy step 600" in again.stdout
+
+
+def test_preset_fills_defaults_and_flags_override_them():
+    cfg = parse_cli(TaskRunConfig, ["--task", "reach-xz", "--preset", "smoke",
+                                    "--model.type=pwm", "--model.router=state",
+                                    "--train.steps=900", "--obs", "pixels", "--image-size",
+                                    "32"])  # fmt: skip
+    assert cfg.model.type == "pwm" and cfg.model.router == "state"
+    assert cfg.model.obs_mode == "pixels" and cfg.model.image_size == 32
+    assert cfg.train.steps == 900 and cfg.train.seed_steps == TrainConfig.PRESETS["smoke"][
+        "seed_steps"]
+    assert cfg.model.batch_size == 16  # the smoke preset's, not the class default
+    back = resolve(TaskRunConfig, json.loads(json.dumps(cfg.to_dict())))
+    assert back == cfg
+
+
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["train", "--task", "reach-nowhere"], "reach-xy"),
+        (["train", "--task", "reach-xy", "--model.type=dreamer9"], "dreamer9"),
+        (["train", "--task", "reach-xy", "--preset", "huge"], "valid: smoke, cpu, paper"),
+        (["train", "--task", "reach-xy", "--obs", "rgb"], "state"),
+        (["train", "--task", "reach-xy", "--train.steps=0"], "train.steps must be >= 1"),
+        (["train", "--task", "reach-xy", "--train.steps=many"], "train.steps"),
+        (["train", "--task", "reach-xy", "--model.obs_mode=pixels"], "--obs"),
+        (["train", "--task", "reach-xy", "--seed-dataset", "/no/such/dir"], "cannot read"),
+        (["run", "--suite", "Reach", "--method.type=experts"], "pwm"),
+        (["run", "--suite", "Nowhere"], "Reach"),
+        (["run", "--suite", "Reach", "--method.type=ewc", "--method.lam=-1"], "lam"),
+        (["fly"], "invalid choice"),
+    ],
+)
+def test_cli_bad_input_exits_2_with_one_line(argv, needle, capsys, tmp_path):
+    from ccfit.cli import main
+
+    try:
+        code = main([*argv, "--out", str(tmp_path / "x")] if argv[0] != "fly" else argv)
+    except SystemExit as e:  # argparse errors
+        code = e.code
+    err = capsys.readouterr().err
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and needle in err, err
+    assert not (tmp_path / "x").exists(), "bad input must not leave a run directory"
+
+
+class _CountingMethod:
+    """A continual method that only counts the hooks the loop calls."""
+
+    def __init__(self) -> None:
+        self.penalties = self.after_steps = 0
+
+    def penalty(self, backbone, backbone_loss):
+        self.penalties += 1
+        return 0.0 * sum(p.sum() for p in backbone.parameters())
+
+    def after_step(self, backbone) -> None:
+        self.after_steps += 1
+
+    def state_dict(self) -> dict:
+        return {}
+
+
+def test_trainer_calls_continual_hooks_once_per_update():
+    from ccdata import make_env
+    from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
+    from ccfit.train import Trainer
+
+    torch.manual_seed(0)
+    cfg = TrainConfig(steps=50, seed_steps=20, eval_interval=50, eval_episodes=1,
+                      checkpoint_interval=50, buffer_capacity=1000, device="cpu")  # fmt: skip
+    model = TDMPC2(TDMPC2Config.preset("smoke", batch_size=4, train_ratio=2.0), device="cpu")
+    env = make_env("reach-xy", render=False)
+    method = _CountingMethod()
+    buffer = ReplayBuffer(1000)
+    state = np.zeros((31, 39), np.float32)
+    buffer.add_episode({"state": state}, np.zeros((30, 4), np.float32),
+                       np.zeros(30, np.float32), np.zeros(30, np.float32))  # fmt: skip
+    before = [p.detach().clone() for p in model.backbone.parameters()]
+    trainer = Trainer(env=env, model=model, heads=model.new_heads(), buffer=buffer, config=cfg,
+                      seed=0, obs_mode="state", task_id="reach-xy", method=method,
+                      progress=False)  # fmt: skip
+    last = trainer.run()
+    env.close()
+    assert last["task_step"] == 50 and [r["task_step"] for r in trainer.evals] == [0, 50]
+    assert trainer.updates == (50 - 20) * 2
+    assert method.penalties == method.after_steps == trainer.updates
+    assert buffer.num_transitions == 30 + 50  # the episode in progress is stored at the end
+    after = list(model.backbone.parameters())
+    assert any(not torch.equal(a, b) for a, b in zip(before, after, strict=True))
