@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from ccfit.pretrain import PretrainConfig, add_pretrain_parser, config_from_args, pretrain_encoder
-from ccfit.pretrain_data import episode_arrays, load_oracle_frames, split_episodes
+from ccfit.pretrain.data import episode_arrays, load_oracle_frames, split_episodes
 
 SIZE = 32
 STEPS = 40

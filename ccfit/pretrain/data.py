@@ -20,7 +20,7 @@ import numpy as np
 from ccdata.suites import SUITES
 
 if TYPE_CHECKING:
-    from ccfit.pretrain import PretrainConfig
+    from ccfit.pretrain.config import PretrainConfig
 
 SPLIT_TAG = 1
 """Seed stream of the episode split (the training loop samples batches from another)."""

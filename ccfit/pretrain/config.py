@@ -1,0 +1,157 @@
+"""The settings of encoder pretraining."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ccdata.suites import SUITES
+from ccfit.config import PRESETS, TDMPC2Config, tdmpc2_preset
+
+KIND = "ccfit-pretrained-encoder"
+"""The sidecar's 'kind': an encoder made by this module."""
+CHECKPOINT_VERSION = 1
+_SAMPLE_TAG = 2  # seed stream of batch sampling, independent of the split's (SPLIT_TAG)
+_NOT_IDENTITY = ("device", "torch_threads", "checkpoint_interval", "log_interval")
+"""Config fields that may change between a run and its resumption (they do not change what is
+learnt, up to floating-point differences across devices)."""
+
+OBJECTIVE = (
+    "MSE(image) + proprio_coef * MSE(proprio); image MSE over the 9 stacked channels on the "
+    "[0, 1] scale (uint8 / 255); proprio MSE on the proprio standardised with the training "
+    "frames' mean and std (the encoder reads the raw proprio)"
+)
+
+
+
+# ============================================================================== config
+
+
+@dataclass
+class PretrainConfig:
+    """Autoencoder pretraining of the frozen encoder. Validated on construction.
+
+    The encoder's sizes are not fields: they come from `tdmpc2_preset(model_preset, 'pixels',
+    image_size=image_size)`, so the encoder always fits the TD-MPC2 (or PWM) preset it is meant
+    for. Preset values for steps, batch size, learning rate and decoder width are this
+    project's choices (the paper gives none).
+    """
+
+    model_preset: str = "cpu"
+    """TD-MPC2 preset ('smoke', 'cpu', 'paper' or a size such as '19M') whose pixel encoder is
+    pretrained; use the frozen encoder with a model of this preset."""
+    suites: tuple[str, ...] = tuple(SUITES)
+    """Suites whose oracle episodes are used (default: all six)."""
+    dataset_roots: dict[str, str] = field(default_factory=dict)
+    """Suite -> dataset directory; a suite not listed uses `GenerateConfig(suite).dataset_root`
+    (LeRobot's cache for `ccdata/<Suite>`)."""
+    image_size: int = 64
+    """Camera image side; every dataset must have been generated at this size."""
+    steps: int = 20_000
+    """Gradient steps."""
+    batch_size: int = 64
+    """Frames per gradient step, sampled uniformly from the training episodes' frames."""
+    lr: float = 5e-4
+    """Adam learning rate (encoder and decoder)."""
+    grad_clip_norm: float = 20.0
+    """Gradient-norm clip (TD-MPC2's value)."""
+    proprio_coef: float = 0.1
+    """Weight of the standardised-proprio MSE against the [0, 1]-scale image MSE."""
+    decoder_channels: int = 32
+    """Channels of the decoder's last transposed convolution (earlier layers: 2x and 4x)."""
+    augment_shift: int = 0
+    """Random-shift augmentation in pixels, applied identically to the input and the
+    reconstruction target (0: none). The encoder's own training-time shift is never used."""
+    holdout: float = 0.1
+    """Fraction of each task's episodes held out for evaluation (at least one episode overall
+    when there are two or more)."""
+    frame_stride: int = 1
+    """Keep every `frame_stride`-th frame of each episode (memory: ~37 KB per 64 px frame)."""
+    eval_batch_size: int = 256
+    """Frames per forward pass in evaluation."""
+    checkpoint_interval: int = 1_000
+    """Write a resumable checkpoint every this many steps (and on Ctrl-C)."""
+    log_interval: int = 100
+    """Steps averaged into each point of the loss history."""
+    device: str = "auto"
+    """'auto' (CUDA when available, else CPU), 'cpu' or 'cuda'."""
+    torch_threads: int = 0
+    """CPU threads for torch during pretraining (0: leave torch's setting); restored after."""
+    seed: int = 0
+    """Seeds the initialisation, the episode split, batch sampling and augmentation."""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.suites, str):  # 'all' or a comma list, as on the command line
+            names = [s.strip() for s in self.suites.split(",") if s.strip()]
+            self.suites = tuple(SUITES) if [n.lower() for n in names] == ["all"] else names
+        self.suites = tuple(self.suites)
+        bad = [s for s in self.suites if s not in SUITES]
+        if bad or not self.suites:
+            raise ValueError(
+                f"unknown suite(s) {bad or '(none given)'}; valid: {', '.join(SUITES)} or 'all'"
+            )
+        if len(set(self.suites)) != len(self.suites):
+            raise ValueError(f"PretrainConfig.suites lists a suite twice: {self.suites}")
+        self.dataset_roots = {str(k): str(v) for k, v in dict(self.dataset_roots).items()}
+        extra = [s for s in self.dataset_roots if s not in SUITES]
+        if extra:
+            raise ValueError(f"dataset_roots has unknown suite(s) {extra}; valid: {list(SUITES)}")
+        for name in ("steps", "batch_size", "decoder_channels", "frame_stride",
+                     "eval_batch_size", "checkpoint_interval", "log_interval"):  # fmt: skip
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"PretrainConfig.{name} must be >= 1, got {getattr(self, name)}")
+        checks = [
+            (self.lr > 0 and self.grad_clip_norm > 0, "lr and grad_clip_norm must be > 0"),
+            (self.proprio_coef >= 0, "proprio_coef must be >= 0"),
+            (self.augment_shift >= 0, "augment_shift must be >= 0"),
+            (0.0 <= self.holdout < 1.0, "holdout must be in [0, 1)"),
+            (self.device in ("auto", "cpu", "cuda"), "device must be one of auto, cpu, cuda"),
+            (self.torch_threads >= 0, "torch_threads must be >= 0"),
+            (self.seed >= 0, "seed must be >= 0"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise ValueError(f"PretrainConfig: {msg}")
+        self.encoder_config()  # unknown preset or bad image size -> ValueError
+
+    def encoder_config(self) -> TDMPC2Config:
+        """The TD-MPC2 pixel-mode config whose encoder this run pretrains."""
+        return tdmpc2_preset(self.model_preset, "pixels", image_size=self.image_size)
+
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> PretrainConfig:
+        """`smoke`: seconds (CI); `cpu`: minutes to an hour on 2 cores; `paper`: GPU scale.
+        The encoder's sizes follow the TD-MPC2 preset of the same name."""
+        if name not in PRESETS:
+            raise ValueError(f"unknown preset {name!r}; valid: {', '.join(PRESETS)}")
+        base = {
+            "smoke": dict(steps=100, batch_size=16, lr=1e-3, decoder_channels=16,
+                          checkpoint_interval=50, log_interval=10),
+            "cpu": dict(steps=10_000, batch_size=64, lr=5e-4, decoder_channels=16,
+                        augment_shift=4, checkpoint_interval=1_000, log_interval=100),
+            "paper": dict(steps=100_000, batch_size=256, lr=3e-4, decoder_channels=64,
+                          augment_shift=4, checkpoint_interval=5_000, log_interval=500),
+        }[name]  # fmt: skip
+        return cls(**{"model_preset": name, **base, **overrides})
+
+    def resolved_roots(self) -> dict[str, Path]:
+        """Suite -> dataset directory for every suite of the run."""
+        from ccdata.record import GenerateConfig
+
+        return {
+            s: Path(self.dataset_roots[s]).expanduser().resolve()
+            if s in self.dataset_roots else GenerateConfig(suite=s).dataset_root
+            for s in self.suites
+        }  # fmt: skip
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["suites"] = list(self.suites)
+        d["dataset_roots"] = {s: str(p) for s, p in self.resolved_roots().items()}
+        return d
+
+    def identity(self) -> dict:
+        """The settings a checkpoint or finished output must share to be resumed or reused."""
+        return {k: v for k, v in self.to_dict().items() if k not in _NOT_IDENTITY}
