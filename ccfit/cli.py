@@ -116,10 +116,7 @@ def _cmd_ablate(args: argparse.Namespace) -> None:
     from ccfit.analysis import ABLATION_JSON, ABLATION_PNG, ablate
 
     run = Path(args.run)
-    try:
-        result = ablate(run, episodes=args.episodes, horizon=args.horizon)
-    except (ValueError, TypeError) as e:
-        raise CliError(str(e)) from None
+    result = ablate(run, episodes=args.episodes, horizon=args.horizon)
 
     def fmt(x):
         return "n/a" if x is None else f"{x:.2f}"

@@ -25,7 +25,6 @@ import draccus
 
 from ccfit.continual.base import MethodConfig, method_config_class
 from ccfit.models.registry import (
-    OBS_MODES,
     PRESETS,
     ConfigError,
     ModelConfig,
@@ -33,6 +32,7 @@ from ccfit.models.registry import (
     check_types,
     config_class,
 )
+from ccfit.obs import OBS_MODES
 
 DEVICES: tuple[str, ...] = ("auto", "cpu", "cuda")
 

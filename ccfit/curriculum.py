@@ -34,6 +34,7 @@ from typing import Any
 import torch
 
 from ccdata.env import make_env
+from ccdata.errors import InputError
 from ccfit import metrics as M
 from ccfit.config import CurriculumConfig
 from ccfit.continual.base import ContinualMethod, TaskData, build_method
@@ -283,7 +284,7 @@ def load_run(run_dir: str | Path, device: torch.device | str | None = None) -> L
 
     run_dir = Path(run_dir)
     if not (run_dir / CONFIG).is_file():
-        raise ValueError(f"{run_dir} is not a run directory (no {CONFIG})")
+        raise InputError(f"{run_dir} is not a run directory (no {CONFIG})")
     saved = json.loads((run_dir / CONFIG).read_text())
     saved.pop("resolved_seed_dataset", None)
     cfg = resolve(CurriculumConfig, saved)

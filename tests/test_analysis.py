@@ -15,12 +15,14 @@ from ccfit.analysis import (
     ROUTING,
     append_routing,
     figure_data,
-    load_run,
+    load_pwm_run,
     read_routing,
+    routing_callback,
     routing_record,
 )
 from ccfit.cli import main
-from ccfit.curriculum import Curriculum, CurriculumConfig
+from ccfit.config import CurriculumConfig, resolve
+from ccfit.curriculum import Curriculum
 from ccfit.train import CONFIG
 
 EPISODE = 50
@@ -31,11 +33,11 @@ K, TASKS, MAX_EXPERTS = 3, 4, 24  # PWM defaults: 3 experts per task, 8 groups a
 
 
 def smoke_config(model: str = "pwm", method: str = "experts") -> CurriculumConfig:
-    return CurriculumConfig(
-        suite="Reach", model=model, method=method, preset="smoke", seed=0, seed_dataset=None,
-        train_overrides=dict(steps=100, seed_steps=50, eval_interval=100,
-                             checkpoint_interval=100),
-    )  # fmt: skip
+    return resolve(CurriculumConfig, {
+        "suite": "Reach", "preset": "smoke", "seed": 0, "seed_dataset": None,
+        "model": {"type": model}, "method": {"type": method},
+        "train": dict(steps=100, seed_steps=50, eval_interval=100, checkpoint_interval=100),
+    })  # fmt: skip
 
 
 @pytest.fixture
@@ -52,7 +54,8 @@ def pwm_run(tmp_path_factory):
     try:
         with pytest.MonkeyPatch.context() as mp:
             mp.setattr(ccdata.env, "EPISODE_STEPS", EPISODE)
-            Curriculum(smoke_config(), root / "run", root / "scratch", progress=False).run()
+            Curriculum(smoke_config(), root / "run", root / "scratch", progress=False,
+                       callbacks=[routing_callback]).run()
     finally:
         torch.set_num_threads(threads)
     return root / "run"
@@ -80,7 +83,7 @@ def test_routing_record_per_stage(pwm_run):
 def test_routing_record_reproduces_from_saved_run(pwm_run, short_episodes):
     """Replaying the last stage from curriculum.pt gives the record written during the run:
     the record depends only on the model state and the run's seed."""
-    cfg, model, stored, method = load_run(pwm_run)
+    cfg, model, stored, method = load_pwm_run(pwm_run)
     again = routing_record(
         model, stored, cfg.tasks, stage=TASKS - 1, seed=cfg.seed, episodes=1, obs_mode="state",
         device=model.device, view=lambda i: method.evaluating(i, model.backbone),
@@ -90,7 +93,8 @@ def test_routing_record_reproduces_from_saved_run(pwm_run, short_episodes):
 
 def test_resume_of_finished_run_keeps_routing(pwm_run):
     before = (pwm_run / ROUTING).read_bytes()
-    Curriculum(smoke_config(), pwm_run, pwm_run.parent / "scratch", progress=False).run()
+    Curriculum(smoke_config(), pwm_run, pwm_run.parent / "scratch", progress=False,
+               callbacks=[routing_callback]).run()
     assert (pwm_run / ROUTING).read_bytes() == before
 
 

@@ -26,8 +26,11 @@ import pytest
 import torch
 
 import ccfit.curriculum as C
-from ccfit.curriculum import Curriculum, CurriculumConfig
-from ccfit.train import CONFIG, METRICS, derived_seed
+import ccfit.train.run as R
+from ccfit.config import CurriculumConfig, parse_cli, resolve
+from ccfit.curriculum import Curriculum
+from ccfit.io import derived_seed
+from ccfit.train import CONFIG, METRICS, build_model
 
 SUITE = "Grasp"
 TASKS = ("pick-cube", "place-cube", "pnp-cube")
@@ -44,16 +47,18 @@ NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "results.ipynb"
 
 
 def _config(method: str) -> CurriculumConfig:
-    return CurriculumConfig(suite=SUITE, method=method, preset="smoke", seed_dataset=None,
-                            train_overrides=dict(TRAIN), method_options=dict(OPTIONS[method]))
+    return resolve(CurriculumConfig, {
+        "suite": SUITE, "preset": "smoke", "seed_dataset": None, "train": dict(TRAIN),
+        "method": {"type": method, **OPTIONS[method]},
+    })  # fmt: skip
 
 
 def _cli_argv(method: str, out: Path, scratch_root: Path) -> list[str]:
-    argv = ["run", "--suite", SUITE, "--method", method, "--preset", "smoke",
-            "--seed-dataset", "none", "--out", str(out), "--scratch-root", str(scratch_root),
+    argv = ["run", "--suite", SUITE, f"--method.type={method}", "--preset", "smoke",
+            "--seed_dataset", "null", "--out", str(out), "--scratch-root", str(scratch_root),
             "--quiet"]  # fmt: skip
-    argv += [a for k, v in TRAIN.items() for a in ("--train", f"{k}={v}")]
-    argv += [a for k, v in OPTIONS[method].items() for a in ("--method-option", f"{k}={v}")]
+    argv += [f"--train.{k}={v}" for k, v in TRAIN.items()]
+    argv += [f"--method.{k}={v}" for k, v in OPTIONS[method].items()]
     return argv
 
 
@@ -103,20 +108,20 @@ def runs(tmp_path_factory):
         current[-1].evals.append((env.task_id, heads, trainable, heads.training))
         return real_evaluate(env, model, heads, **kwargs)
 
-    def spy_save(self, path, completed, model, method, stored):
+    def spy_save(self, completed, model, method, stored):
         current[-1].saves.append({
             "completed": completed,
             "backbone": {n: p.detach().clone() for n, p in model.backbone.named_parameters()},
             "method": copy.deepcopy(method.state_dict()),
             "heads": [copy.deepcopy(h.state_dict()) for h in stored],
         })  # fmt: skip
-        real_save(self, path, completed, model, method, stored)
+        real_save(self, completed, model, method, stored)
 
     out = {}
     done_mtimes = []
     start = time.monotonic()
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(C, "ReplayBuffer", SpyBuffer)
+        mp.setattr(R, "ReplayBuffer", SpyBuffer)
         mp.setattr(C, "Trainer", SpyTrainer)
         mp.setattr(C, "evaluate", spy_evaluate)
         mp.setattr(Curriculum, "_save", spy_save)
@@ -136,7 +141,7 @@ def runs(tmp_path_factory):
 def _final_model(run):
     """The model and method state of a finished run, rebuilt from its curriculum.pt."""
     state = torch.load(run.dir / C.STATE, map_location="cpu", weights_only=False)
-    model = C._build(run.cfg, torch.device("cpu"))
+    model = build_model(run.cfg, torch.device("cpu"))
     model.load_state_dict(state["model"])
     return model, state
 
@@ -186,11 +191,11 @@ def test_each_method_writes_metrics_and_resolved_config(runs, method):
     assert np.isfinite(metrics["cw_forward_transfer"])
 
     cfg = json.loads((run.dir / CONFIG).read_text())
-    assert cfg == json.loads(json.dumps(run.cfg.to_dict()))
+    assert cfg == json.loads(json.dumps({**run.cfg.to_dict(), "resolved_seed_dataset": None}))
     assert cfg["train"]["steps"] == STEPS and cfg["train"]["eval_interval"] == EVAL
-    assert cfg["train"]["batch_size"] == 16  # the smoke preset under the overrides
-    assert cfg["model_config"]["latent_dim"] == 32 and cfg["resolved_seed_dataset"] is None
-    assert cfg["method_options"] == OPTIONS[method]
+    assert cfg["model"]["batch_size"] == 16  # the smoke preset under the overrides
+    assert cfg["model"]["latent_dim"] == 32 and cfg["resolved_seed_dataset"] is None
+    assert cfg["method"] == {**cfg["method"], "type": method, **OPTIONS[method]}
     # A finished run leaves no per-task trainer checkpoint behind.
     assert not list((run.dir / "tasks").glob("*/checkpoint.pt"))
 
@@ -404,16 +409,16 @@ def test_killed_run_resumes_to_the_uninterrupted_result(runs, tmp_path):
     "argv, needle",
     [
         (["--suite", "Nope"], "valid suites: Reach, Grasp"),
-        (["--suite", SUITE, "--method", "nope"], "valid: er, ewc, experts, ft, packnet"),
-        (["--suite", SUITE, "--method", "experts", "--model", "tdmpc2"], "--model pwm"),
-        (["--suite", SUITE, "--router", "state"], "--router needs --model pwm"),
-        (["--suite", SUITE, "--model", "pwm", "--router", "latent"], "invalid choice"),
-        (["--suite", SUITE, "--model", "pwm", "--router", "task", "--model-option",
-          "router=state"], "contradicts"),
+        (["--suite", SUITE, "--method.type=nope"], "nope"),
+        (["--suite", SUITE, "--method.type=experts", "--model.type=tdmpc2"], "pwm"),
+        (["--suite", SUITE, "--model.router=state"], "router"),
+        (["--suite", SUITE, "--model.type=pwm", "--model.router=latent"], "router"),
         (["--suite", SUITE, "--encoder", "frozen:/missing", "--obs", "pixels"], "not found"),
         (["--suite", SUITE, "--encoder", "frozen:/missing"], "needs --obs pixels"),
-        (["--suite", SUITE, "--method", "ewc", "--method-option", "lamda=1"], "valid:"),
-        (["--suite", SUITE, "--train", "steps=150"], "multiple of eval_interval"),
+        (["--suite", SUITE, "--method.type=ewc", "--method.lamda=1"], "lamda"),
+        (["--suite", SUITE, "--train.steps=150"], "multiple of eval_interval"),
+        (["--suite", SUITE, "--train.steps=abc"], "train.steps"),
+        (["--suite", SUITE, "--model.lr=fast"], "model.lr"),
     ],
 )
 def test_cli_run_bad_input_exits_2_with_one_line(argv, needle, capsys, tmp_path):
@@ -430,17 +435,15 @@ def test_cli_run_bad_input_exits_2_with_one_line(argv, needle, capsys, tmp_path)
     assert not (tmp_path / "x").exists(), "bad input must not leave a run directory"
 
 
-def test_cli_run_router_and_model_options_reach_the_config():
-    from ccfit.cli import build_parser, run_config
+def test_cli_run_model_and_method_options_reach_the_config():
+    def config(*extra):
+        return parse_cli(CurriculumConfig, ["--suite", SUITE, "--model.type=pwm",
+                                            "--method.type=experts", *extra])  # fmt: skip
 
-    def model_config(*extra):
-        argv = ["run", "--suite", SUITE, "--model", "pwm", "--method", "experts", *extra]
-        return run_config(build_parser().parse_args(argv)).model_config()
-
-    assert model_config().router == "task"
-    assert model_config("--router", "state").router == "state"
-    assert model_config("--model-option", "router=state").router == "state"
-    assert model_config("--model-option", "experts_per_task=2").experts_per_task == 2
+    assert config().model.router == "task"
+    assert config("--model.router=state").model.router == "state"
+    assert config("--model.experts_per_task=2").model.experts_per_task == 2
+    assert config("--method.type=ewc", "--method.lam=7").method.lam == 7.0
 
 
 def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
@@ -509,13 +512,3 @@ def test_results_notebook_runs_on_smoke_runs(runs, tmp_path, monkeypatch):
     pngs = [o for o in outputs if "image/png" in o.get("data", {})]
     assert len(pngs) == 1 + len(METHODS)  # the bars and one curve plot per group
     assert len(list((tmp_path / "figures").glob("*.png"))) == 1 + len(METHODS)
-
-
-def test_cli_run_option_of_wrong_type_names_the_field(capsys, tmp_path):
-    from ccfit.cli import main
-
-    argv = ["run", "--suite", SUITE, "--preset", "smoke", "--out", str(tmp_path / "x")]
-    assert main([*argv, "--train", "steps=abc"]) == 2
-    assert "TrainConfig.steps must be int, got 'abc'" in capsys.readouterr().err
-    assert main([*argv, "--model-option", "lr=fast"]) == 2
-    assert "TDMPC2Config.lr must be float, got 'fast'" in capsys.readouterr().err

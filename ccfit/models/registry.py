@@ -19,9 +19,8 @@ import torch
 
 from ccdata.errors import InputError
 from ccfit.models.base import WorldModel
+from ccfit.obs import OBS_MODES
 
-OBS_MODES: tuple[str, ...] = ("state", "pixels")
-"""Observation modes every model supports."""
 PRESETS: tuple[str, ...] = ("smoke", "cpu", "paper")
 """Preset names every model config defines (more, such as sizes, may be added per model)."""
 
