@@ -1,8 +1,8 @@
 """Autoencoder pretraining of the frozen encoder (paper Sec. III-E, frozen-encoder diagnostic).
 
 The encoder is exactly the pixel encoder TD-MPC2 (and PWM, which shares TD-MPC2's encoder)
-builds in pixel mode: `build_encoder(tdmpc2_preset(model_preset, "pixels"))`, so the saved
-weights load with `load_frozen_encoder` into a model of the same preset. A decoder of
+builds in pixel mode: `build_encoder(TDMPC2Config.preset(model_preset, obs_mode="pixels"))`,
+so the saved weights load with `load_frozen_encoder` into a model of the same preset. A decoder of
 transposed convolutions reconstructs the 9-channel image (and the 7-D proprio) from the latent.
 
 Objective (per batch of frames):
@@ -48,7 +48,6 @@ from torch import nn
 
 from ccdata.render import CAMERAS
 from ccdata.suites import SUITES
-from ccfit.config import PRESETS, TDMPC2Config, tdmpc2_preset
 from ccfit.models.encoders import (
     build_encoder,
     random_shift,
@@ -57,6 +56,8 @@ from ccfit.models.encoders import (
     sidecar_path,
 )
 from ccfit.models.layers import mlp
+from ccfit.models.registry import PRESETS
+from ccfit.models.tdmpc2 import TDMPC2Config
 from ccfit.pretrain_data import FrameStore, check_datasets, load_oracle_frames, split_episodes
 
 KIND = "ccfit-pretrained-encoder"
@@ -81,10 +82,10 @@ OBJECTIVE = (
 class PretrainConfig:
     """Autoencoder pretraining of the frozen encoder. Validated on construction.
 
-    The encoder's sizes are not fields: they come from `tdmpc2_preset(model_preset, 'pixels',
-    image_size=image_size)`, so the encoder always fits the TD-MPC2 (or PWM) preset it is meant
-    for. Preset values for steps, batch size, learning rate and decoder width are this
-    project's choices (the paper gives none).
+    The encoder's sizes are not fields: they come from `TDMPC2Config.preset(model_preset,
+    obs_mode='pixels', image_size=image_size)`, so the encoder always fits the TD-MPC2 (or
+    PWM) preset it is meant for. Preset values for steps, batch size, learning rate and
+    decoder width are this project's choices (the paper gives none).
     """
 
     model_preset: str = "cpu"
@@ -166,7 +167,7 @@ class PretrainConfig:
 
     def encoder_config(self) -> TDMPC2Config:
         """The TD-MPC2 pixel-mode config whose encoder this run pretrains."""
-        return tdmpc2_preset(self.model_preset, "pixels", image_size=self.image_size)
+        return TDMPC2Config.preset(self.model_preset, obs_mode="pixels", image_size=self.image_size)
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> PretrainConfig:

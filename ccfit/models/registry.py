@@ -84,8 +84,8 @@ class ModelConfig(draccus.ChoiceRegistry):
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> ModelConfig:
         """This config at preset `name` (a key of `PRESETS`), then `overrides`."""
-        check(name in cls.PRESETS,
-              f"unknown preset {name!r} for {cls.__name__}; valid: {', '.join(cls.PRESETS)}")  # fmt: skip
+        valid = ", ".join(cls.PRESETS)
+        check(name in cls.PRESETS, f"unknown preset {name!r} for {cls.__name__}; valid: {valid}")
         return cls(**{**cls.PRESETS[name], **overrides})
 
 
