@@ -97,9 +97,11 @@ def play_episodes(env, model, heads, *, obs_mode: str, seeds: list[int],
         obs, _ = env.reset(seed=int(seed))
         frames = [obs_to_arrays(obs, obs_mode)]
         actions, rewards, success, done = [], [], False, False
+        state = model.initial_state(heads)
         while not done:
             x = {k: torch.from_numpy(v).to(device) for k, v in frames[-1].items()}
-            action = np.asarray(model.act(x, heads, t0=not actions, eval_mode=True), np.float32)
+            action, state = model.act(x, heads, state, eval_mode=True)
+            action = np.asarray(action, np.float32)
             obs, reward, terminated, truncated, info = env.step(action)
             frames.append(obs_to_arrays(obs, obs_mode))
             actions.append(action)
