@@ -551,3 +551,82 @@ def test_option_critic_replay_value_reaches_backbone_and_critic():
         model.head_update(make_batch(), heads, outs[scale], model.head_optimizers(heads))
         critics[scale] = [p.detach().clone() for p in heads.critic.parameters()]
     assert not all(torch.equal(a, b) for a, b in zip(critics[0.0], critics[0.3]))
+
+
+# ------------------------------------------------------------------------------ learning, seams
+
+
+@pytest.mark.parametrize(("obs_mode", "steps"), [("state", 300), ("pixels", 150)])
+def test_world_model_overfits_one_batch(obs_mode, steps):
+    """The world-model loss on one fixed batch falls by >= 90% (tiny model, lr 1e-3)."""
+    model, heads = make(obs_mode, model_lr=1e-3)
+    batch = make_batch(obs_mode)
+    opt = model.world_model_optimizer(heads)
+    first = last = None
+    for _ in range(steps):
+        out = model.loss(batch, heads)
+        opt.zero_grad()
+        out.total.backward()
+        opt.step()
+        first = first if first is not None else out.logs["total"]
+        last = out.logs["total"]
+    assert last <= 0.1 * first, (first, last)
+
+
+def test_packnet_prunes_every_backbone_weight_including_the_gru():
+    for obs_mode in ("state", "pixels"):
+        model, _ = make(obs_mode)
+        backbone = model.backbone
+        prunable = prunable_weights(backbone)
+        weights = [(n, p) for n, p in backbone.named_parameters() if p.dim() >= 2]
+        missing = [n for n, p in weights if id(p) not in prunable]
+        assert not missing, missing
+        assert id(model.rssm.gru.weight) in prunable
+    packnet = PackNet(num_tasks=2, keep_fraction=0.25, retrain_steps=0)
+    packnet.before_task(0, backbone)
+    packnet.after_task(0, backbone, None)
+    zero = float((model.rssm.gru.weight == 0).float().mean())
+    assert math.isclose(zero, 0.75, abs_tol=0.01)
+    assert math.isclose(packnet.owned_fraction("rssm.gru.weight", 0), 0.25, abs_tol=0.01)
+
+
+def test_frozen_encoder_embeds_caches_and_is_reconstructed():
+    from ccfit.config import TDMPC2Config
+    from ccfit.models.encoders import FrozenEncoder, build_encoder
+
+    torch.manual_seed(0)
+    enc_cfg = TDMPC2Config(obs_mode="state", enc_dim=32, latent_dim=64, num_enc_layers=2)
+    frozen = FrozenEncoder(build_encoder(enc_cfg), enc_cfg)
+    model = DreamerV3(tiny(), device="cpu", encoder=frozen)
+    heads = model.new_heads()
+    before = {k: v.clone() for k, v in frozen.state_dict().items()}
+    batch = make_batch()
+    cached = model.replay_obs(batch.obs)
+    assert set(cached) == {LATENT_KEY} and cached[LATENT_KEY].shape == (L, B, 64)
+    torch.manual_seed(1)
+    raw = model.loss(batch, heads)
+    torch.manual_seed(1)
+    out = model.loss(Batch(cached, batch.action, batch.reward, batch.terminated,
+                           batch.is_first, batch.task), heads)  # fmt: skip
+    assert math.isclose(raw.logs["total"], out.logs["total"], rel_tol=1e-6)
+    assert "recon_latent" in out.logs  # the decoder reconstructs what the encoder covers
+    opt = model.world_model_optimizer(heads)
+    opt.zero_grad()
+    out.total.backward()
+    opt.step()
+    assert all(torch.equal(v, frozen.state_dict()[k]) for k, v in before.items())
+    state = model.initial_state(heads)
+    action, state = model.act({"state": batch.obs["state"][0, 0]}, heads, state,
+                              eval_mode=True)  # fmt: skip
+    assert action.shape == (4,)
+    with pytest.raises(ConfigError):
+        DreamerV3(tiny("pixels"), device="cpu", encoder=frozen)
+
+
+def test_registered_and_built_from_its_config():
+    from ccfit.models.registry import config_class
+
+    assert config_class("dreamerv3") is DreamerV3Config
+    model = make_model(DreamerV3Config.preset("smoke"), "cpu")
+    assert isinstance(model, DreamerV3) and model.device == torch.device("cpu")
+    assert all(p.device.type == "cpu" for p in model.new_heads().parameters())
