@@ -39,8 +39,19 @@ L, B, S = 12, 4, 32
 
 
 def tiny(obs_mode: str = "state", **kw) -> DreamerV3Config:
-    sizes = dict(deter=32, hidden=32, stoch=4, classes=4, units=64, layers=1, cnn_depth=8,
-                 image_size=S, batch_size=B, seq_len=L, horizon=5)  # fmt: skip
+    sizes = dict(
+        deter=32,
+        hidden=32,
+        stoch=4,
+        classes=4,
+        units=64,
+        layers=1,
+        cnn_depth=8,
+        image_size=S,
+        batch_size=B,
+        seq_len=L,
+        horizon=5,
+    )
     return DreamerV3Config(obs_mode=obs_mode, **{**sizes, **kw})
 
 
@@ -63,8 +74,10 @@ def make_batch(obs_mode: str = "state", length: int = L, size: int = B) -> Batch
         cx = 8 + t.squeeze(-1) + 4 * torch.arange(size)[None, :]
         blob = ((xx - cx[..., None, None]) ** 2 + (yy - 16) ** 2 < 25).float()
         shade = torch.linspace(0.3, 1, 9)[None, None, :, None, None]
-        obs = {"pixels": (blob[:, :, None] * shade * 255).to(torch.uint8),
-               "proprio": state[..., :7].clone()}  # fmt: skip
+        obs = {
+            "pixels": (blob[:, :, None] * shade * 255).to(torch.uint8),
+            "proprio": state[..., :7].clone(),
+        }
     is_first = torch.zeros(length, size, 1)
     terminated = torch.zeros(length, size, 1)
     if length > 6 and size > 1:
@@ -72,8 +85,9 @@ def make_batch(obs_mode: str = "state", length: int = L, size: int = B) -> Batch
         terminated[5, 1] = 1.0
     reward = torch.cat([-(state[1:, :, :1] < 0).float(), torch.zeros(1, size, 1)])
     action = torch.sin(t + torch.arange(4)).expand(length, size, 4).clone()
-    return Batch(obs, action, reward, terminated, is_first,
-                 torch.zeros(length, size, dtype=torch.long))  # fmt: skip
+    return Batch(
+        obs, action, reward, terminated, is_first, torch.zeros(length, size, dtype=torch.long)
+    )
 
 
 def grads(loss: torch.Tensor, params) -> list[torch.Tensor | None]:
@@ -98,9 +112,15 @@ def test_presets_defaults_and_validation():
     assert (paper.units, paper.layers) == (1024, 5)
     assert DreamerV3Config.preset("cpu").deter == 256
     assert DreamerV3Config.preset("smoke").type == "dreamerv3"
-    for bad in (dict(kl_dyn=-1.0), dict(actor_grad="ppo"), dict(imag_last=65),
-                dict(obs_mode="pixels", image_size=48), dict(actor_min_std=2.0),
-                dict(classes=1), dict(horizon=0.5)):  # fmt: skip
+    for bad in (
+        dict(kl_dyn=-1.0),
+        dict(actor_grad="ppo"),
+        dict(imag_last=65),
+        dict(obs_mode="pixels", image_size=48),
+        dict(actor_min_std=2.0),
+        dict(classes=1),
+        dict(horizon=0.5),
+    ):
         with pytest.raises(ConfigError):
             DreamerV3Config(**bad)
 
@@ -205,13 +225,15 @@ def test_return_normaliser_two_updates_exact_ema():
     x1 = torch.arange(101).float()  # percentiles 5 and 95
     x2 = torch.arange(101).float() * 10 - 300  # percentiles -250 and 650
     norm.update(x1)
-    assert torch.isclose(norm.low, torch.tensor(0.05)) and torch.isclose(norm.high,
-                                                                       torch.tensor(0.95))  # fmt: skip
+    assert torch.isclose(norm.low, torch.tensor(0.05)) and torch.isclose(
+        norm.high, torch.tensor(0.95)
+    )
     assert norm.scale() == 1.0  # spread 0.9 < 1: not scaled up
     norm.update(x2)
     low, high = 0.99 * 0.05 + 0.01 * -250, 0.99 * 0.95 + 0.01 * 650
-    assert torch.isclose(norm.low, torch.tensor(low)) and torch.isclose(norm.high,
-                                                                      torch.tensor(high))  # fmt: skip
+    assert torch.isclose(norm.low, torch.tensor(low)) and torch.isclose(
+        norm.high, torch.tensor(high)
+    )
     assert torch.isclose(norm.scale(), torch.tensor(high - low))
 
 
@@ -244,7 +266,9 @@ def test_zero_initialised_reward_and_critic_and_actor_bounds():
     with torch.no_grad():
         heads.actor.out.bias.fill_(100.0)
         mean, std = heads.actor(feat)
-        assert torch.allclose(std, torch.ones_like(std)) and torch.allclose(mean, torch.ones_like(mean))
+        assert torch.allclose(std, torch.ones_like(std)) and torch.allclose(
+            mean, torch.ones_like(mean)
+        )
         heads.actor.out.bias.fill_(-100.0)
         mean, std = heads.actor(feat)
         assert torch.allclose(std, torch.full_like(std, 0.1))
@@ -262,11 +286,19 @@ def test_gru_is_the_2023_variant_and_learned_initial_state():
     assert torch.allclose(deter, torch.tanh(rssm.initial).expand(3, -1))
     assert torch.equal(stoch, F.one_hot(rssm.prior(deter).argmax(-1), 4).float())
     assert rssm.gru_norm.eps == 1e-3 and isinstance(rssm.gru, torch.nn.Linear)
-    h, z, a = torch.randn(2, 32), F.one_hot(torch.randint(0, 4, (2, 4)), 4).float(), torch.rand(2, 4)
+    h, z, a = (
+        torch.randn(2, 32),
+        F.one_hot(torch.randint(0, 4, (2, 4)), 4).float(),
+        torch.rand(2, 4),
+    )
     x = rssm.img_in(torch.cat([z.flatten(-2), a], -1))
-    reset, cand, update = F.layer_norm(rssm.gru(torch.cat([h, x], -1)), (96,), eps=1e-3,
-                                       weight=rssm.gru_norm.weight,
-                                       bias=rssm.gru_norm.bias).chunk(3, -1)  # fmt: skip
+    reset, cand, update = F.layer_norm(
+        rssm.gru(torch.cat([h, x], -1)),
+        (96,),
+        eps=1e-3,
+        weight=rssm.gru_norm.weight,
+        bias=rssm.gru_norm.bias,
+    ).chunk(3, -1)
     u = torch.sigmoid(update - 1)
     hand = u * torch.tanh(torch.sigmoid(reset) * cand) + (1 - u) * h
     assert torch.allclose(rssm.core(h, z, a), hand, atol=1e-6)
@@ -283,8 +315,9 @@ def test_episode_boundary_equals_separate_episodes():
 
     def features(b: Batch) -> torch.Tensor:
         with torch.no_grad():
-            deter, stoch, _, _ = rssm.observe(model.backbone.encoder(b.obs), b.action,
-                                              b.is_first, sample=False)  # fmt: skip
+            deter, stoch, _, _ = rssm.observe(
+                model.backbone.encoder(b.obs), b.action, b.is_first, sample=False
+            )
             return rssm.feat(deter, stoch)
 
     whole = features(batch.select(torch.tensor([1])))
@@ -300,9 +333,14 @@ def test_episode_boundary_equals_separate_episodes():
 def make_sub(batch: Batch, row: int, start: int, stop: int) -> Batch:
     pick = batch.select(torch.tensor([row]))
     cut = {k: v[start:stop] for k, v in pick.obs.items()}
-    return Batch(cut, pick.action[start:stop], pick.reward[start:stop],
-                 pick.terminated[start:stop], pick.is_first[start:stop],
-                 pick.task[start:stop])  # fmt: skip
+    return Batch(
+        cut,
+        pick.action[start:stop],
+        pick.reward[start:stop],
+        pick.terminated[start:stop],
+        pick.is_first[start:stop],
+        pick.task[start:stop],
+    )
 
 
 @pytest.mark.parametrize("obs_mode", ["state", "pixels"])
@@ -383,15 +421,18 @@ def test_loss_terms_alignment_and_masks():
     # Summed over 9 x 32 x 32 pixels: far above any per-pixel mean.
     assert out.logs["recon_pixels"] > 9 * S * S * 0.01
     parts = out.logs["recon"] + 0.5 * out.logs["dyn"] + 0.1 * out.logs["rep"]
-    assert math.isclose(out.logs["total"], parts + out.logs["reward_loss"] + out.logs["cont_loss"],
-                        rel_tol=1e-5)  # fmt: skip
+    assert math.isclose(
+        out.logs["total"], parts + out.logs["reward_loss"] + out.logs["cont_loss"], rel_tol=1e-5
+    )
     # Continue target 1 - terminated[t], masked where row t + 1 starts an episode.
     feat = model.rssm.feat(out.aux.deter, out.aux.stoch)
     logit = heads.cont(feat[1:])
     target = 1 - batch.terminated[:-1]
     v = batch.valid()
     nll = F.binary_cross_entropy_with_logits(logit, target, reduction="none")
-    assert math.isclose(out.logs["cont_loss"], float((nll * v).sum().detach() / v.sum()), rel_tol=1e-5)
+    assert math.isclose(
+        out.logs["cont_loss"], float((nll * v).sum().detach() / v.sum()), rel_tol=1e-5
+    )
     assert out.aux.start_cont[6, 1] == 1.0  # is_first row: not a terminal observation
     batch.is_first[6, 1] = 0.0  # now row 6 follows the success at row 5: terminal
     assert model.loss(batch, heads).aux.start_cont[6, 1] == 0.0
@@ -422,16 +463,17 @@ def test_optimisers_cover_the_recipe_parameter_sets():
     model, heads = make()
     wm = model.world_model_optimizer(heads)
     ids = {id(p) for g in wm.param_groups for p in g["params"]}
-    expected = [*model.backbone.parameters(), *heads.reward.parameters(),
-                *heads.cont.parameters()]  # fmt: skip
+    expected = [*model.backbone.parameters(), *heads.reward.parameters(), *heads.cont.parameters()]
     assert ids == {id(p) for p in expected}
     assert wm.defaults["lr"] == 1e-4 and wm.defaults["eps"] == 1e-8
     opts = model.head_optimizers(heads)
     assert set(opts) == {"actor", "critic"}
     assert {id(p) for g in opts["actor"].param_groups for p in g["params"]} == {
-        id(p) for p in heads.actor.parameters()}  # fmt: skip
+        id(p) for p in heads.actor.parameters()
+    }
     assert {id(p) for g in opts["critic"].param_groups for p in g["params"]} == {
-        id(p) for p in heads.critic.parameters()}  # fmt: skip
+        id(p) for p in heads.critic.parameters()
+    }
     assert all(o.defaults["lr"] == 3e-5 and o.defaults["eps"] == 1e-5 for o in opts.values())
     assert not any(p.requires_grad for p in heads.slow_critic.parameters())
 
@@ -443,22 +485,30 @@ def test_head_update_leaves_backbone_and_world_heads_bit_identical(actor_grad):
     opts = model.head_optimizers(heads)
     out = model.loss(batch, heads)
     frozen = {k: v.clone() for k, v in model.backbone.state_dict().items()}
-    frozen.update({f"h.{k}": v.clone() for k, v in heads.state_dict().items()
-                   if k.startswith(("reward.", "cont."))})  # fmt: skip
+    frozen.update(
+        {
+            f"h.{k}": v.clone()
+            for k, v in heads.state_dict().items()
+            if k.startswith(("reward.", "cont."))
+        }
+    )
     actor = [p.clone() for p in heads.actor.parameters()]
     critic = [p.clone() for p in heads.critic.parameters()]
     slow = [p.clone() for p in heads.slow_critic.parameters()]
     logs = model.head_update(batch, heads, out, opts)
-    after = {**model.backbone.state_dict(),
-             **{f"h.{k}": v for k, v in heads.state_dict().items()}}  # fmt: skip
+    after = {**model.backbone.state_dict(), **{f"h.{k}": v for k, v in heads.state_dict().items()}}
     assert all(torch.equal(v, after[k]) for k, v in frozen.items())
     assert all(p.grad is None for p in model.backbone.parameters())
     assert all(p.grad is None for p in [*heads.reward.parameters(), *heads.cont.parameters()])
     assert logs["actor_grad_norm"] > 0
-    assert any(not torch.equal(a, b) for a, b in zip(actor, heads.actor.parameters()))
-    assert any(not torch.equal(a, b) for a, b in zip(critic, heads.critic.parameters()))
+    assert any(not torch.equal(a, b) for a, b in zip(actor, heads.actor.parameters(), strict=True))
+    assert any(
+        not torch.equal(a, b) for a, b in zip(critic, heads.critic.parameters(), strict=True)
+    )
     # Slow critic: 0.98 slow + 0.02 critic after the critic's step.
-    for s0, s1, c1 in zip(slow, heads.slow_critic.parameters(), heads.critic.parameters()):
+    for s0, s1, c1 in zip(
+        slow, heads.slow_critic.parameters(), heads.critic.parameters(), strict=True
+    ):
         assert torch.allclose(s1, 0.98 * s0 + 0.02 * c1, atol=1e-7)
     assert float(heads.retnorm.high) != 0.0  # statistics moved
 
@@ -483,8 +533,9 @@ def _traj(model, heads, grad: bool):
     with torch.no_grad():
         deter = deter + 0.3 * torch.randn_like(deter)
     with torch.set_grad_enabled(grad):
-        return imagine(model.rssm, heads, deter, stoch, torch.ones(8, 1), model.cfg.horizon,
-                       model.cfg.discount)  # fmt: skip
+        return imagine(
+            model.rssm, heads, deter, stoch, torch.ones(8, 1), model.cfg.horizon, model.cfg.discount
+        )
 
 
 @pytest.mark.parametrize("actor_grad", ["dynamics", "reinforce"])
@@ -520,8 +571,10 @@ def test_option_actor_gradient_matches_its_estimator(actor_grad):
         assert torch.allclose(g, h, rtol=1e-4, atol=1e-9)
     if actor_grad == "dynamics":  # the gradient flows through the sampled actions
         no_path = -((adv.detach() + bonus) * traj.weight[:-1]).mean()
-        assert not all(torch.allclose(g, h) for g, h in
-                       zip(grads(actor_loss, params), grads(no_path, params)))  # fmt: skip
+        assert not all(
+            torch.allclose(g, h)
+            for g, h in zip(grads(actor_loss, params), grads(no_path, params), strict=True)
+        )
 
 
 def test_option_critic_replay_value_reaches_backbone_and_critic():
@@ -536,13 +589,16 @@ def test_option_critic_replay_value_reaches_backbone_and_critic():
         outs[scale], models[scale] = out, (model, heads)
     off, on = outs[0.0], outs[0.3]
     assert "replay_value_loss" not in off.logs and off.aux.replay is None
-    assert math.isclose(on.logs["total"] - off.logs["total"],
-                        0.3 * on.logs["replay_value_loss"], rel_tol=1e-4)  # fmt: skip
+    assert math.isclose(
+        on.logs["total"] - off.logs["total"], 0.3 * on.logs["replay_value_loss"], rel_tol=1e-4
+    )
     mask = on.aux.replay.mask
     assert mask[-1].sum() == 0 and mask[5, 1] == 0 and mask[4, 1] == 1  # last row, boundary
     enc_off = [p.grad for p in models[0.0][0].backbone.encoder.parameters()]
     enc_on = [p.grad for p in models[0.3][0].backbone.encoder.parameters()]
-    assert not all(torch.allclose(a, b) for a, b in zip(enc_off, enc_on))  # reaches backbone
+    assert not all(
+        torch.allclose(a, b) for a, b in zip(enc_off, enc_on, strict=True)
+    )  # reaches backbone
     for _, heads in models.values():  # the critic's gradient comes from head_update only
         assert all(p.grad is None for p in heads.critic.parameters())
     critics = {}
@@ -550,7 +606,7 @@ def test_option_critic_replay_value_reaches_backbone_and_critic():
         torch.manual_seed(5)
         model.head_update(make_batch(), heads, outs[scale], model.head_optimizers(heads))
         critics[scale] = [p.detach().clone() for p in heads.critic.parameters()]
-    assert not all(torch.equal(a, b) for a, b in zip(critics[0.0], critics[0.3]))
+    assert not all(torch.equal(a, b) for a, b in zip(critics[0.0], critics[0.3], strict=True))
 
 
 # ------------------------------------------------------------------------------ learning, seams
@@ -606,8 +662,10 @@ def test_frozen_encoder_embeds_caches_and_is_reconstructed():
     torch.manual_seed(1)
     raw = model.loss(batch, heads)
     torch.manual_seed(1)
-    out = model.loss(Batch(cached, batch.action, batch.reward, batch.terminated,
-                           batch.is_first, batch.task), heads)  # fmt: skip
+    out = model.loss(
+        Batch(cached, batch.action, batch.reward, batch.terminated, batch.is_first, batch.task),
+        heads,
+    )
     assert math.isclose(raw.logs["total"], out.logs["total"], rel_tol=1e-6)
     assert "recon_latent" in out.logs  # the decoder reconstructs what the encoder covers
     opt = model.world_model_optimizer(heads)
@@ -616,8 +674,7 @@ def test_frozen_encoder_embeds_caches_and_is_reconstructed():
     opt.step()
     assert all(torch.equal(v, frozen.state_dict()[k]) for k, v in before.items())
     state = model.initial_state(heads)
-    action, state = model.act({"state": batch.obs["state"][0, 0]}, heads, state,
-                              eval_mode=True)  # fmt: skip
+    action, state = model.act({"state": batch.obs["state"][0, 0]}, heads, state, eval_mode=True)
     assert action.shape == (4,)
     with pytest.raises(ConfigError):
         DreamerV3(tiny("pixels"), device="cpu", encoder=frozen)

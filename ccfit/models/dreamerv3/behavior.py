@@ -105,12 +105,16 @@ def behavior_losses(
     reg = heads.twohot.cross_entropy(logits, heads.slow_value(states))
     critic_loss = ((critic + cfg.slow_critic_reg * reg) * weight).mean()
     logs = {
-        "actor_loss": actor_loss.detach(), "critic_loss": critic_loss.detach(),
-        "return": ret.detach().mean(), "value": value.detach().mean(),
-        "advantage": adv.detach().mean(), "return_scale": scale.detach(),
-        "actor_entropy": entropy.detach().mean(), "actor_std": std.detach().mean(),
+        "actor_loss": actor_loss.detach(),
+        "critic_loss": critic_loss.detach(),
+        "return": ret.detach().mean(),
+        "value": value.detach().mean(),
+        "advantage": adv.detach().mean(),
+        "return_scale": scale.detach(),
+        "actor_entropy": entropy.detach().mean(),
+        "actor_std": std.detach().mean(),
         "imag_cont": traj.cont[1:].mean(),
-    }  # fmt: skip
+    }
     return actor_loss, critic_loss, logs
 
 

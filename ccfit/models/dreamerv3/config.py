@@ -23,22 +23,48 @@ class DreamerV3Config(ModelConfig):
     PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
         # Seconds on a CPU: for CI and wiring checks only, learns nothing useful.
         "smoke": dict(
-            deter=32, hidden=16, stoch=4, classes=4, units=32, layers=1, cnn_depth=4,
-            batch_size=4, seq_len=8, horizon=4, train_ratio=0.5,
+            deter=32,
+            hidden=16,
+            stoch=4,
+            classes=4,
+            units=32,
+            layers=1,
+            cnn_depth=4,
+            batch_size=4,
+            seq_len=8,
+            horizon=4,
+            train_ratio=0.5,
         ),
         # A Reach task in minutes on 2 cores (to be tuned by measurement): small RSSM,
         # imagination from the last 16 rows of each window (256 starts instead of 1024).
         "cpu": dict(
-            deter=256, hidden=64, stoch=16, classes=8, units=128, layers=2, cnn_depth=16,
-            batch_size=16, seq_len=64, imag_last=16, train_ratio=0.5,
+            deter=256,
+            hidden=64,
+            stoch=16,
+            classes=8,
+            units=128,
+            layers=2,
+            cnn_depth=16,
+            batch_size=16,
+            seq_len=64,
+            imag_last=16,
+            train_ratio=0.5,
         ),
         # The paper's scale (authors' README: ~300M parameters on a GPU); units/layers/depth
         # are the 2023 config's "xlarge" size (inferred).
         "paper": dict(
-            deter=4096, hidden=1024, stoch=32, classes=32, units=1024, layers=5, cnn_depth=96,
-            batch_size=16, seq_len=64, train_ratio=0.5,
+            deter=4096,
+            hidden=1024,
+            stoch=32,
+            classes=32,
+            units=1024,
+            layers=5,
+            cnn_depth=96,
+            batch_size=16,
+            seq_len=64,
+            train_ratio=0.5,
         ),
-    }  # fmt: skip
+    }
 
     # Replay and update schedule (the common fields, at the recipe's values).
     batch_size: int = 16
@@ -136,31 +162,47 @@ class DreamerV3Config(ModelConfig):
         check(self.layers >= 0, f"{name}.layers must be >= 0, got {self.layers}")
         check(self.reward_bins >= 2, f"{name}.reward_bins must be >= 2, got {self.reward_bins}")
         check(self.bin_range > 0, f"{name}.bin_range must be > 0, got {self.bin_range}")
-        check(0 <= self.imag_last <= self.seq_len,
-              f"{name}.imag_last must be in [0, seq_len={self.seq_len}], got {self.imag_last}")  # fmt: skip
+        check(
+            0 <= self.imag_last <= self.seq_len,
+            f"{name}.imag_last must be in [0, seq_len={self.seq_len}], got {self.imag_last}",
+        )
         for f in ("unimix", "retnorm_rate", "slow_critic_fraction"):
             v = getattr(self, f)
             check(0 <= v <= 1, f"{name}.{f} must be in [0, 1], got {v}")
         for f in ("discount", "return_lambda"):
             v = getattr(self, f)
             check(0 < v <= 1, f"{name}.{f} must be in (0, 1], got {v}")
-        for f in ("kl_dyn", "kl_rep", "free_nats", "actor_entropy", "slow_critic_reg",
-                  "critic_replay_scale"):  # fmt: skip
+        for f in (
+            "kl_dyn",
+            "kl_rep",
+            "free_nats",
+            "actor_entropy",
+            "slow_critic_reg",
+            "critic_replay_scale",
+        ):
             check(getattr(self, f) >= 0, f"{name}.{f} must be >= 0, got {getattr(self, f)}")
         for f in ("model_lr", "model_eps", "actor_lr", "critic_lr", "ac_eps", "ac_grad_clip"):
             check(getattr(self, f) > 0, f"{name}.{f} must be > 0, got {getattr(self, f)}")
-        check(0 < self.actor_min_std < self.actor_max_std,
-              f"{name}: need 0 < actor_min_std < actor_max_std, got "
-              f"{self.actor_min_std}, {self.actor_max_std}")  # fmt: skip
-        check(0 <= self.retnorm_low < self.retnorm_high <= 1,
-              f"{name}: need 0 <= retnorm_low < retnorm_high <= 1")  # fmt: skip
-        check(self.actor_grad in ACTOR_GRADS,
-              f"{name}.actor_grad must be one of {ACTOR_GRADS}, got {self.actor_grad!r}")  # fmt: skip
+        check(
+            0 < self.actor_min_std < self.actor_max_std,
+            f"{name}: need 0 < actor_min_std < actor_max_std, got "
+            f"{self.actor_min_std}, {self.actor_max_std}",
+        )
+        check(
+            0 <= self.retnorm_low < self.retnorm_high <= 1,
+            f"{name}: need 0 <= retnorm_low < retnorm_high <= 1",
+        )
+        check(
+            self.actor_grad in ACTOR_GRADS,
+            f"{name}.actor_grad must be one of {ACTOR_GRADS}, got {self.actor_grad!r}",
+        )
         if self.obs_mode == "pixels":
             s = self.image_size
-            check(s >= 8 and s & (s - 1) == 0,
-                  f"{name}: the CNN halves the image down to 4 x 4, so image_size must be a "
-                  f"power of two (32, 64, 128), got {s}")  # fmt: skip
+            check(
+                s >= 8 and s & (s - 1) == 0,
+                f"{name}: the CNN halves the image down to 4 x 4, so image_size must be a "
+                f"power of two (32, 64, 128), got {s}",
+            )
 
     @property
     def feat_dim(self) -> int:

@@ -42,6 +42,5 @@ class DreamerV3Heads(nn.Module):
     @torch.no_grad()
     def update_slow_critic(self, fraction: float) -> None:
         """slow <- (1 - fraction) slow + fraction critic."""
-        for slow, fast in zip(self.slow_critic.parameters(), self.critic.parameters(),
-                              strict=True):  # fmt: skip
+        for slow, fast in zip(self.slow_critic.parameters(), self.critic.parameters(), strict=True):
             slow.lerp_(fast, fraction)

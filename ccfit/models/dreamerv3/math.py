@@ -16,9 +16,17 @@ from torch import nn
 from ccfit.models.layers import TwoHot, symexp, symlog
 
 __all__ = [
-    "TwoHot", "symlog", "symexp", "unimix_logits", "sample_onehot", "mode_onehot",
-    "categorical_kl", "kl_loss", "lambda_return", "ReturnNormalizer",
-]  # fmt: skip
+    "TwoHot",
+    "symlog",
+    "symexp",
+    "unimix_logits",
+    "sample_onehot",
+    "mode_onehot",
+    "categorical_kl",
+    "kl_loss",
+    "lambda_return",
+    "ReturnNormalizer",
+]
 
 
 def unimix_logits(logits: torch.Tensor, unimix: float) -> torch.Tensor:
@@ -78,8 +86,10 @@ def lambda_return(
     the horizon; c = 0 stops bootstrapping."""
     horizon = reward.shape[0]
     if cont.shape[0] != horizon or value.shape[0] != horizon + 1:
-        raise ValueError(f"need H rewards/conts and H+1 values, got {reward.shape[0]}, "
-                         f"{cont.shape[0]}, {value.shape[0]}")  # fmt: skip
+        raise ValueError(
+            f"need H rewards/conts and H+1 values, got {reward.shape[0]}, "
+            f"{cont.shape[0]}, {value.shape[0]}"
+        )
     disc = discount * cont
     interm = reward + disc * (1.0 - lam) * value[1:]
     out = [value[-1]]

@@ -93,9 +93,10 @@ class DreamerV3(WorldModel):
         if device is None:
             device = "cuda" if torch.cuda.is_available() else "cpu"
         if encoder is not None:
-            check(encoder.obs_mode == cfg.obs_mode,
-                  f"frozen encoder is for obs_mode {encoder.obs_mode!r}, model has "
-                  f"{cfg.obs_mode!r}")  # fmt: skip
+            check(
+                encoder.obs_mode == cfg.obs_mode,
+                f"frozen encoder is for obs_mode {encoder.obs_mode!r}, model has {cfg.obs_mode!r}",
+            )
         self.cfg, self.device = cfg, torch.device(device)
         self.backbone = DreamerV3Backbone(cfg, encoder).to(self.device)
 
@@ -116,8 +117,7 @@ class DreamerV3(WorldModel):
         cfg = self.cfg
         return {
             "actor": torch.optim.Adam(heads.actor.parameters(), lr=cfg.actor_lr, eps=cfg.ac_eps),
-            "critic": torch.optim.Adam(heads.critic.parameters(), lr=cfg.critic_lr,
-                                       eps=cfg.ac_eps),  # fmt: skip
+            "critic": torch.optim.Adam(heads.critic.parameters(), lr=cfg.critic_lr, eps=cfg.ac_eps),
         }
 
     # ------------------------------------------------------------------ world model
@@ -134,8 +134,12 @@ class DreamerV3(WorldModel):
         recon, parts = self.backbone.decoder.loss(feat, targets)
         dyn, rep = kl_loss(post, prior, cfg.free_nats)
         world = recon.mean() + cfg.kl_dyn * dyn.mean() + cfg.kl_rep * rep.mean()
-        logs = {"recon": recon.mean(), "dyn": dyn.mean(), "rep": rep.mean(),
-                **{f"recon_{k}": v for k, v in parts.items()}}  # fmt: skip
+        logs = {
+            "recon": recon.mean(),
+            "dyn": dyn.mean(),
+            "rep": rep.mean(),
+            **{f"recon_{k}": v for k, v in parts.items()},
+        }
         return feat, deter, stoch, world, logs
 
     def backbone_loss(self, batch: Batch) -> torch.Tensor:
@@ -189,8 +193,14 @@ class DreamerV3(WorldModel):
             traj = imagine(self.rssm, heads, *self._starts(aux), cfg.horizon, cfg.discount)
             boot = imagined_returns(cfg, heads, traj)[0][0].reshape(k, batch.size, 1)
             valid = torch.cat([batch.valid(), torch.zeros_like(batch.valid()[:1])])[-k:]
-            target = replay_lambda_return(batch.reward[-k:], batch.terminated[-k:], valid,
-                                          boot, cfg.discount, cfg.return_lambda)  # fmt: skip
+            target = replay_lambda_return(
+                batch.reward[-k:],
+                batch.terminated[-k:],
+                valid,
+                boot,
+                cfg.discount,
+                cfg.return_lambda,
+            )
         weights = {n: p.detach() for n, p in heads.critic.named_parameters()}
         logits = functional_call(heads.critic, weights, (feat[-k:],))
         loss = replay_value_loss(cfg, heads, logits, feat[-k:], target, valid)
@@ -251,13 +261,18 @@ class DreamerV3(WorldModel):
         obs = {k: torch.as_tensor(v, device=self.device)[None] for k, v in obs.items()}
         embed = self.backbone.encoder(obs)
         not_first = torch.zeros(1, 1, device=self.device)
-        deter, stoch, _ = self.rssm.obs_step(state.deter, state.stoch, state.action, embed,
-                                             not_first)  # fmt: skip
+        deter, stoch, _ = self.rssm.obs_step(
+            state.deter, state.stoch, state.action, embed, not_first
+        )
         return ActingState(deter, stoch, state.action)
 
     @torch.no_grad()
     def act(
-        self, obs: dict[str, torch.Tensor], heads: DreamerV3Heads, state: ActingState, *,
+        self,
+        obs: dict[str, torch.Tensor],
+        heads: DreamerV3Heads,
+        state: ActingState,
+        *,
         eval_mode: bool,
     ) -> tuple[np.ndarray, ActingState]:
         """Posterior update with o_t and the previous action, then the actor's mode (eval) or
@@ -269,7 +284,10 @@ class DreamerV3(WorldModel):
 
     @torch.no_grad()
     def observe(
-        self, obs: dict[str, torch.Tensor], action: np.ndarray, heads: DreamerV3Heads,
+        self,
+        obs: dict[str, torch.Tensor],
+        action: np.ndarray,
+        heads: DreamerV3Heads,
         state: ActingState,
     ) -> ActingState:
         state = self._posterior(obs, state)

@@ -78,8 +78,11 @@ class Encoder(nn.Module):
             convs: list[nn.Module] = []
             ch_in, ch = 9, cfg.cnn_depth
             for _ in range(cnn_stages(cfg.image_size)):
-                convs += [nn.Conv2d(ch_in, ch, 4, 2, 1, bias=False),
-                          ChannelNorm(ch, eps=NORM_EPS), nn.SiLU()]  # fmt: skip
+                convs += [
+                    nn.Conv2d(ch_in, ch, 4, 2, 1, bias=False),
+                    ChannelNorm(ch, eps=NORM_EPS),
+                    nn.SiLU(),
+                ]
                 ch_in, ch = ch, 2 * ch
             self.cnn = nn.Sequential(*convs, nn.Flatten())
             self.out_dim += ch_in * 16
@@ -120,8 +123,10 @@ class Decoder(nn.Module):
         else:
             self.vectors["proprio"] = cfg.proprio_dim
         out = sum(self.vectors.values())
-        self.vector = nn.Sequential(mlp(cfg.feat_dim, cfg.units, cfg.layers),
-                                    nn.Linear(cfg.units if cfg.layers else cfg.feat_dim, out))  # fmt: skip
+        self.vector = nn.Sequential(
+            mlp(cfg.feat_dim, cfg.units, cfg.layers),
+            nn.Linear(cfg.units if cfg.layers else cfg.feat_dim, out),
+        )
         self.image = frozen_dim is None and cfg.obs_mode == "pixels"
         if self.image:
             stages = cnn_stages(cfg.image_size)
@@ -130,8 +135,11 @@ class Decoder(nn.Module):
             convs: list[nn.Module] = []
             ch = self.top
             for _ in range(stages - 1):
-                convs += [nn.ConvTranspose2d(ch, ch // 2, 4, 2, 1, bias=False),
-                          ChannelNorm(ch // 2, eps=NORM_EPS), nn.SiLU()]  # fmt: skip
+                convs += [
+                    nn.ConvTranspose2d(ch, ch // 2, 4, 2, 1, bias=False),
+                    ChannelNorm(ch // 2, eps=NORM_EPS),
+                    nn.SiLU(),
+                ]
                 ch //= 2
             convs.append(nn.ConvTranspose2d(ch, 9, 4, 2, 1))
             self.cnn = nn.Sequential(*convs)

@@ -102,7 +102,10 @@ class RSSM(nn.Module):
         return deter, sample_onehot(logits) if sample else mode_onehot(logits), logits
 
     def observe(
-        self, embed: torch.Tensor, action: torch.Tensor, is_first: torch.Tensor,
+        self,
+        embed: torch.Tensor,
+        action: torch.Tensor,
+        is_first: torch.Tensor,
         sample: bool = True,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Posteriors along replay windows (time-major, one transition per row).
@@ -117,8 +120,9 @@ class RSSM(nn.Module):
         prev_action = torch.zeros_like(action[0])
         deters, stochs, posts = [], [], []
         for t in range(length):
-            deter, stoch, post = self.obs_step(deter, stoch, prev_action, embed[t], first[t],
-                                               sample)  # fmt: skip
+            deter, stoch, post = self.obs_step(
+                deter, stoch, prev_action, embed[t], first[t], sample
+            )
             prev_action = action[t]
             deters.append(deter)
             stochs.append(stoch)
