@@ -433,6 +433,17 @@ def test_loss_terms_alignment_and_masks():
     assert math.isclose(
         out.logs["cont_loss"], float((nll * v).sum().detach() / v.sum()), rel_tol=1e-5
     )
+    # Reward two-hot CE at row t + 1 toward reward[t], same mask (non-zero head this time).
+    with torch.no_grad():
+        heads.reward.out.weight.normal_(0, 0.5)
+    torch.manual_seed(0)
+    out = model.loss(batch, heads)
+    feat = model.rssm.feat(out.aux.deter, out.aux.stoch)
+    ce = heads.twohot.cross_entropy(heads.reward(feat[1:]), batch.reward[:-1])
+    hand = float((ce * v).sum().detach() / v.sum())
+    assert math.isclose(out.logs["reward_loss"], hand, rel_tol=1e-5)
+    shifted = heads.twohot.cross_entropy(heads.reward(feat[:-1]), batch.reward[:-1])
+    assert not math.isclose(out.logs["reward_loss"], float((shifted * v).sum().detach() / v.sum()))
     assert out.aux.start_cont[6, 1] == 1.0  # is_first row: not a terminal observation
     batch.is_first[6, 1] = 0.0  # now row 6 follows the success at row 5: terminal
     assert model.loss(batch, heads).aux.start_cont[6, 1] == 0.0

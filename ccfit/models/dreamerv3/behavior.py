@@ -73,9 +73,11 @@ def imagine(
 def imagined_returns(
     cfg: DreamerV3Config, heads: DreamerV3Heads, traj: Trajectory
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(lambda-returns R_0..R_{H-1} (H, N, 1), values v(s_0..s_H) (H + 1, N, 1))."""
-    reward = heads.reward_mean(traj.feat[1:])
-    value = heads.value(traj.feat)
+    """(lambda-returns R_0..R_{H-1} (H, N, 1), values v(s_0..s_H) (H + 1, N, 1)); with a
+    graph only when the trajectory has one (the 'dynamics' actor gradient needs it)."""
+    with torch.set_grad_enabled(traj.feat.requires_grad):
+        reward = heads.reward_mean(traj.feat[1:])
+        value = heads.value(traj.feat)
     return lambda_return(reward, traj.cont[1:], value, cfg.discount, cfg.return_lambda), value
 
 
