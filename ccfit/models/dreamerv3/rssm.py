@@ -115,13 +115,11 @@ class RSSM(nn.Module):
         posterior and prior log-probabilities (L, B, S, C)."""
         length, batch = embed.shape[:2]
         deter, stoch = self.initial_state(batch)
-        first = is_first.clone()
-        first[0] = 1.0
         prev_action = torch.zeros_like(action[0])
         deters, stochs, posts = [], [], []
         for t in range(length):
             deter, stoch, post = self.obs_step(
-                deter, stoch, prev_action, embed[t], first[t], sample
+                deter, stoch, prev_action, embed[t], is_first[t], sample
             )
             prev_action = action[t]
             deters.append(deter)
