@@ -303,11 +303,11 @@ def test_er_keeps_the_stated_fraction_of_each_task(runs):
     fraction = 0.05  # ER's default
     assert sorted(state["kept"]) == [0, 1, 2]
     for i, trainer in enumerate(trainers):
-        n = trainer.buffer.num_starts(trainer.horizon)
+        n = trainer.buffer.num_transitions
         assert n > 0 and len(state["kept"][i]) == round(fraction * n)
         assert len(set(state["kept"][i].tolist())) == len(state["kept"][i])
-    tasks = state["memory"]["task"]
-    counts = {i: int((tasks == i).sum()) for i in range(3)}
+    tasks = state["memory"]["task"]  # one per row; a kept transition is two rows
+    counts = {i: int((tasks == i).sum()) // 2 for i in range(3)}
     assert counts == {i: len(state["kept"][i]) for i in range(3)} and counts[0] > 0
     # After task 0 only task 0 was in memory (a later task never enters an earlier replay).
     after_0 = run.seen.saves[0]["method"]["memory"]["task"]
