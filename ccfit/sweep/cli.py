@@ -43,7 +43,7 @@ def _seeds(text: str) -> tuple[int, ...]:
     try:
         return tuple(int(x) for x in _csv(text))
     except ValueError:
-        raise InputError(f"--seeds {text!r}: expected integers like 0,1,2") from None
+        raise argparse.ArgumentTypeError(f"expected integers like 0,1,2, got {text!r}") from None
 
 
 def build_parser() -> argparse.ArgumentParser:

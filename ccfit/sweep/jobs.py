@@ -103,9 +103,22 @@ class RunJob(_Job):
         if not done.is_file():
             raise ScratchMissing(f"from-scratch reference {done.parent} did not finish (see its "
                                  f"job's log); run the sweep again")  # fmt: skip
+        print(f"ccfit sweep: {resume_point(Path(run_dir))}", flush=True)
         result = Curriculum(cfg, run_dir, scratch_root, progress=False,
                             callbacks=stage_callbacks(cfg)).run()  # fmt: skip
         return _summary(result)
+
+
+def resume_point(run_dir: Path) -> str:
+    """Where a run continues from: its saved curriculum state and task checkpoint, if any."""
+    from ccfit.curriculum import STATE
+    from ccfit.train.loop import CHECKPOINT
+
+    found = [p for p in [run_dir / STATE, *sorted(run_dir.glob(f"tasks/*/{CHECKPOINT}"))]
+             if p.is_file()]  # fmt: skip
+    if not found:
+        return "starting fresh"
+    return "resuming from " + ", ".join(str(p.relative_to(run_dir)) for p in found)
 
 
 def _summary(result: dict) -> dict:

@@ -195,7 +195,7 @@ def launch_slurm(sweep: Sweep, work: Work, submissions: list[dict],
     plugins, code = list(sweep.grid.plugins), sweep.code
     executor = submitit.SlurmExecutor(folder=folder / "%j", max_num_timeout=MAX_REQUEUES)
     executor.update_parameters(**settings.executor_parameters(),
-                               comment=f"ccfit sweep {code.get('git') or code.get('package')}")
+                               comment=f"ccfit-sweep-{code.get('git') or code.get('package')}")
 
     def depend(ids: list[str]) -> dict:
         extra = {"requeue": True}
