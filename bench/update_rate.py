@@ -20,10 +20,9 @@ from pathlib import Path
 
 import torch
 
-from ccfit.config import tdmpc2_preset
 from ccfit.models.base import Batch
 from ccfit.models.encoders import load_frozen_encoder, save_encoder
-from ccfit.models.tdmpc2 import TDMPC2
+from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
 
 OFFICIAL_SECONDS = {
     ("1M", "state"): {"update": 0.156, "plan": 0.214},
@@ -34,7 +33,7 @@ OFFICIAL_SECONDS = {
 
 def synthetic_batch(cfg, batch_size: int, generator: torch.Generator) -> Batch:
     """Random data with the shapes and dtypes replay produces (values do not affect timing)."""
-    steps, horizon = cfg.horizon + 1, cfg.horizon
+    steps = cfg.seq_len
     if cfg.obs_mode == "state":
         obs = {"state": torch.randn(steps, batch_size, cfg.state_dim, generator=generator)}
     else:
@@ -47,10 +46,11 @@ def synthetic_batch(cfg, batch_size: int, generator: torch.Generator) -> Batch:
         }
     return Batch(
         obs=obs,
-        action=torch.rand(horizon, batch_size, 4, generator=generator) * 2 - 1,
-        reward=-torch.rand(horizon, batch_size, 1, generator=generator),
-        terminated=torch.zeros(horizon, batch_size, 1),
-        task=torch.zeros(batch_size, dtype=torch.long),
+        action=torch.rand(steps, batch_size, 4, generator=generator) * 2 - 1,
+        reward=-torch.rand(steps, batch_size, 1, generator=generator),
+        terminated=torch.zeros(steps, batch_size, 1),
+        is_first=torch.zeros(steps, batch_size, 1),
+        task=torch.zeros(steps, batch_size, dtype=torch.long),
     )
 
 
@@ -58,7 +58,7 @@ def time_model(
     preset: str, mode: str, frozen: bool, cached: bool, batch_size: int, repeats: int
 ) -> dict:
     torch.manual_seed(0)
-    cfg = tdmpc2_preset(preset, mode)
+    cfg = TDMPC2Config.preset(preset, obs_mode=mode)
     encoder = None
     if frozen:
         with tempfile.TemporaryDirectory() as tmp:
@@ -67,8 +67,8 @@ def time_model(
             encoder, _ = load_frozen_encoder(path)
     model = TDMPC2(cfg, device="cpu", encoder=encoder)
     heads = model.new_heads()
-    optim = torch.optim.Adam(model.param_groups(heads), lr=cfg.lr)
-    policy_optim = model.make_policy_optimizer(heads)
+    optim = model.world_model_optimizer(heads)
+    head_optims = model.head_optimizers(heads)
     batch = synthetic_batch(cfg, batch_size, torch.Generator().manual_seed(0))
     if cached:  # replay then holds latents, encoded once when the episode was stored
         batch = dataclasses.replace(batch, obs=model.replay_obs(batch.obs))
@@ -79,13 +79,15 @@ def time_model(
         optim.zero_grad(set_to_none=True)
         out.total.backward()
         torch.nn.utils.clip_grad_norm_(
-            [p for g in optim.param_groups for p in g["params"]], cfg.grad_clip_norm
+            [p for g in optim.param_groups for p in g["params"]], cfg.grad_clip
         )
         optim.step()
-        model.head_update(batch, heads, out, policy_optim)
+        model.head_update(batch, heads, out, head_optims)
+
+    state = model.act(obs, heads, None, eval_mode=False)[1]  # a warm-started plan is timed
 
     def plan() -> None:
-        model.act(obs, heads, t0=False, eval_mode=False)
+        model.act(obs, heads, state, eval_mode=False)
 
     result = {}
     for name, fn in (("update", update), ("plan", plan)):

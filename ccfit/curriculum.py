@@ -87,7 +87,9 @@ def scratch_key(cfg: CurriculumConfig) -> str:
 
 
 def _task_data(i: int, buffer, model: WorldModel, device: torch.device) -> TaskData:
-    return TaskData.from_buffer(i, buffer, model, device)
+    return TaskData.from_buffer(i, buffer, batch_size=model.cfg.batch_size,
+                                seq_len=model.cfg.seq_len, backbone_loss=model.backbone_loss,
+                                device=device)  # fmt: skip
 
 
 # ============================================================================ the run

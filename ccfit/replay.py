@@ -1,23 +1,51 @@
-"""Episode replay on CPU tensors: whole episodes in, length-(H+1) subsequences out.
+"""Replay on CPU tensors: whole episodes in, windows of consecutive rows out (`Batch` layout).
 
-Episodes are stored back to back in flat row storage (a ring of `capacity` rows): an episode of
-T transitions takes T+1 rows; row t holds observation t and, for t < T, action t, reward t and
-terminated t. A sampled subsequence starts at any row from which H actions remain in the same
-episode, so it never crosses an episode boundary, and the terminal transition of an episode that
-ended on success is sampled with terminated = 1 and nothing after it. When the ring is full the
-oldest episodes are dropped whole.
+Rows: an episode of T transitions is stored as T+1 consecutive rows; row t holds observation
+o_t, the transition taken from it (a_t, r_t, terminated_t), is_first_t (1 on the episode's
+first row) and the task index; the last row holds the final observation and a zero filler
+transition. Episodes follow each other in insertion order in a ring of `capacity` rows.
+
+Sampling: a window is `seq_len` consecutive stored rows, drawn uniformly over every start row
+from which that many stored rows follow. Windows cross episode boundaries (`is_first` marks
+them and the models mask what lies beyond), so an episode shorter than a window is trained on
+and every transition, the terminal one of a success included, lies in the same number of
+possible windows (except near the newest row, which is the end of the stored sequence).
+
+Overwriting: when the ring is full, new rows overwrite the oldest rows one by one; the oldest
+surviving row then gets is_first = 1, so what is left of a partly overwritten episode is a
+shorter episode starting there (its remaining transitions stay usable). Hence the oldest
+stored row always has is_first = 1.
+
+`transitions(indices)` numbers the real transitions (o_t -> o_{t+1} inside one episode) and
+returns them as (o_t, o_{t+1}, a_t, r_t, terminated_t); `add_transitions` stores such
+transitions as 2-row episodes (what experience replay keeps of a finished task).
 """
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable, Mapping
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from ccfit.models.base import Batch
 
-ACTION_DIM = 4
+
+class Transitions(NamedTuple):
+    """k real transitions, on the CPU."""
+
+    obs: dict[str, torch.Tensor]
+    """o_t, (k, ...) per key."""
+    next_obs: dict[str, torch.Tensor]
+    """o_{t+1}, (k, ...) per key."""
+    action: torch.Tensor
+    """a_t, (k, A)."""
+    reward: torch.Tensor
+    """r_t, (k,)."""
+    terminated: torch.Tensor
+    """terminated_t, (k,) in {0, 1}."""
 
 
 def _tensor(x) -> torch.Tensor:
@@ -25,35 +53,37 @@ def _tensor(x) -> torch.Tensor:
 
 
 class ReplayBuffer:
-    """Episodes of (obs dict, action, reward, terminated, task index); uniform subsequences.
+    """Rows of episodes in a ring; uniform windows of consecutive rows.
 
-    capacity: rows (about one per transition; an episode of T steps uses T+1).
+    capacity: rows (an episode of T steps uses T+1); None: unbounded, nothing is overwritten.
     seed: seeds the sampling generator, so the same adds and seed give the same batches.
-    obs_transform: applied to each episode's observations (tensors (T+1, ...)) before they
-        are stored, e.g. `WorldModel.replay_obs`, which swaps a frozen encoder's inputs for
-        its latents.
+    obs_transform: applied to each episode's observations (tensors (T+1, ...)) in
+        `add_episode` before they are stored, e.g. `WorldModel.replay_obs`, which swaps a
+        frozen encoder's inputs for its latents.
     """
 
     def __init__(
         self,
-        capacity: int,
+        capacity: int | None,
         seed: int = 0,
         obs_transform: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]] | None = None,
     ) -> None:
-        if capacity < 2:
-            raise ValueError(f"capacity must be >= 2 rows, got {capacity}")
-        self.capacity = int(capacity)
+        if capacity is not None and capacity < 2:
+            raise ValueError(f"capacity must be >= 2 rows or None, got {capacity}")
+        self.capacity = None if capacity is None else int(capacity)
         self.obs_transform = obs_transform
         self.generator = torch.Generator().manual_seed(int(seed))
         self._obs: dict[str, torch.Tensor] = {}
-        self._action = torch.empty(0, ACTION_DIM)
+        self._action = torch.empty(0, 0)
         self._reward = torch.empty(0)
         self._term = torch.empty(0)
-        self._cursor = 0
-        self._high = 0  # rows ever written (for compact checkpoints)
-        # Live episodes, oldest first: [first row, transitions T, task index].
-        self._episodes: list[tuple[int, int, int]] = []
-        self._index_cache: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+        self._first = torch.empty(0, dtype=torch.bool)
+        self._task = torch.empty(0, dtype=torch.long)
+        self._written = 0  # rows ever written; row number n lives at n % capacity
+        # Stored episodes, oldest first (the oldest may be partly overwritten):
+        # [number of its first row ever written, rows, task index].
+        self._episodes: deque[tuple[int, int, int]] = deque()
+        self._cache: dict[str, torch.Tensor] = {}
 
     # ----------------------------------------------------------------------------- adding
 
@@ -65,15 +95,17 @@ class ReplayBuffer:
         terminated: np.ndarray | torch.Tensor,
         task: int = 0,
     ) -> None:
-        """Store one episode: obs arrays (T+1, ...), action (T, 4), reward (T,), terminated (T,).
+        """Store one episode: obs arrays (T+1, ...), action (T, A), reward (T,), terminated (T,).
 
         terminated may be true only at the last transition (the success that ended it).
         """
-        action = _tensor(action).float().reshape(-1, ACTION_DIM)
-        steps = action.shape[0]
+        action = _tensor(action).float()
         reward = _tensor(reward).float().reshape(-1)
         term = _tensor(terminated).float().reshape(-1)
         obs_t = {k: _tensor(v) for k, v in obs.items()}
+        steps = action.shape[0]
+        if action.dim() != 2:
+            raise ValueError(f"action must be (T, A), got shape {tuple(action.shape)}")
         if steps < 1:
             raise ValueError("an episode needs at least one transition")
         if reward.shape[0] != steps or term.shape[0] != steps:
@@ -86,35 +118,81 @@ class ReplayBuffer:
                 raise ValueError(f"obs[{k!r}] has {v.shape[0]} rows, expected T+1 = {steps + 1}")
         if bool(term[:-1].any()):
             raise ValueError("terminated is set before the last transition of the episode")
+        if self.capacity is not None and steps + 1 > self.capacity:
+            raise ValueError(
+                f"episode of {steps + 1} rows exceeds the buffer capacity {self.capacity}"
+            )
         if self.obs_transform is not None:
             obs_t = self.obs_transform(obs_t)
-        rows = steps + 1
-        if rows > self.capacity:
-            raise ValueError(f"episode of {rows} rows exceeds the buffer capacity {self.capacity}")
-        self._check_layout(obs_t)
+        first = torch.zeros(steps + 1, dtype=torch.bool)
+        first[0] = True
+        self._append(
+            obs_t,
+            torch.cat([action, action.new_zeros(1, action.shape[1])]),
+            torch.cat([reward, reward.new_zeros(1)]),
+            torch.cat([term, term.new_zeros(1)]),
+            first,
+            [steps + 1],
+            int(task),
+        )
 
-        if self._cursor + rows > self.capacity:
-            self._cursor = 0  # wrap; the tail rows stay unused this lap
-        lo, hi = self._cursor, self._cursor + rows
-        self._episodes = [e for e in self._episodes if e[0] + e[1] + 1 <= lo or e[0] >= hi]
-        self._grow(hi)
-        for k, v in obs_t.items():
-            self._obs[k][lo:hi] = v
-        self._action[lo : hi - 1] = action
-        self._reward[lo : hi - 1] = reward
-        self._term[lo : hi - 1] = term
-        self._action[hi - 1] = 0.0  # filler row after the last observation: never sampled
-        self._reward[hi - 1] = 0.0
-        self._term[hi - 1] = 0.0
-        self._episodes.append((lo, steps, int(task)))
-        self._cursor = hi
-        self._high = max(self._high, hi)
-        self._index_cache.clear()
+    def add_transitions(self, transitions: Transitions, task: int = 0) -> None:
+        """Store k transitions as k 2-row episodes (o_t with a_t, r_t, terminated_t; then
+        o_{t+1}), in order. Observations are stored as given (no `obs_transform`)."""
+        obs, next_obs, action, reward, term = transitions
+        k = action.shape[0]
+        if k == 0:
+            return
+        if set(obs) != set(next_obs):
+            raise ValueError(f"obs keys {sorted(obs)} differ from next_obs {sorted(next_obs)}")
+        if self.capacity is not None and 2 * k > self.capacity:
+            raise ValueError(f"{k} transitions (2 rows each) exceed the capacity {self.capacity}")
 
-    def _check_layout(self, obs: dict[str, torch.Tensor]) -> None:
+        def rows(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # a_0, b_0, a_1, b_1, ...
+            return torch.stack([a, b], dim=1).reshape(2 * k, *a.shape[1:])
+
+        action = action.float()
+        reward, term = reward.float().reshape(k), term.float().reshape(k)
+        self._append(
+            {key: rows(obs[key], next_obs[key]) for key in obs},
+            rows(action, torch.zeros_like(action)),
+            rows(reward, torch.zeros_like(reward)),
+            rows(term, torch.zeros_like(term)),
+            torch.tensor([True, False]).repeat(k),
+            [2] * k,
+            int(task),
+        )
+
+    def _append(self, obs, action, reward, term, first, episode_rows: list[int], task: int):
+        n = action.shape[0]
+        self._check_layout(obs, action)
+        start = self._written
+        cap = self.capacity
+        self._grow(start + n if cap is None else min(start + n, cap))
+        idx = self._physical(torch.arange(start, start + n))
+        for k, v in obs.items():
+            self._obs[k][idx] = v
+        self._action[idx] = action
+        self._reward[idx] = reward
+        self._term[idx] = term
+        self._first[idx] = first
+        self._task[idx] = task
+        self._written += n
+        for rows in episode_rows:
+            self._episodes.append((start, rows, task))
+            start += rows
+        oldest = self._oldest
+        while self._episodes and sum(self._episodes[0][:2]) <= oldest:
+            self._episodes.popleft()
+        if oldest > 0:  # the remainder of a partly overwritten episode starts here
+            self._first[self._physical(torch.tensor([oldest]))] = True
+        self._cache.clear()
+
+    def _check_layout(self, obs: dict[str, torch.Tensor], action: torch.Tensor) -> None:
         if not self._obs:
             for k, v in obs.items():
                 self._obs[k] = torch.empty((0, *v.shape[1:]), dtype=v.dtype)
+            self._action = torch.empty(0, action.shape[1])
             return
         if set(obs) != set(self._obs):
             raise ValueError(f"obs keys {sorted(obs)} differ from stored {sorted(self._obs)}")
@@ -125,13 +203,18 @@ class ReplayBuffer:
                     f"obs[{k!r}] is {v.dtype} {tuple(v.shape[1:])}, stored "
                     f"{ref.dtype} {tuple(ref.shape[1:])}"
                 )
+        if action.shape[1] != self._action.shape[1]:
+            raise ValueError(f"action size {action.shape[1]} != stored {self._action.shape[1]}")
 
     def _grow(self, rows: int) -> None:
-        """Allocate lazily (doubling, up to capacity) so small runs stay small."""
+        """Allocate lazily (doubling, up to capacity) so small runs stay small. Storage only
+        grows before the ring first wraps, so row n sits at index n until then."""
         size = self._action.shape[0]
         if rows <= size:
             return
-        new = min(self.capacity, max(rows, 2 * size, 1024))
+        new = max(rows, 2 * size, 1024)
+        if self.capacity is not None:
+            new = min(self.capacity, new)
 
         def grown(t: torch.Tensor) -> torch.Tensor:
             out = torch.zeros((new, *t.shape[1:]), dtype=t.dtype)
@@ -139,90 +222,150 @@ class ReplayBuffer:
             return out
 
         self._obs = {k: grown(v) for k, v in self._obs.items()}
-        self._action = grown(self._action)
-        self._reward = grown(self._reward)
-        self._term = grown(self._term)
+        self._action, self._reward, self._term = map(grown, (self._action, self._reward,
+                                                             self._term))  # fmt: skip
+        self._first, self._task = grown(self._first), grown(self._task)
 
-    # ---------------------------------------------------------------------------- sampling
+    # --------------------------------------------------------------------------- geometry
+
+    @property
+    def size(self) -> int:
+        """Rows stored."""
+        return self._written if self.capacity is None else min(self._written, self.capacity)
+
+    @property
+    def _oldest(self) -> int:
+        """Number (in write order) of the oldest stored row."""
+        return self._written - self.size
+
+    def _physical(self, numbers: torch.Tensor) -> torch.Tensor:
+        return numbers if self.capacity is None else numbers % self.capacity
+
+    def _rows(self, logical: torch.Tensor) -> torch.Tensor:
+        """Storage indices of stored rows counted from the oldest (0 .. size - 1)."""
+        return self._physical(logical + self._oldest)
 
     @property
     def num_episodes(self) -> int:
+        """Stored episodes, a partly overwritten one included."""
         return len(self._episodes)
 
     @property
     def num_transitions(self) -> int:
-        return sum(e[1] for e in self._episodes)
+        """Real transitions stored: every stored row but each episode's last one."""
+        return self.size - self.num_episodes
 
     def __len__(self) -> int:
         return self.num_transitions
 
-    def _index(self, horizon: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Per episode: first row, number of valid starts, cumulative starts."""
-        if horizon not in self._index_cache:
-            ep = torch.tensor(self._episodes, dtype=torch.long).reshape(-1, 3)
-            counts = (ep[:, 1] - horizon + 1).clamp(min=0)
-            self._index_cache[horizon] = (ep, counts, counts.cumsum(0))
-        return self._index_cache[horizon]
+    # ---------------------------------------------------------------------------- sampling
 
-    def num_starts(self, horizon: int) -> int:
-        """How many distinct subsequences of `horizon` actions can be sampled."""
-        _, _, cum = self._index(horizon)
-        return int(cum[-1]) if len(cum) else 0
+    def num_starts(self, seq_len: int) -> int:
+        """How many distinct windows of `seq_len` rows can be sampled."""
+        return max(0, self.size - seq_len + 1)
 
-    def can_sample(self, horizon: int) -> bool:
-        return self.num_starts(horizon) > 0
+    def can_sample(self, seq_len: int) -> bool:
+        return self.num_starts(seq_len) > 0
 
-    def sample(self, batch_size: int, horizon: int) -> Batch:
-        """`batch_size` subsequences of H = `horizon` actions, uniform over valid starts."""
-        if horizon < 1 or batch_size < 1:
-            raise ValueError(f"horizon and batch_size must be >= 1, got {horizon}, {batch_size}")
-        total = self.num_starts(horizon)
+    def sample(self, batch_size: int, seq_len: int) -> Batch:
+        """`batch_size` windows of `seq_len` rows, uniform (with replacement) over starts."""
+        if seq_len < 1 or batch_size < 1:
+            raise ValueError(f"seq_len and batch_size must be >= 1, got {seq_len}, {batch_size}")
+        total = self.num_starts(seq_len)
         if total == 0:
-            raise ValueError(f"no stored episode has {horizon} transitions to sample from")
+            raise ValueError(f"replay holds {self.size} rows, fewer than a window of {seq_len}")
         starts = torch.randint(0, total, (batch_size,), generator=self.generator)
-        return self.gather(starts, horizon)
+        return self.gather(starts, seq_len)
 
-    def gather(self, starts, horizon: int) -> Batch:
-        """The subsequences at start numbers `starts` in [0, num_starts(horizon)), in order
-        (start numbers count valid starts episode by episode, as `sample` draws them)."""
-        ep, counts, cum = self._index(horizon)
+    def gather(self, starts, seq_len: int) -> Batch:
+        """The windows whose first rows are `starts` in [0, num_starts(seq_len)), counted from
+        the oldest stored row (as `sample` draws them), in order."""
         pick = torch.as_tensor(starts, dtype=torch.long).reshape(-1)
-        total = int(cum[-1]) if len(cum) else 0
+        total = self.num_starts(seq_len)
         if len(pick) and (int(pick.min()) < 0 or int(pick.max()) >= total):
-            raise ValueError(f"start numbers must be in [0, {total}) for horizon {horizon}")
-        which = torch.searchsorted(cum, pick, right=True)
-        offset = pick - (cum[which] - counts[which])
-        first = ep[which, 0] + offset
-        rows = first.unsqueeze(0) + torch.arange(horizon + 1).unsqueeze(1)  # (H+1, B)
-        act_rows = rows[:-1]
+            raise ValueError(f"window starts must be in [0, {total}) for seq_len {seq_len}")
+        return self._window(pick.unsqueeze(0) + torch.arange(seq_len).unsqueeze(1))
+
+    def sample_at_episode_starts(self, batch_size: int, seq_len: int) -> Batch:
+        """`batch_size` windows of `seq_len` rows, each starting on an episode's first row,
+        uniform over stored episodes. A window running past the newest row continues at the
+        oldest (whose is_first = 1 marks the seam), so every episode is equally likely. For
+        memories of short episodes (ER's 2-row transitions): every window starts on a real
+        transition."""
+        if seq_len < 1 or batch_size < 1:
+            raise ValueError(f"seq_len and batch_size must be >= 1, got {seq_len}, {batch_size}")
+        firsts = self._episode_starts()
+        if len(firsts) == 0:
+            raise ValueError("replay is empty")
+        pick = firsts[torch.randint(0, len(firsts), (batch_size,), generator=self.generator)]
+        return self._window((pick.unsqueeze(0) + torch.arange(seq_len).unsqueeze(1)) % self.size)
+
+    def _episode_starts(self) -> torch.Tensor:
+        """First stored row of every stored episode, counted from the oldest row."""
+        if "starts" not in self._cache:
+            oldest = self._oldest
+            self._cache["starts"] = torch.tensor(
+                [max(first, oldest) - oldest for first, _, _ in self._episodes], dtype=torch.long
+            )
+        return self._cache["starts"]
+
+    def _window(self, logical: torch.Tensor) -> Batch:
+        rows = self._rows(logical)  # (L, B)
         return Batch(
             obs={k: v[rows] for k, v in self._obs.items()},
-            action=self._action[act_rows],
-            reward=self._reward[act_rows].unsqueeze(-1),
-            terminated=self._term[act_rows].unsqueeze(-1),
-            task=ep[which, 2].clone(),
+            action=self._action[rows],
+            reward=self._reward[rows].unsqueeze(-1),
+            terminated=self._term[rows].unsqueeze(-1),
+            is_first=self._first[rows].float().unsqueeze(-1),
+            task=self._task[rows],
+        )
+
+    # ------------------------------------------------------------------------ transitions
+
+    def _transition_rows(self) -> torch.Tensor:
+        """Logical rows r whose transition is real (row r + 1 stored, same episode)."""
+        if "transitions" not in self._cache:
+            first = self._first[self._rows(torch.arange(self.size))]
+            self._cache["transitions"] = torch.nonzero(~first[1:]).reshape(-1)
+        return self._cache["transitions"]
+
+    def transitions(self, indices) -> Transitions:
+        """The real transitions numbered `indices` in [0, num_transitions), oldest first."""
+        pick = torch.as_tensor(np.asarray(indices), dtype=torch.long).reshape(-1)
+        rows = self._transition_rows()
+        if len(pick) and (int(pick.min()) < 0 or int(pick.max()) >= len(rows)):
+            raise ValueError(f"transition indices must be in [0, {len(rows)})")
+        now = self._rows(rows[pick])
+        nxt = self._rows(rows[pick] + 1)
+        return Transitions(
+            obs={k: v[now] for k, v in self._obs.items()},
+            next_obs={k: v[nxt] for k, v in self._obs.items()},
+            action=self._action[now],
+            reward=self._reward[now],
+            terminated=self._term[now],
         )
 
     # ------------------------------------------------------------------------- checkpoints
 
     def state_dict(self) -> dict:
         """Everything needed to continue identically, storing only rows ever written."""
-        high = self._high
+        used = self.size  # storage rows 0 .. used - 1 hold data
         return {
             "capacity": self.capacity,
-            "cursor": self._cursor,
-            "high": high,
-            "episodes": torch.tensor(self._episodes, dtype=torch.long).reshape(-1, 3),
+            "written": self._written,
+            "episodes": torch.tensor(list(self._episodes), dtype=torch.long).reshape(-1, 3),
             # clone: saving a view would write the whole preallocated storage
-            "obs": {k: v[:high].clone() for k, v in self._obs.items()},
-            "action": self._action[:high].clone(),
-            "reward": self._reward[:high].clone(),
-            "terminated": self._term[:high].clone(),
+            "obs": {k: v[:used].clone() for k, v in self._obs.items()},
+            "action": self._action[:used].clone(),
+            "reward": self._reward[:used].clone(),
+            "terminated": self._term[:used].clone(),
+            "is_first": self._first[:used].clone(),
+            "task": self._task[:used].clone(),
             "generator": self.generator.get_state(),
         }
 
     def load_state_dict(self, state: dict) -> None:
-        if int(state["capacity"]) != self.capacity:
+        if state["capacity"] != self.capacity:
             raise ValueError(
                 f"checkpoint buffer capacity {state['capacity']} != configured {self.capacity}"
             )
@@ -230,8 +373,9 @@ class ReplayBuffer:
         self._action = state["action"].clone()
         self._reward = state["reward"].clone()
         self._term = state["terminated"].clone()
-        self._cursor = int(state["cursor"])
-        self._high = int(state["high"])
-        self._episodes = [tuple(int(x) for x in row) for row in state["episodes"].tolist()]
+        self._first = state["is_first"].clone()
+        self._task = state["task"].clone()
+        self._written = int(state["written"])
+        self._episodes = deque(tuple(int(x) for x in row) for row in state["episodes"].tolist())
         self.generator.set_state(state["generator"])
-        self._index_cache.clear()
+        self._cache.clear()

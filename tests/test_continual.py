@@ -1,6 +1,7 @@
 """Continual methods on a small real backbone trained with a real Adam loop (and on TD-MPC2)."""
 
 import copy
+import dataclasses
 import math
 
 import numpy as np
@@ -13,8 +14,9 @@ from ccfit.continual.base import ContinualMethod
 from ccfit.continual.er import reservoir_indices
 from ccfit.continual.packnet import FREE, Phase
 from ccfit.models.base import Batch
+from ccfit.replay import Transitions
 
-STATE, ACT, H = 6, 2, 1
+STATE, ACT = 6, 2
 
 
 class TinyBackbone(nn.Module):
@@ -26,37 +28,43 @@ class TinyBackbone(nn.Module):
         self.dynamics = nn.Linear(16 + ACT, 16)
 
     def backbone_loss(self, batch: Batch) -> torch.Tensor:
+        """One-step prediction from row 0, only where transition 0 is real."""
         s = batch.obs["state"]
         z = self.encoder(s[0])
         pred = self.dynamics(torch.cat([z, batch.action[0]], -1))
-        return (pred - self.encoder(s[1]).detach()).pow(2).mean() + z.pow(2).mean()
+        err = (pred - self.encoder(s[1]).detach()).pow(2).mean(-1, keepdim=True)
+        return (err * batch.valid()[0]).mean() + z.pow(2).mean()
 
 
 def make_task_data(backbone: TinyBackbone, task: int, n: int, batch_size: int = 32) -> TaskData:
-    """n random subsequences of task `task` (a task-specific offset); obs['id'] names each."""
+    """n random transitions of task `task` (a task-specific offset); obs['id'] names each:
+    j for o_t, j + 0.5 for o_{t+1}. Training batches are 2-row windows of one transition."""
     g = torch.Generator().manual_seed(100 + task)
-    state = torch.randn(H + 1, n, STATE, generator=g) + 2.0 * task
-    ids = torch.arange(n, dtype=torch.float32).view(1, n, 1).expand(H + 1, n, 1)
-    full = Batch(
-        obs={"state": state, "id": ids.clone()},
-        action=torch.randn(H, n, ACT, generator=g),
-        reward=torch.zeros(H, n, 1),
-        terminated=torch.zeros(H, n, 1),
-        task=torch.full((n,), task, dtype=torch.long),
-    )
+    state = torch.randn(2, n, STATE, generator=g) + 2.0 * task
+    ids = torch.arange(n, dtype=torch.float32).view(n, 1)
+    action = torch.randn(n, ACT, generator=g)
 
-    def gather(indices) -> Batch:
+    def transitions(indices) -> Transitions:
         rows = torch.as_tensor(np.asarray(indices), dtype=torch.long)
-        return Batch(
-            obs={k: v[:, rows] for k, v in full.obs.items()},
-            action=full.action[:, rows], reward=full.reward[:, rows],
-            terminated=full.terminated[:, rows], task=full.task[rows],
-        )
+        return Transitions(
+            obs={"state": state[0, rows], "id": ids[rows]},
+            next_obs={"state": state[1, rows], "id": ids[rows] + 0.5},
+            action=action[rows], reward=-torch.ones(len(rows)) / 2,
+            terminated=torch.zeros(len(rows)),
+        )  # fmt: skip
 
     def sample() -> Batch:
-        return gather(torch.randint(n, (batch_size,), generator=g))
+        rows = torch.randint(n, (batch_size,), generator=g)
+        tr = transitions(rows)
+        obs = {k: torch.stack([tr.obs[k], tr.next_obs[k]]) for k in tr.obs}
+        action = torch.stack([tr.action, torch.zeros_like(tr.action)])
+        zeros = torch.zeros(2, batch_size, 1)
+        is_first = torch.stack([torch.ones(batch_size, 1), torch.zeros(batch_size, 1)])
+        task_rows = torch.full((2, batch_size), task, dtype=torch.long)
+        return Batch(obs, action, zeros, zeros.clone(), is_first, task_rows)
 
-    return TaskData(task, sample, n, gather, backbone.backbone_loss)
+    return TaskData(task_index=task, sample=sample, num_transitions=n, transitions=transitions,
+                    seq_len=2, backbone_loss=backbone.backbone_loss)  # fmt: skip
 
 
 def train(backbone, method, opt, data: TaskData, steps: int) -> None:
@@ -125,25 +133,35 @@ def test_reservoir_is_a_uniform_subset():
     np.testing.assert_array_equal(reservoir_indices(7, 7, rng), np.arange(7))
 
 
-def test_er_keeps_fraction_and_replays_only_earlier_tasks():
+def test_er_keeps_fraction_as_two_row_items_and_replays_only_earlier_tasks():
     torch.manual_seed(0)
     bb = TinyBackbone()
     er = make_method("er", fraction=0.05, replay_ratio=0.2, batch_size=64, seed=3)
     assert er.penalty(bb, bb.backbone_loss).item() == 0.0  # nothing kept during task 0
+    assert er.replay_batch() is None
     data0, data1 = make_task_data(bb, 0, 1000), make_task_data(bb, 1, 620)
     er.after_task(0, bb, data0)
-    assert er.memory.size == 50 and len(er.kept[0]) == round(0.05 * 1000)
+    assert len(er.kept[0]) == round(0.05 * 1000) == er.memory.num_episodes
+    # Each kept transition is one item of exactly 2 rows: o_t (with a_t, r_t) and o_{t+1}.
+    assert er.memory.size == 100 and er.state_dict()["memory"]["obs"]["state"].shape[0] == 100
+    stored, kept = er.memory.transitions(np.arange(50)), data0.transitions(er.kept[0])
+    for x, y in zip(stored, kept, strict=True):
+        pairs = x.items() if isinstance(x, dict) else [("", x)]
+        assert all(torch.equal(v, y[k] if k else y) for k, v in pairs)
     # During task 1 only task 0 is replayed, and only its kept transitions.
     batch = er.replay_batch()
-    assert batch.size == 64 and set(batch.task.tolist()) == {0}
-    assert set(batch.obs["id"][0, :, 0].long().tolist()) <= set(er.kept[0].tolist())
+    assert batch.size == 64 and batch.seq_len == 2 and set(batch.task.flatten().tolist()) == {0}
+    ids = batch.obs["id"][..., 0]
+    assert set(ids[0].long().tolist()) <= set(er.kept[0].tolist())
+    assert torch.equal(ids[1], ids[0] + 0.5)  # o_{t+1} of the same transition
     er.after_task(1, bb, data1)
-    assert len(er.kept[1]) == 31 and er.memory.size == 81  # round(0.05 * 620) = 31
+    assert len(er.kept[1]) == 31 and er.memory.num_episodes == 81  # round(0.05 * 620) = 31
+    assert er.memory.size == 162
     with pytest.raises(ValueError, match="already added"):
         er.after_task(1, bb, data1)
     batch = er.replay_batch()
     for task in (0, 1):
-        rows = batch.task == task
+        rows = batch.task[0] == task
         assert rows.any()
         assert set(batch.obs["id"][0, rows, 0].long().tolist()) <= set(er.kept[task].tolist())
     # The penalty is r / (1 - r) = 0.25 times the backbone loss on the next replay sample.
@@ -154,6 +172,32 @@ def test_er_keeps_fraction_and_replays_only_earlier_tasks():
     assert pen.item() == pytest.approx(expected.item(), rel=1e-6) and pen.item() > 0
     pen.backward()
     assert bb.dynamics.weight.grad.abs().sum() > 0
+    # A fresh method restored from the state continues with the same replay batches.
+    er.load_state_dict(state)
+    other = make_method("er", fraction=0.05, replay_ratio=0.2, batch_size=64, seed=99)
+    other.load_state_dict(copy.deepcopy(state))
+    assert torch.equal(other.replay_batch().obs["id"], er.replay_batch().obs["id"])
+
+
+def test_er_windows_have_the_model_length_and_start_on_kept_items():
+    bb = TinyBackbone()
+    er = make_method("er", fraction=0.1, batch_size=4000, seed=1)
+    data = dataclasses.replace(make_task_data(bb, 0, 200), seq_len=5)
+    er.after_task(0, bb, data)
+    batch = er.replay_batch()
+    assert batch.obs["id"].shape == (5, 4000, 1)
+    # is_first at every item start: rows 0, 2, 4; each item's rows are o_t, o_{t+1}.
+    assert torch.equal(batch.is_first[..., 0], torch.tensor([1.0, 0, 1, 0, 1]).expand(4000, 5).T)
+    ids = batch.obs["id"][..., 0]
+    assert torch.equal(ids[1], ids[0] + 0.5) and torch.equal(ids[3], ids[2] + 0.5)
+    # Every window starts on a real transition and stops at the next item.
+    assert batch.rollout_mask()[..., 0].sum(0).tolist() == [1.0] * 4000
+    # Uniform over the 20 kept transitions (each ~200 of 4000; binomial sd ~13.8).
+    counts = np.bincount(np.searchsorted(er.kept[0], ids[0].long().numpy()), minlength=20)
+    assert set(ids[0].long().tolist()) == set(er.kept[0].tolist())
+    assert np.all(np.abs(counts - 200) < 70), counts
+    with pytest.raises(ValueError, match="seq_len 2 differs from 5"):
+        er.after_task(1, bb, make_task_data(bb, 1, 200))
 
 
 def test_er_is_deterministic_per_seed():
@@ -165,7 +209,8 @@ def test_er_is_deterministic_per_seed():
         runs.append((er.kept[0], er.replay_batch().obs["id"]))
     np.testing.assert_array_equal(runs[0][0], runs[1][0])
     assert torch.equal(runs[0][1], runs[1][1])
-    assert not np.array_equal(runs[0][0], runs[2][0])
+    assert not np.array_equal(runs[0][0], runs[2][0])  # the reservoir differs across seeds
+    assert not torch.equal(runs[0][1], runs[2][1])
 
 
 # ----------------------------------------------------------------------------- EWC
@@ -180,7 +225,7 @@ def test_ewc_fisher_anchor_and_quadratic_growth():
     # Fisher by hand on the same four batches: mean of squared batch gradients.
     batches = [data.sample() for _ in range(4)]
     it = iter(batches)
-    fixed = TaskData(0, lambda: next(it), 200, data.gather, bb.backbone_loss)
+    fixed = dataclasses.replace(data, sample=lambda: next(it))
     manual = {k: torch.zeros_like(p) for k, p in bb.named_parameters()}
     for b in batches:
         bb.zero_grad()
@@ -360,43 +405,23 @@ def test_packnet_without_retraining_freezes_at_once():
 
 
 def _tdmpc2_setup():
-    pytest.importorskip("ccfit.models.tdmpc2")
-    from ccfit.config import TDMPC2Config
-    from ccfit.models.tdmpc2 import TDMPC2
-    from ccfit.replay import ReplayBuffer
+    from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
+
+    try:
+        from replay_data import random_buffer
+    except ImportError:  # tests/ imported as a package
+        from tests.replay_data import random_buffer
 
     torch.manual_seed(0)
     cfg = TDMPC2Config.preset("smoke")
     model = TDMPC2(cfg, device="cpu")
-    rng = np.random.default_rng(0)
-    buffers = []
-    for task in range(2):
-        buf = ReplayBuffer(capacity=500, seed=task)
-        for _ in range(3):
-            steps = 30
-            buf.add_episode(
-                {"state": rng.normal(size=(steps + 1, cfg.state_dim)).astype(np.float32)
-                 + task},
-                rng.uniform(-1, 1, size=(steps, 4)).astype(np.float32),
-                -rng.uniform(size=steps).astype(np.float32),
-                np.zeros(steps, dtype=np.float32),
-                task=task,
-            )
-        buffers.append(buf)
+    buffers = [random_buffer(cfg, seed=task, task=task, steps=(5, 30)) for task in range(2)]
     return cfg, model, buffers
 
 
-def _task_data(model, buf, task, horizon):
-    # A fixed pool of real subsequences stands in for the buffer's transitions.
-    pool = buf.sample(80, horizon)
-
-    def gather(indices):
-        rows = torch.as_tensor(np.asarray(indices), dtype=torch.long)
-        return Batch({k: v[:, rows] for k, v in pool.obs.items()}, pool.action[:, rows],
-                     pool.reward[:, rows], pool.terminated[:, rows], pool.task[rows])
-
-    return TaskData(task, lambda: buf.sample(16, horizon), pool.size, gather,
-                    model.backbone_loss)
+def _task_data(model, buf, task):
+    return TaskData.from_buffer(task, buf, batch_size=16, seq_len=model.cfg.seq_len,
+                                backbone_loss=model.backbone_loss)  # fmt: skip
 
 
 @pytest.mark.parametrize("name", ["ft", "er", "ewc", "packnet"])
@@ -410,12 +435,12 @@ def test_methods_on_tdmpc2_backbone(name):
     task0 = None
     for task in range(2):
         heads = model.new_heads()
-        opt = torch.optim.Adam(model.param_groups(heads))
+        opt = model.world_model_optimizer(heads)
         head_params = snapshot(heads)
         method.before_task(task, backbone)
 
         def update(task=task, heads=heads, opt=opt):
-            out = model.loss(buffers[task].sample(16, cfg.horizon), heads)
+            out = model.loss(buffers[task].sample(16, cfg.seq_len), heads)
             pen = method.penalty(backbone, model.backbone_loss)
             penalties.append(pen.item())
             opt.zero_grad()
@@ -426,7 +451,7 @@ def test_methods_on_tdmpc2_backbone(name):
 
         for _ in range(4):
             update()
-        method.after_task(task, backbone, _task_data(model, buffers[task], task, cfg.horizon))
+        method.after_task(task, backbone, _task_data(model, buffers[task], task))
         for _ in range(method.wants_retrain_steps):
             update()
         if task == 0:

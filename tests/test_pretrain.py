@@ -81,9 +81,8 @@ def test_loss_falls_split_and_sidecar(reach_root, tmp_path):
 
 
 def test_resume_equals_uninterrupted_and_frozen_round_trip(reach_root, tmp_path):
-    from ccfit.config import tdmpc2_preset
     from ccfit.models.encoders import build_encoder, load_frozen_encoder
-    from ccfit.models.tdmpc2 import TDMPC2
+    from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
 
     config = make_config(reach_root)
     full = tmp_path / "full.safetensors"
@@ -142,7 +141,7 @@ def test_resume_equals_uninterrupted_and_frozen_round_trip(reach_root, tmp_path)
         assert torch.equal(frozen(obs), trained(obs))
     assert torch.equal(frozen(obs), load_frozen_encoder(full)[0](obs))  # same run, same weights
     # it plugs into the TD-MPC2 preset it was made for
-    model = TDMPC2(tdmpc2_preset("smoke", "pixels", image_size=SIZE), device="cpu",
+    model = TDMPC2(TDMPC2Config.preset("smoke", obs_mode="pixels", image_size=SIZE), device="cpu",
                    encoder=frozen)  # fmt: skip
     assert spec["latent_dim"] == model.cfg.latent_dim
     assert model.encode(obs).shape == (5, model.cfg.latent_dim)
@@ -259,7 +258,7 @@ def test_split_is_seeded_per_task_and_disjoint():
 
 
 def test_config_and_parser():
-    from ccfit.config import tdmpc2_preset
+    from ccfit.models.tdmpc2 import TDMPC2Config
 
     parser = argparse.ArgumentParser()
     add_pretrain_parser(parser.add_subparsers(dest="command"))
@@ -271,7 +270,7 @@ def test_config_and_parser():
     args = parser.parse_args(["pretrain-encoder"])
     config = config_from_args(args)
     assert config.suites == tuple(__import__("ccdata").SUITES) and config.model_preset == "cpu"
-    enc, ref = config.encoder_config(), tdmpc2_preset("cpu", "pixels")
+    enc, ref = config.encoder_config(), TDMPC2Config.preset("cpu", obs_mode="pixels")
     assert (enc.latent_dim, enc.enc_dim, enc.num_channels, enc.num_enc_layers) == (
         ref.latent_dim, ref.enc_dim, ref.num_channels, ref.num_enc_layers)
     with pytest.raises(ValueError, match="valid: Reach"):
@@ -289,11 +288,11 @@ def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeyp
     encoder's latents (dataset and live episodes alike) and the encoder ends bit-identical."""
     import ccdata.env
     import ccfit.curriculum as C
-    from ccfit.config import tdmpc2_preset
     from ccfit.models.base import LATENT_KEY
     from ccfit.models.encoders import build_encoder, load_frozen_encoder, save_encoder
+    from ccfit.models.tdmpc2 import TDMPC2Config
 
-    enc_cfg = tdmpc2_preset("smoke", "pixels", image_size=SIZE)
+    enc_cfg = TDMPC2Config.preset("smoke", obs_mode="pixels", image_size=SIZE)
     torch.manual_seed(0)
     path = tmp_path / "enc.safetensors"
     save_encoder(build_encoder(enc_cfg), enc_cfg, path)

@@ -9,12 +9,17 @@ import pytest
 import torch
 from torch import nn
 
-from ccfit.config import PWMConfig, TDMPC2Config, pwm_preset
 from ccfit.continual import TaskData, make_method
 from ccfit.models.base import Batch
-from ccfit.models.pwm import PWM, PWMHeads, gram_schmidt
-from ccfit.models.tdmpc2 import TDMPC2
+from ccfit.models.pwm import PWM, PWMConfig, PWMHeads, gram_schmidt
+from ccfit.models.registry import ConfigError
+from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
 from ccfit.replay import ReplayBuffer
+
+try:
+    from replay_data import random_buffer
+except ImportError:  # tests/ imported as a package
+    from tests.replay_data import random_buffer
 
 SIZE = 32  # pixel side for tests
 B = 8
@@ -24,7 +29,7 @@ K = 3
 
 def make_cfg(mode: str = "state", **kw) -> PWMConfig:
     kw = {"max_tasks": 4, **kw}
-    return pwm_preset("smoke", mode, image_size=SIZE, **kw)
+    return PWMConfig.preset("smoke", obs_mode=mode, image_size=SIZE, **kw)
 
 
 def build(mode: str = "state", seed: int = 0, **kw) -> PWM:
@@ -33,20 +38,8 @@ def build(mode: str = "state", seed: int = 0, **kw) -> PWM:
 
 
 def make_batch(cfg: PWMConfig, seed: int = 0, task: int = 0, batch: int = B) -> Batch:
-    g = torch.Generator().manual_seed(seed)
-    t = cfg.horizon
-    if cfg.obs_mode == "state":
-        obs = {"state": torch.randn(t + 1, batch, cfg.state_dim, generator=g)}
-    else:
-        pixels = torch.randint(0, 256, (t + 1, batch, 9, SIZE, SIZE), generator=g)
-        obs = {
-            "pixels": pixels.to(torch.uint8),
-            "proprio": torch.randn(t + 1, batch, cfg.proprio_dim, generator=g),
-        }
-    action = torch.rand(t, batch, cfg.action_dim, generator=g) * 2 - 1
-    terminated = (torch.rand(t, batch, 1, generator=g) < 0.15).float()
-    reward = -torch.rand(t, batch, 1, generator=g) * (1 - terminated)
-    return Batch(obs, action, reward, terminated, torch.full((batch,), task, dtype=torch.long))
+    """Windows of cfg.seq_len rows of task `task` from a real buffer of random episodes."""
+    return random_buffer(cfg, seed=seed, task=task).sample(batch, cfg.seq_len)
 
 
 def make_buffer(task: int, episodes: int = 3, steps: int = 20) -> ReplayBuffer:
@@ -64,7 +57,7 @@ def make_buffer(task: int, episodes: int = 3, steps: int = 20) -> ReplayBuffer:
     return buf
 
 
-def update(model, heads, opt, popt, batch, method=None, set_to_none=True):
+def update(model, heads, opt, head_opts, batch, method=None, set_to_none=True):
     out = model.loss(batch, heads)
     total = out.total
     if method is not None:
@@ -75,8 +68,12 @@ def update(model, heads, opt, popt, batch, method=None, set_to_none=True):
     opt.step()
     if method is not None:
         method.after_step(model.backbone)
-    model.head_update(batch, heads, out, popt)
+    model.head_update(batch, heads, out, head_opts)
     return out
+
+
+def optimisers(model: PWM, heads: PWMHeads):
+    return model.world_model_optimizer(heads), model.head_optimizers(heads)
 
 
 def snapshot(module: nn.Module) -> dict[str, torch.Tensor]:
@@ -100,10 +97,10 @@ def randomise_router(model: PWM, seed: int = 0) -> None:
 
 
 def test_config_validation_and_presets():
-    cfg = pwm_preset("smoke", "state")
+    cfg = PWMConfig.preset("smoke")
     assert isinstance(cfg, PWMConfig) and cfg.experts_per_task == 3 and cfg.router == "task"
     assert (cfg.latent_dim, cfg.tau_init, cfg.tau_hold_min) == (32, 1.8, 100)
-    paper = PWMConfig.preset("paper", "pixels")
+    paper = PWMConfig.preset("paper", obs_mode="pixels")
     assert (paper.latent_dim, paper.mlp_dim, paper.tau_hold_min) == (512, 512, 5000)
     assert paper.hold_steps() == 5000 and paper.hold_steps(1_000_000) == 50_000
     for bad, match in [
@@ -114,11 +111,17 @@ def test_config_validation_and_presets():
         ({"task_steps": 0}, "task_steps"),
     ]:
         with pytest.raises(ValueError, match=match):
-            pwm_preset("smoke", "state", **bad)
-    with pytest.raises(ValueError, match="valid: smoke, cpu, paper"):
-        pwm_preset("huge")
+            PWMConfig.preset("smoke", **bad)
+    with pytest.raises(ConfigError, match="valid: smoke, cpu, paper"):
+        PWMConfig.preset("huge")
+    assert cfg.type == "pwm" and (cfg.batch_size, cfg.seq_len, cfg.horizon) == (16, 4, 3)
+    assert PWMConfig.preset("19M").latent_dim == 768
+    assert PWMConfig.preset("cpu").tau_hold_min == 1000
+    assert PWMConfig.preset("cpu").mlp_dim == TDMPC2Config.preset("cpu").mlp_dim
     with pytest.raises(ValueError, match="PWMConfig"):
         PWM(TDMPC2Config(), device="cpu")
+    with pytest.raises(ValueError, match="TDMPC2Config"):
+        TDMPC2(object(), device="cpu")
 
 
 # ------------------------------------------------------------------------------ model
@@ -143,7 +146,9 @@ def test_shapes_and_finiteness(mode):
     assert torch.allclose(groups, torch.ones_like(groups), atol=1e-5)
     w = model.routing_weights(z, batch.action[0], 0)
     assert w.shape == (B, K * cfg.max_tasks)
-    a = model.act({k: v[0, 0] for k, v in batch.obs.items()}, heads, t0=True, eval_mode=True)
+    obs = {k: v[0, 0] for k, v in batch.obs.items()}
+    a, state = model.act(obs, heads, None, eval_mode=True)
+    assert state.shape == (cfg.horizon, 4)
     assert a.shape == (4,) and np.all(np.abs(a) <= 1) and np.isfinite(a).all()
 
 
@@ -151,8 +156,7 @@ def test_overfit_one_batch():
     model = build(lr=1e-3)
     heads = model.new_heads()
     batch = make_batch(model.cfg)
-    opt = torch.optim.Adam(model.param_groups(heads))
-    popt = model.make_policy_optimizer(heads)
+    opt, popt = optimisers(model, heads)
     first = update(model, heads, opt, popt, batch).total.item()
     losses = [update(model, heads, opt, popt, batch).total.item() for _ in range(120)]
     last = float(np.mean(losses[-10:]))
@@ -190,8 +194,7 @@ def test_state_dict_round_trip(tmp_path):
     randomise_router(model)
     model.dynamics.tau[1] = 0.9
     batch = make_batch(model.cfg, task=1)
-    opt = torch.optim.Adam(model.param_groups(heads))
-    update(model, heads, opt, model.make_policy_optimizer(heads), batch, method)
+    update(model, heads, *optimisers(model, heads), batch, method)
     torch.save({"model": model.state_dict(), "heads": heads.state_dict()}, tmp_path / "ck.pt")
 
     other = build(seed=1)
@@ -229,10 +232,19 @@ def test_heads_route_planning_and_must_match_the_batch():
     forward = model.dynamics.forward
     model.dynamics.forward = lambda z, a, task=None: seen.append(task) or forward(z, a, task)
     obs = {"state": torch.randn(39)}
-    model.act(obs, heads, t0=True, eval_mode=True)
+    model.act(obs, heads, None, eval_mode=True)
     assert seen and all(int(t) == 1 for t in seen)
     with pytest.raises(ValueError, match="heads of task 1 trained on a batch of tasks"):
         model.loss(make_batch(model.cfg, task=0), heads)
+    # A window routes with the task of its row 0: rows of a task-0 episode that follow a
+    # boundary (masked out of the losses) neither raise nor change the routing.
+    batch = make_batch(model.cfg, task=1)
+    batch.is_first[2:] = 1.0
+    batch.task[2:] = 0
+    seen.clear()
+    model.loss(batch, heads)
+    model.backbone_loss(batch)
+    assert seen and all(torch.equal(t, torch.ones(B, dtype=torch.long)) for t in seen)
     with pytest.raises(ValueError, match="outside 0..3"):
         model.begin_task(4)
     with pytest.raises(TypeError, match="PWMHeads"):
@@ -321,8 +333,7 @@ def test_temperature_schedule():
     model = build(tau_hold_min=hold, tau_hold_frac=0.0, tau_rate=0.05)
     heads = model.new_heads()
     cfg = model.cfg
-    opt = torch.optim.Adam(model.param_groups(heads))
-    popt = model.make_policy_optimizer(heads)
+    opt, popt = optimisers(model, heads)
     target = 0.75 * math.log(K)
     expected = cfg.tau_init
     for i in range(8):
@@ -354,10 +365,8 @@ def test_temperature_schedule():
 
 
 def _task_data(model: PWM, buf: ReplayBuffer, task: int) -> TaskData:
-    return TaskData(
-        task, lambda: buf.sample(B, model.cfg.horizon), buf.num_transitions,
-        lambda idx: buf.sample(len(idx), model.cfg.horizon), model.backbone_loss,
-    )  # fmt: skip
+    return TaskData.from_buffer(task, buf, batch_size=B, seq_len=model.cfg.seq_len,
+                                backbone_loss=model.backbone_loss)  # fmt: skip
 
 
 def test_progressive_experts_freeze_prior_experts_exactly():
@@ -370,8 +379,7 @@ def test_progressive_experts_freeze_prior_experts_exactly():
         model.begin_task(task)
         method.before_task(task, model.backbone)
         heads = model.new_heads()
-        opt = torch.optim.Adam(model.param_groups(heads))
-        popt = model.make_policy_optimizer(heads)
+        opt, popt = optimisers(model, heads)
         if task == 1:
             prior = snapshot(dyn.experts[:K])
             router, head = snapshot(dyn.router), snapshot(dyn.head)
@@ -381,7 +389,7 @@ def test_progressive_experts_freeze_prior_experts_exactly():
                 p.grad = torch.zeros_like(p)
             opt.add_param_group({"params": list(dyn.experts[:K].parameters())})
         for step in range(4):
-            batch = buffers[task].sample(B, model.cfg.horizon)
+            batch = buffers[task].sample(B, model.cfg.seq_len)
             out = model.loss(batch, heads)
             opt.zero_grad(set_to_none=False)
             out.total.backward()
@@ -429,11 +437,10 @@ def test_pwm_under_monolithic_methods(name):
         model.begin_task(task)
         method.before_task(task, backbone)
         heads = model.new_heads()
-        opt = torch.optim.Adam(model.param_groups(heads))
-        popt = model.make_policy_optimizer(heads)
+        opt, popt = optimisers(model, heads)
 
         def step(task=task, heads=heads, opt=opt, popt=popt):
-            batch = buffers[task].sample(B, model.cfg.horizon)
+            batch = buffers[task].sample(B, model.cfg.seq_len)
             out = update(model, heads, opt, popt, batch, method)
             penalties.append(float(method.penalty(backbone, model.backbone_loss).detach()))
             return out
@@ -472,14 +479,13 @@ def test_packnet_with_experts_activated_later():
             new = snapshot(model.dynamics.experts[K : 2 * K])
         method.before_task(task, backbone)
         heads = model.new_heads()
-        opt = torch.optim.Adam(model.param_groups(heads))
-        popt = model.make_policy_optimizer(heads)
+        opt, popt = optimisers(model, heads)
         for _ in range(3 if task == 0 else 2):
-            update(model, heads, opt, popt, buffers[task].sample(B, 3), method)
+            update(model, heads, opt, popt, buffers[task].sample(B, model.cfg.seq_len), method)
         if task == 0:
             method.after_task(task, backbone, _task_data(model, buffers[task], task))
             for _ in range(method.wants_retrain_steps):
-                update(model, heads, opt, popt, buffers[task].sample(B, 3), method)
+                update(model, heads, opt, popt, buffers[task].sample(B, model.cfg.seq_len), method)
             task0 = {k: v.detach().clone() for k, v in backbone.named_parameters()
                      if v.requires_grad}  # fmt: skip
     experts = model.dynamics.experts[K : 2 * K]
@@ -494,8 +500,7 @@ def test_packnet_with_experts_activated_later():
 def _three_updates():
     model = build(seed=7, orthogonalize=True)
     heads = model.new_heads()
-    opt = torch.optim.Adam(model.param_groups(heads))
-    popt = model.make_policy_optimizer(heads)
+    opt, popt = optimisers(model, heads)
     for i in range(3):
         update(model, heads, opt, popt, make_batch(model.cfg, seed=i))
     return [p.detach().clone() for p in [*model.parameters(), *heads.parameters()]]

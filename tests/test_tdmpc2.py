@@ -6,39 +6,29 @@ import numpy as np
 import pytest
 import torch
 
-from ccfit.config import TDMPC2_SIZES, TDMPC2Config, tdmpc2_preset
 from ccfit.models.base import Batch
 from ccfit.models.encoders import preprocess_frames, random_shift
 from ccfit.models.layers import EnsembleMLP, SimNorm, TwoHot, mlp, symexp, symlog
-from ccfit.models.tdmpc2 import TDMPC2
+from ccfit.models.registry import ConfigError
+from ccfit.models.tdmpc2 import TDMPC2, TDMPC2_SIZES, TDMPC2Config
+
+try:
+    from replay_data import random_buffer
+except ImportError:  # tests/ imported as a package
+    from tests.replay_data import random_buffer
 
 MODES = ("state", "pixels")
 SIZE = 32  # pixel side for tests
 B = 16
 
 
-
 def make_cfg(mode: str, **kw) -> TDMPC2Config:
-    return tdmpc2_preset("smoke", mode, image_size=SIZE, **kw)
+    return TDMPC2Config.preset("smoke", obs_mode=mode, image_size=SIZE, **kw)
 
 
 def make_batch(cfg: TDMPC2Config, seed: int = 0, batch: int = B) -> Batch:
-    g = torch.Generator().manual_seed(seed)
-    t = cfg.horizon
-    if cfg.obs_mode == "state":
-        obs = {"state": torch.randn(t + 1, batch, cfg.state_dim, generator=g)}
-    else:
-        obs = {
-            "pixels": torch.randint(0, 256, (t + 1, batch, 9, SIZE, SIZE), generator=g).to(
-                torch.uint8
-            ),
-            "proprio": torch.randn(t + 1, batch, cfg.proprio_dim, generator=g),
-        }
-    action = torch.rand(t, batch, cfg.action_dim, generator=g) * 2 - 1
-    reward = -torch.rand(t, batch, 1, generator=g)
-    terminated = (torch.rand(t, batch, 1, generator=g) < 0.15).float()
-    reward = reward * (1 - terminated)  # success steps have reward 0
-    return Batch(obs, action, reward, terminated, torch.zeros(batch, dtype=torch.long))
+    """Windows of cfg.seq_len rows from a real buffer of short random episodes."""
+    return random_buffer(cfg, seed=seed).sample(batch, cfg.seq_len)
 
 
 def build(mode: str, seed: int = 0, **kw):
@@ -48,13 +38,14 @@ def build(mode: str, seed: int = 0, **kw):
     return model, heads
 
 
-def update(model, heads, opt, popt, batch):
+def update(model, heads, opt, head_opts, batch):
     out = model.loss(batch, heads)
     opt.zero_grad(set_to_none=True)
     out.total.backward()
-    torch.nn.utils.clip_grad_norm_([p for g in opt.param_groups for p in g["params"]], 20.0)
+    params = [p for g in opt.param_groups for p in g["params"]]
+    torch.nn.utils.clip_grad_norm_(params, model.cfg.grad_clip)
     opt.step()
-    model.head_update(batch, heads, out, popt)
+    model.head_update(batch, heads, out, head_opts)
     return out
 
 
@@ -144,16 +135,25 @@ def test_random_shift_is_edge_replicating_translation():
 
 
 def test_config_validation_and_presets():
-    with pytest.raises(ValueError, match="state"):
+    with pytest.raises(ConfigError, match="state"):
         TDMPC2Config(obs_mode="rgb")
-    with pytest.raises(ValueError, match="smoke"):
-        tdmpc2_preset("huge")
-    with pytest.raises(ValueError, match="multiple"):
+    with pytest.raises(ConfigError, match="valid: smoke, cpu, paper, 1M"):
+        TDMPC2Config.preset("huge")
+    with pytest.raises(ConfigError, match="multiple"):
         TDMPC2Config(latent_dim=30)
+    with pytest.raises(ConfigError, match="TDMPC2Config.lr must be float, got 'fast'"):
+        TDMPC2Config(lr="fast")
+    with pytest.raises(ConfigError, match="num_elites"):
+        TDMPC2Config(num_elites=600)
     assert TDMPC2Config().discount == pytest.approx(0.98)
-    paper = tdmpc2_preset("paper", "pixels")
-    assert (paper.latent_dim, paper.mlp_dim, paper.num_q) == (512, 512, 5)
-    assert tdmpc2_preset("19M").latent_dim == TDMPC2_SIZES["19M"]["latent_dim"]
+    assert TDMPC2Config().type == "tdmpc2"
+    paper = TDMPC2Config.preset("paper", obs_mode="pixels")
+    assert (paper.latent_dim, paper.mlp_dim, paper.num_q, paper.obs_mode) == (512, 512, 5, "pixels")
+    assert TDMPC2Config.preset("19M").latent_dim == TDMPC2_SIZES["19M"]["latent_dim"]
+    sizes = [TDMPC2Config.preset(p).batch_size for p in ("smoke", "cpu", "paper", "1M")]
+    assert sizes == [16, 64, 256, 256]
+    smoke = TDMPC2Config.preset("smoke", horizon=5)
+    assert (smoke.seq_len, smoke.horizon, smoke.grad_clip, smoke.train_ratio) == (4, 5, 20.0, 1.0)
 
 
 # ------------------------------------------------------------------------------------ model
@@ -165,7 +165,7 @@ def test_shapes_and_finiteness(mode):
     cfg = model.cfg
     batch = make_batch(cfg)
     z = model.encode(batch.obs)
-    assert z.shape == (cfg.horizon + 1, B, cfg.latent_dim)
+    assert z.shape == (cfg.seq_len, B, cfg.latent_dim)
     torch.testing.assert_close(z.reshape(-1, 8).sum(-1), torch.ones(z.numel() // 8))  # SimNorm
     z0, a0 = z[0], batch.action[0]
     assert model.next(z0, a0).shape == (B, cfg.latent_dim)
@@ -179,6 +179,8 @@ def test_shapes_and_finiteness(mode):
     assert out.total.dim() == 0 and torch.isfinite(out.total)
     assert set(out.logs) >= {"consistency", "reward", "value", "termination"}
     assert all(np.isfinite(v) for v in out.logs.values())
+    assert out.aux["zs"].shape == (cfg.seq_len, B, cfg.latent_dim)
+    assert torch.equal(out.aux["mask"][1:], batch.rollout_mask())
     with pytest.raises(ValueError, match="avg"):
         model.Q(z0, a0, heads, "max")
 
@@ -187,10 +189,9 @@ def test_shapes_and_finiteness(mode):
 def test_overfit_one_batch(mode):
     model, heads = build(mode, lr=1e-3)
     batch = make_batch(model.cfg)
-    opt = torch.optim.Adam(model.param_groups(heads))
-    popt = model.make_policy_optimizer(heads)
-    first = update(model, heads, opt, popt, batch).total.item()
-    losses = [update(model, heads, opt, popt, batch).total.item() for _ in range(150)]
+    opt, head_opts = model.world_model_optimizer(heads), model.head_optimizers(heads)
+    first = update(model, heads, opt, head_opts, batch).total.item()
+    losses = [update(model, heads, opt, head_opts, batch).total.item() for _ in range(150)]
     last = float(np.mean(losses[-10:]))  # the TD targets move, so average out the wobble
     assert np.isfinite(last) and last < first / 3, (first, last)
 
@@ -199,8 +200,7 @@ def test_overfit_one_batch(mode):
 def test_state_dict_round_trip(mode, tmp_path):
     model, heads = build(mode, seed=0)
     batch = make_batch(model.cfg)
-    opt = torch.optim.Adam(model.param_groups(heads))
-    update(model, heads, opt, model.make_policy_optimizer(heads), batch)
+    update(model, heads, model.world_model_optimizer(heads), model.head_optimizers(heads), batch)
     torch.save({"model": model.state_dict(), "heads": heads.state_dict()}, tmp_path / "ck.pt")
 
     other, other_heads = build(mode, seed=1)
@@ -227,62 +227,46 @@ def test_state_dict_round_trip(mode, tmp_path):
     assert torch.equal(heads.q_scale, other_heads.q_scale)
 
 
-def _three_updates(mode):
-    model, heads = build(mode, seed=7)
-    opt = torch.optim.Adam(model.param_groups(heads))
-    popt = model.make_policy_optimizer(heads)
-    for i in range(3):
-        update(model, heads, opt, popt, make_batch(model.cfg, seed=i))
-    return [p.detach().clone() for p in [*model.parameters(), *heads.parameters()]]
-
-
 @pytest.mark.parametrize("mode", MODES)
-def test_same_seed_same_updates(mode):
-    a, b = _three_updates(mode), _three_updates(mode)
-    assert len(a) == len(b)
-    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
-
-
-@pytest.mark.parametrize("mode", MODES)
-def test_plan_actions(mode):
+def test_plan_actions_and_warm_start_state(mode):
     model, heads = build(mode)
-    batch = make_batch(model.cfg)
+    cfg = model.cfg
+    batch = make_batch(cfg)
     obs = {k: v[0, 0] for k, v in batch.obs.items()}
-    for t0, ev in ((True, False), (False, False), (False, True)):
-        a = model.act(obs, heads, t0=t0, eval_mode=ev)
+    assert model.initial_state(heads) is None
+    state = None
+    for ev in (False, False, True):
+        a, state = model.act(obs, heads, state, eval_mode=ev)
         assert a.shape == (4,) and np.isfinite(a).all() and np.abs(a).max() <= 1.0
-    assert heads.prev_mean.abs().sum() > 0  # the plan is kept for the warm start
+        assert state.shape == (cfg.horizon, 4) and state.abs().sum() > 0
+    assert "prev_mean" not in dict(heads.named_buffers())  # the plan lives in the state only
     # Training mode is restored after acting.
     assert model.training and heads.training and not heads.target_qs.training
-    # Eval actions are deterministic given the RNG state.
-    torch.manual_seed(5)
-    a1 = model.act(obs, heads, t0=True, eval_mode=True)
-    torch.manual_seed(5)
-    a2 = model.act(obs, heads, t0=True, eval_mode=True)
-    assert np.array_equal(a1, a2)
+    # Eval actions are deterministic given the RNG state and the acting state; the state is
+    # used (a warm start changes the plan) and not modified.
+    kept = state.clone()
+    runs = []
+    for s in (state, state, None):
+        torch.manual_seed(5)
+        runs.append(model.act(obs, heads, s, eval_mode=True))
+    assert np.array_equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
+    assert not np.array_equal(runs[0][0], runs[2][0])
+    assert torch.equal(state, kept)
+    with pytest.raises(ValueError, match="plan mean of shape"):
+        model.act(obs, heads, torch.zeros(cfg.horizon + 1, 4), eval_mode=True)
 
 
 @pytest.mark.parametrize("mode", MODES)
-def test_backbone_loss_touches_only_backbone(mode):
+def test_optimisers_and_head_update(mode):
     model, heads = build(mode)
-    batch = make_batch(model.cfg)
-    loss = model.backbone_loss(batch)
-    loss.backward()
-    assert all(p.grad is None for p in heads.parameters())
-    grads = [p.grad for p in model.backbone.parameters()]
-    assert all(g is not None for g in grads)
-    assert sum(g.abs().sum().item() for g in grads) > 0
-
-
-@pytest.mark.parametrize("mode", MODES)
-def test_param_groups_and_head_update(mode):
-    model, heads = build(mode)
-    groups = model.param_groups(heads)
-    lrs = {g["name"]: g["lr"] for g in groups}
-    assert lrs["encoder"] == pytest.approx(model.cfg.lr * 0.3)
-    grouped = {id(p) for g in groups for p in g["params"]}
-    pi_ids = {id(p) for p in model.policy_parameters(heads)}
-    assert not grouped & pi_ids
+    opt, head_opts = model.world_model_optimizer(heads), model.head_optimizers(heads)
+    lrs = {g["name"]: g["lr"] for g in opt.param_groups}
+    assert lrs == {"encoder": pytest.approx(model.cfg.lr * 0.3), "dynamics": model.cfg.lr,
+                   "heads": model.cfg.lr}  # fmt: skip
+    grouped = {id(p) for g in opt.param_groups for p in g["params"]}
+    assert set(head_opts) == {"pi"} and head_opts["pi"].defaults["eps"] == 1e-5
+    pi_ids = {id(p) for g in head_opts["pi"].param_groups for p in g["params"]}
+    assert pi_ids == {id(p) for p in heads.pi.parameters()} and not grouped & pi_ids
     assert {id(p) for p in model.backbone.parameters()} <= grouped
     assert not {id(p) for p in heads.target_qs.parameters()} & grouped
 
@@ -294,7 +278,8 @@ def test_param_groups_and_head_update(mode):
     with torch.no_grad():  # make online and target Qs differ so the Polyak step is visible
         for p in heads.qs.parameters():
             p.add_(0.1)
-    model.head_update(batch, heads, out, model.make_policy_optimizer(heads))
+    logs = model.head_update(batch, heads, out, head_opts)
+    assert set(logs) == {"pi_loss", "pi_grad_norm", "pi_entropy", "q_scale"}
     after = list(model.backbone.parameters())
     assert all(torch.equal(x, y) for x, y in zip(before, after, strict=True))
     assert all(
@@ -306,30 +291,79 @@ def test_param_groups_and_head_update(mode):
         torch.testing.assert_close(t, q + 0.1 * model.cfg.tau)
 
 
-@pytest.mark.parametrize("mode", ["state"])
-def test_terminal_masking(mode):
+def _boundary_batch(model) -> Batch:
+    """Windows of 4 rows whose episode ends at row 1: transitions 1 and 2 are not real."""
+    cfg = model.cfg
+    batch = make_batch(cfg, batch=8)
+    batch.is_first.zero_()
+    batch.is_first[2] = 1.0  # row 2 starts another episode
+    batch.terminated.zero_()
+    batch.terminated[0, :4] = 1.0  # half of the windows end on a success
+    batch.action[1] = 0.0  # the filler transition of the episode's last row
+    batch.reward[1] = 0.0
+    return batch
+
+
+def _junk_after_boundary(batch: Batch) -> Batch:
+    """Everything from row 2 on (the next episode) replaced."""
+    other = batch.select(torch.arange(batch.size))
+    other.obs = {k: v.clone() for k, v in other.obs.items()}
+    for v in other.obs.values():
+        v[2:] = (v[2:] + 3) if v.dtype.is_floating_point else (255 - v[2:])
+    other.action = other.action.clone()
+    other.action[2:] = -other.action[2:] + 0.3
+    other.reward = other.reward.clone()
+    other.reward[2:] = -0.9
+    other.terminated = other.terminated.clone()
+    other.terminated[2] = 1.0
+    return other
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_losses_ignore_rows_after_an_episode_boundary(mode):
     model, heads = build(mode)
+    with torch.no_grad():  # non-zero values so that bootstraps and rewards matter
+        for m in (heads.qs, heads.target_qs, heads.reward):
+            for p in m.parameters():
+                p.normal_(0, 0.1)
+    batch = _boundary_batch(model)
+    junk = _junk_after_boundary(batch)
+
+    def losses(b):
+        torch.manual_seed(1)
+        out = model.loss(b, heads)
+        backbone = model.backbone_loss(b).item()
+        head_logs = model.head_update(b, heads, out, model.head_optimizers(heads))
+        return out.logs, backbone, head_logs
+
+    before = {k: v.clone() for k, v in heads.state_dict().items()}
+    a = losses(batch)
+    heads.load_state_dict(before)
+    b = losses(junk)
+    assert a[0] == b[0] and a[1] == b[1]
+    assert a[2]["pi_loss"] == b[2]["pi_loss"]
+    # The check can fail: without the boundary mark the junk changes every loss.
+    heads.load_state_dict(before)
+    unmarked, unmarked_junk = _boundary_batch(model), _junk_after_boundary(batch)
+    unmarked.is_first.zero_()
+    unmarked_junk.is_first.zero_()
+    c, d = losses(unmarked), losses(unmarked_junk)
+    assert all(c[0][k] != d[0][k] for k in ("consistency", "value", "termination")), (c, d)
+    assert c[1] != d[1]
+
+
+def test_td_target_stops_at_termination():
+    model, heads = build("state")
     batch = make_batch(model.cfg)
-    # TD target: a terminal transition's target is its reward, with no bootstrap.
     z = model.encode(batch.obs)[1:]
-    ones = torch.ones_like(batch.reward)
+    reward = batch.reward[:-1]
+    ones = torch.ones_like(reward)
     with torch.no_grad():
         for p in heads.target_qs.parameters():  # non-zero values so a bootstrap would show
             p.normal_()
-        td = model._td_target(z, batch.reward, ones, heads)
-        td_live = model._td_target(z, batch.reward, torch.zeros_like(ones), heads)
-    assert torch.equal(td, batch.reward) and not torch.equal(td_live, batch.reward)
-    # Steps after a termination (another episode in the subsequence) carry no loss.
-    batch.terminated.zero_()
-    batch.terminated[0] = 1.0
-    torch.manual_seed(1)
-    a = model.loss(batch, heads).logs
-    batch.reward[1:] = -0.3
-    batch.action[1:] = 0.7
-    batch.obs["state"][2:] += 5.0
-    torch.manual_seed(1)
-    b = model.loss(batch, heads).logs
-    assert a == b
+        td = model._td_target(z, reward, ones, heads)
+        td_live = model._td_target(z, reward, torch.zeros_like(ones), heads)
+    assert torch.equal(td, reward) and not torch.equal(td_live, reward)
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -340,8 +374,9 @@ def test_acts_in_real_env(mode):
     env = ccdata.make_env("reach-xy", seed=0, image_size=SIZE, render=mode == "pixels")
     obs, _ = env.reset(seed=0)
     model, heads = build(mode)
-    for t in range(3):
-        action = model.act(obs_to_tensors(obs, mode), heads, t0=t == 0, eval_mode=False)
+    state = model.initial_state(heads)
+    for _ in range(3):
+        action, state = model.act(obs_to_tensors(obs, mode), heads, state, eval_mode=False)
         assert action.shape == (4,) and np.abs(action).max() <= 1.0
         obs, reward, *_ = env.step(action.astype(np.float32))
         assert -1.0 <= reward <= 0.0
@@ -364,11 +399,10 @@ def test_frozen_encoder_round_trip(tmp_path):
     source.eval()
     with torch.no_grad():
         assert torch.equal(model.encode(batch.obs), source.encode(batch.obs))
-    groups = model.param_groups(heads)
-    assert "encoder" not in {g["name"] for g in groups}
+    opt = model.world_model_optimizer(heads)
+    assert "encoder" not in {g["name"] for g in opt.param_groups}
     before = [p.clone() for p in frozen.parameters()]
-    opt = torch.optim.Adam(groups)
-    update(model, heads, opt, model.make_policy_optimizer(heads), batch)
+    update(model, heads, opt, model.head_optimizers(heads), batch)
     assert all(torch.equal(x, y) for x, y in zip(before, frozen.parameters(), strict=True))
     with pytest.raises(ValueError, match="latent"):
         TDMPC2(make_cfg("pixels", latent_dim=64), device="cpu", encoder=frozen)
@@ -406,10 +440,10 @@ def test_frozen_encoder_latents_cached_in_replay(tmp_path):
         }
         frames.add_episode(**ep)
         cached.add_episode(**ep)
-    a = frames.sample(B, model.cfg.horizon)
-    b = cached.sample(B, model.cfg.horizon)
+    a = frames.sample(B, model.cfg.seq_len)
+    b = cached.sample(B, model.cfg.seq_len)
     assert set(b.obs) == {LATENT_KEY}
-    assert b.obs[LATENT_KEY].shape == (model.cfg.horizon + 1, B, model.cfg.latent_dim)
+    assert b.obs[LATENT_KEY].shape == (model.cfg.seq_len, B, model.cfg.latent_dim)
     with torch.no_grad():
         torch.testing.assert_close(model.encode(b.obs), model.encode(a.obs))
         torch.manual_seed(2)

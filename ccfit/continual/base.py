@@ -30,6 +30,7 @@ import torch
 from torch import nn
 
 from ccfit.models.base import Batch
+from ccfit.replay import ReplayBuffer, Transitions
 
 
 @dataclass
@@ -41,24 +42,37 @@ class TaskData:
     sample: Callable[[], Batch]
     """Draws a fresh training batch from this task's replay buffer (EWC's Fisher batches)."""
     num_transitions: int
-    """n, the number of transitions this task collected (ER's reservoir runs over them)."""
-    gather: Callable[[np.ndarray], Batch]
-    """Subsequences (as in a training batch) starting at the given transition indices in
-    [0, n); the batch size equals the number of indices. Lets ER keep a subset of transitions
-    after the trainer's buffer for this task is gone."""
+    """n, the number of real transitions of this task in replay (ER's reservoir runs over
+    them)."""
+    transitions: Callable[[np.ndarray], Transitions]
+    """The real transitions numbered by the given indices in [0, n), on the CPU: (o_t,
+    o_{t+1}, a_t, r_t, terminated_t). Lets ER keep a subset of transitions after the trainer's
+    buffer for this task is gone."""
+    seq_len: int
+    """Rows per training window of the model (ER cuts its replay windows to this length)."""
     backbone_loss: Callable[[Batch], torch.Tensor]
     """The model's task-agnostic loss (`WorldModel.backbone_loss`)."""
 
     @classmethod
-    def from_buffer(cls, task_index: int, buffer, model, device) -> TaskData:
-        """The view of a finished task's replay `buffer` that methods get."""
-        seq = model.cfg.seq_len
+    def from_buffer(
+        cls,
+        task_index: int,
+        buffer: ReplayBuffer,
+        *,
+        batch_size: int,
+        seq_len: int,
+        backbone_loss: Callable[[Batch], torch.Tensor],
+        device: torch.device | str = "cpu",
+    ) -> TaskData:
+        """The view of a task's replay buffer: windows of `batch_size` x `seq_len` rows on
+        `device`, and its real transitions."""
         return cls(
             task_index=task_index,
-            sample=lambda: buffer.sample(model.cfg.batch_size, seq).to(device),
-            num_transitions=buffer.num_starts(seq),
-            gather=lambda starts: buffer.gather(starts, seq).to(device),
-            backbone_loss=model.backbone_loss,
+            sample=lambda: buffer.sample(batch_size, seq_len).to(device),
+            num_transitions=buffer.num_transitions,
+            transitions=buffer.transitions,
+            seq_len=seq_len,
+            backbone_loss=backbone_loss,
         )
 
 

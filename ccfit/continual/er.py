@@ -1,8 +1,8 @@
 """Experience replay (Rolnick et al. 2019) on the backbone.
 
-After each task a reservoir sample of `fraction` (5%, the authors' setting) of its transitions
-is kept. While later tasks train, `penalty` returns the backbone loss on a uniform sample of
-the kept set (all earlier tasks pooled), weighted by r / (1 - r) with r = `replay_ratio`.
+After each task a reservoir sample of `fraction` (5%, the authors' setting) of its real
+transitions is kept. While later tasks train, `penalty` returns the backbone loss on a sample
+of the kept set (all earlier tasks pooled), weighted by r / (1 - r) with r = `replay_ratio`.
 
 Why that weight: mixing replay into a batch in proportion r gives the backbone loss
 (1 - r) * L_current + r * L_replay (each term a batch mean). The trainer already adds
@@ -11,8 +11,12 @@ L_current with weight 1, so adding r / (1 - r) * L_replay gives the same mixture
 replayed transitions carry another task's rewards, so they never reach the current heads.
 The replay batch has its own size (`batch_size`); its gradient is unbiased for L_replay.
 
-Kept transitions are stored as the subsequences a training batch is made of (H+1 steps from
-each kept start index), on the CPU: memory is (H+1) x the raw transitions kept.
+Memory: each kept transition is one 2-row item (o_t with a_t, r_t, terminated_t; then
+o_{t+1}) in an ER-owned `ReplayBuffer` on the CPU, so is_first separates the items: about
+2 rows per kept transition, whatever the model's window length. A replay window has the
+model's `seq_len` rows and starts on an item, uniform over the kept transitions; past its
+first transition it runs into the next items, which `is_first` masks out of a rollout
+(a model with per-row terms, such as reconstruction, still learns from every row).
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from ccfit.continual.base import (
     zero_like_backbone,
 )
 from ccfit.models.base import Batch
+from ccfit.replay import ReplayBuffer
 
 
 def reservoir_indices(n: int, k: int, rng: np.random.Generator) -> np.ndarray:
@@ -52,38 +57,6 @@ def reservoir_indices(n: int, k: int, rng: np.random.Generator) -> np.ndarray:
     for j, slot in zip(stream[hits], slots[hits], strict=True):
         reservoir[slot] = j
     return np.sort(reservoir)
-
-
-def _batch_to_dict(batch: Batch) -> dict[str, Any]:
-    return {
-        "obs": dict(batch.obs),
-        "action": batch.action,
-        "reward": batch.reward,
-        "terminated": batch.terminated,
-        "task": batch.task,
-    }
-
-
-def _cat(a: Batch, b: Batch) -> Batch:
-    if set(a.obs) != set(b.obs):
-        raise ValueError(f"replay batches disagree on obs keys: {sorted(a.obs)} vs {sorted(b.obs)}")
-    return Batch(
-        obs={k: torch.cat([a.obs[k], b.obs[k]], dim=1) for k in a.obs},
-        action=torch.cat([a.action, b.action], dim=1),
-        reward=torch.cat([a.reward, b.reward], dim=1),
-        terminated=torch.cat([a.terminated, b.terminated], dim=1),
-        task=torch.cat([a.task, b.task], dim=0),
-    )
-
-
-def _select(batch: Batch, rows: torch.Tensor) -> Batch:
-    return Batch(
-        obs={k: v[:, rows] for k, v in batch.obs.items()},
-        action=batch.action[:, rows],
-        reward=batch.reward[:, rows],
-        terminated=batch.terminated[:, rows],
-        task=batch.task[rows],
-    )
 
 
 @register_method("er")
@@ -110,14 +83,15 @@ class ExperienceReplay(ContinualMethod):
         self.replay_ratio = replay_ratio
         """Share r of replayed samples in the equivalent mixed batch (weight r / (1 - r))."""
         self.batch_size = batch_size
-        """Replayed subsequences per update."""
+        """Replayed windows per update."""
         self.seed = seed
         """Seeds the reservoir (per task: [seed, task]) and the replay sampler."""
-        self.memory: Batch | None = None
-        """All kept subsequences of earlier tasks, on the CPU (batch dim = kept items)."""
+        self.memory = ReplayBuffer(capacity=None, seed=seed)
+        """Kept transitions of all earlier tasks as 2-row items, on the CPU."""
+        self.seq_len: int | None = None
+        """Rows per replay window: the model's (`TaskData.seq_len`)."""
         self.kept: dict[int, np.ndarray] = {}
-        """Per finished task, the start indices of its kept transitions."""
-        self._generator = torch.Generator().manual_seed(seed)
+        """Per finished task, the indices of its kept transitions."""
 
     @property
     def weight(self) -> float:
@@ -126,6 +100,9 @@ class ExperienceReplay(ContinualMethod):
     def after_task(self, task_index: int, backbone: nn.Module, task_data: TaskData) -> None:
         if task_index in self.kept:
             raise ValueError(f"er: task {task_index} was already added to the replay memory")
+        if self.seq_len is not None and task_data.seq_len != self.seq_len:
+            raise ValueError(f"er: seq_len {task_data.seq_len} differs from {self.seq_len}")
+        self.seq_len = task_data.seq_len
         n = task_data.num_transitions
         # Python's round (half to even): a task with n < 10 keeps nothing at 5%.
         k = int(round(self.fraction * n))
@@ -134,36 +111,35 @@ class ExperienceReplay(ContinualMethod):
         self.kept[task_index] = indices
         if k == 0:
             return
-        kept = task_data.gather(indices).to("cpu")
-        if kept.size != k:
-            raise ValueError(f"task_data.gather returned {kept.size} items for {k} indices")
-        self.memory = kept if self.memory is None else _cat(self.memory, kept)
+        kept = task_data.transitions(indices)
+        if kept.action.shape[0] != k:
+            raise ValueError(f"task_data.transitions returned {kept.action.shape[0]} for {k}")
+        self.memory.add_transitions(kept, task=task_index)
 
     def replay_batch(self, device: torch.device | str = "cpu") -> Batch | None:
-        """A uniform sample (with replacement) of `batch_size` kept subsequences."""
-        if self.memory is None:
+        """`batch_size` windows of `seq_len` rows from the memory, each starting on a kept
+        transition (uniform, with replacement); None while nothing is kept."""
+        if self.memory.num_episodes == 0:
             return None
-        rows = torch.randint(self.memory.size, (self.batch_size,), generator=self._generator)
-        return _select(self.memory, rows).to(device)
+        return self.memory.sample_at_episode_starts(self.batch_size, self.seq_len).to(device)
 
     def penalty(self, backbone: nn.Module, backbone_loss) -> torch.Tensor:
         zero = zero_like_backbone(backbone)
-        if self.memory is None or self.weight == 0.0:
+        if self.memory.num_episodes == 0 or self.weight == 0.0:
             return zero
         return self.weight * backbone_loss(self.replay_batch(zero.device))
 
     def state_dict(self) -> dict[str, Any]:
         return {
-            "memory": None if self.memory is None else _batch_to_dict(self.memory),
+            "memory": self.memory.state_dict(),
+            "seq_len": self.seq_len,
             "kept": {k: v.copy() for k, v in self.kept.items()},
-            "generator": self._generator.get_state(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        memory = state["memory"]
-        self.memory = None if memory is None else Batch(**memory)
+        self.memory.load_state_dict(state["memory"])
+        self.seq_len = None if state["seq_len"] is None else int(state["seq_len"])
         self.kept = {int(k): np.asarray(v) for k, v in state["kept"].items()}
-        self._generator.set_state(state["generator"])
 
 
 @MethodConfig.register_subclass("er")

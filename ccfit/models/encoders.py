@@ -7,6 +7,9 @@
 
 Inputs may carry any number of leading dims (e.g. time-major (T, B, ...) batches).
 
+Encoders are built from any config carrying the `EncoderSpec` fields (a TD-MPC2 or PWM config,
+or an `EncoderSpec`), so this module depends on no model.
+
 `save_encoder` / `load_frozen_encoder` store an encoder with the settings needed to rebuild it,
 for the frozen-encoder diagnostic (pretrain once with `ccfit.pretrain`, then plug the same
 weights into a model): safetensors weights with the settings in their header, and a JSON
@@ -25,7 +28,6 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from ccfit.config import TDMPC2Config
 from ccfit.models.layers import NormedLinear, SimNorm, mlp
 from ccfit.obs import stack_cameras
 
@@ -130,8 +132,53 @@ def _require(obs: dict[str, torch.Tensor], key: str) -> torch.Tensor:
     return obs[key]
 
 
-def build_encoder(cfg: TDMPC2Config) -> nn.Module:
-    """The encoder for `cfg.obs_mode` ('state' or 'pixels')."""
+@dataclasses.dataclass(frozen=True)
+class EncoderSpec:
+    """The settings that define an encoder (a subset of the TD-MPC2 / PWM config fields)."""
+
+    obs_mode: str = "pixels"
+    """'state' or 'pixels'."""
+    state_dim: int = 39
+    """Size of the 'state' vector."""
+    proprio_dim: int = 7
+    """Size of the 'proprio' vector (pixel mode)."""
+    image_size: int = 64
+    """Side S of the (9, S, S) pixel input, at least 32."""
+    enc_dim: int = 256
+    """Hidden width of the encoder MLPs."""
+    num_enc_layers: int = 2
+    """Encoder depth in linear layers."""
+    num_channels: int = 32
+    """Channels of each conv layer (pixel mode)."""
+    latent_dim: int = 512
+    """Latent width, a multiple of `simnorm_dim`."""
+    simnorm_dim: int = 8
+    """SimNorm group size."""
+    image_shift: int = 4
+    """Random-shift augmentation pad in pixels (training mode only)."""
+
+    def __post_init__(self) -> None:
+        if self.obs_mode not in ("state", "pixels"):
+            raise ValueError(f"encoder obs_mode must be 'state' or 'pixels', got {self.obs_mode!r}")
+        for f in dataclasses.fields(self)[1:]:
+            value, low = getattr(self, f.name), 0 if f.name == "image_shift" else 1
+            if type(value) is not int or value < low:
+                raise ValueError(f"encoder {f.name} must be an int >= {low}, got {value!r}")
+        if self.latent_dim % self.simnorm_dim:
+            raise ValueError(f"encoder latent_dim {self.latent_dim} must be a multiple of "
+                             f"simnorm_dim {self.simnorm_dim}")  # fmt: skip
+        if self.image_size < 32:
+            raise ValueError(f"encoder image_size must be >= 32, got {self.image_size}")
+
+    @classmethod
+    def of(cls, cfg) -> EncoderSpec:
+        """The spec of a model config (any object with these fields)."""
+        return cls(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(cls)})
+
+
+def build_encoder(cfg) -> nn.Module:
+    """The encoder for `cfg.obs_mode` ('state' or 'pixels'); `cfg`: an `EncoderSpec` or a
+    model config with its fields."""
     if cfg.obs_mode == "state":
         return StateEncoder(
             cfg.state_dim, cfg.enc_dim, cfg.num_enc_layers, cfg.latent_dim, cfg.simnorm_dim
@@ -145,17 +192,13 @@ def build_encoder(cfg: TDMPC2Config) -> nn.Module:
 
 
 ENCODER_FORMAT = "ccfit-encoder-v1"
-_SPEC_FIELDS = (
-    "obs_mode", "state_dim", "proprio_dim", "image_size", "enc_dim", "num_enc_layers",
-    "num_channels", "latent_dim", "simnorm_dim", "image_shift",
-)  # fmt: skip
 
 
 class FrozenEncoder(nn.Module):
     """A pretrained encoder whose weights never change: no gradients, always in eval mode
     (no augmentation), whatever `.train()` is called with."""
 
-    def __init__(self, encoder: nn.Module, cfg: TDMPC2Config) -> None:
+    def __init__(self, encoder: nn.Module, cfg) -> None:
         super().__init__()
         self.encoder = encoder.requires_grad_(False).eval()
         self.obs_mode, self.latent_dim = cfg.obs_mode, cfg.latent_dim
@@ -191,10 +234,9 @@ def _atomic_write(path: Path, write) -> None:
             os.unlink(tmp)
 
 
-def save_encoder(
-    encoder: nn.Module, cfg: TDMPC2Config, path: str | Path, metadata: dict | None = None
-) -> None:
-    """Write `encoder` (built by `build_encoder(cfg)`) and its settings atomically.
+def save_encoder(encoder: nn.Module, cfg, path: str | Path, metadata: dict | None = None) -> None:
+    """Write `encoder` (built by `build_encoder(cfg)`; `cfg` a model config or an
+    `EncoderSpec`) and its settings atomically.
 
     A path ending in `.safetensors` gets safetensors weights whose header metadata holds the
     format and the settings (so the weights file alone rebuilds the encoder), plus a JSON sidecar
@@ -203,7 +245,7 @@ def save_encoder(
     """
     if isinstance(encoder, FrozenEncoder):
         encoder = encoder.encoder
-    spec = {k: getattr(cfg, k) for k in _SPEC_FIELDS}
+    spec = dataclasses.asdict(EncoderSpec.of(cfg))
     state = {k: v.detach().cpu().contiguous() for k, v in encoder.state_dict().items()}
     path = Path(path)
     if path.suffix != ".safetensors":
@@ -266,14 +308,14 @@ def load_frozen_encoder(
     """Rebuild an encoder written by `save_encoder` (safetensors or torch file) and freeze it.
 
     Returns (frozen encoder on `device`, its settings); pass the settings into the model's
-    config (e.g. `tdmpc2_preset(..., **spec)`) so latent size and inputs agree.
+    config (e.g. `TDMPC2Config.preset(..., **spec)`) so latent size and inputs agree.
     """
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"encoder checkpoint not found: {path}")
     spec, state = _read_checkpoint(path)
     try:
-        cfg = dataclasses.replace(TDMPC2Config(), **spec)
+        cfg = EncoderSpec(**spec)
     except (TypeError, ValueError) as err:
         raise ValueError(f"encoder checkpoint {path} has invalid settings: {err}") from err
     encoder = build_encoder(cfg)

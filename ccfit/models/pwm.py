@@ -1,5 +1,6 @@
 """PWM (prismatic world model, Li et al. 2025): TD-MPC2 whose latent dynamics is a mixture of
-experts, with the benchmark's progressive (continual) variant in mind.
+experts, with the benchmark's progressive (continual) variant in mind; its config `PWMConfig`
+(registered as model 'pwm').
 
 Everything but the dynamics is TD-MPC2's (losses, heads, planning are inherited). The dynamics
 `MixtureDynamics` computes
@@ -24,7 +25,8 @@ Gate input, `router`:
   embedding because it keeps that separation exact and needs no extra parameters.
 - 'state': [z, a, tau], routing that can change within an episode.
 
-The task of every sample is known: batches carry `task`; heads are stamped with the task they
+The task of every sample is known: batches carry `task` per row and a window routes with
+the task of its row 0 (where its rollout starts); heads are stamped with the task they
 belong to (`PWMHeads.task_index`), which routes planning. A task's routing therefore never
 depends on which task is being trained.
 
@@ -47,16 +49,97 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Iterator
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ccfit.config import PWMConfig
 from ccfit.models.base import Batch, LossOutput
 from ccfit.models.encoders import FrozenEncoder
 from ccfit.models.layers import NormedLinear, SimNorm, init_weights
-from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Heads
+from ccfit.models.registry import check, register_model
+from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config, TDMPC2Heads
+
+PWM_ROUTERS: tuple[str, ...] = ("task", "state")
+"""Gate inputs of PWM's router: the task identity, or the latent and action."""
+
+_PWM_EXTRAS: dict[str, dict] = {
+    # Short runs get a short hold, so that the entropy feedback runs at all.
+    "smoke": dict(tau_hold_min=100),
+    "cpu": dict(tau_hold_min=1000),
+    "paper": dict(),
+}
+"""PWM settings on top of the TD-MPC2 preset of the same name (sizes: the paper's settings)."""
+
+
+@dataclass
+class PWMConfig(TDMPC2Config):
+    """PWM (prismatic world model): TD-MPC2 whose latent dynamics is a mixture of experts.
+
+    Every TD-MPC2 field keeps its meaning; the fields below configure the mixture. Experts are
+    allocated in groups of `experts_per_task` (one group per task under the 'experts' continual
+    method, a single group otherwise); the temperature schedule follows the authors' code.
+    Presets: TD-MPC2's of the same name plus the mixture settings of `_PWM_EXTRAS`.
+    """
+
+    PRESETS = {
+        name: {**fields, **_PWM_EXTRAS.get(name, {})}
+        for name, fields in TDMPC2Config.PRESETS.items()
+    }
+
+    experts_per_task: int = 3
+    """K: experts in each group (the paper adds K = 3 per task)."""
+    max_tasks: int = 8
+    """Most expert groups (tasks) the model can hold; also the width of the task one-hot seen
+    by the router. Groups are allocated up front; only active ones are computed and trained."""
+    orthogonalize: bool = False
+    """Gram-Schmidt orthonormalise the expert features across experts (in activation order)
+    before mixing them."""
+    router: str = "task"
+    """Gate input: 'task' (one-hot task identity, as the authors) or 'state' ([z, a])."""
+    tau_init: float = 1.8
+    """Router temperature at the start of each task, held during the hold phase."""
+    tau_min: float = 0.5
+    """Lower clip of the temperature."""
+    tau_max: float = 2.0
+    """Upper clip of the temperature."""
+    tau_rate: float = 0.02
+    """Step of the entropy feedback: tau += tau_rate * tanh(H_target - H(w))."""
+    tau_target_frac: float = 0.75
+    """H_target = tau_target_frac * log(active experts)."""
+    tau_hold_min: int = 5000
+    """The temperature is held for max(tau_hold_min, tau_hold_frac * task_steps) updates."""
+    tau_hold_frac: float = 0.05
+    """Share of a task's steps during which the temperature is held (see tau_hold_min)."""
+    task_steps: int | None = None
+    """Steps of each task, for the hold length; None: tau_hold_min only.
+    `PWM.begin_task(i, task_steps)` overrides it per task."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        name = type(self).__name__
+        check(self.router in PWM_ROUTERS,
+              f"{name}.router must be one of {PWM_ROUTERS}, got {self.router!r}")  # fmt: skip
+        checks = [
+            (self.experts_per_task >= 1, "experts_per_task must be >= 1"),
+            (self.max_tasks >= 1, "max_tasks must be >= 1"),
+            (0.0 < self.tau_min <= self.tau_init <= self.tau_max,
+             "need 0 < tau_min <= tau_init <= tau_max"),
+            (self.tau_rate >= 0.0, "tau_rate must be >= 0"),
+            (self.tau_target_frac >= 0.0, "tau_target_frac must be >= 0"),
+            (self.tau_hold_min >= 0, "tau_hold_min must be >= 0"),
+            (0.0 <= self.tau_hold_frac <= 1.0, "tau_hold_frac must be in [0, 1]"),
+            (self.task_steps is None or self.task_steps >= 1, "task_steps must be >= 1 or None"),
+        ]  # fmt: skip
+        for ok, msg in checks:
+            check(ok, f"{name}: {msg}")
+
+    def hold_steps(self, task_steps: int | None = None) -> int:
+        """Updates during which the temperature is held for a task of `task_steps` steps."""
+        steps = task_steps if task_steps is not None else self.task_steps
+        frac = int(round(self.tau_hold_frac * steps)) if steps is not None else 0
+        return max(self.tau_hold_min, frac)
 
 OVERRIDES: tuple[str | None, ...] = (None, "prior", "new", "uniform")
 """Routing ablations: learnt (None); only experts of earlier groups ('prior'), only the newest
@@ -264,6 +347,7 @@ def find_mixture(backbone: nn.Module) -> MixtureDynamics | None:
     return found[0] if found else None
 
 
+@register_model("pwm", PWMConfig)
 class PWM(TDMPC2):
     """TD-MPC2 with `MixtureDynamics` as its latent dynamics (see the module docstring)."""
 
@@ -289,7 +373,7 @@ class PWM(TDMPC2):
 
     # ------------------------------------------------------------------ tasks, routing
     def begin_task(self, task_index: int, task_steps: int | None = None) -> None:
-        """Task `task_index` starts: new heads belong to it; `task_steps` (TrainConfig.steps)
+        """Task `task_index` starts: new heads belong to it; `task_steps` (the task's env steps)
         sets its temperature hold."""
         self.dynamics.begin_task(task_index, task_steps)
 
@@ -300,7 +384,8 @@ class PWM(TDMPC2):
 
     @contextlib.contextmanager
     def routing_task(self, task) -> Iterator[None]:
-        """Within the block, `next` routes with `task` (int or (B,) LongTensor)."""
+        """Within the block, `next` routes with `task` (int or LongTensor broadcastable to the
+        latents' leading dims, e.g. (B,))."""
         previous, self._task = self._task, task
         try:
             yield
@@ -324,8 +409,8 @@ class PWM(TDMPC2):
         task = int(self.dynamics.current_task) if task is None else task
         return PWMHeads(self.cfg, self.dynamics.check_task(task)).to(self.device)
 
-    def param_groups(self, heads: nn.Module) -> list[dict]:
-        groups = super().param_groups(heads)
+    def _param_groups(self, heads: nn.Module) -> list[dict]:
+        groups = super()._param_groups(heads)
         for g in groups:
             if g["name"] == "dynamics":
                 g["params"] = self.dynamics.optimizer_parameters()
@@ -333,10 +418,12 @@ class PWM(TDMPC2):
 
     # ------------------------------------------------------------------ losses
     def _batch_task(self, batch: Batch) -> torch.Tensor:
-        lo, hi = int(batch.task.min()), int(batch.task.max())
-        self.dynamics.check_task(lo)
-        self.dynamics.check_task(hi)
-        return batch.task
+        """(B,): each window's routing task, the task of its row 0 (where the rollout starts;
+        rows of another episode after a boundary are masked out of every loss)."""
+        task = batch.task[0]
+        self.dynamics.check_task(int(task.min()))
+        self.dynamics.check_task(int(task.max()))
+        return task
 
     def loss(self, batch: Batch, heads: nn.Module) -> LossOutput:
         h = _pwm_heads(heads)
@@ -362,29 +449,27 @@ class PWM(TDMPC2):
             return super().backbone_loss(batch)
 
     def head_update(
-        self, batch: Batch, heads: nn.Module, out: LossOutput, policy_optim: torch.optim.Optimizer
+        self,
+        batch: Batch,
+        heads: nn.Module,
+        out: LossOutput,
+        optimizers: dict[str, torch.optim.Optimizer],
     ) -> dict[str, float]:
-        with self.routing_task(batch.task):
-            return super().head_update(batch, heads, out, policy_optim)
+        with self.routing_task(self._batch_task(batch)):
+            return super().head_update(batch, heads, out, optimizers)
 
     @torch.no_grad()
-    def plan(self, z: torch.Tensor, heads: TDMPC2Heads, *, t0: bool, eval_mode: bool):
+    def plan(
+        self, z: torch.Tensor, heads: TDMPC2Heads, prev_mean: torch.Tensor | None, *,
+        eval_mode: bool,
+    ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+        """TD-MPC2's MPPI, routed with the task the heads belong to."""
         h = _pwm_heads(heads)
         with self.routing_task(h.task_index):
-            return super().plan(z, h, t0=t0, eval_mode=eval_mode)
+            return super().plan(z, h, prev_mean, eval_mode=eval_mode)
 
 
 def _pwm_heads(heads: nn.Module) -> PWMHeads:
     if not isinstance(heads, PWMHeads):
         raise TypeError(f"expected PWMHeads from PWM.new_heads(), got {type(heads)}")
     return heads
-
-
-def build_pwm(
-    config: PWMConfig,
-    device: torch.device | str | None = None,
-    encoder: FrozenEncoder | None = None,
-) -> PWM:
-    """A PWM model on `device` (what ccfit.train.build_model calls for 'pwm'); `encoder`: a
-    frozen pretrained encoder (`load_frozen_encoder`) instead of a trainable one."""
-    return PWM(config, device=device, encoder=encoder)

@@ -1,15 +1,19 @@
-"""TD-MPC2 (Hansen et al., 2024) split into a continual backbone and per-task heads.
+"""TD-MPC2 (Hansen et al., 2024) split into a continual backbone and per-task heads, with its
+config (`TDMPC2Config`, registered as model 'tdmpc2').
 
 Backbone (task-agnostic): observation encoder + latent dynamics `next(z, a)` (SimNorm output).
 Heads (per task): two-hot reward, termination logit, Q ensemble (+ Polyak target copy),
 tanh-Gaussian policy, and the running Q scale used to normalise the policy loss.
 
-Training follows the paper: the latent rollout over the horizon is matched to the detached
-encodings of the next observations (consistency), rewards and TD targets (from two random
-target Q members, masked after termination) are learnt by two-hot cross-entropy, termination by
-binary cross-entropy; per-step weights rho**t. The policy maximises scale-normalised Q plus an
-entropy bonus on detached latents with its own optimiser. Acting is MPPI in latent space,
-warm-started from the previous plan and seeded with policy rollouts.
+Training follows the paper on windows of `seq_len` replay rows: the latent rollout from row 0
+over the window's seq_len - 1 transitions is matched to the detached encodings of the next
+observations (consistency), rewards and TD targets (from two random target Q members, no
+bootstrap after a termination) are learnt by two-hot cross-entropy, termination by binary
+cross-entropy; per-step weights rho**t, and every per-step term is masked by
+`Batch.rollout_mask()` (a window may run into the next episode). The policy maximises
+scale-normalised Q plus an entropy bonus on detached latents with its own optimiser. Acting
+is MPPI in latent space (`ccfit.models.mppi`), seeded with policy rollouts and warm-started
+from the previous plan's mean, which is the acting state.
 """
 
 from __future__ import annotations
@@ -18,18 +22,184 @@ import copy
 import math
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ccfit.config import TDMPC2Config
 from ccfit.models.base import LATENT_KEY, Batch, LossOutput, WorldModel
 from ccfit.models.encoders import FrozenEncoder, build_encoder
 from ccfit.models.layers import EnsembleMLP, SimNorm, TwoHot, init_weights, mlp
+from ccfit.models.mppi import mppi_plan
+from ccfit.models.registry import ModelConfig, check, register_model
 
 Q_RETURN_TYPES = ("all", "min", "avg")
+
+# ================================================================================== config
+
+TDMPC2_SIZES: dict[str, dict[str, int]] = {
+    # The five sizes of Hansen et al. (2024), with the official dims. Trainable parameters
+    # counted for this benchmark (39-D state, 4-D action, 101 bins; target Qs excluded):
+    # state 1.41M / 5.48M / 19.9M / 51.8M / 335M; pixels (64 px, 32 channels) 1.79M / 5.86M /
+    # 23.6M / 62.4M / 387M.
+    "1M": {"enc_dim": 256, "mlp_dim": 384, "latent_dim": 128, "num_enc_layers": 2, "num_q": 2},
+    "5M": {"enc_dim": 256, "mlp_dim": 512, "latent_dim": 512, "num_enc_layers": 2, "num_q": 5},
+    "19M": {"enc_dim": 1024, "mlp_dim": 1024, "latent_dim": 768, "num_enc_layers": 3, "num_q": 5},
+    "48M": {"enc_dim": 1792, "mlp_dim": 1792, "latent_dim": 768, "num_enc_layers": 4, "num_q": 5},
+    "317M": {
+        "enc_dim": 4096, "mlp_dim": 4096, "latent_dim": 1376, "num_enc_layers": 5, "num_q": 8,
+    },
+}  # fmt: skip
+"""Model-size table: encoder width, MLP width, latent width, encoder depth, Q ensemble size."""
+
+
+@dataclass
+class TDMPC2Config(ModelConfig):
+    """TD-MPC2 hyper-parameters. Defaults are the official single-task values at 5M.
+
+    Training windows are `seq_len` rows (the latent rollout covers seq_len - 1 transitions; the
+    default 4 is the official horizon 3); `horizon` is the MPPI planning horizon. `grad_clip`
+    clips both the world-model update and the policy update.
+    """
+
+    PRESETS = {
+        # Tiny: unit tests and smoke runs finish in seconds.
+        "smoke": dict(
+            latent_dim=32, enc_dim=64, mlp_dim=64, num_enc_layers=2, num_channels=8, num_q=2,
+            num_bins=21, iterations=2, num_samples=32, num_elites=8, num_pi_trajs=4,
+            batch_size=16,
+        ),
+        # Sized by measurement for 2 CPU cores (bench/learn_reach.py, 1 torch thread): an update
+        # (batch 64) plus a plan costs ~30 ms, so 30k online steps take ~15-20 min. Against the
+        # previous choice (MLP 256, MPPI 3 x 128) that halves the update and cuts a plan ~4x;
+        # MPPI keeps the paper's structure (policy-guided, warm-started) at 2 iterations of 64.
+        "cpu": dict(
+            latent_dim=64, enc_dim=128, mlp_dim=128, num_enc_layers=2, num_channels=16, num_q=2,
+            iterations=2, num_samples=64, num_elites=8, num_pi_trajs=8, batch_size=64,
+        ),
+        # Official single-task TD-MPC2 at 5M.
+        "paper": dict(TDMPC2_SIZES["5M"], batch_size=256),
+        # The official sizes by name ('1M' ... '317M'), at the paper's batch size.
+        **{name: dict(size, batch_size=256) for name, size in TDMPC2_SIZES.items()},
+    }  # fmt: skip
+
+    latent_dim: int = 512
+    """Latent width; a multiple of `simnorm_dim`."""
+    enc_dim: int = 256
+    """Hidden width of the encoder MLPs (state encoder, proprio branch, fusion)."""
+    mlp_dim: int = 512
+    """Hidden width of dynamics, reward, termination, Q and policy MLPs."""
+    num_enc_layers: int = 2
+    """Encoder depth in linear layers (state encoder: num_enc_layers - 1 hidden layers)."""
+    num_channels: int = 32
+    """Channels of each of the 4 conv layers (pixel mode)."""
+    simnorm_dim: int = 8
+    """SimNorm group size."""
+    num_q: int = 5
+    """Q ensemble size (TD targets use two random members)."""
+    dropout: float = 0.01
+    """Dropout after the first layer of each Q member."""
+    image_shift: int = 4
+    """Random-shift augmentation pad in pixels, training mode only (0 disables)."""
+
+    num_bins: int = 101
+    """Bins of the two-hot reward / value distributions."""
+    vmin: float = -10.0
+    """Lowest bin, in symlog space."""
+    vmax: float = 10.0
+    """Highest bin, in symlog space."""
+    log_std_min: float = -10.0
+    """Lower bound of the policy's log standard deviation."""
+    log_std_max: float = 2.0
+    """Upper bound of the policy's log standard deviation."""
+    entropy_coef: float = 1e-4
+    """Weight of the (action-dim scaled) entropy bonus in the policy loss."""
+
+    horizon: int = 3
+    """MPPI planning horizon (actions per plan). The training rollout is seq_len - 1 steps."""
+    rho: float = 0.5
+    """Per-step weight rho**t of the losses over the training rollout."""
+    consistency_coef: float = 20.0
+    """Weight of the latent consistency loss."""
+    reward_coef: float = 0.1
+    """Weight of the reward cross-entropy."""
+    value_coef: float = 0.1
+    """Weight of the value cross-entropy."""
+    termination_coef: float = 1.0
+    """Weight of the termination binary cross-entropy."""
+
+    lr: float = 3e-4
+    """Adam learning rate (world model, heads and policy); set in every parameter group."""
+    enc_lr_scale: float = 0.3
+    """Encoder learning rate = lr * enc_lr_scale."""
+    policy_adam_eps: float = 1e-5
+    """Adam epsilon of the policy optimiser."""
+    tau: float = 0.01
+    """Polyak rate of the target Q ensemble and of the running Q scale."""
+
+    episode_length: int = 250
+    """Agent steps per episode; sets the discount heuristic."""
+    discount_denom: float = 5.0
+    """Discount = (L/denom - 1) / (L/denom), clipped to [discount_min, discount_max]."""
+    discount_min: float = 0.95
+    """Lower clip of the discount."""
+    discount_max: float = 0.995
+    """Upper clip of the discount."""
+
+    iterations: int = 6
+    """MPPI iterations per plan."""
+    num_samples: int = 512
+    """Action sequences evaluated per MPPI iteration (policy trajectories included)."""
+    num_elites: int = 64
+    """Best sequences kept to refit the sampling distribution."""
+    num_pi_trajs: int = 24
+    """Sequences proposed by rolling out the policy in the model."""
+    min_std: float = 0.05
+    """Lower clamp of the MPPI standard deviation."""
+    max_std: float = 2.0
+    """Initial (and upper clamp of the) MPPI standard deviation."""
+    temperature: float = 0.5
+    """MPPI softmax temperature on elite values."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        name = type(self).__name__
+        positive = (
+            "latent_dim", "enc_dim", "mlp_dim", "num_enc_layers", "num_channels", "simnorm_dim",
+            "horizon", "iterations", "num_samples", "num_elites", "episode_length",
+        )  # fmt: skip
+        for f in positive:
+            check(getattr(self, f) >= 1, f"{name}.{f} must be >= 1, got {getattr(self, f)}")
+        checks = [
+            (self.latent_dim % self.simnorm_dim == 0, "latent_dim must be a multiple of simnorm"),
+            (self.num_q >= 2, "num_q must be >= 2 (targets use two members)"),
+            (self.num_bins >= 2 and self.vmin < self.vmax, "need num_bins >= 2 and vmin < vmax"),
+            (0.0 <= self.dropout < 1.0, "dropout must be in [0, 1)"),
+            (self.image_shift >= 0, "image_shift must be >= 0"),
+            (self.log_std_min < self.log_std_max, "log_std_min must be below log_std_max"),
+            (0.0 < self.rho <= 1.0 and 0.0 < self.tau <= 1.0, "rho and tau must be in (0, 1]"),
+            (self.lr > 0 and self.enc_lr_scale > 0, "lr and enc_lr_scale must be > 0"),
+            (self.policy_adam_eps > 0, "policy_adam_eps must be > 0"),
+            (0.0 < self.discount_min <= self.discount_max < 1.0,
+             "need 0 < discount_min <= discount_max < 1"),
+            (0 <= self.num_pi_trajs < self.num_samples, "num_pi_trajs must be in [0, num_samples)"),
+            (self.num_elites <= self.num_samples, "num_elites must be <= num_samples"),
+            (0.0 < self.min_std <= self.max_std, "need 0 < min_std <= max_std"),
+            (self.temperature > 0, "temperature must be > 0"),
+        ]  # fmt: skip
+        for ok, msg in checks:
+            check(ok, f"{name}: {msg}")
+
+    @property
+    def discount(self) -> float:
+        """TD-MPC2's heuristic: longer episodes get a discount closer to 1 (0.98 at 250)."""
+        frac = self.episode_length / self.discount_denom
+        return min(max((frac - 1) / frac, self.discount_min), self.discount_max)
+
+
+# =================================================================================== model
 
 
 def default_device() -> torch.device:
@@ -63,7 +233,6 @@ class TDMPC2Heads(nn.Module):
     """Task-specific part: reward, termination, Q ensemble (+ target), policy, Q scale."""
 
     q_scale: torch.Tensor
-    prev_mean: torch.Tensor
 
     def __init__(self, cfg: TDMPC2Config) -> None:
         super().__init__()
@@ -80,10 +249,6 @@ class TDMPC2Heads(nn.Module):
         self.target_qs.train(False)
         # Running 5th-95th percentile range of Q (policy-loss normaliser).
         self.register_buffer("q_scale", torch.ones(1))
-        # Previous MPPI mean, for warm starts; not part of the saved state.
-        self.register_buffer(
-            "prev_mean", torch.zeros(cfg.horizon, cfg.action_dim), persistent=False
-        )
 
     def train(self, mode: bool = True) -> TDMPC2Heads:
         super().train(mode)
@@ -92,7 +257,8 @@ class TDMPC2Heads(nn.Module):
 
 
 @contextmanager
-def _eval_mode(*modules: nn.Module) -> Iterator[None]:
+def modules_in_eval(*modules: nn.Module) -> Iterator[None]:
+    """Modules in eval mode inside the block, their previous modes restored after it."""
     flags = [m.training for m in modules]
     try:
         for m in modules:
@@ -103,8 +269,11 @@ def _eval_mode(*modules: nn.Module) -> Iterator[None]:
             m.train(f)
 
 
+@register_model("tdmpc2", TDMPC2Config)
 class TDMPC2(WorldModel):
     """TD-MPC2 world model with the benchmark's backbone/heads split."""
+
+    cfg: TDMPC2Config
 
     def __init__(
         self,
@@ -114,6 +283,8 @@ class TDMPC2(WorldModel):
     ) -> None:
         """`encoder`: a pretrained encoder from `load_frozen_encoder` to use (frozen) instead
         of a trainable one; it stays in the backbone but has no trainable parameters."""
+        if not isinstance(cfg, TDMPC2Config):
+            raise ValueError(f"{type(self).__name__} needs a TDMPC2Config, got {type(cfg)}")
         super().__init__()
         self.cfg = cfg
         self.device = torch.device(device) if device is not None else default_device()
@@ -122,12 +293,13 @@ class TDMPC2(WorldModel):
         self.discount = cfg.discount
         self.to(self.device)
 
-    # ---------------------------------------------------------------- construction / params
+    # ---------------------------------------------------------------- structure, optimisers
 
     def new_heads(self) -> TDMPC2Heads:
         return TDMPC2Heads(self.cfg).to(self.device)
 
-    def param_groups(self, heads: nn.Module) -> list[dict]:
+    def _param_groups(self, heads: nn.Module) -> list[dict]:
+        """Named Adam groups of `world_model_optimizer` (the encoder at lr * enc_lr_scale)."""
         cfg = self.cfg
         h = _heads(heads)
         value_params = [*h.reward.parameters(), *h.termination.parameters(), *h.qs.parameters()]
@@ -142,14 +314,13 @@ class TDMPC2(WorldModel):
             g["params"] = [p for p in g["params"] if p.requires_grad]
         return [g for g in groups if g["params"]]
 
-    def policy_parameters(self, heads: nn.Module) -> list[nn.Parameter]:
-        return list(_heads(heads).pi.parameters())
+    def world_model_optimizer(self, heads: nn.Module) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self._param_groups(heads), lr=self.cfg.lr)
 
-    def make_policy_optimizer(self, heads: nn.Module) -> torch.optim.Optimizer:
-        """The policy optimiser of the official recipe (Adam, lr, eps 1e-5)."""
-        return torch.optim.Adam(
-            self.policy_parameters(heads), lr=self.cfg.lr, eps=self.cfg.policy_adam_eps
-        )
+    def head_optimizers(self, heads: nn.Module) -> dict[str, torch.optim.Optimizer]:
+        """{'pi': the policy's Adam} (the official recipe: lr, eps `policy_adam_eps`)."""
+        pi = _heads(heads).pi.parameters()
+        return {"pi": torch.optim.Adam(pi, lr=self.cfg.lr, eps=self.cfg.policy_adam_eps)}
 
     def num_parameters(self, heads: nn.Module | None = None) -> dict[str, int]:
         """Trainable parameter counts: backbone, heads (without target copies), total."""
@@ -244,24 +415,21 @@ class TDMPC2(WorldModel):
     # ---------------------------------------------------------------- losses
 
     def _rollout(self, batch: Batch) -> tuple[torch.Tensor, ...]:
-        """Latent rollout from obs[0]: (zs with grad (H+1, B, L), detached next-obs latents
-        (H, B, L), consistency loss, alive mask (H, B, 1))."""
-        cfg, horizon = self.cfg, batch.horizon
+        """Latent rollout from row 0 over the window's T = seq_len - 1 transitions: (zs with
+        grad (T+1, B, L), detached next-row latents (T, B, L), consistency loss, rollout mask
+        (T, B, 1))."""
+        cfg, steps = self.cfg, batch.seq_len - 1
+        mask = batch.rollout_mask()
         with torch.no_grad():
             next_z = self.encode({k: v[1:] for k, v in batch.obs.items()})
-        # Transition t is valid if no termination happened before it (guards subsequences that
-        # run past an absorbing success into another episode).
-        alive = torch.cat(
-            [torch.ones_like(batch.terminated[:1]), 1 - batch.terminated[:-1]], dim=0
-        ).cumprod(0)
         z = self.encode({k: v[0] for k, v in batch.obs.items()})
         zs, consistency = [z], z.new_zeros(())
-        for t in range(horizon):
+        for t in range(steps):
             z = self.next(z, batch.action[t])
-            err = (z - next_z[t]).pow(2).mean(-1, keepdim=True) * alive[t]
+            err = (z - next_z[t]).pow(2).mean(-1, keepdim=True) * mask[t]
             consistency = consistency + err.mean() * cfg.rho**t
             zs.append(z)
-        return torch.stack(zs), next_z, consistency / horizon, alive
+        return torch.stack(zs), next_z, consistency / steps, mask
 
     @torch.no_grad()
     def _td_target(
@@ -273,22 +441,23 @@ class TDMPC2(WorldModel):
 
     def loss(self, batch: Batch, heads: nn.Module) -> LossOutput:
         cfg, h = self.cfg, _heads(heads)
-        horizon = batch.horizon
-        zs, next_z, consistency, alive = self._rollout(batch)
-        td = self._td_target(next_z, batch.reward, batch.terminated, h)
+        zs, next_z, consistency, mask = self._rollout(batch)
+        steps = zs.shape[0] - 1
+        action, reward, terminated = batch.action[:-1], batch.reward[:-1], batch.terminated[:-1]
+        td = self._td_target(next_z, reward, terminated, h)
 
-        rho = cfg.rho ** torch.arange(horizon, device=zs.device, dtype=zs.dtype)
-        w = rho.view(horizon, 1, 1) * alive  # (H, B, 1)
+        rho = cfg.rho ** torch.arange(steps, device=zs.device, dtype=zs.dtype)
+        w = rho.view(steps, 1, 1) * mask  # (T, B, 1)
         _zs = zs[:-1]
-        reward_ce = self.two_hot.cross_entropy(self.reward(_zs, batch.action, h), batch.reward)
-        reward_loss = (reward_ce * w).sum(0).mean() / horizon
-        q_logits = self.Q(_zs, batch.action, h, "all")  # (num_q, H, B, bins)
+        reward_ce = self.two_hot.cross_entropy(self.reward(_zs, action, h), reward)
+        reward_loss = (reward_ce * w).sum(0).mean() / steps
+        q_logits = self.Q(_zs, action, h, "all")  # (num_q, T, B, bins)
         value_ce = self.two_hot.cross_entropy(q_logits, td.expand(cfg.num_q, -1, -1, -1))
-        value_loss = (value_ce * w).sum((0, 1)).mean() / (horizon * cfg.num_q)
+        value_loss = (value_ce * w).sum((0, 1)).mean() / (steps * cfg.num_q)
         term_bce = F.binary_cross_entropy_with_logits(
-            self.termination(zs[1:], h), batch.terminated, reduction="none"
+            self.termination(zs[1:], h), terminated, reduction="none"
         )
-        term_loss = (term_bce * alive).mean()
+        term_loss = (term_bce * mask).mean()
 
         total = (
             cfg.consistency_coef * consistency
@@ -300,21 +469,25 @@ class TDMPC2(WorldModel):
             "consistency": consistency.item(), "reward": reward_loss.item(),
             "value": value_loss.item(), "termination": term_loss.item(), "total": total.item(),
         }
-        return LossOutput(total=total, logs=logs, aux={"zs": zs.detach()})
+        # Latent t is meaningful when the rollout reached it inside row 0's episode.
+        latent_mask = torch.cat([torch.ones_like(mask[:1]), mask], dim=0)
+        return LossOutput(total=total, logs=logs, aux={"zs": zs.detach(), "mask": latent_mask})
 
     def backbone_loss(self, batch: Batch) -> torch.Tensor:
         """consistency_coef x consistency: the same scale as that term inside `loss`."""
         return self.cfg.consistency_coef * self._rollout(batch)[2]
 
     def head_update(
-        self, batch: Batch, heads: nn.Module, out: LossOutput, policy_optim: torch.optim.Optimizer
+        self,
+        batch: Batch,
+        heads: nn.Module,
+        out: LossOutput,
+        optimizers: dict[str, torch.optim.Optimizer],
     ) -> dict[str, float]:
+        """Policy step on the detached rollout latents of `out`, then the Polyak step of the
+        target Qs."""
         cfg, h = self.cfg, _heads(heads)
-        zs = out.aux["zs"] if out.aux is not None else None
-        if zs is None:
-            with torch.no_grad():
-                zs = self._rollout(batch)[0]
-        zs = zs.detach()
+        zs, mask = out.aux["zs"].detach(), out.aux["mask"]
         action, info = self.pi(zs, h)
         q = self.Q(zs, action, h, "avg", detach=True)
         with torch.no_grad():
@@ -322,12 +495,14 @@ class TDMPC2(WorldModel):
             h.q_scale.lerp_((hi - lo).clamp(min=1.0).reshape(1), cfg.tau)
         q = q / h.q_scale
         rho = cfg.rho ** torch.arange(zs.shape[0], device=zs.device, dtype=zs.dtype)
-        pi_loss = (-(cfg.entropy_coef * info["scaled_entropy"] + q).mean(dim=(1, 2)) * rho).mean()
-        policy_optim.zero_grad(set_to_none=True)
+        per_step = (-(cfg.entropy_coef * info["scaled_entropy"] + q) * mask).mean(dim=(1, 2))
+        pi_loss = (per_step * rho).mean()
+        optim = optimizers["pi"]
+        optim.zero_grad(set_to_none=True)
         pi_loss.backward()
-        grad_norm = nn.utils.clip_grad_norm_(self.policy_parameters(h), cfg.grad_clip_norm)
-        policy_optim.step()
-        policy_optim.zero_grad(set_to_none=True)
+        grad_norm = nn.utils.clip_grad_norm_(h.pi.parameters(), cfg.grad_clip)
+        optim.step()
+        optim.zero_grad(set_to_none=True)
         with torch.no_grad():
             for p, tp in zip(h.qs.parameters(), h.target_qs.parameters(), strict=True):
                 tp.lerp_(p, cfg.tau)
@@ -336,69 +511,29 @@ class TDMPC2(WorldModel):
             "pi_entropy": info["entropy"].mean().item(), "q_scale": h.q_scale.item(),
         }
 
-    # ---------------------------------------------------------------- planning
+    # ---------------------------------------------------------------- acting
 
     @torch.no_grad()
     def act(
-        self, obs: Mapping[str, torch.Tensor], heads: nn.Module, *, t0: bool, eval_mode: bool
-    ) -> np.ndarray:
+        self, obs: Mapping[str, torch.Tensor], heads: nn.Module, state, *, eval_mode: bool
+    ) -> tuple[np.ndarray, torch.Tensor]:
+        """MPPI action; `state` is the previous plan's mean (horizon, A) for the warm start, or
+        None at the start of an episode; the new mean is returned as the next state."""
         h = _heads(heads)
         batched = {k: torch.as_tensor(v, device=self.device).unsqueeze(0) for k, v in obs.items()}
-        with _eval_mode(self.backbone, h):
+        with modules_in_eval(self.backbone, h):
             z = self.encode(batched)
-            return self.plan(z, h, t0=t0, eval_mode=eval_mode).cpu().numpy()
+            action, mean = self.plan(z, h, state, eval_mode=eval_mode)
+        return action.cpu().numpy(), mean
 
     @torch.no_grad()
-    def _estimate_value(self, z: torch.Tensor, actions: torch.Tensor, heads) -> torch.Tensor:
-        """Discounted model return over the horizon + bootstrapped Q; (N, 1)."""
-        ret = z.new_zeros(z.shape[0], 1)
-        ended = z.new_zeros(z.shape[0], 1)
-        discount = 1.0
-        for t in range(actions.shape[0]):
-            r = self.two_hot.logits_to_scalar(self.reward(z, actions[t], heads))
-            z = self.next(z, actions[t])
-            ret = ret + discount * (1 - ended) * r
-            discount *= self.discount
-            ended = (ended + (self.termination(z, heads) > 0).float()).clamp(max=1)
-        action, _ = self.pi(z, heads)
-        return ret + discount * (1 - ended) * self.Q(z, action, heads, "avg")
+    def plan(
+        self, z: torch.Tensor, heads: TDMPC2Heads, prev_mean: torch.Tensor | None, *,
+        eval_mode: bool,
+    ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+        """MPPI from latent z (1, L): (action (A,) in [-1, 1], plan mean (horizon, A))."""
+        return mppi_plan(self, z, heads, prev_mean, eval_mode=eval_mode)
 
-    @torch.no_grad()
-    def plan(self, z: torch.Tensor, heads: TDMPC2Heads, *, t0: bool, eval_mode: bool):
-        """MPPI from latent z (1, L) -> action (action_dim,) in [-1, 1]. Eval returns the first
-        step of the final MPPI mean; training samples an elite by score and adds std noise."""
-        cfg = self.cfg
-        hor, n, npi, d = cfg.horizon, cfg.num_samples, cfg.num_pi_trajs, cfg.action_dim
-        actions = z.new_empty(hor, n, d)
-        if npi > 0:
-            zp = z.expand(npi, -1)
-            for t in range(hor):
-                actions[t, :npi] = self.pi(zp, heads)[0]
-                if t < hor - 1:
-                    zp = self.next(zp, actions[t, :npi])
-        z = z.expand(n, -1)
-        mean = z.new_zeros(hor, d)
-        std = z.new_full((hor, d), cfg.max_std)
-        if not t0:
-            mean[:-1] = heads.prev_mean[1:]
-        for _ in range(cfg.iterations):
-            noise = torch.randn(hor, n - npi, d, device=z.device)
-            actions[:, npi:] = (mean.unsqueeze(1) + std.unsqueeze(1) * noise).clamp(-1, 1)
-            value = self._estimate_value(z, actions, heads).nan_to_num(0).squeeze(1)
-            elite = torch.topk(value, cfg.num_elites).indices
-            elite_value, elite_actions = value[elite], actions[:, elite]
-            score = torch.exp(cfg.temperature * (elite_value - elite_value.max()))
-            score = score / score.sum()
-            mean = (score[None, :, None] * elite_actions).sum(1)
-            var = (score[None, :, None] * (elite_actions - mean.unsqueeze(1)).pow(2)).sum(1)
-            std = var.sqrt().clamp(cfg.min_std, cfg.max_std)
-        heads.prev_mean.copy_(mean)
-        if eval_mode:
-            a = mean[0]
-        else:
-            pick = torch.multinomial(score, 1)[0]
-            a = elite_actions[0, pick] + std[0] * torch.randn(d, device=z.device)
-        return a.clamp(-1, 1)
 
 
 def _heads(heads: nn.Module) -> TDMPC2Heads:

@@ -8,7 +8,8 @@ from pathlib import Path
 from typing import Any
 
 from ccdata.suites import SUITES
-from ccfit.config import PRESETS, TDMPC2Config, tdmpc2_preset
+from ccfit.models.registry import PRESETS
+from ccfit.models.tdmpc2 import TDMPC2Config
 
 KIND = "ccfit-pretrained-encoder"
 """The sidecar's 'kind': an encoder made by this module."""
@@ -33,10 +34,10 @@ OBJECTIVE = (
 class PretrainConfig:
     """Autoencoder pretraining of the frozen encoder. Validated on construction.
 
-    The encoder's sizes are not fields: they come from `tdmpc2_preset(model_preset, 'pixels',
-    image_size=image_size)`, so the encoder always fits the TD-MPC2 (or PWM) preset it is meant
-    for. Preset values for steps, batch size, learning rate and decoder width are this
-    project's choices (the paper gives none).
+    The encoder's sizes are not fields: they come from `TDMPC2Config.preset(model_preset,
+    obs_mode='pixels', image_size=image_size)`, so the encoder always fits the TD-MPC2 (or
+    PWM) preset it is meant for. Preset values for steps, batch size, learning rate and
+    decoder width are this project's choices (the paper gives none).
     """
 
     model_preset: str = "cpu"
@@ -118,7 +119,7 @@ class PretrainConfig:
 
     def encoder_config(self) -> TDMPC2Config:
         """The TD-MPC2 pixel-mode config whose encoder this run pretrains."""
-        return tdmpc2_preset(self.model_preset, "pixels", image_size=self.image_size)
+        return TDMPC2Config.preset(self.model_preset, obs_mode="pixels", image_size=self.image_size)
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> PretrainConfig:

@@ -10,11 +10,11 @@ import torch.nn.functional as F
 from torch import nn
 
 from ccdata.render import CAMERAS
-from ccfit.config import TDMPC2Config
 from ccfit.models.encoders import (
     build_encoder,
 )
 from ccfit.models.layers import mlp
+from ccfit.models.tdmpc2 import TDMPC2Config
 from ccfit.pretrain.data import FrameStore
 
 # =============================================================================== model

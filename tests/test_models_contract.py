@@ -1,0 +1,199 @@
+"""The WorldModel contract, for every registered model (a new model joins by registering).
+
+Each model runs at its `smoke` preset in both observation modes (pixels at 32 px when the
+model allows it, else 64) on windows sampled from a real ReplayBuffer of short random
+episodes, driven only through the interface the training loop uses.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from ccfit.models import ModelConfig, WorldModel, make_model, model_names
+from ccfit.models.base import LossOutput
+from ccfit.models.registry import PRESETS, ConfigError, config_class, model_class
+
+try:
+    from replay_data import random_buffer
+except ImportError:  # tests/ imported as a package
+    from tests.replay_data import random_buffer
+
+NAMES = model_names()
+MODES = ("state", "pixels")
+B = 8
+
+
+def smoke_config(name: str, mode: str) -> ModelConfig:
+    cls = config_class(name)
+    if mode == "state":
+        return cls.preset("smoke", obs_mode="state")
+    try:
+        return cls.preset("smoke", obs_mode="pixels", image_size=32)
+    except ConfigError:
+        return cls.preset("smoke", obs_mode="pixels", image_size=64)
+
+
+def build(name: str, mode: str, seed: int = 0) -> tuple[WorldModel, nn.Module]:
+    torch.manual_seed(seed)
+    model = make_model(smoke_config(name, mode), "cpu")
+    model.begin_task(0, 1000)
+    return model, model.new_heads()
+
+
+def batch_of(model: WorldModel, seed: int = 0):
+    cfg = model.cfg
+    return random_buffer(cfg, seed=seed).sample(cfg.batch_size, cfg.seq_len)
+
+
+def update(model, heads, opt, head_opts, batch) -> tuple[LossOutput, dict]:
+    """One update as the training loop makes it."""
+    out = model.loss(batch, heads)
+    opt.zero_grad(set_to_none=True)
+    out.total.backward()
+    nn.utils.clip_grad_norm_([p for g in opt.param_groups for p in g["params"]],
+                             model.cfg.grad_clip)  # fmt: skip
+    opt.step()
+    return out, model.head_update(batch, heads, out, head_opts)
+
+
+def ids(params) -> list[int]:
+    return [id(p) for p in params]
+
+
+def optimiser_params(opt: torch.optim.Optimizer) -> list[nn.Parameter]:
+    return [p for g in opt.param_groups for p in g["params"]]
+
+
+def all_finite(logs: dict) -> bool:
+    return all(isinstance(v, float) and math.isfinite(v) for v in logs.values())
+
+
+cases = pytest.mark.parametrize("name,mode", [(n, m) for n in NAMES for m in MODES])
+
+
+def test_registry_lists_the_models():
+    assert {"tdmpc2", "pwm"} <= set(NAMES)
+    for name in NAMES:
+        cls = config_class(name)
+        assert issubclass(cls, ModelConfig) and issubclass(model_class(name), WorldModel)
+        for preset in PRESETS:
+            cfg = cls.preset(preset)
+            assert cfg.type == name and cfg.seq_len >= 2 and cfg.batch_size >= 1
+    with pytest.raises(ConfigError, match="unknown model 'nope'"):
+        model_class("nope")
+
+
+@cases
+def test_losses_and_head_update_are_finite(name, mode):
+    model, heads = build(name, mode)
+    batch = batch_of(model)
+    assert batch.seq_len == model.cfg.seq_len and batch.size == model.cfg.batch_size
+    out = model.loss(batch, heads)
+    assert isinstance(out, LossOutput) and out.total.shape == () and torch.isfinite(out.total)
+    assert out.logs and all_finite(out.logs)
+    bb = model.backbone_loss(batch)
+    assert bb.shape == () and torch.isfinite(bb) and bb.item() > 0
+    out.total.backward()
+    logs = model.head_update(batch, heads, out, model.head_optimizers(heads))
+    assert logs and all_finite(logs)
+
+
+@cases
+def test_act_returns_an_action_and_a_state(name, mode):
+    model, heads = build(name, mode)
+    cfg = model.cfg
+    obs = {k: v[0, 0] for k, v in batch_of(model).obs.items()}
+    for eval_mode in (False, True):
+        state = model.initial_state(heads)
+        for _ in range(2):  # twice in a row, with the state
+            action, state = model.act(obs, heads, state, eval_mode=eval_mode)
+            assert isinstance(action, np.ndarray) and action.shape == (cfg.action_dim,)
+            assert np.isfinite(action).all() and np.abs(action).max() <= 1.0
+        state = model.observe(obs, np.zeros(cfg.action_dim, np.float32), heads, state)
+        action, _ = model.act(obs, heads, state, eval_mode=eval_mode)
+        assert action.shape == (cfg.action_dim,)
+
+
+@cases
+def test_state_dict_round_trip_gives_the_same_loss(name, mode, tmp_path):
+    model, heads = build(name, mode, seed=0)
+    update(model, heads, model.world_model_optimizer(heads), model.head_optimizers(heads),
+           batch_of(model))  # fmt: skip
+    torch.save({"model": model.state_dict(), "heads": heads.state_dict()}, tmp_path / "ck.pt")
+    other, other_heads = build(name, mode, seed=1)
+    ck = torch.load(tmp_path / "ck.pt")
+    other.load_state_dict(ck["model"])
+    other_heads.load_state_dict(ck["heads"])
+    batch = batch_of(model, seed=5)
+    losses = []
+    for m, h in ((model, heads), (other, other_heads)):
+        torch.manual_seed(3)
+        with torch.no_grad():
+            losses.append((m.loss(batch, h).total, m.backbone_loss(batch)))
+    assert torch.equal(losses[0][0], losses[1][0]) and torch.equal(losses[0][1], losses[1][1])
+
+
+def _three_updates(name: str, mode: str) -> list[torch.Tensor]:
+    model, heads = build(name, mode, seed=7)
+    opt, head_opts = model.world_model_optimizer(heads), model.head_optimizers(heads)
+    for i in range(3):
+        update(model, heads, opt, head_opts, batch_of(model, seed=i))
+    return [t.detach().clone() for t in [*model.state_dict().values(),
+                                         *heads.state_dict().values()]]  # fmt: skip
+
+
+@cases
+def test_same_seed_same_first_updates(name, mode):
+    a, b = _three_updates(name, mode), _three_updates(name, mode)
+    assert len(a) == len(b) and all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_parameters_split_into_backbone_and_heads_and_optimisers(name):
+    model, heads = build(name, "state")
+    backbone, head = ids(model.backbone.parameters()), ids(heads.parameters())
+    assert not set(backbone) & set(head)
+    # The model holds no parameter outside its backbone.
+    assert set(ids(model.parameters())) == set(backbone)
+    # Every trainable parameter is stepped by exactly one optimiser, and the backbone's
+    # trainable parameters all by the world-model optimiser.
+    opt, head_opts = model.world_model_optimizer(heads), model.head_optimizers(heads)
+    assert head_opts and all(isinstance(o, torch.optim.Optimizer) for o in head_opts.values())
+    stepped = ids(optimiser_params(opt))
+    for o in head_opts.values():
+        stepped += ids(optimiser_params(o))
+    trainable = [p for p in [*model.backbone.parameters(), *heads.parameters()] if p.requires_grad]
+    for p in trainable:
+        assert stepped.count(id(p)) == 1
+    assert set(ids(p for p in model.backbone.parameters() if p.requires_grad)) <= set(
+        ids(optimiser_params(opt))
+    )
+    for o in head_opts.values():
+        assert not set(ids(optimiser_params(o))) & set(backbone)
+
+
+@cases
+def test_head_update_leaves_the_backbone_bit_identical(name, mode):
+    model, heads = build(name, mode)
+    batch = batch_of(model)
+    out = model.loss(batch, heads)
+    before = {k: v.clone() for k, v in model.backbone.state_dict().items()}
+    heads_before = {k: v.clone() for k, v in heads.state_dict().items()}
+    model.head_update(batch, heads, out, model.head_optimizers(heads))
+    after = model.backbone.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    assert any(not torch.equal(heads_before[k], v) for k, v in heads.state_dict().items())
+
+
+@cases
+def test_backbone_loss_trains_the_backbone_only(name, mode):
+    model, heads = build(name, mode)
+    model.backbone_loss(batch_of(model)).backward()
+    assert all(p.grad is None or not p.grad.any() for p in heads.parameters())
+    grads = [p.grad for p in model.backbone.parameters() if p.requires_grad]
+    assert any(g is not None and g.abs().sum() > 0 for g in grads)

@@ -1,0 +1,277 @@
+"""Sequence replay: rows in the Batch layout, windows across episode boundaries, ring overwrite,
+transitions, determinism and checkpoints."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from ccfit.replay import ReplayBuffer, Transitions
+
+A = 4
+
+
+class Source:
+    """Episodes whose observations name themselves: obs['id'] = (episode, step, row number in
+    write order); actions and rewards are functions of the same numbers."""
+
+    def __init__(self) -> None:
+        self.episodes = 0
+        self.rows = 0
+        self.lengths: list[int] = []
+
+    def episode(self, steps: int, success: bool = False) -> dict:
+        ep, base = self.episodes, self.rows
+        self.episodes += 1
+        self.rows += steps + 1
+        self.lengths.append(steps)
+        t = np.arange(steps + 1, dtype=np.float32)
+        ids = np.stack([np.full_like(t, ep), t, base + t], axis=1)
+        action = np.stack([ep + t[:-1] / 100 + j for j in range(A)], axis=1).astype(np.float32)
+        terminated = np.zeros(steps, np.float32)
+        terminated[-1] = float(success)
+        return {"obs": {"id": ids}, "action": action, "reward": -(t[:-1] + 1) / 100,
+                "terminated": terminated, "task": ep % 3}  # fmt: skip
+
+
+def filled(lengths, capacity=1000, seed=0, successes=()) -> tuple[ReplayBuffer, Source]:
+    buf, src = ReplayBuffer(capacity, seed=seed), Source()
+    for i, steps in enumerate(lengths):
+        buf.add_episode(**src.episode(steps, success=i in successes))
+    return buf, src
+
+
+def check_windows(batch, src: Source) -> None:
+    """Every row of every window is what the source wrote at that row, consecutive in write
+    order, with is_first exactly on episode starts and the filler transition on last rows."""
+    ids = batch.obs["id"]  # (L, B, 3): episode, step, row
+    episode, step, row = ids[..., 0], ids[..., 1], ids[..., 2]
+    assert torch.equal(row[1:] - row[:-1], torch.ones_like(row[1:]))
+    assert torch.equal(batch.is_first[..., 0], (step == 0).float())
+    last = step == torch.tensor(src.lengths, dtype=step.dtype)[episode.long()]
+    expected_action = episode.unsqueeze(-1) + step.unsqueeze(-1) / 100 + torch.arange(A)
+    expected_action[last] = 0.0
+    torch.testing.assert_close(batch.action[~last], expected_action[~last])
+    assert torch.all(batch.action[last] == 0) and torch.all(batch.reward[last] == 0)
+    torch.testing.assert_close(batch.reward[~last, 0], -(step[~last] + 1) / 100)
+    assert torch.equal(batch.task, episode.long() % 3)
+
+
+# ------------------------------------------------------------------------------ sampling
+
+
+def test_windows_cross_episode_boundaries_marked_by_is_first():
+    buf, src = filled([3, 1, 5, 2, 6])
+    assert (buf.num_episodes, buf.num_transitions, buf.size) == (5, 17, 22)
+    assert buf.num_starts(4) == 19 and buf.can_sample(22) and not buf.can_sample(23)
+    batch = buf.sample(256, 4)
+    assert batch.obs["id"].shape == (4, 256, 3) and batch.action.shape == (4, 256, A)
+    assert batch.reward.shape == batch.terminated.shape == batch.is_first.shape == (4, 256, 1)
+    assert batch.task.shape == (4, 256) and batch.task.dtype == torch.long
+    check_windows(batch, src)
+    crossing = (batch.is_first[1:] > 0).any(0).squeeze(-1)
+    assert crossing.float().mean() > 0.5  # most windows of 4 rows cross a boundary here
+    # The rollout mask stops at the first boundary.
+    mask = batch.rollout_mask()[..., 0]
+    step = batch.obs["id"][..., 1]
+    for b in range(256):
+        reach = [int(mask[t, b]) for t in range(3)]
+        expected = np.cumprod([int(step[t + 1, b] != 0) for t in range(3)]).tolist()
+        assert reach == expected
+
+
+def test_episode_shorter_than_the_window_is_sampled():
+    buf, src = filled([9, 1, 9])  # episode 1: one transition, two rows
+    batch = buf.gather(torch.arange(buf.num_starts(6)), 6)
+    check_windows(batch, src)
+    ep, step = batch.obs["id"][0, :, 0], batch.obs["id"][0, :, 1]
+    starts_short = (ep == 1) & (step == 0)
+    assert starts_short.sum() == 1
+    b = int(torch.nonzero(starts_short)[0])
+    assert batch.rollout_mask()[:, b, 0].tolist() == [1, 0, 0, 0, 0]  # its one transition
+    # With only a short episode stored there is no window of 6 rows.
+    alone = ReplayBuffer(100)
+    alone.add_episode(**Source().episode(1))
+    assert alone.num_starts(6) == 0
+    with pytest.raises(ValueError, match="fewer than a window"):
+        alone.sample(4, 6)
+
+
+def test_every_transition_is_equally_likely_terminal_ones_included():
+    lengths, successes, seq_len = [4, 2, 7, 1, 5, 3], {0, 1, 3}, 4
+    buf, src = filled(lengths, successes=successes)
+    size = buf.size
+    # Exactly: over all window starts, the transition at row r (rows r and r+1 of one episode)
+    # is a valid transition of every window holding both rows: L - 1 windows, fewer only at
+    # the two ends of the stored sequence.
+    windows = buf.gather(torch.arange(buf.num_starts(seq_len)), seq_len)
+    rows = windows.obs["id"][..., 2].long()
+    valid = windows.valid()[..., 0] > 0
+    counts = torch.bincount(rows[:-1][valid], minlength=size)
+    real = torch.ones(size, dtype=torch.bool)
+    ends = np.cumsum([n + 1 for n in lengths]) - 1
+    real[torch.as_tensor(ends)] = False
+    assert torch.all(counts[~real] == 0)
+    last_start = size - seq_len
+    expected = torch.tensor(
+        [min(r, last_start) - max(0, r - seq_len + 2) + 1 for r in range(size)]
+    )
+    assert torch.equal(counts[real], expected[real])
+    assert torch.all(expected[seq_len : size - seq_len] == seq_len - 1)
+    terminal = torch.as_tensor(ends - 1)[sorted(successes)]
+    assert windows.terminated[:-1][valid].sum() == 3 * len(successes)
+    assert torch.all(counts[terminal] == seq_len - 1)  # successes: as often as any transition
+    # Sampled: the empirical frequency of every row matches its share of windows.
+    n = 30_000
+    sample = buf.sample(n, seq_len).obs["id"][..., 2].long()
+    freq = torch.bincount(sample.reshape(-1), minlength=size).float() / n
+    share = torch.bincount(rows.reshape(-1), minlength=size).float() / rows.shape[1]
+    sd = (share * (1 - share) / n).sqrt()
+    assert torch.all((freq - share).abs() < 5 * sd + 1e-9), (freq, share)
+
+
+def test_same_seed_same_batches():
+    a, _ = filled([5, 3, 8], seed=3)
+    b, _ = filled([5, 3, 8], seed=3)
+    c, _ = filled([5, 3, 8], seed=4)
+    for _ in range(3):
+        x, y, z = a.sample(16, 3), b.sample(16, 3), c.sample(16, 3)
+        assert torch.equal(x.obs["id"], y.obs["id"]) and torch.equal(x.is_first, y.is_first)
+    assert not torch.equal(x.obs["id"], z.obs["id"])
+
+
+# ------------------------------------------------------------------------------ ring
+
+
+def test_ring_overwrite_keeps_is_first_on_the_oldest_row():
+    buf, src = filled([7, 7], capacity=20)  # 16 rows
+    assert buf.size == 16
+    buf.add_episode(**src.episode(6))  # 7 rows: wraps, overwrites rows 0..2 of episode 0
+    assert buf.size == 20 and buf.num_episodes == 3
+    oldest = buf.gather(torch.tensor([0]), 1).obs["id"][0, 0]
+    assert oldest.tolist() == [0.0, 3.0, 3.0]
+    # The remainder of episode 0 is an episode starting at its oldest row.
+    everything = buf.gather(torch.tensor([0]), 20)
+    ids, first = everything.obs["id"][:, 0], everything.is_first[:, 0, 0]
+    assert torch.equal(ids[:, 2], torch.arange(3, 23, dtype=torch.float32))  # write order
+    assert first[0] == 1 and torch.equal(first[1:], (ids[1:, 1] == 0).float())
+    assert buf.num_transitions == 20 - 3
+    # Two more episodes (32 rows written) overwrite episode 0 and rows 8..11 of episode 1.
+    buf.add_episode(**src.episode(4))
+    buf.add_episode(**src.episode(3))
+    assert buf.num_episodes == 4 and buf.size == 20
+    windows = buf.gather(torch.arange(buf.num_starts(5)), 5)
+    ids = windows.obs["id"]
+    assert torch.equal(ids[1:, :, 2] - ids[:-1, :, 2], torch.ones(4, windows.size))
+    oldest = buf.gather(torch.tensor([0]), 1)
+    assert oldest.obs["id"][0, 0].tolist() == [1.0, 4.0, 12.0] and oldest.is_first.item() == 1
+    step = ids[..., 1]
+    expected = (step == 0).float()
+    expected[0, 0] = 1.0  # window 0 starts on the oldest row
+    assert torch.equal(windows.is_first[..., 0], expected)
+    assert buf.num_transitions == 20 - 4
+    # The transition view follows the ring too.
+    tr = buf.transitions(np.arange(buf.num_transitions))
+    assert torch.equal(tr.next_obs["id"][:, 2], tr.obs["id"][:, 2] + 1)
+    assert torch.equal(tr.next_obs["id"][:, 0], tr.obs["id"][:, 0])
+
+
+def test_episode_longer_than_the_ring_is_refused():
+    with pytest.raises(ValueError, match="exceeds the buffer capacity"):
+        ReplayBuffer(5).add_episode(**Source().episode(5))
+
+
+# ------------------------------------------------------------------------------ transitions
+
+
+def test_transitions_and_two_row_items():
+    buf, _ = filled([3, 1, 4], successes={1})
+    assert buf.num_transitions == 8
+    tr = buf.transitions(np.arange(8))
+    ids, nxt = tr.obs["id"], tr.next_obs["id"]
+    assert ids[:, :2].tolist() == [[0, 0], [0, 1], [0, 2], [1, 0], [2, 0], [2, 1], [2, 2],
+                                   [2, 3]]  # fmt: skip
+    assert torch.equal(nxt[:, 1], ids[:, 1] + 1) and torch.equal(nxt[:, 0], ids[:, 0])
+    assert tr.terminated.tolist() == [0, 0, 0, 1, 0, 0, 0, 0]
+    torch.testing.assert_close(tr.reward, -(ids[:, 1] + 1) / 100)
+    with pytest.raises(ValueError, match=r"in \[0, 8\)"):
+        buf.transitions([8])
+
+    memory = ReplayBuffer(None, seed=1)
+    kept = buf.transitions(np.array([3, 6, 0]))
+    memory.add_transitions(kept, task=2)
+    assert (memory.size, memory.num_episodes, memory.num_transitions) == (6, 3, 3)
+    back = memory.transitions(np.arange(3))
+    for x, y in zip(back, kept, strict=True):
+        if isinstance(x, dict):
+            assert all(torch.equal(x[k], y[k]) for k in x)
+        else:
+            assert torch.equal(x, y)
+    batch = memory.sample_at_episode_starts(200, 5)
+    # Each window starts on an item and runs (cyclically) through whole items.
+    assert torch.equal(batch.is_first[..., 0], torch.tensor([1.0, 0, 1, 0, 1]).expand(200, 5).T)
+    assert torch.all(batch.task == 2)
+    assert torch.equal(batch.obs["id"][1], batch.obs["id"][0] + torch.tensor([0.0, 1, 1]))
+    assert len({tuple(r) for r in batch.obs["id"][0].tolist()}) == 3  # every item drawn
+    assert batch.rollout_mask()[..., 0].tolist() == [[1.0] * 200] + [[0.0] * 200] * 3
+    assert isinstance(kept, Transitions) and kept.action.shape == (3, A)
+
+
+# ------------------------------------------------------------------------------ state
+
+
+def test_state_dict_round_trip_continues_identically(tmp_path):
+    buf, src = filled([6, 2, 9], capacity=24, seed=7)
+    buf.add_episode(**src.episode(5))  # wrapped ring
+    buf.sample(8, 4)
+    torch.save(buf.state_dict(), tmp_path / "replay.pt")
+    state = torch.load(tmp_path / "replay.pt", weights_only=False)
+    assert state["obs"]["id"].shape[0] == 24
+    other = ReplayBuffer(24, seed=0)
+    other.load_state_dict(state)
+    more = src.episode(3)
+    for _ in range(2):
+        a, b = buf.sample(8, 4), other.sample(8, 4)
+        assert torch.equal(a.obs["id"], b.obs["id"]) and torch.equal(a.is_first, b.is_first)
+        assert torch.equal(a.action, b.action) and torch.equal(a.task, b.task)
+    buf.add_episode(**more)
+    other.add_episode(**more)
+    a, b = buf.sample(8, 4), other.sample(8, 4)
+    assert torch.equal(a.obs["id"], b.obs["id"])
+    assert (other.num_episodes, other.num_transitions) == (buf.num_episodes, buf.num_transitions)
+    # Compact: a small buffer saves the rows it holds, not its capacity.
+    small, _ = filled([3], capacity=100_000)
+    assert small.state_dict()["obs"]["id"].shape[0] == 4
+    with pytest.raises(ValueError, match="capacity"):
+        ReplayBuffer(25).load_state_dict(state)
+
+
+def test_obs_transform_applied_before_storing():
+    def transform(obs):
+        return {"latent": obs["id"][:, :2] * 10}
+
+    buf = ReplayBuffer(100, obs_transform=transform)
+    buf.add_episode(**Source().episode(4))
+    batch = buf.sample(5, 3)
+    assert set(batch.obs) == {"latent"} and batch.obs["latent"].shape == (3, 5, 2)
+    assert torch.equal(batch.obs["latent"][..., 1], batch.obs["latent"][..., 1].round())
+    assert set(batch.obs["latent"][..., 1].flatten().tolist()) <= {0.0, 10.0, 20.0, 30.0, 40.0}
+    assert buf.transitions([0]).obs["latent"].tolist() == [[0.0, 0.0]]
+
+
+def test_bad_episodes_are_refused():
+    buf = ReplayBuffer(100)
+    ep = Source().episode(4)
+    bad = dict(ep, terminated=np.array([1, 0, 0, 0], np.float32))
+    with pytest.raises(ValueError, match="before the last"):
+        buf.add_episode(**bad)
+    with pytest.raises(ValueError, match="lengths differ"):
+        buf.add_episode(**dict(ep, reward=ep["reward"][:2]))
+    with pytest.raises(ValueError, match="expected T\\+1"):
+        buf.add_episode(**dict(ep, obs={"id": ep["obs"]["id"][:3]}))
+    buf.add_episode(**ep)
+    with pytest.raises(ValueError, match="differ from stored"):
+        buf.add_episode(**dict(ep, obs={"x": ep["obs"]["id"]}))
+    with pytest.raises(ValueError, match="action size"):
+        buf.add_episode(**dict(ep, action=ep["action"][:, :2]))
