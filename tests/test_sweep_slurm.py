@@ -99,7 +99,7 @@ def test_a_preempted_run_is_requeued_and_ends_as_an_uninterrupted_one(tmp_path, 
     from ccfit.curriculum import Curriculum
 
     root = tmp_path / "runs"
-    train = ["--train.steps=600", "--train.seed_steps=100", "--train.eval_interval=300",
+    train = ["--train.steps=300", "--train.seed_steps=100", "--train.eval_interval=300",
              "--train.checkpoint_interval=100"]  # fmt: skip
     assert main(toy_args(root, "ft", "--partition", "low", *train)) == 0
     sweep, record = load_sweep(root)
@@ -109,6 +109,10 @@ def test_a_preempted_run_is_requeued_and_ends_as_an_uninterrupted_one(tmp_path, 
     while not list(sweep.run_dir(run).glob("tasks/*/checkpoint.pt")):
         assert time.monotonic() < deadline, "the run wrote no checkpoint"
         time.sleep(0.5)
+    status = sweep_status(root)
+    assert status[f"run:{run.name}"] == {"state": "running", "job": job, "detail": "RUNNING"}
+    assert status[f"scratch:{run.scratch_key}"]["state"] == "done"
+    assert status["report"]["state"] == "pending"
     # all of the node's CPUs in the high partition: the low job must give way
     subprocess.run(["sbatch", "--partition", "high", "--cpus-per-task", "2", "--time", "2",
                     "--job-name", "ccfit-preempt", "--wrap", "sleep 3"], check=True,
@@ -132,3 +136,16 @@ def test_a_preempted_run_is_requeued_and_ends_as_an_uninterrupted_one(tmp_path, 
     reference = json.loads(json.dumps(reference))
     reference.pop("scratch_dir")
     assert result == reference
+
+
+def test_no_accounting_is_one_line(tmp_path, capsys, monkeypatch):
+    bin_dir = tmp_path / "bin"  # the real sbatch, sinfo and squeue, but no sacct
+    bin_dir.mkdir()
+    for tool in ("sbatch", "sinfo", "squeue"):
+        (bin_dir / tool).symlink_to(shutil.which(tool))
+    monkeypatch.setenv("PATH", str(bin_dir))
+    code = main(toy_args(tmp_path / "runs", "ft"))
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1
+    assert "sacct not available (sacct is not on PATH)" in err
+    assert not (tmp_path / "runs").exists()
