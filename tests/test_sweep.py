@@ -240,3 +240,24 @@ def test_status_reads_an_abandoned_local_record_as_interrupted(tmp_path):
     write_record(sweep, [{"launcher": "local", "pid": os.getpid(), "jobs": {
         name: {"state": "RUNNING"}}}])
     assert sweep_status(tmp_path)[name]["state"] == "running"
+
+
+def test_a_failed_reference_fails_its_runs_unstarted(tmp_path, capsys):
+    root = tmp_path / "runs"
+    args = ["--suites", "Reach", "--methods", "ft,er", "--out", str(root), *TOY]
+    sweep = expand(Grid(("Reach",), ("toy",), ("ft", "er"), (0,), "smoke", TOY_RUN,
+                        ("test_seam",)), root)  # fmt: skip
+    blocker = sweep.scratch_dir(sweep.runs[0].scratch_key)
+    blocker.parent.mkdir(parents=True)
+    blocker.write_text("not a directory")  # the reference cannot write its outputs
+    code, out, err = sweep_cli(capsys, *args)
+    assert code == 0, err
+    assert out.count("failed run:") == 2 and "its reference scratch:" in out
+    status = json.loads((root / "report" / "status.json").read_text())
+    assert status["done"] == [] and [m["started"] for m in status["missing"]] == [False, False]
+    assert all("its reference scratch:" in m["error"] for m in status["missing"])
+    log = root / "local" / f"scratch-{sweep.runs[0].scratch_key}.err"
+    assert "NotADirectoryError" in log.read_text() or "FileExistsError" in log.read_text()
+    states = sweep_status(root)
+    assert [s["state"] for s in states.values()] == ["failed", "failed", "failed", "done"]
+    assert not any(sweep.run_dir(r).exists() for r in sweep.runs)
