@@ -303,11 +303,10 @@ def parse_cli[C: RunConfig](cls: type[C], argv: Sequence[str], prog: str | None 
             defaults = json.loads(path.read_text())
         except json.JSONDecodeError as e:
             raise ConfigError(f"{path} is not a JSON config: {e}") from None
-        if not _has_method(cls):
-            defaults.pop("method", None)
-        for key in ("suite", "task"):
-            if not any(f.name == key for f in dataclasses.fields(cls)):
-                defaults.pop(key, None)
+        # A saved config.json also records what was derived (e.g. the resolved seed dataset),
+        # and a curriculum's config may seed a single-task run: keep this class's fields.
+        names = {f.name for f in dataclasses.fields(cls)}
+        defaults = {k: v for k, v in defaults.items() if k in names}
         args = _without(args, "config_path")
     else:
         obs = pre.get("obs", "state")

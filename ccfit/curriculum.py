@@ -22,6 +22,7 @@ Run directory:
 
 from __future__ import annotations
 
+import dataclasses
 import fcntl
 import hashlib
 import json
@@ -288,8 +289,8 @@ def load_run(run_dir: str | Path, device: torch.device | str | None = None) -> L
     if not (run_dir / CONFIG).is_file():
         raise InputError(f"{run_dir} is not a run directory (no {CONFIG})")
     saved = json.loads((run_dir / CONFIG).read_text())
-    saved.pop("resolved_seed_dataset", None)
-    cfg = resolve(CurriculumConfig, saved)
+    names = {f.name for f in dataclasses.fields(CurriculumConfig)}
+    cfg = resolve(CurriculumConfig, {k: v for k, v in saved.items() if k in names})
     dev = torch.device(device) if device is not None else resolve_device(cfg.train.device)
     model, method, stored, completed = restore(cfg, run_dir, dev)
     return LoadedRun(cfg, model, method, stored, completed, dev)

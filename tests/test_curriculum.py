@@ -86,7 +86,7 @@ def runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("curriculum")
     current: list[Seen] = []
 
-    class SpyBuffer(C.ReplayBuffer):
+    class SpyBuffer(R.ReplayBuffer):
         def __init__(self, *args, **kwargs) -> None:
             super().__init__(*args, **kwargs)
             self.added: list[tuple[int, np.ndarray]] = []

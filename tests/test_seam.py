@@ -81,7 +81,7 @@ class ToyModel(WorldModel):
         z, za = self._latents(batch)
         reward = (heads["reward"](za) - batch.reward[:-1]).pow(2) * batch.valid()
         total = self.backbone_loss(batch) + reward.mean()
-        return LossOutput(total, {"reward": float(reward.mean())}, aux=z.detach())
+        return LossOutput(total, {"reward": float(reward.mean().detach())}, aux=z.detach())
 
     def head_update(self, batch, heads, out, optimizers) -> dict:
         CALLS["head_update"] += 1
@@ -91,7 +91,7 @@ class ToyModel(WorldModel):
         optimizers["pi"].zero_grad()
         loss.backward()
         optimizers["pi"].step()
-        return {"pi_loss": float(loss)}
+        return {"pi_loss": float(loss.detach())}
 
     def initial_state(self, heads):
         CALLS["initial_state"] += 1
@@ -123,9 +123,11 @@ def test_loop_calls_the_model_as_its_contract_says(tmp_path):
     model = build_model(cfg, torch.device("cpu"))
     heads = model.new_heads()
     env = make_env("reach-xy")
+    buffer = make_replay(cfg, model, "reach-xy", 0, None)
+    buffer.add_episode({"state": np.zeros((6, 39), np.float32)}, np.zeros((5, 4), np.float32),
+                       np.zeros(5, np.float32), np.zeros(5, np.float32))  # sampleable at once
     trainer = Trainer(env=env, model=model, heads=heads, config=cfg.train, seed=0,
-                      obs_mode="state", task_id="reach-xy",
-                      buffer=make_replay(cfg, model, "reach-xy", 0, None),
+                      obs_mode="state", task_id="reach-xy", buffer=buffer,
                       logger=RunLogger(tmp_path), progress=False)  # fmt: skip
     CALLS.clear()
     trainer.run()

@@ -1,10 +1,10 @@
 """World models: one interface (base.py), a registry (registry.py), and the registered models.
 
-Importing this package registers every model (TD-MPC2, PWM); each model module lists its
-config beside it. `make_model(cfg, device)` builds the model a config belongs to.
+Importing this package registers every model (TD-MPC2, PWM, DreamerV3); each model module
+keeps its config beside it. `make_model(cfg, device)` builds the model a config belongs to.
 """
 
-from ccfit.models import pwm, tdmpc2  # noqa: F401  (registers the models)
+from ccfit.models import dreamerv3, pwm, tdmpc2  # noqa: F401  (registers the models)
 from ccfit.models.base import Batch, WorldModel
 from ccfit.models.registry import ModelConfig, make_model, model_names, register_model
 

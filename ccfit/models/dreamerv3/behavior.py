@@ -1,0 +1,157 @@
+"""Actor-critic learning in imagination (and the 2025 replay-value loss).
+
+From each start (a detached posterior), the actor rolls the prior forward `horizon` steps:
+s_0 .. s_H with actions a_0 .. a_{H-1}. Rewards and continue flags of arriving at s_1..s_H
+come from the task's heads, values from the critic, and lambda-returns R_0..R_{H-1} are the
+targets. Losses are weighted by the chance of still being alive, cumprod(discount * c) /
+discount, with c_0 = 1 unless the start is a terminal observation.
+
+- Actor ('dynamics', the recipe): maximise (R - v) / scale by backpropagating through the
+  imagined dynamics, rewards and values (only the actor's parameters are stepped).
+  ('reinforce', 2025): log pi(a) * sg((R - v) / scale) -- the *normalised* advantage
+  (NM512/dreamerv3-torch forgets the normalisation). Both add an entropy bonus.
+- Critic: two-hot cross-entropy toward sg(R) on detached states, plus a regulariser toward
+  the slow critic's predictions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ccfit.models.dreamerv3.config import DreamerV3Config
+from ccfit.models.dreamerv3.heads import DreamerV3Heads
+from ccfit.models.dreamerv3.math import lambda_return
+from ccfit.models.dreamerv3.networks import normal_entropy, normal_log_prob
+from ccfit.models.dreamerv3.rssm import RSSM
+
+
+@dataclass
+class Trajectory:
+    """An imagined rollout from N starts."""
+
+    feat: torch.Tensor
+    """Model states s_0..s_H, (H + 1, N, F)."""
+    action: torch.Tensor
+    """Actions a_0..a_{H-1} as sampled (before the dynamics' clipping), (H, N, A)."""
+    cont: torch.Tensor
+    """Continue flags of s_0..s_H (c_0 from the start, then the continue head's mode)."""
+    weight: torch.Tensor
+    """Loss weights cumprod(discount * c) / discount, (H + 1, N, 1), no gradient."""
+
+
+def imagine(
+    rssm: RSSM,
+    heads: DreamerV3Heads,
+    deter: torch.Tensor,
+    stoch: torch.Tensor,
+    start_cont: torch.Tensor,
+    horizon: int,
+    discount: float,
+) -> Trajectory:
+    """Roll the actor through the prior from starts (N, D), (N, S, C); gradients flow from
+    the actor's reparameterised samples through the dynamics (use no_grad when not needed).
+    The actor reads detached states, as in the recipe: its gradient is the path through
+    its sampled actions only."""
+    feats = [rssm.feat(deter, stoch)]
+    actions = []
+    for _ in range(horizon):
+        mean, std = heads.actor(feats[-1].detach())
+        action = mean + std * torch.randn_like(mean)
+        deter, stoch = rssm.img_step(deter, stoch, action)
+        actions.append(action)
+        feats.append(rssm.feat(deter, stoch))
+    feat = torch.stack(feats)
+    with torch.no_grad():
+        cont = (heads.cont(feat[1:]) > 0).to(feat.dtype)
+        cont = torch.cat([start_cont[None], cont])
+        weight = torch.cumprod(discount * cont, 0) / discount
+    return Trajectory(feat, torch.stack(actions), cont, weight)
+
+
+def imagined_returns(
+    cfg: DreamerV3Config, heads: DreamerV3Heads, traj: Trajectory
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(lambda-returns R_0..R_{H-1} (H, N, 1), values v(s_0..s_H) (H + 1, N, 1)); with a
+    graph only when the trajectory has one (the 'dynamics' actor gradient needs it)."""
+    with torch.set_grad_enabled(traj.feat.requires_grad):
+        reward = heads.reward_mean(traj.feat[1:])
+        value = heads.value(traj.feat)
+    return lambda_return(reward, traj.cont[1:], value, cfg.discount, cfg.return_lambda), value
+
+
+def behavior_losses(
+    cfg: DreamerV3Config, heads: DreamerV3Heads, traj: Trajectory, update_retnorm: bool = True
+) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+    """(actor loss, critic loss, detached logs); updates the return normaliser first, as the
+    recipe does, then scales the advantage with the updated statistics."""
+    ret, value = imagined_returns(cfg, heads, traj)
+    if update_retnorm:
+        heads.retnorm.update(ret)
+    scale = heads.retnorm.scale()
+    adv = (ret - value[:-1]) / scale
+    states = traj.feat[:-1].detach()
+    weight = traj.weight[:-1]
+    mean, std = heads.actor(states)
+    entropy = normal_entropy(std)
+    if cfg.actor_grad == "dynamics":
+        objective = adv
+    else:
+        objective = normal_log_prob(traj.action.detach(), mean, std) * adv.detach()
+    actor_loss = -((objective + cfg.actor_entropy * entropy) * weight).mean()
+
+    logits = heads.critic(states)
+    target = ret.detach()
+    critic = heads.twohot.cross_entropy(logits, target)
+    reg = heads.twohot.cross_entropy(logits, heads.slow_value(states))
+    critic_loss = ((critic + cfg.slow_critic_reg * reg) * weight).mean()
+    logs = {
+        "actor_loss": actor_loss.detach(),
+        "critic_loss": critic_loss.detach(),
+        "return": ret.detach().mean(),
+        "value": value.detach().mean(),
+        "advantage": adv.detach().mean(),
+        "return_scale": scale.detach(),
+        "actor_entropy": entropy.detach().mean(),
+        "actor_std": std.detach().mean(),
+        "imag_cont": traj.cont[1:].mean(),
+    }
+    return actor_loss, critic_loss, logs
+
+
+# ---------------------------------------------------------------------- 2025: replay value
+
+
+def replay_lambda_return(
+    reward: torch.Tensor,
+    terminated: torch.Tensor,
+    valid: torch.Tensor,
+    boot: torch.Tensor,
+    discount: float,
+    lam: float,
+) -> torch.Tensor:
+    """lambda-returns along replayed rows (K, B, 1), bootstrapped from each row's imagined
+    return `boot` (K, B, 1) (the 2025 recipe's replay-value target):
+        G_t = r_t + discount (1 - term_t) ((1 - lam) boot_{t+1} + lam G_{t+1})
+    where row t's transition is real (`valid`), else (and on the last row) G_t = boot_t."""
+    out = [boot[-1]]
+    for t in reversed(range(boot.shape[0] - 1)):
+        nxt = (1.0 - lam) * boot[t + 1] + lam * out[-1]
+        g = reward[t] + discount * (1.0 - terminated[t]) * nxt
+        out.append(torch.where(valid[t] > 0, g, boot[t]))
+    return torch.stack(out[::-1])
+
+
+def replay_value_loss(
+    cfg: DreamerV3Config,
+    heads: DreamerV3Heads,
+    critic_logits: torch.Tensor,
+    feat: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor,
+) -> torch.Tensor:
+    """Mean over masked rows of CE(critic, target) + slow regulariser, unscaled."""
+    reg = heads.twohot.cross_entropy(critic_logits, heads.slow_value(feat.detach()))
+    loss = heads.twohot.cross_entropy(critic_logits, target) + cfg.slow_critic_reg * reg
+    return (loss * mask).sum() / mask.sum().clamp(min=1.0)
