@@ -115,8 +115,8 @@ def test_a_preempted_run_is_requeued_and_ends_as_an_uninterrupted_one(tmp_path, 
     assert status["report"]["state"] == "pending"
     # all of the node's CPUs in the high partition: the low job must give way
     subprocess.run(["sbatch", "--partition", "high", "--cpus-per-task", "2", "--time", "2",
-                    "--job-name", "ccfit-preempt", "--wrap", "sleep 3"], check=True,
-                   capture_output=True)  # fmt: skip
+                    "--job-name", "ccfit-preempt", "--output", "/dev/null", "--wrap", "sleep 3"],
+                   check=True, capture_output=True)  # fmt: skip
 
     # meanwhile the same config uninterrupted, here
     from ccfit.sweep.jobs import config_from_dict
