@@ -6,6 +6,8 @@ Example:
 Commands:
     train    online model-based RL on one task (resumes when --out holds its checkpoint)
     run      a suite's continual curriculum (Algorithm 1) with one method; writes metrics.json
+    sweep    a grid of runs (suites x models x methods x seeds), locally or on SLURM, and the
+             report over them; again: submits only unfinished work; --status RUNS
     report   tables and plots over run directories (BWT / FWT per backbone, suite, method)
     ablate   a finished PWM run's expert ablation on the composition task (the paper's Fig. 6)
     pretrain-encoder   the frozen-encoder diagnostic: an autoencoder on every task's oracle
@@ -152,7 +154,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-CONFIG_COMMANDS = {"train": cmd_train, "run": cmd_run}
+def cmd_sweep(argv: list[str]) -> None:
+    """ccfit sweep --suites Reach --methods ft,er --seeds 0,1 --out RUNS  (see --help)"""
+    from ccfit.sweep.cli import cmd_sweep as sweep
+
+    sweep(argv)
+
+
+CONFIG_COMMANDS = {"train": cmd_train, "run": cmd_run, "sweep": cmd_sweep}
 """Commands whose options are the typed config tree (draccus): `ccfit run --help` lists it."""
 
 

@@ -24,7 +24,8 @@ import numpy as np
 
 from ccfit import metrics as M
 from ccfit.analysis import report_routing
-from ccfit.curriculum import METRICS_JSON, metrics_from_curves, task_curves
+from ccfit.curriculum import METRICS_JSON
+from ccfit.metrics import metrics_from_curves, task_curves
 from ccfit.train import CONFIG, METRICS
 
 METHOD_ORDER = ("ft", "er", "ewc", "packnet", "experts")
@@ -40,11 +41,11 @@ class Run:
 
     @property
     def backbone(self) -> str:
-        return self.config["model"] + ("+frozen-enc" if self.config.get("encoder") else "")
+        return self.config["model"]["type"] + ("+frozen-enc" if self.config.get("encoder") else "")
 
     @property
     def key(self) -> tuple[str, str, str]:
-        return self.backbone, self.config["suite"], self.config["method"]
+        return self.backbone, self.config["suite"], self.config["method"]["type"]
 
 
 def find_runs(paths: list[Path]) -> list[Run]:

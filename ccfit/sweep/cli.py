@@ -1,0 +1,153 @@
+"""`ccfit sweep`: a grid of continual runs, here or on SLURM, and the report over them.
+
+    ccfit sweep --suites Reach,Grasp --models tdmpc2,pwm --methods ft,er,ewc,packnet \
+        --seeds 0,1,2 --preset cpu --out runs/sweep1 [--launcher slurm] [--max-parallel 4] \
+        [--obs pixels --train.steps=2000 --model.router=state ...]
+    ccfit sweep --status runs/sweep1
+
+Options the sweep does not know are run options (`ccfit run --help`), set for every run.
+Running the same command again submits only the unfinished work.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+
+from ccdata.errors import InputError
+from ccfit.sweep.grid import (
+    SWEEP_JSON,
+    Grid,
+    check_same_sweep,
+    expand,
+    import_plugins,
+    read_record,
+)
+from ccfit.sweep.launch import launch_local, launch_slurm, plan_work, slurm_active, sweep_lock
+from ccfit.sweep.slurm import MIN_TIME_MIN, SlurmSettings, check_slurm, parse_time
+from ccfit.sweep.status import print_status, sweep_status
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:
+        raise InputError(message)
+
+
+def _csv(text: str) -> tuple[str, ...]:
+    return tuple(x.strip() for x in text.split(",") if x.strip())
+
+
+def _seeds(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(x) for x in _csv(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected integers like 0,1,2, got {text!r}") from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="ccfit sweep", description=__doc__.split("\n\n")[0], allow_abbrev=False,
+                epilog="Any other option is a run option (`ccfit run --help`), set for every "
+                       "run.")  # fmt: skip
+    p.add_argument("--suites", type=_csv, help="suites, comma-separated (Reach,Grasp)")
+    p.add_argument("--models", type=_csv, default=("tdmpc2",), help="world models (tdmpc2,pwm)")
+    p.add_argument("--methods", type=_csv, default=("ft",), help="methods (ft,er,ewc,packnet)")
+    p.add_argument("--seeds", type=_seeds, default=(0,), help="seeds (0,1,2)")
+    p.add_argument("--preset", default="cpu", help="size preset of every run (smoke, cpu, paper)")
+    p.add_argument("--out", help="sweep folder RUNS: runs, scratch/, report/, sweep.json")
+    p.add_argument("--launcher", choices=("local", "slurm"), default="local")
+    p.add_argument("--max-parallel", type=int, default=None,
+                   help="jobs at once (local default: CPU count; SLURM: array throttle)")
+    p.add_argument("--plugins", type=_csv, default=(),
+                   help="modules to import first, here and in every job (they register models "
+                        "or methods defined outside ccfit)")  # fmt: skip
+    p.add_argument("--dry-run", action="store_true", help="print what would run; write nothing")
+    p.add_argument("--status", metavar="RUNS", help="show the state of the sweep in RUNS")
+    p.add_argument("--wait", action="store_true", help="SLURM: block until the report job ended")
+    s = p.add_argument_group("SLURM")
+    s.add_argument("--partition")
+    s.add_argument("--account")
+    s.add_argument("--qos")
+    s.add_argument("--time", default="1-00:00:00",
+                   help=f"time limit per job, minutes or [D-]H:M:S (>= {MIN_TIME_MIN} min); a job "
+                        "reaching it is requeued and resumes")  # fmt: skip
+    s.add_argument("--gpus-per-job", type=int, default=0)
+    s.add_argument("--cpus-per-job", type=int, default=1)
+    s.add_argument("--mem", help="memory per job (16G)")
+    s.add_argument("--setup", action="append", default=[],
+                   help="shell line run before each job (repeatable)")
+    return p
+
+
+def cmd_sweep(argv: list[str]) -> None:
+    """ccfit sweep --suites Reach --methods ft,er --seeds 0,1 --out RUNS  (see --help)"""
+    args, run_args = build_parser().parse_known_args(argv)
+    if args.status:
+        print_status(sweep_status(args.status))
+        return
+    if not args.suites or not args.out:
+        raise InputError("--suites and --out are required (or --status RUNS)")
+    settings = None
+    if args.launcher == "slurm":
+        settings = SlurmSettings(
+            partition=args.partition, account=args.account, qos=args.qos,
+            time_min=parse_time(args.time), gpus_per_job=args.gpus_per_job,
+            cpus_per_job=args.cpus_per_job, mem=args.mem, setup=args.setup,
+            max_parallel=args.max_parallel)  # fmt: skip
+        check_slurm()
+    elif args.max_parallel is not None and args.max_parallel < 1:
+        raise InputError(f"--max-parallel must be >= 1, got {args.max_parallel}")
+    grid = Grid(args.suites, args.models, args.methods, args.seeds, args.preset,
+                tuple(run_args), args.plugins)  # fmt: skip
+    import_plugins(grid.plugins)
+    sweep = expand(grid, args.out)
+    record = read_record(sweep.root)
+    if record is not None:
+        check_same_sweep(sweep, record)
+    submissions = record.get("submissions", []) if record else []
+    active = slurm_active(submissions) if shutil.which("squeue") else {}
+    if active and args.launcher == "local":
+        raise InputError(f"jobs of a SLURM submission are still queued or running in "
+                         f"{sweep.root} ({', '.join(sorted(set(active.values()))[:5])}): wait "
+                         f"for them or scancel them")  # fmt: skip
+    work = plan_work(sweep, active)
+    _print_plan(sweep, work, args.dry_run)
+    if args.dry_run or work.empty:
+        return
+    if args.launcher == "local":
+        parallel = args.max_parallel or os.cpu_count() or 1
+        # a config asking for torch's default thread count shares the cores among the jobs
+        threads = max(1, (os.cpu_count() or 1) // parallel)
+        with sweep_lock(sweep):
+            launch_local(sweep, work, submissions, parallel, threads)
+        return
+    entry = launch_slurm(sweep, work, submissions, settings)
+    for name, job in entry["jobs"].items():
+        print(f"  {job}  {name}")
+    print(f"submitted {len(entry['jobs'])} jobs; logs in {sweep.root / 'slurm'}; "
+          f"`ccfit sweep --status {args.out}` follows them")
+    if args.wait:
+        from ccfit.sweep.launch import wait_report
+
+        wait_report(entry, timeout_s=float("inf"))
+        print_status(sweep_status(sweep.root))
+
+
+def _print_plan(sweep, work, dry_run: bool) -> None:
+    verb = "would run" if dry_run else "to run"
+    print(f"{sweep.root / SWEEP_JSON}: {len(sweep.runs)} runs, {work.finished} finished, "
+          f"{len(work.active)} jobs still queued or running")
+    if work.empty:
+        print("nothing to submit: every run is done or queued" if work.active or work.finished
+              else "nothing to submit")  # fmt: skip
+        return
+    print(f"{verb}: {len(work.scratch)} from-scratch references, {len(work.runs)} runs"
+          f"{', then the report' if work.report else ''}")
+    if dry_run:
+        for key in work.scratch:
+            print(f"  scratch/{key}")
+        for run in work.runs:
+            print(f"  {run.name}")
+    sys.stdout.flush()
+

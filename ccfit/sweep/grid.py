@@ -1,0 +1,255 @@
+"""A sweep's grid expanded into run configs, and its record `sweep.json`.
+
+Every grid point (suite x model x method x seed) is a `ccfit run` config: the grid's values
+and the common options go through the same `parse_cli` as `ccfit run`, so a sweep accepts
+every run option and validates it the same way. Runs go to `RUNS/<name>` (named by their
+config); runs that differ only in the method share one from-scratch reference in
+`RUNS/scratch/<scratch_key>`.
+
+`sweep.json` holds the grid, each run's resolved config, its directory and scratch key, the
+code version, and one entry per submission (launcher, job ids, job states when local). It
+identifies the sweep: a folder that holds another one is refused.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import itertools
+import json
+import subprocess
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+
+from ccdata.errors import InputError
+from ccfit.io import atomic_write_json
+
+SWEEP_JSON = "sweep.json"
+SWEEP_VERSION = 1
+SCRATCH = "scratch"
+SCRATCH_DONE = "done.json"
+REPORT = "report"
+STATUS_JSON = "status.json"
+METRICS_JSON = "metrics.json"  # ccfit.curriculum.METRICS_JSON (kept import-free here)
+
+GRID_FLAGS = ("suite", "seed", "model.type", "method.type", "preset")
+"""Run options the grid sets itself: giving them as common options is an error."""
+REFUSED_FLAGS = ("out", "config_path")
+
+
+@dataclass(frozen=True)
+class Grid:
+    """What a sweep varies and what it shares."""
+
+    suites: tuple[str, ...]
+    """Suites, each learnt as one curriculum per (model, method, seed)."""
+    models: tuple[str, ...]
+    """Registered world models (`--model.type` values)."""
+    methods: tuple[str, ...]
+    """Registered continual methods (`--method.type` values)."""
+    seeds: tuple[int, ...]
+    """Run seeds (each run takes its seed from its config, never from a job index)."""
+    preset: str = "cpu"
+    """Size preset of every run."""
+    args: tuple[str, ...] = ()
+    """Common run options in `ccfit run` syntax (`--obs pixels --train.steps=2000`)."""
+    plugins: tuple[str, ...] = ()
+    """Modules imported before configs are built, here and in every job: they register world
+    models or methods defined outside ccfit."""
+
+    def __post_init__(self) -> None:
+        for name in ("suites", "models", "methods", "seeds"):
+            values = getattr(self, name)
+            if not values:
+                raise InputError(f"--{name} is empty")
+            repeated = sorted({str(v) for v in values if values.count(v) > 1})
+            if repeated:
+                raise InputError(f"--{name} lists {', '.join(repeated)} more than once")
+        for arg in self.args:
+            flag = _flag_name(arg)
+            if flag in GRID_FLAGS:
+                plural = {"model.type": "models", "method.type": "methods"}.get(flag, flag + "s")
+                hint = "--preset" if flag == "preset" else f"--{plural}"
+                raise InputError(f"--{flag} is set by the sweep grid; use {hint}")
+            if flag in REFUSED_FLAGS:
+                raise InputError(f"--{flag} is not a sweep option (runs go to RUNS/<name>; "
+                                 f"pass run options as flags)")
+
+    def to_dict(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v
+                for k, v in dataclasses.asdict(self).items()}  # fmt: skip
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Grid:
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+def _flag_name(arg: str) -> str | None:
+    if not arg.startswith("--"):
+        return None
+    return arg[2:].partition("=")[0].replace("-", "_")
+
+
+@dataclass
+class RunSpec:
+    """One run of the sweep."""
+
+    name: str
+    """Directory name under RUNS, made from the config."""
+    config: dict
+    """The resolved config (`CurriculumConfig.to_dict()`), `out` = the run directory."""
+    scratch_key: str
+    """Its from-scratch reference: RUNS/scratch/<scratch_key>."""
+
+
+@dataclass
+class Sweep:
+    """An expanded grid under `root`."""
+
+    root: Path
+    grid: Grid
+    runs: list[RunSpec]
+    code: dict = field(default_factory=dict)
+
+    def run_dir(self, run: RunSpec) -> Path:
+        return self.root / run.name
+
+    def scratch_dir(self, key: str) -> Path:
+        return self.root / SCRATCH / key
+
+    def run_done(self, run: RunSpec) -> bool:
+        return (self.run_dir(run) / METRICS_JSON).is_file()
+
+    def scratch_done(self, key: str) -> bool:
+        return (self.scratch_dir(key) / SCRATCH_DONE).is_file()
+
+    def scratch_configs(self) -> dict[str, dict]:
+        """Scratch key -> the config of the first run that needs it (the method is ignored)."""
+        out: dict[str, dict] = {}
+        for run in self.runs:
+            out.setdefault(run.scratch_key, run.config)
+        return out
+
+    def identity(self) -> dict:
+        """What makes two sweeps the same: every run's config but where it is stored."""
+        return {r.name: {k: v for k, v in r.config.items() if k != "out"} for r in self.runs}
+
+    def record(self) -> dict:
+        """sweep.json without the submissions."""
+        return {
+            "version": SWEEP_VERSION,
+            "grid": self.grid.to_dict(),
+            "code": self.code,
+            "runs": [{"name": r.name, "dir": r.name, "scratch": f"{SCRATCH}/{r.scratch_key}",
+                      "config": r.config} for r in self.runs],  # fmt: skip
+        }
+
+
+def import_plugins(plugins: tuple[str, ...] | list[str]) -> None:
+    for module in plugins:
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as e:
+            raise InputError(f"plugin module {module!r} not found ({e})") from None
+
+
+def run_name(cfg) -> str:
+    """A run's directory name: the grid values plus the shared obs and preset."""
+    return f"{cfg.suite}-{cfg.model.type}-{cfg.method.type}-{cfg.obs}-{cfg.preset}-s{cfg.seed}"
+
+
+def expand(grid: Grid, root: str | Path) -> Sweep:
+    """Every grid point's config, resolved and validated as `ccfit run` does it."""
+    from ccfit.config import CurriculumConfig, parse_cli
+    from ccfit.curriculum import scratch_key
+
+    import_plugins(grid.plugins)
+    root = Path(root).resolve()
+    runs = []
+    for suite, model, method, seed in itertools.product(grid.suites, grid.models, grid.methods,
+                                                        grid.seeds):  # fmt: skip
+        argv = [f"--preset={grid.preset}", f"--suite={suite}", f"--seed={seed}",
+                f"--model.type={model}", f"--method.type={method}", *grid.args]  # fmt: skip
+        cfg = parse_cli(CurriculumConfig, argv, prog="ccfit sweep")
+        name = run_name(cfg)
+        cfg.out = str(root / name)
+        runs.append(RunSpec(name, cfg.to_dict(), scratch_key(cfg)))
+    return Sweep(root, grid, runs, code_version())
+
+
+# ================================================================================ sweep.json
+
+
+def read_record(root: str | Path) -> dict | None:
+    path = Path(root) / SWEEP_JSON
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(f"{path} is not a sweep record: {e}") from None
+
+
+def load_sweep(root: str | Path) -> tuple[Sweep, dict]:
+    """The sweep recorded in `root` and its full record (with the submissions)."""
+    record = read_record(root)
+    if record is None:
+        raise InputError(f"{root} holds no sweep (no {SWEEP_JSON})")
+    runs = [RunSpec(r["name"], r["config"], r["scratch"].split("/", 1)[1])
+            for r in record["runs"]]  # fmt: skip
+    sweep = Sweep(Path(root).resolve(), Grid.from_dict(record["grid"]), runs, record["code"])
+    return sweep, record
+
+
+def check_same_sweep(sweep: Sweep, record: dict) -> None:
+    """Refuse a folder whose sweep.json holds another sweep (other runs or other configs)."""
+    theirs = {r["name"]: {k: v for k, v in r["config"].items() if k != "out"}
+              for r in record.get("runs", [])}  # fmt: skip
+    ours = sweep.identity()
+    if theirs == ours:
+        return
+    where = sweep.root / SWEEP_JSON
+    added, removed = sorted(set(ours) - set(theirs)), sorted(set(theirs) - set(ours))
+    if added or removed:
+        what = "; ".join(filter(None, [added and f"new runs {', '.join(added[:3])}",
+                                       removed and f"missing runs {', '.join(removed[:3])}"]))
+    else:
+        name = next(n for n in ours if ours[n] != theirs[n])
+        key, a, b = _first_difference(theirs[name], ours[name])
+        what = f"run {name}: {key} is {b!r}, was {a!r}"
+    raise InputError(f"{where} holds a different sweep ({what}); use another --out")
+
+
+def _first_difference(a, b, prefix: str = "") -> tuple[str, object, object]:
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b)):
+            if a.get(k) != b.get(k):
+                return _first_difference(a.get(k), b.get(k), f"{prefix}{k}.")
+    return prefix.rstrip("."), a, b
+
+
+def write_record(sweep: Sweep, submissions: list[dict]) -> None:
+    atomic_write_json(sweep.root / SWEEP_JSON, {**sweep.record(), "submissions": submissions})
+
+
+def code_version() -> dict:
+    """The package version, and `git describe` of the source tree when it is a checkout."""
+    try:
+        version = metadata.version("ccbench")
+    except metadata.PackageNotFoundError:
+        version = None
+    source = Path(__file__).resolve().parents[2]
+    git = {"describe": None, "commit": None}
+    if (source / ".git").exists():  # a checkout (a worktree's .git is a file), not site-packages
+        for key, cmd in (("describe", ["describe", "--always", "--dirty", "--tags"]),
+                         ("commit", ["rev-parse", "HEAD"])):  # fmt: skip
+            try:
+                done = subprocess.run(["git", *cmd], cwd=source, capture_output=True, text=True,
+                                      timeout=30)  # fmt: skip
+            except (FileNotFoundError, subprocess.TimeoutExpired):
+                break
+            if done.returncode == 0:
+                git[key] = done.stdout.strip()
+    return {"package": version, "git": git["describe"], "commit": git["commit"],
+            "source": str(source)}  # fmt: skip

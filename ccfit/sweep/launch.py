@@ -1,0 +1,267 @@
+"""Running a sweep's unfinished work: a local process pool, or SLURM arrays through submitit.
+
+Jobs are named `scratch:<key>`, `run:<name>` and `report`. Both launchers take the same plan
+(`plan_work`): the references not yet trained, the runs without metrics.json, and a report.
+
+Local: at most `max_parallel` jobs at once in spawned processes (one each, so every job starts
+clean); a run starts only once its reference is done; the report runs last. States are kept in
+sweep.json as they change, so `--status` can read them from another shell.
+
+SLURM: the references as one array, the runs as a second array that waits for them
+(`afterany`: with `afterok` a failed reference would leave the runs pending forever; each run
+checks that its reference exists), and a report job after both. Submitting returns at once.
+Jobs already queued or running from an earlier submission are not submitted again; new jobs
+wait for them where they need them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import io
+import multiprocessing as mp
+import os
+import time
+import traceback
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+
+import submitit
+from submitit.core.utils import FailedJobError, FailedSubmissionError
+
+from ccdata.errors import InputError
+from ccfit.sweep.grid import SCRATCH, RunSpec, Sweep, write_record
+from ccfit.sweep.jobs import ReportJob, RunJob, ScratchJob, report_current
+from ccfit.sweep.slurm import SlurmSettings, active_jobs
+
+MAX_REQUEUES = 3
+"""Timeouts after which submitit stops requeueing a job (preemptions do not count)."""
+
+
+@dataclass
+class Work:
+    """What a launch submits."""
+
+    scratch: list[str] = field(default_factory=list)
+    """Scratch keys to train."""
+    runs: list[RunSpec] = field(default_factory=list)
+    """Runs to train or resume."""
+    report: bool = False
+    """Whether a report job runs after them."""
+    finished: int = 0
+    """Runs skipped because their metrics.json exists."""
+    active: dict[str, str] = field(default_factory=dict)
+    """Jobs of earlier submissions still queued or running (name -> job id): not resubmitted."""
+
+    @property
+    def empty(self) -> bool:
+        return not (self.scratch or self.runs or self.report)
+
+
+def plan_work(sweep: Sweep, active: dict[str, str]) -> Work:
+    """The unfinished work of `sweep`, leaving out what the jobs in `active` are doing."""
+    work = Work(active=dict(active))
+    for run in sweep.runs:
+        if sweep.run_done(run):
+            work.finished += 1
+        elif f"run:{run.name}" not in active:
+            work.runs.append(run)
+    keys = dict.fromkeys(r.scratch_key for r in work.runs)
+    work.scratch = [k for k in keys if not sweep.scratch_done(k) and f"scratch:{k}" not in active]
+    work.report = bool(work.scratch or work.runs) or (
+        "report" not in active and not active and not report_current(sweep))
+    return work
+
+
+def _now() -> str:
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def _last_line(text: str) -> str:
+    lines = [line for line in text.strip().splitlines() if line.strip()]
+    return lines[-1] if lines else "no message"
+
+
+# ================================================================================== local
+
+
+@contextlib.contextmanager
+def sweep_lock(sweep: Sweep):
+    """One local launcher per sweep folder at a time."""
+    sweep.root.mkdir(parents=True, exist_ok=True)
+    with open(sweep.root / ".sweep.lock", "w") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise InputError(f"another `ccfit sweep` is running in {sweep.root}") from None
+        yield
+
+
+def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel: int,
+                 threads: int | None = None) -> dict:  # fmt: skip
+    """Run `work` here, at most `max_parallel` jobs at once; returns the report's status."""
+    entry = {"launcher": "local", "time": _now(), "code": sweep.code, "pid": os.getpid(),
+             "jobs": {}}  # fmt: skip
+    submissions.append(entry)
+    jobs: dict[str, dict] = entry["jobs"]
+    plugins, code = list(sweep.grid.plugins), sweep.code
+    calls: dict[str, tuple] = {}
+    for key in work.scratch:
+        calls[f"scratch:{key}"] = (ScratchJob(), sweep.scratch_configs()[key],
+                                   str(sweep.scratch_dir(key)), plugins, code, threads)
+    for run in work.runs:
+        calls[f"run:{run.name}"] = (RunJob(), run.config, str(sweep.run_dir(run)),
+                                    str(sweep.root / SCRATCH), run.scratch_key, plugins, code,
+                                    threads)  # fmt: skip
+    for name in calls:
+        jobs[name] = {"state": "PENDING"}
+    waiting_on = {f"run:{r.name}": f"scratch:{r.scratch_key}" for r in work.runs
+                  if f"scratch:{r.scratch_key}" in calls}  # fmt: skip
+    errors: dict[str, str] = {}
+    log_dir = sweep.root / "local"
+    total, ended = len(calls), 0
+    write_record(sweep, submissions)
+
+    def ready() -> list[str]:
+        return [n for n, j in jobs.items() if j["state"] == "PENDING" and
+                jobs.get(waiting_on.get(n, ""), {"state": "COMPLETED"})["state"] == "COMPLETED"]
+
+    ctx = mp.get_context("spawn")
+    pool = ProcessPoolExecutor(max_parallel, mp_context=ctx, max_tasks_per_child=1)
+    running: dict = {}
+    try:
+        while True:
+            for name in ready()[: max_parallel - len(running)]:
+                fn, *args = calls[name]
+                running[pool.submit(fn, *args)] = name
+                jobs[name].update(state="RUNNING", start=_now())
+            for name, j in jobs.items():  # a failed reference fails its runs unstarted
+                dep = jobs.get(waiting_on.get(name, ""))
+                if j["state"] == "PENDING" and dep and dep["state"] == "FAILED":
+                    j.update(state="FAILED", error=f"its reference {waiting_on[name]} failed")
+                    errors[name.split(":", 1)[1]] = j["error"]
+                    ended += 1
+                    print(f"[{ended}/{total}] failed {name}: {j['error']}", flush=True)
+            write_record(sweep, submissions)
+            if not running:
+                break
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+            for future in finished:
+                name = running.pop(future)
+                j = jobs[name]
+                ended += 1
+                j["end"] = _now()
+                exc = future.exception()
+                if exc is None:
+                    j["state"] = "COMPLETED"
+                    print(f"[{ended}/{total}] done {name}", flush=True)
+                    continue
+                j.update(state="FAILED", error=_last_line(str(exc)) or type(exc).__name__)
+                errors[name.split(":", 1)[1]] = j["error"]
+                log = log_dir / (name.replace(":", "-") + ".err")
+                log.parent.mkdir(parents=True, exist_ok=True)
+                log.write_text("".join(traceback.format_exception(exc)))
+                print(f"[{ended}/{total}] failed {name}: {j['error']} (traceback: {log})",
+                      flush=True)  # fmt: skip
+    except BaseException:
+        for j in jobs.values():
+            if j["state"] in ("PENDING", "RUNNING"):
+                j["state"] = "INTERRUPTED"
+        write_record(sweep, submissions)
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
+    jobs["report"] = {"state": "RUNNING", "start": _now()}
+    write_record(sweep, submissions)
+    status = ReportJob()(str(sweep.root), plugins, code, errors)
+    jobs["report"].update(state="COMPLETED", end=_now())
+    write_record(sweep, submissions)
+    return status
+
+
+# ================================================================================== SLURM
+
+
+def launch_slurm(sweep: Sweep, work: Work, submissions: list[dict],
+                 settings: SlurmSettings) -> dict:  # fmt: skip
+    """Submit `work` as SLURM jobs and return at once; returns the submission entry."""
+    folder = sweep.root / "slurm"
+    folder.mkdir(parents=True, exist_ok=True)
+    entry = {"launcher": "slurm", "time": _now(), "code": sweep.code, "folder": "slurm",
+             "jobs": {}}  # fmt: skip
+    submissions.append(entry)
+    jobs: dict[str, str] = entry["jobs"]
+    plugins, code = list(sweep.grid.plugins), sweep.code
+    executor = submitit.SlurmExecutor(folder=folder / "%j", max_num_timeout=MAX_REQUEUES)
+    executor.update_parameters(**settings.executor_parameters(),
+                               comment=f"ccfit-sweep-{code.get('git') or code.get('package')}")
+
+    def depend(ids: list[str]) -> dict:
+        extra = {"requeue": True}
+        if ids:
+            extra["dependency"] = "afterany:" + ":".join(sorted(set(ids)))
+        return {"additional_parameters": extra}
+
+    # clean_env: not the SLURM_* variables of a job we may be running in; sbatch's complaints
+    # come back in the error, so submitit need not print them too.
+    with submitit.helpers.clean_env(), contextlib.redirect_stderr(io.StringIO()):
+        try:
+            scratch_ids = {k: work.active[f"scratch:{k}"] for k in
+                           {r.scratch_key for r in work.runs} if f"scratch:{k}" in work.active}
+            if work.scratch:
+                executor.update_parameters(job_name="ccfit-scratch", **depend([]))
+                configs = sweep.scratch_configs()
+                n = len(work.scratch)
+                submitted = executor.map_array(
+                    ScratchJob(), [configs[k] for k in work.scratch],
+                    [str(sweep.scratch_dir(k)) for k in work.scratch],
+                    [plugins] * n, [code] * n, [None] * n)  # fmt: skip
+                for key, job in zip(work.scratch, submitted, strict=True):
+                    scratch_ids[key] = jobs[f"scratch:{key}"] = job.job_id
+                write_record(sweep, submissions)
+            if work.runs:
+                needed = [scratch_ids[r.scratch_key] for r in work.runs
+                          if r.scratch_key in scratch_ids]  # fmt: skip
+                executor.update_parameters(job_name="ccfit-run", **depend(needed))
+                n = len(work.runs)
+                submitted = executor.map_array(
+                    RunJob(), [r.config for r in work.runs],
+                    [str(sweep.run_dir(r)) for r in work.runs], [str(sweep.root / SCRATCH)] * n,
+                    [r.scratch_key for r in work.runs], [plugins] * n, [code] * n, [None] * n)
+                for run, job in zip(work.runs, submitted, strict=True):
+                    jobs[f"run:{run.name}"] = job.job_id
+                write_record(sweep, submissions)
+            if work.report:
+                before = [j.split("_")[0] for j in jobs.values()] + list(work.active.values())
+                executor.update_parameters(job_name="ccfit-report", time=settings.report_minutes,
+                                           cpus_per_task=1, gpus_per_node=None,
+                                           **depend(before))  # fmt: skip
+                jobs["report"] = executor.submit(ReportJob(), str(sweep.root), plugins,
+                                                 code, None).job_id  # fmt: skip
+        except (FailedJobError, FailedSubmissionError) as err:
+            write_record(sweep, submissions)
+            raise InputError(f"sbatch refused the job: {_last_line(str(err))}") from None
+    write_record(sweep, submissions)
+    return entry
+
+
+def slurm_active(submissions: list[dict]) -> dict[str, str]:
+    """Jobs of earlier SLURM submissions still queued or running: name -> job id."""
+    from ccfit.sweep.status import latest_jobs
+
+    latest = {name: job for name, (entry, job) in latest_jobs(submissions).items()
+              if entry["launcher"] == "slurm"}  # fmt: skip
+    alive = active_jobs(list(latest.values())) if latest else set()
+    return {name: job for name, job in latest.items() if job in alive}
+
+
+def wait_report(entry: dict, timeout_s: float) -> None:
+    """Block until the report job of a SLURM submission left the queue (tests, `--wait`)."""
+    job = entry["jobs"].get("report")
+    deadline = time.monotonic() + timeout_s
+    while job and active_jobs([job]):
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"report job {job} still queued after {timeout_s} s")
+        time.sleep(2)
+

@@ -1,0 +1,99 @@
+"""`ccfit sweep --status RUNS`: what is pending, running, done and failed.
+
+Done is read from the outputs (a run's metrics.json, a reference's done.json, the report's
+status.json), so it holds whoever produced them. Otherwise the state is that of the job last
+submitted for it: sacct's (through submitit) for SLURM jobs, the local launcher's record in
+sweep.json for local ones (a record left 'running' by a launcher that is gone reads
+'interrupted').
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from ccfit.sweep.grid import REPORT, STATUS_JSON, Sweep, load_sweep
+from ccfit.sweep.slurm import check_slurm, job_states
+
+CATEGORIES = ("pending", "running", "done", "failed", "not submitted")
+_PENDING = {"PENDING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "SUSPENDED", "PREEMPTED",
+            "UNKNOWN"}  # UNKNOWN: sacct lags a poll behind a fresh submission  # fmt: skip
+_RUNNING = {"RUNNING", "COMPLETING", "CONFIGURING", "SIGNALING", "STAGE_OUT", "RESIZING"}
+
+
+def units(sweep: Sweep) -> dict[str, bool]:
+    """Every job name of the sweep -> whether its output exists."""
+    out = {f"scratch:{k}": sweep.scratch_done(k) for k in sweep.scratch_configs()}
+    out.update({f"run:{r.name}": sweep.run_done(r) for r in sweep.runs})
+    out["report"] = (sweep.root / REPORT / STATUS_JSON).is_file()  # its own lines list gaps
+    return out
+
+
+def latest_jobs(submissions: list[dict]) -> dict[str, tuple[dict, object]]:
+    """Job name -> (its last submission entry, the job: an id, or a local state record)."""
+    latest: dict[str, tuple[dict, object]] = {}
+    for entry in submissions:
+        for name, job in entry.get("jobs", {}).items():
+            latest[name] = (entry, job)
+    return latest
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def sweep_status(root: str | Path) -> dict[str, dict]:
+    """Job name -> {"state": one of CATEGORIES, "job": id or None, "detail": text}."""
+    sweep, record = load_sweep(root)
+    latest = latest_jobs(record.get("submissions", []))
+    slurm_ids = [job for name, (entry, job) in latest.items() if entry["launcher"] == "slurm"]
+    states: dict[str, str] = {}
+    if slurm_ids:
+        check_slurm()
+        states = job_states(sweep.root / "slurm", slurm_ids)
+    out = {}
+    for name, done in units(sweep).items():
+        entry, job = latest.get(name, ({}, None))
+        if done:
+            out[name] = {"state": "done", "job": _job_id(entry, job, name), "detail": ""}
+        elif job is None:
+            out[name] = {"state": "not submitted", "job": None, "detail": ""}
+        elif entry["launcher"] == "slurm":
+            state = states[job]
+            category = ("pending" if state in _PENDING else "running" if state in _RUNNING
+                        else "failed")  # fmt: skip
+            detail = state if state != "COMPLETED" else "completed without its output"
+            if category == "failed":
+                detail += f"; log {sweep.root / 'slurm' / job / f'{job}_0_log.err'}"
+            out[name] = {"state": category, "job": job, "detail": detail}
+        else:
+            state = job["state"]
+            if state in ("PENDING", "RUNNING") and not _alive(entry["pid"]):
+                state = "INTERRUPTED"
+            category = {"PENDING": "pending", "RUNNING": "running"}.get(state, "failed")
+            detail = job.get("error") or {"INTERRUPTED": "interrupted", "COMPLETED":
+                                          "completed without its output"}.get(state, "")
+            out[name] = {"state": category, "job": _job_id(entry, job, name), "detail": detail}
+    return out
+
+
+def _job_id(entry: dict, job, name: str) -> str | None:
+    if job is None:
+        return None
+    return job if entry["launcher"] == "slurm" else f"local:{entry['pid']}"
+
+
+def print_status(status: dict[str, dict]) -> None:
+    width = max(map(len, status))
+    for name, s in status.items():
+        job = f"  job {s['job']}" if s["job"] else ""
+        detail = f"  ({s['detail']})" if s["detail"] else ""
+        print(f"{name:<{width}}  {s['state']}{job}{detail}")
+    counts = {c: sum(s["state"] == c for s in status.values()) for c in CATEGORIES}
+    print(", ".join(f"{n} {c}" for c, n in counts.items()))

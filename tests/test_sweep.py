@@ -1,0 +1,263 @@
+"""`ccfit sweep` without SLURM: grid expansion, sweep.json, the local launcher, status, errors.
+
+Runs use the toy world model of test_seam.py (`--plugins test_seam` imports it in every job:
+pytest puts tests/ on sys.path and spawned workers inherit it), on Reach at tiny budgets.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from ccdata.errors import InputError
+from ccfit.cli import main
+from ccfit.sweep.grid import (
+    Grid,
+    check_same_sweep,
+    expand,
+    import_plugins,
+    load_sweep,
+    write_record,
+)
+from ccfit.sweep.jobs import RunJob, ScratchMissing, config_from_dict, write_status
+from ccfit.sweep.launch import plan_work
+from ccfit.sweep.status import sweep_status
+
+TOY_RUN = ("--seed_dataset", "null", "--train.steps=100", "--train.seed_steps=50",
+           "--train.eval_interval=100", "--train.checkpoint_interval=100")  # fmt: skip
+TOY = ["--models", "toy", "--plugins", "test_seam", "--preset", "smoke", *TOY_RUN]
+RUN_ARGS = ("--seed_dataset", "null", "--train.steps=200", "--train.eval_interval=100")
+
+
+def sweep_cli(capsys, *args: str) -> tuple[int, str, str]:
+    code = main(["sweep", *args])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def one_line_error(code: int, err: str) -> str:
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def test_grid_expands_into_resolved_run_configs(tmp_path):
+    grid = Grid(("Reach", "Grasp"), ("toy",), ("ft", "er", "ewc"), (0, 1), "smoke", RUN_ARGS,
+                ("test_seam",))  # fmt: skip
+    root = tmp_path / "runs"
+    sweep = expand(grid, root)
+    assert len(sweep.runs) == 2 * 3 * 2
+    names = [r.name for r in sweep.runs]
+    assert len(set(names)) == len(names)
+    assert "Grasp-toy-ewc-state-smoke-s1" in names
+    points = set()
+    for run in sweep.runs:
+        cfg = config_from_dict(run.config)
+        points.add((cfg.suite, cfg.method.type, cfg.seed))
+        assert run.name == f"{cfg.suite}-toy-{cfg.method.type}-state-smoke-s{cfg.seed}"
+        assert cfg.out == str(root.resolve() / run.name)
+        # the common options reach every run; the rest is the smoke preset's
+        assert (cfg.train.steps, cfg.train.eval_interval, cfg.seed_dataset) == (200, 100, None)
+        assert cfg.train.seed_steps == 300 and cfg.model.type == "toy"
+    assert points == set(itertools.product(("Reach", "Grasp"), ("ft", "er", "ewc"), (0, 1)))
+    # one from-scratch reference per (suite, seed): methods share it
+    keys = {}
+    for run in sweep.runs:
+        keys.setdefault((run.config["suite"], run.config["seed"]), set()).add(run.scratch_key)
+    assert all(len(k) == 1 for k in keys.values())
+    assert len(set.union(*keys.values())) == 4
+
+
+def test_grid_refuses_options_it_sets_and_repeated_values():
+    with pytest.raises(InputError, match="--seed is set by the sweep grid; use --seeds"):
+        Grid(("Reach",), ("toy",), ("ft",), (0,), args=("--seed=3",))
+    with pytest.raises(InputError, match="use --methods"):
+        Grid(("Reach",), ("toy",), ("ft",), (0,), args=("--method.type", "er"))
+    with pytest.raises(InputError, match="--seeds lists 1 more than once"):
+        Grid(("Reach",), ("toy",), ("ft",), (1, 1))
+
+
+def test_sweep_json_is_written_atomically_and_read_back(tmp_path):
+    grid = Grid(("Reach",), ("toy",), ("ft", "er"), (0,), "smoke", RUN_ARGS, ("test_seam",))
+    sweep = expand(grid, tmp_path)
+    write_record(sweep, [{"launcher": "slurm", "jobs": {"report": "7"}}])
+    again, record = load_sweep(tmp_path)
+    assert again.identity() == sweep.identity() and again.grid == grid
+    assert [r.scratch_key for r in again.runs] == [r.scratch_key for r in sweep.runs]
+    assert record["submissions"] == [{"launcher": "slurm", "jobs": {"report": "7"}}]
+    assert record["code"]["package"] == sweep.code["package"]
+    before = (tmp_path / "sweep.json").read_text()
+    with pytest.raises(TypeError):  # a write that fails half-way leaves the old record
+        write_record(sweep, [{"launcher": "local", "jobs": {"x": object()}}])
+    assert (tmp_path / "sweep.json").read_text() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sweep.json"]
+
+
+def test_a_folder_holding_another_sweep_is_refused(tmp_path, capsys):
+    import_plugins(["test_seam"])
+    args = ["--suites", "Reach", "--methods", "ft", "--out", str(tmp_path), *TOY]
+    write_record(expand(Grid(("Reach",), ("toy",), ("ft",), (0,), "smoke", TOY_RUN,
+                             ("test_seam",)), tmp_path), [])  # fmt: skip
+    code, out, err = sweep_cli(capsys, *args, "--dry-run")
+    assert code == 0, err
+    code, _, err = sweep_cli(capsys, *args[:-1], "--train.checkpoint_interval=50")
+    line = one_line_error(code, err)
+    assert "holds a different sweep" in line and "train.checkpoint_interval is 50, was 100" in line
+    code, _, err = sweep_cli(capsys, *args, "--methods", "ft,er")
+    assert "new runs Reach-toy-er-state-smoke-s0" in one_line_error(code, err)
+
+
+def test_check_same_sweep_ignores_where_runs_are_stored(tmp_path):
+    grid = Grid(("Reach",), ("toy",), ("ft",), (0,), "smoke", RUN_ARGS, ("test_seam",))
+    a, b = expand(grid, tmp_path / "a"), expand(grid, tmp_path / "b")
+    check_same_sweep(b, a.record())  # the folder moved: the same sweep
+
+
+@pytest.mark.parametrize("bad,expected", [
+    (["--suites", "Nope"], "unknown suite"),
+    (["--suites", "Reach", "--methods", "ft,nope"], "nope"),
+    (["--suites", "Reach", "--models", "nope"], "nope"),
+    (["--suites", "Reach", "--seeds", "0,x"], "argument --seeds: expected integers"),
+])  # fmt: skip
+def test_bad_names_end_with_one_line(tmp_path, capsys, bad, expected):
+    code, _, err = sweep_cli(capsys, *bad, "--out", str(tmp_path / "r"), "--plugins", "test_seam")
+    assert expected in one_line_error(code, err)
+    assert not (tmp_path / "r").exists()
+
+
+def test_dry_run_writes_nothing(tmp_path, capsys):
+    out_dir = tmp_path / "runs"
+    code, out, err = sweep_cli(capsys, "--suites", "Reach,Grasp", "--methods", "ft,er", "--out",
+                               str(out_dir), "--dry-run", *TOY)  # fmt: skip
+    assert code == 0, err
+    assert not out_dir.exists()
+    assert "would run: 2 from-scratch references, 4 runs, then the report" in out
+    assert "  Grasp-toy-er-state-smoke-s0" in out
+
+
+def test_slurm_launcher_without_sbatch_is_one_line(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
+    code, _, err = sweep_cli(capsys, "--suites", "Reach", "--out", str(tmp_path / "r"),
+                             "--launcher", "slurm", *TOY)  # fmt: skip
+    assert "no SLURM reachable: sbatch is not on PATH" in one_line_error(code, err)
+    assert not (tmp_path / "r").exists()
+
+
+def test_slurm_time_limit_below_30_minutes_is_refused(tmp_path, capsys):
+    code, _, err = sweep_cli(capsys, "--suites", "Reach", "--out", str(tmp_path / "r"),
+                             "--launcher", "slurm", "--time", "0:20:00", *TOY)  # fmt: skip
+    assert "--time must be at least 30 minutes" in one_line_error(code, err)
+
+
+def test_a_run_without_its_reference_does_not_start(tmp_path):
+    sweep = expand(Grid(("Reach",), ("toy",), ("ft",), (0,), "smoke", RUN_ARGS, ("test_seam",)),
+                   tmp_path)  # fmt: skip
+    run = sweep.runs[0]
+    with pytest.raises(ScratchMissing, match="did not finish"):
+        RunJob()(run.config, str(sweep.run_dir(run)), str(tmp_path / "scratch"), run.scratch_key,
+                 ["test_seam"], sweep.code)  # fmt: skip
+    assert not sweep.run_dir(run).exists()
+
+
+def _mtimes(paths) -> list[int]:
+    return [p.stat().st_mtime_ns for p in paths]
+
+
+def test_local_sweep_trains_once_and_resubmits_only_unfinished_work(tmp_path, capsys):
+    root = tmp_path / "runs"
+    args = ["--suites", "Reach", "--methods", "ft,er", "--seeds", "0", "--out", str(root),
+            "--max-parallel", "2", *TOY]  # fmt: skip
+    code, out, err = sweep_cli(capsys, *args)
+    assert code == 0, err
+    sweep, record = load_sweep(root)
+    [first] = record["submissions"]
+    jobs = first["jobs"]
+    scratch = [n for n in jobs if n.startswith("scratch:")]
+    assert len(scratch) == 1 and all(j["state"] == "COMPLETED" for j in jobs.values())
+    # the shared reference was trained once, before either run started
+    runs = [f"run:{r.name}" for r in sweep.runs]
+    assert all(jobs[scratch[0]]["end"] <= jobs[r]["start"] for r in runs)
+    metrics = [sweep.run_dir(r) / "metrics.json" for r in sweep.runs]
+    done = sweep.scratch_dir(sweep.runs[0].scratch_key) / "done.json"
+    results = [json.loads(p.read_text()) for p in metrics]
+    assert [m["method"] for m in results] == ["ft", "er"]
+    assert all(m["scratch_dir"] == str(done.parent) for m in results)
+    status = json.loads((root / "report" / "status.json").read_text())
+    assert sorted(status["done"]) == sorted(r.name for r in sweep.runs) and not status["missing"]
+    assert "table_toy.md" in status["report"] and (root / "report" / "table_toy.md").is_file()
+
+    # the same command again: nothing to do, nothing touched
+    stamps = _mtimes([*metrics, done, root / "report" / "status.json"])
+    code, out, err = sweep_cli(capsys, *args)
+    assert code == 0, err
+    assert "nothing to submit" in out and "2 finished" in out
+    assert len(load_sweep(root)[1]["submissions"]) == 1
+    assert _mtimes([*metrics, done, root / "report" / "status.json"]) == stamps
+
+    # a lost run: the report lists it; the command again trains only that run, identically
+    lost = sweep.runs[1]
+    (sweep.run_dir(lost) / "metrics.json").rename(tmp_path / "er-metrics.json")
+    shutil.rmtree(sweep.run_dir(lost))
+    status = write_status(root, {})
+    assert status["missing"] == [{"name": lost.name, "started": False, "error": None}]
+    assert sweep_status(root)[f"run:{lost.name}"]["state"] == "failed"  # recorded done, gone
+    assert [r.name for r in plan_work(sweep, {}).runs] == [lost.name]
+    code, out, err = sweep_cli(capsys, *args)
+    assert code == 0, err
+    second = load_sweep(root)[1]["submissions"][1]["jobs"]
+    assert sorted(second) == ["report", f"run:{lost.name}"]
+    assert _mtimes([metrics[0], done]) == stamps[:1] + stamps[2:3]
+    again = json.loads(metrics[1].read_text())
+    assert again == json.loads((tmp_path / "er-metrics.json").read_text())
+
+    states = sweep_status(root)
+    assert {s["state"] for s in states.values()} == {"done"}
+    code, out, _ = sweep_cli(capsys, "--status", str(root))
+    assert code == 0 and "0 pending, 0 running, 4 done, 0 failed, 0 not submitted" in out
+
+
+def test_status_reads_an_abandoned_local_record_as_interrupted(tmp_path):
+    sweep = expand(Grid(("Reach",), ("toy",), ("ft",), (0,), "smoke", RUN_ARGS, ("test_seam",)),
+                   tmp_path)  # fmt: skip
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    name = f"run:{sweep.runs[0].name}"
+    write_record(sweep, [{"launcher": "local", "pid": gone.pid, "jobs": {
+        name: {"state": "RUNNING"}, f"scratch:{sweep.runs[0].scratch_key}": {"state": "FAILED",
+                                                                            "error": "boom"}}}])
+    status = sweep_status(tmp_path)
+    assert status[name] == {"state": "failed", "job": f"local:{gone.pid}", "detail": "interrupted"}
+    assert status[f"scratch:{sweep.runs[0].scratch_key}"]["detail"] == "boom"
+    assert status["report"]["state"] == "not submitted"
+    # a live launcher's record reads as it says
+    write_record(sweep, [{"launcher": "local", "pid": os.getpid(), "jobs": {
+        name: {"state": "RUNNING"}}}])
+    assert sweep_status(tmp_path)[name]["state"] == "running"
+
+
+def test_a_failed_reference_fails_its_runs_unstarted(tmp_path, capsys):
+    root = tmp_path / "runs"
+    args = ["--suites", "Reach", "--methods", "ft,er", "--out", str(root), *TOY]
+    sweep = expand(Grid(("Reach",), ("toy",), ("ft", "er"), (0,), "smoke", TOY_RUN,
+                        ("test_seam",)), root)  # fmt: skip
+    blocker = sweep.scratch_dir(sweep.runs[0].scratch_key)
+    blocker.parent.mkdir(parents=True)
+    blocker.write_text("not a directory")  # the reference cannot write its outputs
+    code, out, err = sweep_cli(capsys, *args)
+    assert code == 0, err
+    assert out.count("failed run:") == 2 and "its reference scratch:" in out
+    status = json.loads((root / "report" / "status.json").read_text())
+    assert status["done"] == [] and [m["started"] for m in status["missing"]] == [False, False]
+    assert all("its reference scratch:" in m["error"] for m in status["missing"])
+    log = root / "local" / f"scratch-{sweep.runs[0].scratch_key}.err"
+    assert "NotADirectoryError" in log.read_text() or "FileExistsError" in log.read_text()
+    states = sweep_status(root)
+    assert [s["state"] for s in states.values()] == ["failed", "failed", "failed", "done"]
+    assert not any(sweep.run_dir(r).exists() for r in sweep.runs)
