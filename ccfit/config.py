@@ -12,6 +12,7 @@ is saved as `config.json` beside every output; `--config_path config.json` reads
 
 from __future__ import annotations
 
+import argparse
 import copy
 import dataclasses
 import json
@@ -322,9 +323,12 @@ def parse_cli[C: RunConfig](cls: type[C], argv: Sequence[str], prog: str | None 
         json.dump(defaults, f)
         f.flush()
         try:
-            return draccus.parse(cls, config_path=f.name, args=args, prog=prog)
+            return draccus.parse(cls, config_path=f.name, args=args, prog=prog,
+                                 exit_on_error=False)  # fmt: skip
         except draccus.utils.ParsingError as e:
             raise _as_config_error(e) from None
+        except (draccus.utils.DraccusException, argparse.ArgumentError) as e:
+            raise ConfigError(f"{e}; see --help") from None
 
 
 def _underscored(arg: str) -> str:
