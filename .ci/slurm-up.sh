@@ -57,13 +57,15 @@ getent passwd slurm >/dev/null || useradd --system --no-create-home --shell /usr
 chown slurm:slurm "$STATE/run" "$STATE/log"
 
 # ── Helpers ─────────────────────────────────────────────────────────────────────────────────
-pid_alive() {  # pid_alive PIDFILE COMM: the pid file names a live process of that name
-    local pid
-    [ -s "$1" ] || return 1
-    pid=$(tr -d ' \n' <"$1")
-    [ -n "$pid" ] && [ -r "/proc/$pid/comm" ] && [ "$(cat "/proc/$pid/comm")" = "$2" ] \
-        && ! grep -q '^State:.*Z' "/proc/$pid/status"
+alive() {  # alive PID COMM: a live process of that name (a zombie is dead: where pid 1 does
+    # not reap orphans, stopped daemons stay zombies)
+    [ -n "$1" ] && [ -r "/proc/$1/comm" ] && [ "$(cat "/proc/$1/comm")" = "$2" ] \
+        && ! grep -q '^State:.*Z' "/proc/$1/status"
 }
+pid_alive() {  # pid_alive PIDFILE COMM: the pid file names a live process of that name
+    [ -s "$1" ] && alive "$(tr -d ' \n' <"$1")" "$2"
+}
+gone() { ! pid_alive "$1" "$2"; }
 wait_for() {  # wait_for SECONDS COMMAND...: poll until COMMAND succeeds
     local deadline=$((SECONDS + $1))
     shift
@@ -90,8 +92,9 @@ write_if_changed() {  # write_if_changed FILE MODE OWNER < content; returns 0 wh
 stop_ours() {  # stop_ours NAME COMM: stop a daemon we started (after its config changed)
     local f="$STATE/started/$1"
     if [ -f "$f" ] && pid_alive "$f" "$2"; then
+        say "restarting $1 (its configuration changed)"
         kill "$(cat "$f")"
-        wait_for 30 bash -c "! kill -0 $(cat "$f")" || kill -9 "$(cat "$f")" || true
+        wait_for 30 gone "$f" "$2" || kill -9 "$(cat "$f")" || true
     fi
     rm -f "$f"
 }

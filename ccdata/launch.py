@@ -168,6 +168,14 @@ def code_version() -> str:
     return version
 
 
+def max_array_size() -> int:
+    """The cluster's MaxArraySize (SLURM's default, 1001, when it does not say)."""
+    done = subprocess.run(["scontrol", "show", "config"], capture_output=True, text=True,
+                          timeout=PROBE_TIMEOUT_S)
+    found = re.search(r"^MaxArraySize\s*=\s*(\d+)", done.stdout, re.MULTILINE)
+    return int(found.group(1)) if found else 1001
+
+
 def active_jobs(job_ids: list[str]) -> list[str]:
     """Those of `job_ids` (or their array tasks) still pending or running."""
     active = []
@@ -294,6 +302,7 @@ def submit_generation(config: GenerateConfig, slurm: SlurmSettings) -> Submissio
     sub = Submission(root=str(paths.root), log_dir=str(folder), code=code_version(),
                      planned=len(todo), shards={}, array_job=None, merge_job=None)
     if not todo:
+        shutil.rmtree(paths.work, ignore_errors=True)  # nothing left in it to merge
         return sub
     done = set(finished_pieces(paths))
     # Shard i is always the same range of the episodes to add; a re-run resubmits only the
@@ -302,6 +311,9 @@ def submit_generation(config: GenerateConfig, slurm: SlurmSettings) -> Submissio
         if left := [k for k in keys if k not in done]:
             sub.shards[i] = left
 
+    if len(sub.shards) > (limit := max_array_size()):
+        raise LaunchError(f"--shards {slurm.shards}: this cluster takes arrays of at most "
+                          f"{limit} tasks (MaxArraySize)")
     folder.mkdir(parents=True, exist_ok=True)
     executor = submitit.SlurmExecutor(folder=folder / "%j", max_num_timeout=MAX_REQUEUES)
     executor.update_parameters(

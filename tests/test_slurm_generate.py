@@ -177,7 +177,8 @@ def test_unreachable_controller_is_one_line_and_exit_2(tmp_path, monkeypatch):
 @pytest.mark.slurm
 def test_sharded_generation_equals_one_worker(one_worker, tmp_path):
     root = tmp_path / "Reach"
-    sub = submit(root, "--shards", "2")
+    sub = submit(root, "--shards", "2", "--partition", "low", "--cpus-per-task", "1",
+                 "--mem", "1G", "--setup", "echo ccdata-setup-ran")
     keys = [s.key for s in plan(GenerateConfig(**TINY))]
     assert sub["planned"] == 12 and list(sub["shards"]) == ["0", "1"]
     assert [k for shard in sub["shards"].values() for k in shard] == keys  # contiguous ranges
@@ -195,28 +196,36 @@ def test_sharded_generation_equals_one_worker(one_worker, tmp_path):
 
     assert_same_dataset(one_worker, root)
     assert not JournalPaths(root).work.exists()  # the merge cleared its journal
-    log = Path(sub["log_dir"]) / sub["merge_job"] / f"{sub['merge_job']}_0_log.out"
-    assert f"submitted with {sub['code']}" in log.read_text()
+    merge_dir = Path(sub["log_dir"]) / sub["merge_job"]
+    script = (merge_dir / f"{sub['merge_job']}_submission.sh").read_text()
+    for line in ("--partition=low", "--cpus-per-task=1", "--mem=1G", "--time=30", "--requeue",
+                 f"--dependency=afterany:{sub['array_job']}", "\necho ccdata-setup-ran\n"):
+        assert line in script
+    log = (merge_dir / f"{sub['merge_job']}_0_log.out").read_text()
+    assert "ccdata-setup-ran" in log and f"submitted with {sub['code']}" in log
 
 
 @pytest.mark.slurm
 def test_missing_shard_fails_the_merge_and_a_rerun_fills_it(one_worker, tmp_path):
     root = tmp_path / "Reach"
     first = submit(root, "--shards", "2")
-    array = first["array_job"]
-    subprocess.run(["scancel", f"{array}_1"], check=True)  # shard 1 dies before its episodes
-    # The merge ends after the shards (afterany); a task cancelled while still pending may
-    # have no sacct record of its own.
-    rows = wait_for([first["merge_job"]])
-    rows.update(sacct([array]))
+    array, shard1 = first["array_job"], first["shards"]["1"]
+    # Kill shard 1 once it has written its first episode (of 6): it dies halfway.
+    deadline = time.monotonic() + JOB_WAIT_S
+    while not any(k in finished_pieces(JournalPaths(root)) for k in shard1):
+        assert time.monotonic() < deadline, "shard 1 wrote nothing"
+        time.sleep(0.2)
+    subprocess.run(["scancel", f"{array}_1"], check=True)
+    rows = wait_for([f"{array}_0", f"{array}_1", first["merge_job"]])
     assert rows[f"{array}_0"]["state"] == "COMPLETED"
-    assert rows.get(f"{array}_1", {"state": "CANCELLED"})["state"] == "CANCELLED"
+    assert rows[f"{array}_1"]["state"] == "CANCELLED"
     assert rows[first["merge_job"]]["state"] == "FAILED"  # afterany: it ran, and failed
+    assert when(rows[first["merge_job"]]["start"]) >= when(rows[f"{array}_1"]["end"])
 
     keys = [s.key for s in plan(GenerateConfig(**TINY))]
     written = finished_pieces(JournalPaths(root))
     missing = [k for k in keys if k not in written]
-    assert missing and set(missing) <= set(first["shards"]["1"])
+    assert missing and set(missing) < set(shard1)  # some of shard 1's episodes were written
     assert set(first["shards"]["0"]) <= set(written)
     merge = first["merge_job"]
     err = (Path(first["log_dir"]) / merge / f"{merge}_0_log.err").read_text()
@@ -234,3 +243,4 @@ def test_missing_shard_fails_the_merge_and_a_rerun_fills_it(one_worker, tmp_path
 
     third = generate_cli(*TINY_ARGS, "--root", str(root), "--launcher", "slurm")
     assert third.returncode == 0 and "nothing to submit" in third.stdout
+    assert not JournalPaths(root).work.exists()
