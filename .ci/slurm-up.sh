@@ -39,14 +39,14 @@ if [ ${#missing[@]} -gt 0 ]; then
         printf '#!/bin/sh\nexit 101\n' >$policy && chmod 755 $policy
         trap 'rm -f /usr/sbin/policy-rc.d' EXIT
     fi
-    install() {
+    apt_install() {
         DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends \
             "${missing[@]}" >"$1" 2>&1
     }
     log=$(mktemp)
-    if ! install "$log"; then  # stale or absent package lists
+    if ! apt_install "$log"; then  # stale or absent package lists
         apt-get update -q >/dev/null 2>&1 || true
-        install "$log" || { tail -n 20 "$log" >&2; die "apt-get install failed"; }
+        apt_install "$log" || { tail -n 20 "$log" >&2; die "apt-get install failed"; }
     fi
     rm -f "$log"
 fi
