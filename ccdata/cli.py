@@ -8,6 +8,7 @@ Commands:
     render        the three camera views of a task (PNG) and optionally an oracle episode (MP4)
     references    regenerate the oracle reference returns used by `ccdata.normalize`
     generate      roll out oracle and exploration policies into one LeRobot v3 dataset per suite
+                  (here, or as SLURM jobs with --launcher slurm)
     card          render a suite's dataset card (Markdown with YAML header)
     verify        check a dataset end to end (exit 1 with findings)
     push          upload a dataset and its card to a Hugging Face Hub compatible endpoint
@@ -16,6 +17,7 @@ Commands:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -98,19 +100,60 @@ def _cmd_references(args: argparse.Namespace) -> None:
 def _cmd_generate(args: argparse.Namespace) -> None:
     from ccdata.record import GenerateConfig, generate
 
+    if args.launcher == "local":
+        given = [f"--{k.replace('_', '-')}" for k in SLURM_FLAGS if getattr(args, k) is not None]
+        if given:
+            raise CliError(f"{', '.join(given)} need --launcher slurm (locally: --workers)")
+    elif args.workers != 1:
+        raise CliError("--workers is for --launcher local; with slurm use --shards")
     config = GenerateConfig(
         suite=args.suite,
         episodes=args.episodes,
         explore_episodes=args.explore_episodes,
         image_size=args.image_size,
         seed=args.seed,
+        max_steps=args.max_steps,
         workers=args.workers,
         root=args.root,
         repo_id=args.repo_id,
     )
+    if args.launcher == "slurm":
+        return _submit_slurm(args, config)
     path, summary = generate(config)
     print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
     print(f"dataset: {path}")
+
+
+SLURM_FLAGS = ("shards", "partition", "time", "cpus_per_task", "mem", "setup", "log_dir")
+"""`generate` options that only mean something with `--launcher slurm`."""
+
+
+def _submit_slurm(args: argparse.Namespace, config) -> None:
+    from ccdata.launch import SlurmSettings, parse_time, submit_generation
+
+    given = {name: getattr(args, name) for name in SLURM_FLAGS if name != "time"}
+    given["time_min"] = None if args.time is None else parse_time(args.time)
+    slurm = SlurmSettings(**{k: v for k, v in given.items() if v is not None})
+    sub = submit_generation(config, slurm)
+    if args.json:
+        print(json.dumps(dataclasses.asdict(sub), indent=2))
+        return
+    if sub.merge_job is None:
+        print(f"nothing to submit: {sub.root} already holds every planned episode")
+        return
+    if sub.array_job:
+        tasks = len(sub.shards)
+        episodes = sum(len(k) for k in sub.shards.values())
+        print(f"submitted {tasks} shard(s) with {episodes} episode(s) to write: job array "
+              f"{sub.array_job} (shards {', '.join(map(str, sub.shards))})")
+    else:
+        print("every episode is written; submitted the merge only")
+    after = f" (starts after array {sub.array_job} ends)" if sub.array_job else ""
+    print(f"merge job {sub.merge_job}{after} -> {sub.root}")
+    print(f"logs: {sub.log_dir}  (code: {sub.code})")
+    ids = ",".join(j for j in (sub.array_job, sub.merge_job) if j)
+    print(f"follow: squeue -j {ids}; sacct -j {ids}; if the merge fails, run the same command "
+          "again")
 
 
 SUMMARY_COLUMNS = (
@@ -221,10 +264,26 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--image-size", type=int, default=64)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-steps", type=int,
+                   help="cut episodes after this many steps (tests, previews; default: full)")
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--root", help="dataset directory (default: LeRobot's cache for the repo id)")
     p.add_argument("--repo-id", help="default ccdata/<Suite>")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--launcher", choices=("local", "slurm"), default="local",
+                   help="local: processes here (default); slurm: a job array of shards, then a "
+                        "merge job (returns at once; needs sbatch and sacct)")
+    g = p.add_argument_group("with --launcher slurm")
+    g.add_argument("--shards", type=int, help="array tasks to split the episodes into (1)")
+    g.add_argument("--partition", help="default: the cluster's default partition")
+    g.add_argument("--time", help="time limit per job, minutes or [D-]H:M:S (60); keep >= 30 "
+                                  "where jobs may be preempted")
+    g.add_argument("--cpus-per-task", type=int, help="CPUs per job (1)")
+    g.add_argument("--mem", help="memory per job, e.g. 8G (the partition's default)")
+    g.add_argument("--setup", action="append",
+                   help="shell line run in each job before Python (repeatable)")
+    g.add_argument("--log-dir", help="submitit logs, on a filesystem the nodes share "
+                                     "(default: .<name>.ccdata-logs beside the dataset)")
     p.set_defaults(func=_cmd_generate)
 
     p = sub.add_parser("card", help="render a suite's dataset card")

@@ -1,5 +1,8 @@
 """Shared pytest fixtures."""
 
+import functools
+import os
+
 import pytest
 
 try:
@@ -33,3 +36,29 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+@functools.cache
+def slurm_unavailable() -> str | None:
+    """Why the tests marked `slurm` cannot run here (None when sbatch, sinfo and sacct answer):
+    the probe `ccdata generate --launcher slurm` itself makes."""
+    from ccdata.launch import LaunchError, check_slurm
+
+    try:
+        check_slurm()
+    except LaunchError as err:
+        return str(err)
+    return None
+
+
+def pytest_runtest_setup(item):
+    """Skip a `slurm` test when no SLURM answers, with the reason; fail it instead when
+    CCBENCH_REQUIRE_SLURM is set (CI sets it once its SLURM is up)."""
+    if item.get_closest_marker("slurm") is None:
+        return
+    reason = slurm_unavailable()
+    if reason is None:
+        return
+    if os.environ.get("CCBENCH_REQUIRE_SLURM"):
+        pytest.fail(f"SLURM is required here (CCBENCH_REQUIRE_SLURM) but: {reason}")
+    pytest.skip(f"no usable SLURM: {reason}")

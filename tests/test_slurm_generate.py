@@ -1,0 +1,246 @@
+"""`ccdata generate --launcher slurm`: shards as a job array, then a merge job (ccdata.launch).
+
+The tests marked `slurm` submit to the real SLURM of this machine (`.ci/slurm-up.sh` brings one
+up) through the real CLI, and compare the result with a dataset that one local worker wrote.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+
+import pytest
+
+from ccdata.cli import main
+from ccdata.journal import JournalPaths, finished_pieces
+from ccdata.launch import SUBMISSION_RECORD, parse_time
+from ccdata.record import GenerateConfig, generate, plan
+
+TINY = dict(suite="Reach", episodes=1, explore_episodes=1, image_size=32, max_steps=12)
+TINY_ARGS = ["--suite", "Reach", "--episodes", "1", "--explore-episodes", "1",
+             "--image-size", "32", "--max-steps", "12"]
+FINAL_STATES = {"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "OUT_OF_MEMORY", "NODE_FAIL",
+                "BOOT_FAIL", "DEADLINE", "PREEMPTED"}
+JOB_WAIT_S = 420
+
+
+def generate_cli(*args: str, path: str | None = None) -> subprocess.CompletedProcess:
+    env = {**os.environ, **({"PATH": path} if path is not None else {})}
+    return subprocess.run([sys.executable, "-m", "ccdata.cli", "generate", *args],
+                          capture_output=True, text=True, env=env, timeout=300)
+
+
+def submit(root: Path, *args: str) -> dict:
+    done = generate_cli(*TINY_ARGS, "--root", str(root), "--launcher", "slurm", "--time", "30",
+                        "--json", *args)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
+def shard_ids(sub: dict) -> list[str]:
+    """Job ids of the submitted shards: array tasks, or a plain job when there is one."""
+    if len(sub["shards"]) == 1:
+        return [sub["array_job"]]
+    return [f"{sub['array_job']}_{i}" for i in range(len(sub["shards"]))]
+
+
+def sacct(ids: list[str]) -> dict[str, dict]:
+    out = subprocess.run(["sacct", "-n", "-X", "-P", "-j", ",".join(ids),
+                          "-o", "JobID,State,Start,End,ExitCode"],
+                         capture_output=True, text=True, check=True).stdout
+    rows = {}
+    for line in out.splitlines():
+        job, state, start, end, code = line.split("|")
+        rows[job] = {"state": state.split()[0], "start": start, "end": end, "exit": code}
+    return rows
+
+
+def wait_for(ids: list[str]) -> dict[str, dict]:
+    """sacct rows of `ids` once all of them have ended (sacct may lag a poll behind)."""
+    deadline = time.monotonic() + JOB_WAIT_S
+    while time.monotonic() < deadline:
+        rows = sacct(ids)
+        if all(rows.get(j, {}).get("state") in FINAL_STATES for j in ids):
+            return rows
+        time.sleep(2)
+    pytest.fail(f"jobs {ids} did not end in {JOB_WAIT_S} s: {sacct(ids)}")
+
+
+def when(stamp: str) -> datetime:
+    return datetime.fromisoformat(stamp)
+
+
+def assert_same_dataset(expected: Path, actual: Path) -> None:
+    """Every file the same bytes, but meta/stats.json (LeRobot writes its keys in no fixed
+    order), which holds the same numbers."""
+    files = sorted(p.relative_to(expected) for p in expected.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(actual) for p in actual.rglob("*") if p.is_file())
+    assert any(f.suffix == ".parquet" for f in files) and any(f.suffix == ".mp4" for f in files)
+    for rel in files:
+        if rel == Path("meta/stats.json"):
+            assert json.loads((expected / rel).read_text()) == \
+                json.loads((actual / rel).read_text())
+        else:
+            assert (expected / rel).read_bytes() == (actual / rel).read_bytes(), rel
+
+
+@pytest.fixture(scope="module")
+def one_worker(tmp_path_factory) -> Path:
+    root, _ = generate(GenerateConfig(**TINY, root=tmp_path_factory.mktemp("w1") / "Reach"),
+                       progress=False)
+    return root
+
+
+# ── Without SLURM ─────────────────────────────────────────────────────────────────────────
+
+
+def test_parse_time_reads_slurm_time_limits():
+    assert parse_time("45") == 45
+    assert parse_time("1:30") == 2  # minutes:seconds, rounded up
+    assert parse_time("2:00:00") == 120
+    assert parse_time("1-0") == 24 * 60
+    assert parse_time("1-02:03") == 26 * 60 + 3
+    assert parse_time("0-00:00:30") == 1
+    for bad in ("", "1h", "0", "1:2:3:4"):
+        with pytest.raises(ValueError, match="--time"):
+            parse_time(bad)
+
+
+def test_no_slurm_is_one_line_and_exit_2(tmp_path):
+    empty = tmp_path / "bin"
+    empty.mkdir()
+    done = generate_cli(*TINY_ARGS, "--root", str(tmp_path / "Reach"), "--launcher", "slurm",
+                        "--shards", "2", path=str(empty))
+    assert done.returncode == 2
+    assert done.stderr == "ccdata generate: error: no SLURM reachable: sbatch is not on PATH\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bin"]  # nothing written
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--shards", "2"], "--shards need --launcher slurm"),
+    (["--launcher", "slurm", "--workers", "2"], "--workers is for --launcher local"),
+    (["--launcher", "slurm", "--time", "1h"], "--time '1h': expected minutes"),
+    (["--launcher", "slurm", "--mem", "8GB"], "--mem '8GB': expected a number"),
+    (["--launcher", "slurm", "--shards", "0"], "--shards must be >= 1"),
+])
+def test_launch_options_are_checked(tmp_path, capsys, args, message):
+    assert main(["generate", *TINY_ARGS, "--root", str(tmp_path / "Reach"), *args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("ccdata generate: error: ") and message in err
+    assert err.count("\n") == 1 and not any(tmp_path.iterdir())
+
+
+# ── With SLURM ────────────────────────────────────────────────────────────────────────────
+
+
+@pytest.mark.slurm
+def test_sacct_missing_is_one_line_and_exit_2(tmp_path):
+    """The real sbatch and sinfo, but no sacct: refused before anything is submitted."""
+    tools = tmp_path / "bin"
+    tools.mkdir()
+    for tool in ("sbatch", "sinfo", "squeue", "scancel"):
+        (tools / tool).symlink_to(shutil.which(tool))
+    done = generate_cli(*TINY_ARGS, "--root", str(tmp_path / "Reach"), "--launcher", "slurm",
+                        path=str(tools))
+    assert done.returncode == 2
+    assert done.stderr == ("ccdata generate: error: sacct not available (sacct is not on PATH); "
+                           "submitit needs SLURM accounting\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bin"]
+
+
+@pytest.mark.slurm
+def test_unreachable_controller_is_one_line_and_exit_2(tmp_path, monkeypatch):
+    """This cluster's configuration, but the controller's port is one where nobody listens."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    conf = Path(os.environ.get("SLURM_CONF", "/etc/slurm/slurm.conf")).read_text()
+    conf = re.sub(r"(?m)^(SlurmctldPort|MessageTimeout)=.*$", "", conf)
+    (tmp_path / "slurm.conf").write_text(f"{conf}\nSlurmctldPort={port}\nMessageTimeout=1\n")
+    monkeypatch.setenv("SLURM_CONF", str(tmp_path / "slurm.conf"))
+    root = tmp_path / "Reach"
+    done = generate_cli(*TINY_ARGS, "--root", str(root), "--launcher", "slurm")
+    assert done.returncode == 2
+    assert done.stderr == ("ccdata generate: error: no SLURM reachable: slurm_load_partitions: "
+                           "Unable to contact slurm controller (connect failure)\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["slurm.conf"]
+
+
+@pytest.mark.slurm
+def test_sharded_generation_equals_one_worker(one_worker, tmp_path):
+    root = tmp_path / "Reach"
+    sub = submit(root, "--shards", "2", "--partition", "low", "--cpus-per-task", "1",
+                 "--mem", "1G", "--setup", "echo ccdata-setup-ran")
+    keys = [s.key for s in plan(GenerateConfig(**TINY))]
+    assert sub["planned"] == 12 and list(sub["shards"]) == ["0", "1"]
+    assert [k for shard in sub["shards"].values() for k in shard] == keys  # contiguous ranges
+    assert sub["code"].startswith("ccbench ")
+
+    # A second submission while these jobs are queued would repair the journal under them.
+    again = generate_cli(*TINY_ARGS, "--root", str(root), "--launcher", "slurm")
+    assert again.returncode == 2 and "still queued or running" in again.stderr
+
+    rows = wait_for([*shard_ids(sub), sub["merge_job"]])
+    assert {j: r["state"] for j, r in rows.items()} == \
+        {j: "COMPLETED" for j in [*shard_ids(sub), sub["merge_job"]]}
+    merge_start = when(rows[sub["merge_job"]]["start"])
+    assert all(merge_start >= when(rows[j]["end"]) for j in shard_ids(sub))
+
+    assert_same_dataset(one_worker, root)
+    assert not JournalPaths(root).work.exists()  # the merge cleared its journal
+    merge_dir = Path(sub["log_dir"]) / sub["merge_job"]
+    script = (merge_dir / f"{sub['merge_job']}_submission.sh").read_text()
+    for line in ("--partition=low", "--cpus-per-task=1", "--mem=1G", "--time=30", "--requeue",
+                 f"--dependency=afterany:{sub['array_job']}", "\necho ccdata-setup-ran\n"):
+        assert line in script
+    log = (merge_dir / f"{sub['merge_job']}_0_log.out").read_text()
+    assert "ccdata-setup-ran" in log and f"submitted with {sub['code']}" in log
+
+
+@pytest.mark.slurm
+def test_missing_shard_fails_the_merge_and_a_rerun_fills_it(one_worker, tmp_path):
+    root = tmp_path / "Reach"
+    first = submit(root, "--shards", "2")
+    array, shard1 = first["array_job"], first["shards"]["1"]
+    # Kill shard 1 once it has written its first episode (of 6): it dies halfway.
+    deadline = time.monotonic() + JOB_WAIT_S
+    while not any(k in finished_pieces(JournalPaths(root)) for k in shard1):
+        assert time.monotonic() < deadline, "shard 1 wrote nothing"
+        time.sleep(0.2)
+    subprocess.run(["scancel", f"{array}_1"], check=True)
+    rows = wait_for([f"{array}_0", f"{array}_1", first["merge_job"]])
+    assert rows[f"{array}_0"]["state"] == "COMPLETED"
+    assert rows[f"{array}_1"]["state"] == "CANCELLED"
+    assert rows[first["merge_job"]]["state"] == "FAILED"  # afterany: it ran, and failed
+    assert when(rows[first["merge_job"]]["start"]) >= when(rows[f"{array}_1"]["end"])
+
+    keys = [s.key for s in plan(GenerateConfig(**TINY))]
+    written = finished_pieces(JournalPaths(root))
+    missing = [k for k in keys if k not in written]
+    assert missing and set(missing) < set(shard1)  # some of shard 1's episodes were written
+    assert set(first["shards"]["0"]) <= set(written)
+    merge = first["merge_job"]
+    err = (Path(first["log_dir"]) / merge / f"{merge}_0_log.err").read_text()
+    assert f"ccdata merge: {len(missing)} episode(s) missing:" in err
+    assert all(f"\n  {k}" in err for k in missing)
+    assert "Run the same `ccdata generate` command again" in err
+    assert not root.exists()  # nothing merged
+    assert (JournalPaths(root).work / SUBMISSION_RECORD).is_file()
+
+    second = submit(root, "--shards", "2")
+    assert second["shards"] == {"1": missing}  # only the shard with gaps, only its gaps
+    rows = wait_for([*shard_ids(second), second["merge_job"]])
+    assert rows[second["merge_job"]]["state"] == "COMPLETED"
+    assert_same_dataset(one_worker, root)
+
+    third = generate_cli(*TINY_ARGS, "--root", str(root), "--launcher", "slurm")
+    assert third.returncode == 0 and "nothing to submit" in third.stdout
+    assert not JournalPaths(root).work.exists()
