@@ -31,8 +31,9 @@ from ccfit.train import eval_seeds, normalized_or_none
 
 def load_pwm_run(run_dir: str | Path, device: torch.device | str | None = None):
     """A finished PWM curriculum run: (config, model, stored heads, method)."""
+    from ccfit.curriculum import load_run
 
-    run = load_pwm_run(run_dir, device)
+    run = load_run(run_dir, device)
     if not isinstance(run.model, PWM):
         raise InputError(f"{run_dir}: expert ablation needs a PWM run, this is a "
                          f"{run.cfg.model.type} run")  # fmt: skip
