@@ -200,6 +200,7 @@ class Curriculum:
                 obs_mode=cfg.obs, task_id=tasks[i], task_index=i, logger=logger, method=method,
                 run_dir=task_dir, global_offset=i * train.steps, progress=self.progress,
                 extra_eval=lambda step, stage=i: evaluate_earlier(step, stage),
+                stored_heads_loss=lambda batch, j: model.loss(batch, stored[j]).total,
             )  # fmt: skip
             trainer.run()
             env.close()

@@ -64,7 +64,8 @@ def make_task_data(backbone: TinyBackbone, task: int, n: int, batch_size: int = 
         return Batch(obs, action, zeros, zeros.clone(), is_first, task_rows)
 
     return TaskData(task_index=task, sample=sample, num_transitions=n, transitions=transitions,
-                    seq_len=2, backbone_loss=backbone.backbone_loss)  # fmt: skip
+                    seq_len=2, batch_size=batch_size,
+                    backbone_loss=backbone.backbone_loss)  # fmt: skip
 
 
 def train(backbone, method, opt, data: TaskData, steps: int) -> None:

@@ -50,6 +50,8 @@ class TaskData:
     buffer for this task is gone."""
     seq_len: int
     """Rows per training window of the model (ER cuts its replay windows to this length)."""
+    batch_size: int
+    """Windows per training batch of the model (ER's default replay batch)."""
     backbone_loss: Callable[[Batch], torch.Tensor]
     """The model's task-agnostic loss (`WorldModel.backbone_loss`)."""
 
@@ -72,8 +74,24 @@ class TaskData:
             num_transitions=buffer.num_transitions,
             transitions=buffer.transitions,
             seq_len=seq_len,
+            batch_size=batch_size,
             backbone_loss=backbone_loss,
         )
+
+
+@dataclass
+class ReplayLosses:
+    """What a method's `penalty` may evaluate on replayed data. Calling it gives the
+    backbone loss, so a method can treat it as `WorldModel.backbone_loss`."""
+
+    backbone: Callable[[Batch], torch.Tensor]
+    """The model's task-agnostic loss (`WorldModel.backbone_loss`)."""
+    stored_heads: Callable[[Batch, int], torch.Tensor] | None = None
+    """The model's whole loss of a batch through finished task i's stored heads, which are
+    frozen, so its gradient reaches the backbone only; None outside a curriculum."""
+
+    def __call__(self, batch: Batch) -> torch.Tensor:
+        return self.backbone(batch)
 
 
 class ContinualMethod:
@@ -92,9 +110,7 @@ class ContinualMethod:
     def before_task(self, task_index: int, backbone: nn.Module) -> None:
         """Task `task_index` starts (fresh heads already made)."""
 
-    def penalty(
-        self, backbone: nn.Module, backbone_loss: Callable[[Batch], torch.Tensor]
-    ) -> torch.Tensor:
+    def penalty(self, backbone: nn.Module, backbone_loss: ReplayLosses) -> torch.Tensor:
         """Extra differentiable loss added to the update's total loss; zero by default."""
         return zero_like_backbone(backbone)
 

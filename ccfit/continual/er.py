@@ -31,6 +31,7 @@ from torch import nn
 from ccfit.continual.base import (
     ContinualMethod,
     MethodConfig,
+    ReplayLosses,
     TaskData,
     register_method,
     zero_like_backbone,
@@ -68,7 +69,8 @@ class ExperienceReplay(ContinualMethod):
         num_tasks: int | None = None,
         fraction: float = 0.05,
         replay_ratio: float = 0.5,
-        batch_size: int = 256,
+        batch_size: int | None = None,
+        through_heads: bool = False,
         seed: int = 0,
     ) -> None:
         super().__init__(num_tasks)
@@ -76,14 +78,16 @@ class ExperienceReplay(ContinualMethod):
             raise ValueError(f"fraction must be in (0, 1], got {fraction}")
         if not 0.0 <= replay_ratio < 1.0:
             raise ValueError(f"replay_ratio must be in [0, 1), got {replay_ratio}")
-        if batch_size < 1:
-            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        if batch_size is not None and batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1 or None, got {batch_size}")
         self.fraction = fraction
         """Share of each finished task's transitions kept (reservoir sampling)."""
         self.replay_ratio = replay_ratio
         """Share r of replayed samples in the equivalent mixed batch (weight r / (1 - r))."""
         self.batch_size = batch_size
-        """Replayed windows per update."""
+        """Replayed windows per update (None: the model's batch size, from `TaskData`)."""
+        self.through_heads = through_heads
+        """Replay each kept transition through its own task's stored heads as well."""
         self.seed = seed
         """Seeds the reservoir (per task: [seed, task]) and the replay sampler."""
         self.memory = ReplayBuffer(capacity=None, seed=seed)
@@ -103,6 +107,8 @@ class ExperienceReplay(ContinualMethod):
         if self.seq_len is not None and task_data.seq_len != self.seq_len:
             raise ValueError(f"er: seq_len {task_data.seq_len} differs from {self.seq_len}")
         self.seq_len = task_data.seq_len
+        if self.batch_size is None:
+            self.batch_size = task_data.batch_size
         n = task_data.num_transitions
         # Python's round (half to even): a task with n < 10 keeps nothing at 5%.
         k = int(round(self.fraction * n))
@@ -123,22 +129,36 @@ class ExperienceReplay(ContinualMethod):
             return None
         return self.memory.sample_at_episode_starts(self.batch_size, self.seq_len).to(device)
 
-    def penalty(self, backbone: nn.Module, backbone_loss) -> torch.Tensor:
+    def penalty(self, backbone: nn.Module, backbone_loss: ReplayLosses) -> torch.Tensor:
         zero = zero_like_backbone(backbone)
         if self.memory.num_episodes == 0 or self.weight == 0.0:
             return zero
-        return self.weight * backbone_loss(self.replay_batch(zero.device))
+        batch = self.replay_batch(zero.device)
+        if not self.through_heads or backbone_loss.stored_heads is None:
+            return self.weight * backbone_loss(batch)
+        # Each window goes through the stored heads of the task it starts in (its row 0): the
+        # whole model loss, backbone terms included, with those frozen heads' reward,
+        # termination and value predictions held to the kept transitions.
+        first = batch.task[0]
+        total = zero
+        for task in first.unique().tolist():
+            rows = (first == task).nonzero().squeeze(1)
+            part = backbone_loss.stored_heads(batch.select(rows), int(task))
+            total = total + part * (len(rows) / batch.size)
+        return self.weight * total
 
     def state_dict(self) -> dict[str, Any]:
         return {
             "memory": self.memory.state_dict(),
             "seq_len": self.seq_len,
+            "batch_size": self.batch_size,
             "kept": {k: v.copy() for k, v in self.kept.items()},
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.memory.load_state_dict(state["memory"])
         self.seq_len = None if state["seq_len"] is None else int(state["seq_len"])
+        self.batch_size = state.get("batch_size", self.batch_size)
         self.kept = {int(k): np.asarray(v) for k, v in state["kept"].items()}
 
 
@@ -151,5 +171,10 @@ class ExperienceReplayConfig(MethodConfig):
     """Share of each finished task's transitions kept (reservoir sampling)."""
     replay_ratio: float = 0.5
     """Share r of replayed samples in the equivalent mixed batch (weight r / (1 - r))."""
-    batch_size: int = 256
-    """Replayed windows per update."""
+    batch_size: int | None = None
+    """Replayed windows per update (None: the model's batch size)."""
+    through_heads: bool = False
+    """Replay each kept window through the stored (frozen) heads of its own task as well: the
+    model's whole loss (reward, termination and value terms besides the backbone's), whose
+    gradient reaches the backbone only. Holds the features the stored heads read; False
+    replays the backbone loss only, as the paper's text describes ER."""

@@ -29,9 +29,9 @@ from torch import nn
 
 from ccdata.scoring import discounted_return
 from ccfit.config import TrainConfig
-from ccfit.continual.base import ContinualMethod
+from ccfit.continual.base import ContinualMethod, ReplayLosses
 from ccfit.io import atomic_torch_save, derived_seed, rng_state, set_rng_state
-from ccfit.models.base import WorldModel
+from ccfit.models.base import Batch, WorldModel
 from ccfit.obs import obs_to_arrays
 from ccfit.replay import ReplayBuffer
 from ccfit.train.evaluate import (
@@ -62,6 +62,8 @@ class Trainer:
     global_offset: global step at which this task starts in a curriculum.
     extra_eval: called at every evaluation point with the global step; returns more records
         to log beside this task's (a curriculum evaluates the earlier tasks there).
+    stored_heads_loss: the loss of a batch through an earlier task's stored heads, offered to
+        the method's penalty (`ReplayLosses`); a curriculum provides it.
     """
 
     def __init__(
@@ -70,6 +72,7 @@ class Trainer:
         logger: RunLogger | None = None, method: ContinualMethod | None = None,
         run_dir: str | Path | None = None, global_offset: int = 0, progress: bool = True,
         extra_eval: Callable[[int], list[dict]] | None = None,
+        stored_heads_loss: Callable[[Batch, int], torch.Tensor] | None = None,
     ) -> None:  # fmt: skip
         self.env, self.model, self.heads, self.buffer = env, model, heads, buffer
         self.cfg, self.seed, self.obs_mode = config, seed, obs_mode
@@ -81,6 +84,7 @@ class Trainer:
         self.optim = model.world_model_optimizer(heads)
         self._clip_params = [p for g in self.optim.param_groups for p in g["params"]]
         self.head_optims = model.head_optimizers(heads)
+        self.losses = ReplayLosses(model.backbone_loss, stored_heads_loss)
         self.action_rng = np.random.default_rng(derived_seed(seed, ACTION_TAG, 0, task_index))
 
         self.task_step = 0
@@ -209,7 +213,7 @@ class Trainer:
         out = self.model.loss(batch, self.heads)
         total = out.total
         if self.method is not None:
-            total = total + self.method.penalty(self.model.backbone, self.model.backbone_loss)
+            total = total + self.method.penalty(self.model.backbone, self.losses)
         self.optim.zero_grad(set_to_none=True)
         total.backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(self._clip_params, mcfg.grad_clip)
