@@ -1,0 +1,162 @@
+"""PWM: TD-MPC2 with the mixture as its dynamics."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+
+import torch
+from torch import nn
+
+from ccfit.models.base import Batch, LossOutput
+from ccfit.models.encoders import FrozenEncoder
+from ccfit.models.pwm.config import PWMConfig
+from ccfit.models.pwm.mixture import MixtureDynamics
+from ccfit.models.registry import register_model
+from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Heads
+
+
+class PWMHeads(TDMPC2Heads):
+    """TD-MPC2's heads, stamped with the task they belong to (routes their planning)."""
+
+    task_index: torch.Tensor
+
+    def __init__(self, cfg: PWMConfig, task: int) -> None:
+        super().__init__(cfg)
+        self.register_buffer("task_index", torch.tensor(int(task)))
+
+
+def find_mixture(backbone: nn.Module) -> MixtureDynamics | None:
+    """The backbone's MixtureDynamics, or None."""
+    found = [m for m in backbone.modules() if isinstance(m, MixtureDynamics)]
+    if len(found) > 1:
+        raise ValueError(f"backbone has {len(found)} MixtureDynamics modules, expected one")
+    return found[0] if found else None
+
+
+@register_model("pwm", PWMConfig)
+class PWM(TDMPC2):
+    """TD-MPC2 with `MixtureDynamics` as its latent dynamics (see the module docstring)."""
+
+    cfg: PWMConfig
+
+    def __init__(
+        self,
+        cfg: PWMConfig,
+        device: torch.device | str | None = None,
+        encoder: FrozenEncoder | None = None,
+    ) -> None:
+        if not isinstance(cfg, PWMConfig):
+            raise ValueError(f"PWM needs a PWMConfig, got {type(cfg).__name__}")
+        super().__init__(cfg, device=device, encoder=encoder)
+        # TD-MPC2's backbone with its dynamics MLP replaced; the encoder is built (and
+        # initialised) exactly as TD-MPC2's.
+        self.backbone.dynamics = MixtureDynamics(cfg).to(self.device)
+        self._task: torch.Tensor | int | None = None
+
+    @property
+    def dynamics(self) -> MixtureDynamics:
+        return self.backbone.dynamics
+
+    # ------------------------------------------------------------------ tasks, routing
+    def begin_task(self, task_index: int, task_steps: int | None = None) -> None:
+        """Task `task_index` starts: new heads belong to it; `task_steps` (the task's env steps)
+        sets its temperature hold."""
+        self.dynamics.begin_task(task_index, task_steps)
+
+    @property
+    def tau(self) -> float:
+        """Temperature of the current task."""
+        return float(self.dynamics.tau[int(self.dynamics.current_task)])
+
+    @contextlib.contextmanager
+    def routing_task(self, task) -> Iterator[None]:
+        """Within the block, `next` routes with `task` (int or LongTensor broadcastable to the
+        latents' leading dims, e.g. (B,))."""
+        previous, self._task = self._task, task
+        try:
+            yield
+        finally:
+            self._task = previous
+
+    def routing_override(self, mode: str | None) -> contextlib.AbstractContextManager:
+        """`with model.routing_override(mode)`: 'prior', 'new', 'uniform' or None (learnt)."""
+        return self.dynamics.routing_override(mode)
+
+    def routing_weights(self, z: torch.Tensor, a: torch.Tensor, task=None) -> torch.Tensor:
+        """Routing weights (..., K * max_tasks) for latents z and actions a of `task`."""
+        return self.dynamics.routing_weights(z, a, task)
+
+    def next(self, z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        return self.dynamics(z, a, self._task)
+
+    # ------------------------------------------------------------------ heads, params
+    def new_heads(self, task: int | None = None) -> PWMHeads:
+        """Fresh heads for `task` (default: the current task, set by `begin_task`)."""
+        task = int(self.dynamics.current_task) if task is None else task
+        return PWMHeads(self.cfg, self.dynamics.check_task(task)).to(self.device)
+
+    def _param_groups(self, heads: nn.Module) -> list[dict]:
+        groups = super()._param_groups(heads)
+        for g in groups:
+            if g["name"] == "dynamics":
+                g["params"] = self.dynamics.optimizer_parameters()
+        return groups
+
+    # ------------------------------------------------------------------ losses
+    def _batch_task(self, batch: Batch) -> torch.Tensor:
+        """(B,): each window's routing task, the task of its row 0 (where the rollout starts;
+        rows of another episode after a boundary are masked out of every loss)."""
+        task = batch.task[0]
+        self.dynamics.check_task(int(task.min()))
+        self.dynamics.check_task(int(task.max()))
+        return task
+
+    def loss(self, batch: Batch, heads: nn.Module) -> LossOutput:
+        h = _pwm_heads(heads)
+        task = self._batch_task(batch)
+        own = int(h.task_index)
+        if self.cfg.router == "task" and not bool((task == own).all()):
+            raise ValueError(
+                f"PWM: heads of task {own} trained on a batch of tasks "
+                f"{sorted(set(task.tolist()))}; call model.begin_task(i) before new_heads() "
+                "and label the replay with the task index"
+            )
+        with self.routing_task(task), self.dynamics.recording_entropy() as record:
+            out = super().loss(batch, h)
+        entropy = float(torch.stack(record).mean())
+        if self.training and torch.is_grad_enabled():
+            self.dynamics.step_temperature(entropy, own)
+        out.logs["routing_entropy"] = entropy
+        out.logs["tau"] = float(self.dynamics.tau[own])
+        return out
+
+    def backbone_loss(self, batch: Batch) -> torch.Tensor:
+        with self.routing_task(self._batch_task(batch)):
+            return super().backbone_loss(batch)
+
+    def head_update(
+        self,
+        batch: Batch,
+        heads: nn.Module,
+        out: LossOutput,
+        optimizers: dict[str, torch.optim.Optimizer],
+    ) -> dict[str, float]:
+        with self.routing_task(self._batch_task(batch)):
+            return super().head_update(batch, heads, out, optimizers)
+
+    @torch.no_grad()
+    def plan(
+        self, z: torch.Tensor, heads: TDMPC2Heads, prev_mean: torch.Tensor | None, *,
+        eval_mode: bool,
+    ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+        """TD-MPC2's MPPI, routed with the task the heads belong to."""
+        h = _pwm_heads(heads)
+        with self.routing_task(h.task_index):
+            return super().plan(z, h, prev_mean, eval_mode=eval_mode)
+
+
+def _pwm_heads(heads: nn.Module) -> PWMHeads:
+    if not isinstance(heads, PWMHeads):
+        raise TypeError(f"expected PWMHeads from PWM.new_heads(), got {type(heads)}")
+    return heads

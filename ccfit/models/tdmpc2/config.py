@@ -1,0 +1,170 @@
+"""TD-MPC2's config, its size table and presets."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ccfit.models.registry import ModelConfig, check
+
+Q_RETURN_TYPES = ("all", "min", "avg")
+
+# ================================================================================== config
+
+TDMPC2_SIZES: dict[str, dict[str, int]] = {
+    # The five sizes of Hansen et al. (2024), with the official dims. Trainable parameters
+    # counted for this benchmark (39-D state, 4-D action, 101 bins; target Qs excluded):
+    # state 1.41M / 5.48M / 19.9M / 51.8M / 335M; pixels (64 px, 32 channels) 1.79M / 5.86M /
+    # 23.6M / 62.4M / 387M.
+    "1M": {"enc_dim": 256, "mlp_dim": 384, "latent_dim": 128, "num_enc_layers": 2, "num_q": 2},
+    "5M": {"enc_dim": 256, "mlp_dim": 512, "latent_dim": 512, "num_enc_layers": 2, "num_q": 5},
+    "19M": {"enc_dim": 1024, "mlp_dim": 1024, "latent_dim": 768, "num_enc_layers": 3, "num_q": 5},
+    "48M": {"enc_dim": 1792, "mlp_dim": 1792, "latent_dim": 768, "num_enc_layers": 4, "num_q": 5},
+    "317M": {
+        "enc_dim": 4096, "mlp_dim": 4096, "latent_dim": 1376, "num_enc_layers": 5, "num_q": 8,
+    },
+}  # fmt: skip
+"""Model-size table: encoder width, MLP width, latent width, encoder depth, Q ensemble size."""
+
+
+@dataclass
+class TDMPC2Config(ModelConfig):
+    """TD-MPC2 hyper-parameters. Defaults are the official single-task values at 5M.
+
+    Training windows are `seq_len` rows (the latent rollout covers seq_len - 1 transitions; the
+    default 4 is the official horizon 3); `horizon` is the MPPI planning horizon. `grad_clip`
+    clips both the world-model update and the policy update.
+    """
+
+    PRESETS = {
+        # Tiny: unit tests and smoke runs finish in seconds.
+        "smoke": dict(
+            latent_dim=32, enc_dim=64, mlp_dim=64, num_enc_layers=2, num_channels=8, num_q=2,
+            num_bins=21, iterations=2, num_samples=32, num_elites=8, num_pi_trajs=4,
+            batch_size=16,
+        ),
+        # Sized by measurement for 2 CPU cores (bench/learn_reach.py, 1 torch thread): an update
+        # (batch 64) plus a plan costs ~30 ms, so 30k online steps take ~15-20 min. Against the
+        # previous choice (MLP 256, MPPI 3 x 128) that halves the update and cuts a plan ~4x;
+        # MPPI keeps the paper's structure (policy-guided, warm-started) at 2 iterations of 64.
+        "cpu": dict(
+            latent_dim=64, enc_dim=128, mlp_dim=128, num_enc_layers=2, num_channels=16, num_q=2,
+            iterations=2, num_samples=64, num_elites=8, num_pi_trajs=8, batch_size=64,
+        ),
+        # Official single-task TD-MPC2 at 5M.
+        "paper": dict(TDMPC2_SIZES["5M"], batch_size=256),
+        # The official sizes by name ('1M' ... '317M'), at the paper's batch size.
+        **{name: dict(size, batch_size=256) for name, size in TDMPC2_SIZES.items()},
+    }  # fmt: skip
+
+    latent_dim: int = 512
+    """Latent width; a multiple of `simnorm_dim`."""
+    enc_dim: int = 256
+    """Hidden width of the encoder MLPs (state encoder, proprio branch, fusion)."""
+    mlp_dim: int = 512
+    """Hidden width of dynamics, reward, termination, Q and policy MLPs."""
+    num_enc_layers: int = 2
+    """Encoder depth in linear layers (state encoder: num_enc_layers - 1 hidden layers)."""
+    num_channels: int = 32
+    """Channels of each of the 4 conv layers (pixel mode)."""
+    simnorm_dim: int = 8
+    """SimNorm group size."""
+    num_q: int = 5
+    """Q ensemble size (TD targets use two random members)."""
+    dropout: float = 0.01
+    """Dropout after the first layer of each Q member."""
+    image_shift: int = 4
+    """Random-shift augmentation pad in pixels, training mode only (0 disables)."""
+
+    num_bins: int = 101
+    """Bins of the two-hot reward / value distributions."""
+    vmin: float = -10.0
+    """Lowest bin, in symlog space."""
+    vmax: float = 10.0
+    """Highest bin, in symlog space."""
+    log_std_min: float = -10.0
+    """Lower bound of the policy's log standard deviation."""
+    log_std_max: float = 2.0
+    """Upper bound of the policy's log standard deviation."""
+    entropy_coef: float = 1e-4
+    """Weight of the (action-dim scaled) entropy bonus in the policy loss."""
+
+    horizon: int = 3
+    """MPPI planning horizon (actions per plan). The training rollout is seq_len - 1 steps."""
+    rho: float = 0.5
+    """Per-step weight rho**t of the losses over the training rollout."""
+    consistency_coef: float = 20.0
+    """Weight of the latent consistency loss."""
+    reward_coef: float = 0.1
+    """Weight of the reward cross-entropy."""
+    value_coef: float = 0.1
+    """Weight of the value cross-entropy."""
+    termination_coef: float = 1.0
+    """Weight of the termination binary cross-entropy."""
+
+    lr: float = 3e-4
+    """Adam learning rate (world model, heads and policy); set in every parameter group."""
+    enc_lr_scale: float = 0.3
+    """Encoder learning rate = lr * enc_lr_scale."""
+    policy_adam_eps: float = 1e-5
+    """Adam epsilon of the policy optimiser."""
+    tau: float = 0.01
+    """Polyak rate of the target Q ensemble and of the running Q scale."""
+
+    episode_length: int = 250
+    """Agent steps per episode; sets the discount heuristic."""
+    discount_denom: float = 5.0
+    """Discount = (L/denom - 1) / (L/denom), clipped to [discount_min, discount_max]."""
+    discount_min: float = 0.95
+    """Lower clip of the discount."""
+    discount_max: float = 0.995
+    """Upper clip of the discount."""
+
+    iterations: int = 6
+    """MPPI iterations per plan."""
+    num_samples: int = 512
+    """Action sequences evaluated per MPPI iteration (policy trajectories included)."""
+    num_elites: int = 64
+    """Best sequences kept to refit the sampling distribution."""
+    num_pi_trajs: int = 24
+    """Sequences proposed by rolling out the policy in the model."""
+    min_std: float = 0.05
+    """Lower clamp of the MPPI standard deviation."""
+    max_std: float = 2.0
+    """Initial (and upper clamp of the) MPPI standard deviation."""
+    temperature: float = 0.5
+    """MPPI softmax temperature on elite values."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        name = type(self).__name__
+        positive = (
+            "latent_dim", "enc_dim", "mlp_dim", "num_enc_layers", "num_channels", "simnorm_dim",
+            "horizon", "iterations", "num_samples", "num_elites", "episode_length",
+        )  # fmt: skip
+        for f in positive:
+            check(getattr(self, f) >= 1, f"{name}.{f} must be >= 1, got {getattr(self, f)}")
+        checks = [
+            (self.latent_dim % self.simnorm_dim == 0, "latent_dim must be a multiple of simnorm"),
+            (self.num_q >= 2, "num_q must be >= 2 (targets use two members)"),
+            (self.num_bins >= 2 and self.vmin < self.vmax, "need num_bins >= 2 and vmin < vmax"),
+            (0.0 <= self.dropout < 1.0, "dropout must be in [0, 1)"),
+            (self.image_shift >= 0, "image_shift must be >= 0"),
+            (self.log_std_min < self.log_std_max, "log_std_min must be below log_std_max"),
+            (0.0 < self.rho <= 1.0 and 0.0 < self.tau <= 1.0, "rho and tau must be in (0, 1]"),
+            (self.lr > 0 and self.enc_lr_scale > 0, "lr and enc_lr_scale must be > 0"),
+            (self.policy_adam_eps > 0, "policy_adam_eps must be > 0"),
+            (0.0 < self.discount_min <= self.discount_max < 1.0,
+             "need 0 < discount_min <= discount_max < 1"),
+            (0 <= self.num_pi_trajs < self.num_samples, "num_pi_trajs must be in [0, num_samples)"),
+            (self.num_elites <= self.num_samples, "num_elites must be <= num_samples"),
+            (0.0 < self.min_std <= self.max_std, "need 0 < min_std <= max_std"),
+            (self.temperature > 0, "temperature must be > 0"),
+        ]  # fmt: skip
+        for ok, msg in checks:
+            check(ok, f"{name}: {msg}")
+
+    @property
+    def discount(self) -> float:
+        """TD-MPC2's heuristic: longer episodes get a discount closer to 1 (0.98 at 250)."""
+        frac = self.episode_length / self.discount_denom
+        return min(max((frac - 1) / frac, self.discount_min), self.discount_max)
