@@ -22,6 +22,9 @@ import json
 import sys
 from pathlib import Path
 
+from ccdata.slurm import OPTIONS as SLURM_OPTIONS
+from ccdata.slurm import add_options as add_slurm_options
+
 EXIT_USAGE = 2
 EXIT_FINDINGS = 1
 
@@ -124,16 +127,17 @@ def _cmd_generate(args: argparse.Namespace) -> None:
     print(f"dataset: {path}")
 
 
-SLURM_FLAGS = ("shards", "partition", "time", "cpus_per_task", "mem", "setup", "log_dir")
+SLURM_FLAGS = ("shards", "log_dir", *SLURM_OPTIONS)
 """`generate` options that only mean something with `--launcher slurm`."""
+SLURM_TIME = "60"
+"""`generate`'s time limit per job when `--time` is not given."""
 
 
 def _submit_slurm(args: argparse.Namespace, config) -> None:
-    from ccdata.launch import SlurmSettings, parse_time, submit_generation
+    from ccdata.launch import submit_generation
+    from ccdata.slurm import settings_from_options
 
-    given = {name: getattr(args, name) for name in SLURM_FLAGS if name != "time"}
-    given["time_min"] = None if args.time is None else parse_time(args.time)
-    slurm = SlurmSettings(**{k: v for k, v in given.items() if v is not None})
+    slurm = settings_from_options(args, SLURM_TIME, shards=args.shards, log_dir=args.log_dir)
     sub = submit_generation(config, slurm)
     if args.json:
         print(json.dumps(dataclasses.asdict(sub), indent=2))
@@ -275,13 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "merge job (returns at once; needs sbatch and sacct)")
     g = p.add_argument_group("with --launcher slurm")
     g.add_argument("--shards", type=int, help="array tasks to split the episodes into (1)")
-    g.add_argument("--partition", help="default: the cluster's default partition")
-    g.add_argument("--time", help="time limit per job, minutes or [D-]H:M:S (60); keep >= 30 "
-                                  "where jobs may be preempted")
-    g.add_argument("--cpus-per-task", type=int, help="CPUs per job (1)")
-    g.add_argument("--mem", help="memory per job, e.g. 8G (the partition's default)")
-    g.add_argument("--setup", action="append",
-                   help="shell line run in each job before Python (repeatable)")
+    add_slurm_options(g, default_time=SLURM_TIME)
     g.add_argument("--log-dir", help="submitit logs, on a filesystem the nodes share "
                                      "(default: .<name>.ccdata-logs beside the dataset)")
     p.set_defaults(func=_cmd_generate)

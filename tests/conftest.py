@@ -41,8 +41,8 @@ def one_torch_thread():
 @functools.cache
 def slurm_unavailable() -> str | None:
     """Why the tests marked `slurm` cannot run here (None when sbatch, sinfo and sacct answer):
-    the probe `ccdata generate --launcher slurm` itself makes."""
-    from ccdata.launch import LaunchError, check_slurm
+    the probe `ccdata generate` and `ccfit sweep` make before they submit."""
+    from ccdata.slurm import LaunchError, check_slurm
 
     try:
         check_slurm()

@@ -9,27 +9,36 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
 import socket
 import subprocess
 import sys
 import time
-from datetime import datetime
 from pathlib import Path
 
 import pytest
 
-from ccdata.cli import main
+from ccdata.cli import SLURM_TIME, main
 from ccdata.journal import JournalPaths, finished_pieces
-from ccdata.launch import SUBMISSION_RECORD, parse_time
+from ccdata.launch import SUBMISSION_RECORD
 from ccdata.record import GenerateConfig, generate, plan
+from ccdata.slurm import (
+    LaunchError,
+    SlurmSettings,
+    check_array_size,
+    max_array_size,
+    parse_time,
+    settings_from_options,
+)
+from ccfit.sweep.cli import SLURM_TIME as SWEEP_SLURM_TIME
+
+try:
+    from slurm_helpers import JOB_WAIT_S, bin_with, wait_for, when
+except ImportError:  # tests/ imported as a package
+    from tests.slurm_helpers import JOB_WAIT_S, bin_with, wait_for, when
 
 TINY = dict(suite="Reach", episodes=1, explore_episodes=1, image_size=32, max_steps=12)
 TINY_ARGS = ["--suite", "Reach", "--episodes", "1", "--explore-episodes", "1",
              "--image-size", "32", "--max-steps", "12"]
-FINAL_STATES = {"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "OUT_OF_MEMORY", "NODE_FAIL",
-                "BOOT_FAIL", "DEADLINE", "PREEMPTED"}
-JOB_WAIT_S = 420
 
 
 def generate_cli(*args: str, path: str | None = None) -> subprocess.CompletedProcess:
@@ -50,32 +59,6 @@ def shard_ids(sub: dict) -> list[str]:
     if len(sub["shards"]) == 1:
         return [sub["array_job"]]
     return [f"{sub['array_job']}_{i}" for i in range(len(sub["shards"]))]
-
-
-def sacct(ids: list[str]) -> dict[str, dict]:
-    out = subprocess.run(["sacct", "-n", "-X", "-P", "-j", ",".join(ids),
-                          "-o", "JobID,State,Start,End,ExitCode"],
-                         capture_output=True, text=True, check=True).stdout
-    rows = {}
-    for line in out.splitlines():
-        job, state, start, end, code = line.split("|")
-        rows[job] = {"state": state.split()[0], "start": start, "end": end, "exit": code}
-    return rows
-
-
-def wait_for(ids: list[str]) -> dict[str, dict]:
-    """sacct rows of `ids` once all of them have ended (sacct may lag a poll behind)."""
-    deadline = time.monotonic() + JOB_WAIT_S
-    while time.monotonic() < deadline:
-        rows = sacct(ids)
-        if all(rows.get(j, {}).get("state") in FINAL_STATES for j in ids):
-            return rows
-        time.sleep(2)
-    pytest.fail(f"jobs {ids} did not end in {JOB_WAIT_S} s: {sacct(ids)}")
-
-
-def when(stamp: str) -> datetime:
-    return datetime.fromisoformat(stamp)
 
 
 def assert_same_dataset(expected: Path, actual: Path) -> None:
@@ -126,6 +109,7 @@ def test_no_slurm_is_one_line_and_exit_2(tmp_path):
 
 @pytest.mark.parametrize("args, message", [
     (["--shards", "2"], "--shards need --launcher slurm"),
+    (["--account", "a", "--cpus-per-task", "2"], "--account, --cpus-per-job need --launcher slurm"),
     (["--launcher", "slurm", "--workers", "2"], "--workers is for --launcher local"),
     (["--launcher", "slurm", "--time", "1h"], "--time '1h': expected minutes"),
     (["--launcher", "slurm", "--mem", "8GB"], "--mem '8GB': expected a number"),
@@ -138,16 +122,52 @@ def test_launch_options_are_checked(tmp_path, capsys, args, message):
     assert err.count("\n") == 1 and not any(tmp_path.iterdir())
 
 
+def test_generate_and_sweep_read_the_same_slurm_options():
+    """One set of SLURM options (ccdata.slurm) in both commands; only the default time differs."""
+    from ccdata.cli import build_parser
+    from ccfit.sweep.cli import build_parser as sweep_parser
+
+    def both(*flags: str) -> tuple[SlurmSettings, SlurmSettings]:
+        gen = build_parser().parse_args(["generate", "--suite", "Reach", *flags])
+        swp, run_args = sweep_parser().parse_known_args(["--suites", "Reach", *flags])
+        assert run_args == []
+        return (settings_from_options(gen, SLURM_TIME),
+                settings_from_options(swp, SWEEP_SLURM_TIME))  # fmt: skip
+
+    flags = ["--partition", "p", "--account", "a", "--qos", "q", "--time", "2:00:00",
+             "--cpus-per-task", "3", "--gpus-per-job", "1", "--mem", "4G", "--setup", "x",
+             "--setup", "y"]  # fmt: skip
+    expected = SlurmSettings(partition="p", account="a", qos="q", time_min=120, cpus_per_job=3,
+                             gpus_per_job=1, mem="4G", setup=["x", "y"])  # fmt: skip
+    assert both(*flags) == (expected, expected)
+    assert expected.executor_parameters() == {
+        "time": 120, "partition": "p", "account": "a", "qos": "q", "cpus_per_task": 3,
+        "mem": "4G", "gpus_per_node": 1, "setup": ["x", "y"]}  # fmt: skip
+    gen, swp = both("--cpus-per-job", "2")
+    assert (gen.cpus_per_job, gen.time_min, swp.time_min) == (2, 60, 24 * 60)
+    assert gen.executor_parameters() == {"time": 60, "cpus_per_task": 2, "setup": []}
+    with pytest.raises(LaunchError, match="--gpus-per-job must be >= 0, got -1"):
+        both("--gpus-per-job", "-1")
+
+
 # ── With SLURM ────────────────────────────────────────────────────────────────────────────
+
+
+@pytest.mark.slurm
+def test_arrays_beyond_max_array_size_are_refused():
+    limit = max_array_size()
+    out = subprocess.run(["scontrol", "show", "config"], capture_output=True, text=True).stdout
+    assert re.search(rf"(?m)^MaxArraySize\s*=\s*{limit}$", out)
+    check_array_size(limit, "--shards")
+    with pytest.raises(LaunchError, match=f"--shards: this cluster takes arrays of at most "
+                                          f"{limit} tasks"):
+        check_array_size(limit + 1, "--shards")
 
 
 @pytest.mark.slurm
 def test_sacct_missing_is_one_line_and_exit_2(tmp_path):
     """The real sbatch and sinfo, but no sacct: refused before anything is submitted."""
-    tools = tmp_path / "bin"
-    tools.mkdir()
-    for tool in ("sbatch", "sinfo", "squeue", "scancel"):
-        (tools / tool).symlink_to(shutil.which(tool))
+    tools = bin_with(tmp_path / "bin", "sbatch", "sinfo", "squeue", "scancel")
     done = generate_cli(*TINY_ARGS, "--root", str(tmp_path / "Reach"), "--launcher", "slurm",
                         path=str(tools))
     assert done.returncode == 2

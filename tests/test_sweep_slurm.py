@@ -1,4 +1,5 @@
-"""`ccfit sweep --launcher slurm` on a real SLURM (skipped unless sbatch and sacct answer).
+"""`ccfit sweep --launcher slurm` on a real SLURM (marked `slurm`: skipped unless sbatch and
+sacct answer).
 
 The toy world model of test_seam.py runs in the jobs (`--plugins test_seam`, tests/ on the
 jobs' PYTHONPATH). The preemption test needs the one-node cluster of .ci/slurm-up.sh: a `low`
@@ -8,7 +9,6 @@ partition whose jobs a `high` partition's job preempts (requeue).
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import time
 from pathlib import Path
@@ -20,26 +20,15 @@ from ccfit.sweep.grid import load_sweep
 from ccfit.sweep.launch import wait_report
 from ccfit.sweep.status import sweep_status
 
+try:
+    from slurm_helpers import bin_with, partitions, sacct, when
+except ImportError:  # tests/ imported as a package
+    from tests.slurm_helpers import bin_with, partitions, sacct, when
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def slurm_answers() -> bool:
-    if not (shutil.which("sbatch") and shutil.which("sacct")):
-        return False
-    try:
-        done = subprocess.run(["sacct", "-n", "-X", "-S", "now"], capture_output=True, timeout=20)
-    except (OSError, subprocess.TimeoutExpired):
-        return False
-    return done.returncode == 0
-
-
-def partitions() -> set[str]:
-    done = subprocess.run(["sinfo", "-h", "-o", "%P"], capture_output=True, text=True)
-    return {p.rstrip("*") for p in done.stdout.split()}
-
-
-pytestmark = [pytest.mark.slurm,
-              pytest.mark.skipif(not slurm_answers(), reason="no SLURM with accounting answers")]
+pytestmark = pytest.mark.slurm
 
 
 @pytest.fixture(autouse=True)
@@ -55,13 +44,6 @@ def toy_args(root: Path, methods: str, *run: str) -> list[str]:
             "--launcher", "slurm", "--time", "30", "--seed_dataset", "null", *run]  # fmt: skip
 
 
-def sacct_times(job: str) -> tuple[str, str]:
-    out = subprocess.run(["sacct", "-n", "-X", "-P", "-j", job, "-o", "Start,End"],
-                         capture_output=True, text=True, check=True).stdout  # fmt: skip
-    start, end = out.strip().splitlines()[-1].split("|")
-    return start, end
-
-
 def test_smoke_sweep_through_slurm(tmp_path, capsys):
     root = tmp_path / "runs"
     args = toy_args(root, "ft,er", "--train.steps=100", "--train.seed_steps=50",
@@ -75,10 +57,10 @@ def test_smoke_sweep_through_slurm(tmp_path, capsys):
     assert sorted(jobs) == sorted(["report", f"scratch:{sweep.runs[0].scratch_key}",
                                    *(f"run:{r.name}" for r in sweep.runs)])  # fmt: skip
     # one reference, trained before either run started (afterany dependency)
-    _, scratch_end = sacct_times(jobs[f"scratch:{sweep.runs[0].scratch_key}"])
+    rows = sacct(list(jobs.values()))
+    scratch_end = when(rows[jobs[f"scratch:{sweep.runs[0].scratch_key}"]]["end"])
     for run in sweep.runs:
-        start, _ = sacct_times(jobs[f"run:{run.name}"])
-        assert scratch_end <= start
+        assert scratch_end <= when(rows[jobs[f"run:{run.name}"]]["start"])
         result = json.loads((sweep.run_dir(run) / "metrics.json").read_text())
         assert result["method"] == run.config["method"]["type"] and result["fwt"] is not None
     status = json.loads((root / "report" / "status.json").read_text())
@@ -139,11 +121,8 @@ def test_a_preempted_run_is_requeued_and_ends_as_an_uninterrupted_one(tmp_path, 
 
 
 def test_no_accounting_is_one_line(tmp_path, capsys, monkeypatch):
-    bin_dir = tmp_path / "bin"  # the real sbatch, sinfo and squeue, but no sacct
-    bin_dir.mkdir()
-    for tool in ("sbatch", "sinfo", "squeue"):
-        (bin_dir / tool).symlink_to(shutil.which(tool))
-    monkeypatch.setenv("PATH", str(bin_dir))
+    # the real sbatch, sinfo and squeue, but no sacct
+    monkeypatch.setenv("PATH", str(bin_with(tmp_path / "bin", "sbatch", "sinfo", "squeue")))
     code = main(toy_args(tmp_path / "runs", "ft"))
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1

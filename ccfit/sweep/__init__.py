@@ -11,7 +11,8 @@ Layout of RUNS:
     slurm/<job id>/     submitit logs and pickles (SLURM); local/ tracebacks of failed jobs
 
 Modules: `grid` (expansion, sweep.json), `jobs` (the job callables), `launch` (local pool,
-SLURM through submitit), `slurm` (settings, probes), `status`, `cli`.
+SLURM through submitit), `status`, `cli`. The SLURM settings, options and probes are
+`ccdata.slurm`'s, shared with `ccdata generate --launcher slurm`.
 """
 
 from ccfit.sweep.grid import Grid, Sweep, expand, load_sweep

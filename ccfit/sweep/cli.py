@@ -17,6 +17,8 @@ import shutil
 import sys
 
 from ccdata.errors import InputError
+from ccdata.slurm import REQUEUE_SAFE_MIN, LaunchError, check_slurm, settings_from_options
+from ccdata.slurm import add_options as add_slurm_options
 from ccfit.sweep.grid import (
     SWEEP_JSON,
     Grid,
@@ -26,8 +28,10 @@ from ccfit.sweep.grid import (
     read_record,
 )
 from ccfit.sweep.launch import launch_local, launch_slurm, plan_work, slurm_active, sweep_lock
-from ccfit.sweep.slurm import MIN_TIME_MIN, SlurmSettings, check_slurm, parse_time
 from ccfit.sweep.status import print_status, sweep_status
+
+SLURM_TIME = "1-00:00:00"
+"""Time limit of every run and reference job when `--time` is not given."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -65,18 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dry-run", action="store_true", help="print what would run; write nothing")
     p.add_argument("--status", metavar="RUNS", help="show the state of the sweep in RUNS")
     p.add_argument("--wait", action="store_true", help="SLURM: block until the report job ended")
-    s = p.add_argument_group("SLURM")
-    s.add_argument("--partition")
-    s.add_argument("--account")
-    s.add_argument("--qos")
-    s.add_argument("--time", default="1-00:00:00",
-                   help=f"time limit per job, minutes or [D-]H:M:S (>= {MIN_TIME_MIN} min); a job "
-                        "reaching it is requeued and resumes")  # fmt: skip
-    s.add_argument("--gpus-per-job", type=int, default=0)
-    s.add_argument("--cpus-per-job", type=int, default=1)
-    s.add_argument("--mem", help="memory per job (16G)")
-    s.add_argument("--setup", action="append", default=[],
-                   help="shell line run before each job (repeatable)")
+    add_slurm_options(p.add_argument_group("SLURM"), default_time=SLURM_TIME)
     return p
 
 
@@ -90,11 +83,10 @@ def cmd_sweep(argv: list[str]) -> None:
         raise InputError("--suites and --out are required (or --status RUNS)")
     settings = None
     if args.launcher == "slurm":
-        settings = SlurmSettings(
-            partition=args.partition, account=args.account, qos=args.qos,
-            time_min=parse_time(args.time), gpus_per_job=args.gpus_per_job,
-            cpus_per_job=args.cpus_per_job, mem=args.mem, setup=args.setup,
-            max_parallel=args.max_parallel)  # fmt: skip
+        settings = settings_from_options(args, SLURM_TIME, max_parallel=args.max_parallel)
+        if settings.time_min < REQUEUE_SAFE_MIN:
+            raise LaunchError(f"--time must be at least {REQUEUE_SAFE_MIN} minutes (shorter "
+                              f"limits break requeueing on preemption), got {settings.time_min}")
         check_slurm()
     elif args.max_parallel is not None and args.max_parallel < 1:
         raise InputError(f"--max-parallel must be >= 1, got {args.max_parallel}")

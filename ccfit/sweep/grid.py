@@ -17,12 +17,11 @@ import dataclasses
 import importlib
 import itertools
 import json
-import subprocess
 from dataclasses import dataclass, field
-from importlib import metadata
 from pathlib import Path
 
 from ccdata.errors import InputError
+from ccdata.slurm import code_version
 from ccfit.io import atomic_write_json
 
 SWEEP_JSON = "sweep.json"
@@ -232,24 +231,3 @@ def _first_difference(a, b, prefix: str = "") -> tuple[str, object, object]:
 def write_record(sweep: Sweep, submissions: list[dict]) -> None:
     atomic_write_json(sweep.root / SWEEP_JSON, {**sweep.record(), "submissions": submissions})
 
-
-def code_version() -> dict:
-    """The package version, and `git describe` of the source tree when it is a checkout."""
-    try:
-        version = metadata.version("ccbench")
-    except metadata.PackageNotFoundError:
-        version = None
-    source = Path(__file__).resolve().parents[2]
-    git = {"describe": None, "commit": None}
-    if (source / ".git").exists():  # a checkout (a worktree's .git is a file), not site-packages
-        for key, cmd in (("describe", ["describe", "--always", "--dirty", "--tags"]),
-                         ("commit", ["rev-parse", "HEAD"])):  # fmt: skip
-            try:
-                done = subprocess.run(["git", *cmd], cwd=source, capture_output=True, text=True,
-                                      timeout=30)  # fmt: skip
-            except (FileNotFoundError, subprocess.TimeoutExpired):
-                break
-            if done.returncode == 0:
-                git[key] = done.stdout.strip()
-    return {"package": version, "git": git["describe"], "commit": git["commit"],
-            "source": str(source)}  # fmt: skip

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import submitit
 
+from ccdata.slurm import code_version
 from ccfit.io import atomic_write_json
 from ccfit.sweep.grid import (
     METRICS_JSON,
@@ -27,7 +28,6 @@ from ccfit.sweep.grid import (
     SCRATCH_DONE,
     STATUS_JSON,
     Sweep,
-    code_version,
     import_plugins,
     load_sweep,
 )

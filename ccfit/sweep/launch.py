@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
-import io
 import multiprocessing as mp
 import os
 import time
@@ -27,16 +26,10 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 
-import submitit
-from submitit.core.utils import FailedJobError, FailedSubmissionError
-
 from ccdata.errors import InputError
+from ccdata.slurm import SlurmSettings, active_jobs, check_array_size, last_line, submitting
 from ccfit.sweep.grid import SCRATCH, RunSpec, Sweep, write_record
 from ccfit.sweep.jobs import ReportJob, RunJob, ScratchJob, report_current
-from ccfit.sweep.slurm import SlurmSettings, active_jobs
-
-MAX_REQUEUES = 3
-"""Timeouts after which submitit stops requeueing a job (preemptions do not count)."""
 
 
 @dataclass
@@ -76,11 +69,6 @@ def plan_work(sweep: Sweep, active: dict[str, str]) -> Work:
 
 def _now() -> str:
     return datetime.now(UTC).isoformat(timespec="seconds")
-
-
-def _last_line(text: str) -> str:
-    lines = [line for line in text.strip().splitlines() if line.strip()]
-    return lines[-1] if lines else "no message"
 
 
 # ================================================================================== local
@@ -157,7 +145,7 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
                     j["state"] = "COMPLETED"
                     print(f"[{ended}/{total}] done {name}", flush=True)
                     continue
-                j.update(state="FAILED", error=_last_line(str(exc)) or type(exc).__name__)
+                j.update(state="FAILED", error=last_line(str(exc)) or type(exc).__name__)
                 errors[name.split(":", 1)[1]] = j["error"]
                 log = log_dir / (name.replace(":", "-") + ".err")
                 log.parent.mkdir(parents=True, exist_ok=True)
@@ -186,6 +174,8 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
 def launch_slurm(sweep: Sweep, work: Work, submissions: list[dict],
                  settings: SlurmSettings) -> dict:  # fmt: skip
     """Submit `work` as SLURM jobs and return at once; returns the submission entry."""
+    for tasks, what in ((len(work.scratch), "from-scratch references"), (len(work.runs), "runs")):
+        check_array_size(tasks, f"{tasks} {what} to submit")
     folder = sweep.root / "slurm"
     folder.mkdir(parents=True, exist_ok=True)
     entry = {"launcher": "slurm", "time": _now(), "code": sweep.code, "folder": "slurm",
@@ -193,24 +183,17 @@ def launch_slurm(sweep: Sweep, work: Work, submissions: list[dict],
     submissions.append(entry)
     jobs: dict[str, str] = entry["jobs"]
     plugins, code = list(sweep.grid.plugins), sweep.code
-    executor = submitit.SlurmExecutor(folder=folder / "%j", max_num_timeout=MAX_REQUEUES)
-    executor.update_parameters(**settings.executor_parameters(),
-                               comment=f"ccfit-sweep-{code.get('git') or code.get('package')}")
+    executor = settings.executor(folder, f"ccfit-sweep-{code.get('git') or code.get('package')}")
 
-    def depend(ids: list[str]) -> dict:
-        extra = {"requeue": True}
-        if ids:
-            extra["dependency"] = "afterany:" + ":".join(sorted(set(ids)))
-        return {"additional_parameters": extra}
+    def after(ids: list[str]) -> str | None:
+        return "afterany:" + ":".join(sorted(set(ids))) if ids else None
 
-    # clean_env: not the SLURM_* variables of a job we may be running in; sbatch's complaints
-    # come back in the error, so submitit need not print them too.
-    with submitit.helpers.clean_env(), contextlib.redirect_stderr(io.StringIO()):
-        try:
+    try:
+        with submitting():
             scratch_ids = {k: work.active[f"scratch:{k}"] for k in
                            {r.scratch_key for r in work.runs} if f"scratch:{k}" in work.active}
             if work.scratch:
-                executor.update_parameters(job_name="ccfit-scratch", **depend([]))
+                executor.update_parameters(job_name="ccfit-scratch", dependency=None)
                 configs = sweep.scratch_configs()
                 n = len(work.scratch)
                 submitted = executor.map_array(
@@ -223,7 +206,7 @@ def launch_slurm(sweep: Sweep, work: Work, submissions: list[dict],
             if work.runs:
                 needed = [scratch_ids[r.scratch_key] for r in work.runs
                           if r.scratch_key in scratch_ids]  # fmt: skip
-                executor.update_parameters(job_name="ccfit-run", **depend(needed))
+                executor.update_parameters(job_name="ccfit-run", dependency=after(needed))
                 n = len(work.runs)
                 submitted = executor.map_array(
                     RunJob(), [r.config for r in work.runs],
@@ -236,13 +219,11 @@ def launch_slurm(sweep: Sweep, work: Work, submissions: list[dict],
                 before = [j.split("_")[0] for j in jobs.values()] + list(work.active.values())
                 executor.update_parameters(job_name="ccfit-report", time=settings.report_minutes,
                                            cpus_per_task=1, gpus_per_node=None,
-                                           **depend(before))  # fmt: skip
+                                           dependency=after(before))  # fmt: skip
                 jobs["report"] = executor.submit(ReportJob(), str(sweep.root), plugins,
                                                  code, None).job_id  # fmt: skip
-        except (FailedJobError, FailedSubmissionError) as err:
-            write_record(sweep, submissions)
-            raise InputError(f"sbatch refused the job: {_last_line(str(err))}") from None
-    write_record(sweep, submissions)
+    finally:  # the jobs submitted so far, also when sbatch refused one
+        write_record(sweep, submissions)
     return entry
 
 

@@ -12,8 +12,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from ccdata.slurm import check_slurm, job_states
 from ccfit.sweep.grid import REPORT, STATUS_JSON, Sweep, load_sweep
-from ccfit.sweep.slurm import check_slurm, job_states
 
 CATEGORIES = ("pending", "running", "done", "failed", "not submitted")
 _PENDING = {"PENDING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "SUSPENDED", "PREEMPTED",
