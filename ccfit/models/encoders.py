@@ -21,13 +21,12 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import torch
 from torch import nn
 
+from ccdata.atomic import atomic_write
 from ccfit.models.layers import NormedLinear, SimNorm, mlp
 from ccfit.obs import stack_cameras
 
@@ -220,20 +219,6 @@ def sidecar_path(path: str | Path) -> Path:
     return Path(path).with_suffix(SIDECAR_SUFFIX)
 
 
-def _atomic_write(path: Path, write) -> None:
-    """Call `write(tmp_path)`, then rename the temp file onto `path` (same directory)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        write(tmp)
-        os.chmod(tmp, 0o644)  # mkstemp files are private; encoders are meant to be shared
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def save_encoder(encoder: nn.Module, cfg, path: str | Path, metadata: dict | None = None) -> None:
     """Write `encoder` (built by `build_encoder(cfg)`; `cfg` a model config or an
     `EncoderSpec`) and its settings atomically.
@@ -250,12 +235,12 @@ def save_encoder(encoder: nn.Module, cfg, path: str | Path, metadata: dict | Non
     path = Path(path)
     if path.suffix != ".safetensors":
         payload = {"format": ENCODER_FORMAT, "spec": spec, "state_dict": state}
-        _atomic_write(path, lambda tmp: torch.save(payload, tmp))
+        atomic_write(path, lambda tmp: torch.save(payload, tmp))
         return
     from safetensors.torch import save_file
 
     header = {"format": ENCODER_FORMAT, "spec": json.dumps(spec, sort_keys=True)}
-    _atomic_write(path, lambda tmp: save_file(state, tmp, metadata=header))
+    atomic_write(path, lambda tmp: save_file(state, tmp, metadata=header))
     sidecar = {
         "format": ENCODER_FORMAT,
         "weights": path.name,
@@ -264,7 +249,7 @@ def save_encoder(encoder: nn.Module, cfg, path: str | Path, metadata: dict | Non
         **(metadata or {}),
     }
     text = json.dumps(sidecar, indent=2, sort_keys=True) + "\n"
-    _atomic_write(sidecar_path(path), lambda tmp: Path(tmp).write_text(text))
+    atomic_write(sidecar_path(path), lambda tmp: Path(tmp).write_text(text))
 
 
 def read_encoder_sidecar(path: str | Path) -> dict:
