@@ -6,7 +6,15 @@ camera's video file once, sequentially, with PyAV, cutting it into episodes by t
 metadata (each episode's from/to timestamps inside its video file).
 
 `episode_to_replay` turns one episode into replay-buffer arrays through `ccfit.obs`, the same
-function live observations go through.
+function live observations go through, and `seed_buffer` preloads a replay buffer with a task's
+episodes.
+
+The observation after an episode's last action (for a successful episode: the success state,
+which every terminal transition leads to) is recorded by ccdata datasets of format 2 as the
+episode's last frame (`is_final_observation`), so every transition of every episode, the
+terminal successes included, reaches the buffer in every observation mode. Datasets of format 1
+lack that frame: their successful episodes get it back by replaying their actions without
+rendering (state mode only; in pixel mode their last transition is dropped).
 """
 
 from __future__ import annotations
@@ -38,6 +46,8 @@ ACTION_KEY = "action"
 REWARD_KEY = "next.reward"
 DONE_KEY = "next.done"
 SUCCESS_KEY = "next.success"
+FINAL_KEY = "is_final_observation"
+"""Per frame: the episode's final observation, not a transition (ccdata format 2)."""
 TASK_ID_INDEX_KEY = "task_id_index"
 """Per-frame index of the task id in the suite's order (names in meta/ccdata.json)."""
 POLICY_INDEX_KEY = "policy_index"
@@ -300,20 +310,36 @@ def final_observation(episode: dict[str, np.ndarray], task_id: str) -> dict[str,
     return obs
 
 
+def has_final_observation(episode: dict[str, np.ndarray]) -> bool:
+    """Whether the episode's last frame is its recorded final observation (format 2)."""
+    if FINAL_KEY not in episode:
+        return False
+    final = np.asarray(episode[FINAL_KEY]).reshape(-1).astype(bool)
+    if final[:-1].any():
+        raise ValueError(f"episode {episode.get('episode_index')}: {FINAL_KEY} is set before its "
+                         "last frame")
+    return bool(final[-1])
+
+
 def episode_to_replay(
     episode: dict[str, np.ndarray], mode: str, final_obs: dict[str, np.ndarray] | None = None
 ) -> dict:
-    """One loaded episode -> `ReplayBuffer.add_episode` keyword arguments.
+    """One loaded episode -> `ReplayBuffer.add_episode` keyword arguments: obs (T+1, ...),
+    action (T, 4), reward (T,), terminated (T,) (the success that ended the episode).
 
-    LeRobot stores T frames (observation t, action t, next.reward t, next.success t); the
-    observation after the last action is not stored. Given `final_obs` (state mode, e.g. from
-    `final_observation`), all T transitions go to the buffer, the success that ended the
-    episode included; without it the last transition is dropped (T observations, T-1
+    Frames are (observation t, action t, next.reward t, next.success t). A format-2 episode ends
+    with its final observation (`FINAL_KEY`), so all T transitions are kept. For a format-1
+    episode, the final observation may be given as `final_obs` (state mode, e.g. from
+    `final_observation`); without it the last transition is dropped (T observations, T-1
     transitions).
     """
-    length = len(episode[ACTION_KEY])
-    if length < 2 and final_obs is None:
-        raise ValueError(f"episode {episode.get('episode_index')} has {length} frame(s); need 2")
+    recorded = has_final_observation(episode)
+    if recorded and final_obs is not None:
+        raise ValueError("the episode records its final observation: pass no final_obs")
+    frames = len(episode[ACTION_KEY])
+    length = frames - 1 if recorded else frames  # transitions stored
+    if length < 1 or (length < 2 and final_obs is None and not recorded):
+        raise ValueError(f"episode {episode.get('episode_index')} holds no transition")
     obs = {"state": _stack(episode[STATE_KEY]), "proprio": _stack(episode[PROPRIO_KEY])}
     if mode == "pixels":
         if final_obs is not None:
@@ -324,11 +350,11 @@ def episode_to_replay(
             obs[cam] = episode[key]
     arrays = obs_to_arrays(obs, mode)
     keep = length
-    if final_obs is None:
-        keep = length - 1
-    else:
+    if final_obs is not None:
         last = obs_to_arrays(final_obs, mode)
         arrays = {k: np.concatenate([v, last[k][None]]) for k, v in arrays.items()}
+    elif not recorded:
+        keep = length - 1
     success = np.asarray(episode[SUCCESS_KEY], dtype=np.float32).reshape(-1)
     return {
         "obs": arrays,
@@ -336,6 +362,44 @@ def episode_to_replay(
         "reward": np.asarray(episode[REWARD_KEY], dtype=np.float32).reshape(-1)[:keep],
         "terminated": success[:keep],
     }
+
+
+def seed_buffer(
+    buffer,
+    source,
+    task_id: str,
+    obs_mode: str,
+    image_size: int | None = None,
+    task_index: int = 0,
+    endpoint: str | None = None,
+) -> int:
+    """Preload `task_id`'s episodes of a LeRobot dataset into `buffer` (through
+    `buffer.add_episode(obs=(T+1, ...), action=(T, 4), reward=(T,), terminated=(T,), task=)`);
+    returns how many were added.
+
+    Every transition is kept, the successes that ended episodes included: format-2 datasets
+    record each episode's final observation; for format-1 datasets it is replayed for successful
+    episodes in state mode (`final_observation`), and dropped otherwise.
+    """
+    episodes = load_episodes(source, task=task_id, images=obs_mode == "pixels", endpoint=endpoint)
+    added = 0
+    for ep in episodes:
+        final = None
+        if not has_final_observation(ep):
+            if obs_mode == "state" and bool(np.asarray(ep[SUCCESS_KEY]).reshape(-1)[-1]):
+                final = final_observation(ep, task_id)
+            if final is None and len(ep[ACTION_KEY]) < 2:
+                continue  # one frame: no transition once the unobserved last one is dropped
+        item = episode_to_replay(ep, obs_mode, final)
+        if obs_mode == "pixels" and image_size is not None:
+            side = item["obs"]["pixels"].shape[-1]
+            if side != image_size:
+                raise ValueError(
+                    f"seed dataset images are {side} px but the run uses {image_size} px"
+                )
+        buffer.add_episode(**item, task=task_index)
+        added += 1
+    return added
 
 
 def _stack(values) -> np.ndarray:

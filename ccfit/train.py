@@ -33,6 +33,7 @@ from torch import nn
 
 from ccdata.scoring import GAMMA, discounted_return, normalize
 from ccfit.config import RunConfig, TrainConfig
+from ccfit.data import seed_buffer  # noqa: F401 - moved to ccfit.data; old imports still work
 from ccfit.models.base import WorldModel
 from ccfit.obs import obs_to_arrays
 from ccfit.replay import ReplayBuffer
@@ -598,43 +599,6 @@ def build_model(name: str, config, device: torch.device, encoder=None) -> WorldM
     from ccfit.models.tdmpc2 import TDMPC2
 
     return TDMPC2(config, device=device, encoder=encoder)
-
-
-def seed_buffer(
-    buffer: ReplayBuffer,
-    source,
-    task_id: str,
-    obs_mode: str,
-    image_size: int | None = None,
-    task_index: int = 0,
-    endpoint: str | None = None,
-) -> int:
-    """Preload `task_id`'s episodes of a LeRobot dataset; returns how many were added.
-
-    In state mode, episodes that ended in success get their unrecorded final observation back
-    by replaying them (`ccfit.data.final_observation`), so the terminal transition is kept; in
-    pixel mode (and for other episodes) the last transition is dropped.
-    """
-    from ccfit.data import SUCCESS_KEY, episode_to_replay, final_observation, load_episodes
-
-    episodes = load_episodes(source, task=task_id, images=obs_mode == "pixels", endpoint=endpoint)
-    added = 0
-    for ep in episodes:
-        final = None
-        if obs_mode == "state" and bool(np.asarray(ep[SUCCESS_KEY]).reshape(-1)[-1]):
-            final = final_observation(ep, task_id)
-        if final is None and len(ep["action"]) < 2:
-            continue  # one frame: no transition once the unobserved last one is dropped
-        item = episode_to_replay(ep, obs_mode, final)
-        if obs_mode == "pixels" and image_size is not None:
-            side = item["obs"]["pixels"].shape[-1]
-            if side != image_size:
-                raise ValueError(
-                    f"seed dataset images are {side} px but the run uses {image_size} px"
-                )
-        buffer.add_episode(**item, task=task_index)
-        added += 1
-    return added
 
 
 def train_task(
