@@ -16,8 +16,9 @@ Grasp) showed:
   videos), so the map rewrites nothing; the stand-in returns the dataset as is in that case and
   calls LeRobot's function otherwise.
 
-Both apply only inside `faster_lerobot()`, and only when LeRobot still has the functions they
-replace (pinned lerobot 0.6); otherwise LeRobot's own run.
+Both apply only inside `faster_lerobot()` (which also turns off the progress bars LeRobot's
+merges print), and only when LeRobot still has the functions they replace (pinned lerobot 0.6);
+otherwise LeRobot's own run.
 """
 
 from __future__ import annotations
@@ -80,16 +81,33 @@ def _embed_images_if_any(original):
     return embed_images
 
 
+class _SilentTqdm:
+    """Stands in for the `tqdm` module in `lerobot.datasets.aggregate`: its bars off (a merge
+    prints two per call, hundreds per dataset, over `ccdata generate`'s own)."""
+
+    def __init__(self, tqdm_module) -> None:
+        self._tqdm = tqdm_module
+
+    def tqdm(self, *args, **kwargs):
+        return self._tqdm.tqdm(*args, **{**kwargs, "disable": True})
+
+    def __getattr__(self, name: str):
+        return getattr(self._tqdm, name)
+
+
 @contextmanager
 def faster_lerobot():
     """Within the block, LeRobot loads episode metadata and saves episodes the faster way.
 
     Only for writing pieces and merging them (`ccdata.writer`, `ccdata.journal`): episode
     metadata loaded inside the block is an `EpisodeTable`, not a `datasets.Dataset`."""
+    import lerobot.datasets.aggregate as aggregate_module
     import lerobot.datasets.dataset_metadata as metadata_module
     import lerobot.datasets.dataset_writer as writer_module
 
     patches = []
+    if hasattr(getattr(aggregate_module, "tqdm", None), "tqdm"):
+        patches.append((aggregate_module, "tqdm", _SilentTqdm(aggregate_module.tqdm)))
     if callable(getattr(metadata_module, "load_episodes", None)):
         patches.append((metadata_module, "load_episodes", _load_episodes))
     if callable(getattr(writer_module, "embed_images", None)):

@@ -109,12 +109,15 @@ def write_piece(config: DatasetSettings, spec: EpisodeSpec, episode: dict[str, n
     start = time.perf_counter()
     final, tmp = pieces_dir / spec.key, pieces_dir / f".tmp-{spec.key}"
     shutil.rmtree(tmp, ignore_errors=True)
+    frames = len(episode["action"])
     ds = LeRobotDataset.create(
         f"{config.repo_id}-piece", fps=FPS, features=features(config.image_size), root=tmp,
         robot_type="sawyer", rgb_encoder=_video_encoder(), streaming_encoding=True,
         encoder_threads=1,
+        # LeRobot's streaming encoder drops a frame (with a warning) when its queue is full;
+        # a queue that holds the whole episode can never be.
+        encoder_queue_maxsize=frames + 1,
     )
-    frames = len(episode["action"])
     try:
         for i in range(frames):
             ds.add_frame({**{k: v[i] for k, v in episode.items()}, "task": instruction})

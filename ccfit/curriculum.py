@@ -159,9 +159,9 @@ class CurriculumConfig:
     def dataset_source(self) -> str | None:
         if self.seed_dataset != "auto":
             return self.seed_dataset
-        from ccdata.record import GenerateConfig
+        from ccdata.settings import suite_dataset_root
 
-        root = GenerateConfig(suite=self.suite).dataset_root
+        root = suite_dataset_root(self.suite)
         return str(root) if (root / "meta" / "info.json").is_file() else None
 
     def to_dict(self) -> dict:

@@ -89,3 +89,22 @@ def test_overridden_noise_is_stated_for_every_task():
         assert f"| `{task_id}` | 0.2 | 0.0 | — |" in card
     assert "noise set for every task by the generating command" in card
     assert "--noise-std 0.2 --random-prob 0.0" in card
+
+
+def test_settings_is_a_leaf_that_readers_import_instead_of_the_engine():
+    import subprocess
+    import sys
+
+    code = ("import sys, ccdata.settings; engine = ('record', 'journal', 'dataset_format', "
+            "'writer', 'cards'); print(sorted(m for m in sys.modules if m.startswith('ccdata.') "
+            "and m.split('.')[1] in engine)); import ccdata.cards, ccdata.journal, "
+            "ccdata.dataset_format, ccfit.data, ccfit.curriculum, ccfit.pretrain_data; "
+            "print(sorted(m for m in ('ccdata.record', 'ccdata.writer') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split("\n")
+    assert out[:2] == ["[]", "[]"]
+    from ccdata.record import GenerateConfig as Old
+    from ccdata.settings import DatasetSettings
+
+    assert issubclass(Old, DatasetSettings) and Old("Reach").dataset_root == DatasetSettings(
+        "Reach").dataset_root

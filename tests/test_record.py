@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -341,3 +342,45 @@ def test_batched_generation_is_byte_identical_across_workers(tmp_path, monkeypat
         rel = path.relative_to(roots[0])
         assert path.read_bytes() == (roots[1] / rel).read_bytes(), rel
     assert existing_keys(roots[0]) == [s.key for s in plan(cfg)]
+
+
+def test_faster_lerobot_writes_and_merges_the_same_bytes(tmp_path):
+    """`ccdata.lerobot_speedups` changes LeRobot's speed, not its output: pieces written and
+    merged with and without it are the same files, byte for byte."""
+    from lerobot.datasets.aggregate import aggregate_datasets
+
+    from ccdata.env import make_env
+    from ccdata.lerobot_speedups import faster_lerobot
+    from ccdata.writer import rollout_episode, write_piece
+
+    cfg = GenerateConfig(**{**TINY, "max_steps": 6})
+    specs = plan(cfg)[:2]
+    instruction = ccdata.get_task(specs[0].task_id).instruction
+    env = make_env(specs[0].task_id, render_settings=cfg.render_settings)
+    episodes = [rollout_episode(env, s, cfg) for s in specs]
+    env.close()
+    roots = {}
+    for name in ("lerobot", "faster"):
+        pieces = tmp_path / name / "pieces"
+        pieces.mkdir(parents=True)
+        with faster_lerobot() if name == "faster" else contextlib.nullcontext():
+            for spec, episode in zip(specs, episodes, strict=True):
+                write_piece(cfg, spec, episode, pieces, instruction)
+            roots[name] = tmp_path / name / "merged"
+            aggregate_datasets([cfg.repo_id] * 2, cfg.repo_id, aggr_root=roots[name],
+                               roots=[pieces / s.key for s in specs])
+    for sub in ("pieces", "merged"):
+        a_root, b_root = tmp_path / "lerobot" / sub, tmp_path / "faster" / sub
+        files = sorted(p.relative_to(a_root) for p in a_root.rglob("*") if p.is_file()
+                       and p.name != "piece.json")  # piece.json holds timings
+        assert files == sorted(p.relative_to(b_root) for p in b_root.rglob("*") if p.is_file()
+                               and p.name != "piece.json")
+        for rel in files:
+            a, b = (a_root / rel).read_bytes(), (b_root / rel).read_bytes()
+            if rel.name == "stats.json":  # LeRobot writes the stats' keys in no fixed order
+                assert json.loads(a) == json.loads(b), rel
+            else:
+                assert a == b, rel
+    info = json.loads((roots["faster"] / "meta/info.json").read_text())
+    assert info["total_episodes"] == 2
+    assert info["total_frames"] == sum(len(e["action"]) for e in episodes)
