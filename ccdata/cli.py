@@ -6,10 +6,11 @@ Example:
 Commands:
     list          suites, tasks and composition matrices
     render        the three camera views of a task (PNG) and optionally an oracle episode (MP4)
-    references    regenerate the oracle reference returns used by `ccdata.normalize`
+    references    regenerate the reference measurements (oracle returns, noisy-oracle success)
+    calibrate     find each task's noisy-oracle noise (about half of its episodes succeed)
     generate      roll out oracle and exploration policies into one LeRobot v3 dataset per suite
                   (here, or as SLURM jobs with --launcher slurm)
-    card          render a suite's dataset card (Markdown with YAML header)
+    card          render a suite's default dataset card, or a generated dataset's own card
     verify        check a dataset end to end (exit 1 with findings)
     push          upload a dataset and its card to a Hugging Face Hub compatible endpoint
 """
@@ -49,7 +50,6 @@ def _cmd_list(args: argparse.Namespace) -> None:
 
 
 def _cmd_render(args: argparse.Namespace) -> None:
-    import imageio.v3 as iio
     import numpy as np
 
     import ccdata
@@ -59,8 +59,7 @@ def _cmd_render(args: argparse.Namespace) -> None:
     obs, _ = env.reset()
     frame = env.render()
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(out, frame)
+    write_png(out, frame)
     print(f"wrote {out} ({' | '.join(ccdata.CAMERAS)})")
     if args.video:
         policy = make_policy("oracle", args.task, seed=args.seed)
@@ -76,8 +75,22 @@ def _cmd_render(args: argparse.Namespace) -> None:
     env.close()
 
 
+def write_png(path: Path, image) -> None:
+    """An RGB uint8 (H, W, 3) image as PNG (OpenCV, which LeRobot installs), atomically."""
+    import cv2
+
+    ok, data = cv2.imencode(".png", image[..., ::-1])  # OpenCV orders channels BGR
+    if not ok:
+        raise RuntimeError(f"OpenCV could not encode a {image.shape} image as PNG")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data.tobytes())
+    tmp.replace(path)
+
+
 def write_mp4(path: Path, frames, fps: int) -> None:
-    """H.264 MP4 of (T, H, W, 3) uint8 frames, written to a temp file then renamed."""
+    """H.264 MP4 of (T, H, W, 3) uint8 frames, written to a temp file then renamed. PyAV, not
+    OpenCV: OpenCV's wheels cannot encode H.264 (only MPEG-4 part 2)."""
     import av
 
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -119,6 +132,8 @@ def _cmd_generate(args: argparse.Namespace) -> None:
         workers=args.workers,
         root=args.root,
         repo_id=args.repo_id,
+        noise_std=args.noise_std,
+        random_prob=args.random_prob,
     )
     if args.launcher == "slurm":
         return _submit_slurm(args, config)
@@ -193,24 +208,53 @@ def format_summary(summary: dict) -> str:
 
 
 def _dataset_root(args: argparse.Namespace) -> Path:
-    from ccdata.record import GenerateConfig
+    from ccdata.settings import suite_dataset_root
 
     if args.root:
         return Path(args.root)
     if args.suite is None:
         raise CliError("give --suite or --root")
-    return GenerateConfig(suite=args.suite).dataset_root
+    return suite_dataset_root(args.suite)
 
 
 def _cmd_card(args: argparse.Namespace) -> None:
     from ccdata.cards import render_card
 
-    text = render_card(args.suite)
+    if args.root:
+        from ccdata.dataset_format import read_ccdata_metadata
+        from ccdata.settings import DatasetSettings
+
+        meta = read_ccdata_metadata(Path(args.root))
+        settings = DatasetSettings.from_dict({**meta["config"], "root": args.root})
+        text = render_card(settings, dataset=Path(args.root), metadata=meta)
+    elif args.suite:
+        text = render_card(args.suite)
+    else:
+        raise CliError("give --suite (the default card) or --root (a dataset's card)")
     if args.out:
         Path(args.out).write_text(text)
         print(f"wrote {args.out}")
     else:
         sys.stdout.write(text)
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> None:
+    from ccdata.calibration import calibrate
+    from ccdata.tasks import TASKS
+
+    tasks = args.task or list(TASKS)
+    found = {}
+    for task_id in tasks:
+        noise, rate, _ = calibrate(
+            task_id, target=args.target, episodes=args.episodes, iterations=args.iterations,
+            tolerance=args.tolerance,
+            on_step=lambda r: print(json.dumps(r), file=sys.stderr, flush=True),
+        )
+        found[task_id] = {**noise.to_dict(), "success_rate": rate, "episodes": args.episodes}
+        print(f"{task_id}: ExplorationNoise(noise_std={noise.noise_std}, "
+              f"random_prob={noise.random_prob})  success {rate:.2f}", flush=True)
+    if args.json:
+        print(json.dumps(found, indent=2))
 
 
 def _cmd_verify(args: argparse.Namespace) -> int:
@@ -255,10 +299,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--image-size", type=int, default=128)
     p.set_defaults(func=_cmd_render)
 
-    p = sub.add_parser("references", help="regenerate oracle reference returns (package data)")
+    p = sub.add_parser("references", help="regenerate reference measurements (package data)")
     p.add_argument("--task", action="append", help="only these tasks (repeatable)")
     p.add_argument("--episodes", type=int, default=50)
     p.set_defaults(func=_cmd_references)
+
+    p = sub.add_parser("calibrate", help="find each task's noisy-oracle noise")
+    p.add_argument("--task", action="append", help="only these tasks (repeatable)")
+    p.add_argument("--episodes", type=int, default=40, help="episodes per evaluation")
+    p.add_argument("--target", type=float, default=0.5, help="noisy-oracle success rate")
+    p.add_argument("--iterations", type=int, default=8, help="evaluations at most, per task")
+    p.add_argument("--tolerance", type=float, default=0.1, help="accepted |rate - target|")
+    p.add_argument("--json", action="store_true", help="also print the results as JSON")
+    p.set_defaults(func=_cmd_calibrate)
 
     p = sub.add_parser("generate", help="generate a suite's LeRobot dataset")
     p.add_argument("--suite", required=True)
@@ -273,6 +326,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--root", help="dataset directory (default: LeRobot's cache for the repo id)")
     p.add_argument("--repo-id", help="default ccdata/<Suite>")
+    p.add_argument("--noise-std", type=float,
+                   help="noisy-oracle noise std for every task (default: each task's calibration)")
+    p.add_argument("--random-prob", type=float,
+                   help="noisy-oracle random-action probability for every task (default: "
+                        "each task's calibration)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--launcher", choices=("local", "slurm"), default="local",
                    help="local: processes here (default); slurm: a job array of shards, then a "
@@ -284,8 +342,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      "(default: .<name>.ccdata-logs beside the dataset)")
     p.set_defaults(func=_cmd_generate)
 
-    p = sub.add_parser("card", help="render a suite's dataset card")
-    p.add_argument("--suite", required=True)
+    p = sub.add_parser("card", help="render a suite's default card or a dataset's own card")
+    p.add_argument("--suite", help="the suite's default card (cards/<Suite>.md)")
+    p.add_argument("--root", help="the card of the dataset in this directory")
     p.add_argument("--out")
     p.set_defaults(func=_cmd_card)
 

@@ -10,41 +10,34 @@ import logging
 import os
 from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ccdata.env import ACTION_REPEAT, EPISODE_STEPS, FPS, PROPRIO_DIM
 from ccdata.render import CAMERAS
+from ccdata.settings import (
+    FORMAT_VERSION,
+    IDENTITY_KEYS,
+    POLICY_ORDER,
+    VIDEO_ENCODER,
+    DatasetSettings,
+)
 from ccdata.suites import get_suite
 from ccdata.tasks.base import STATE_DIM
 
-if TYPE_CHECKING:
-    from ccdata.record import GenerateConfig
-
-POLICY_ORDER: tuple[str, ...] = ("oracle", "noisy-oracle", "random")
-"""Policies in plan order; a frame's `policy_index` indexes this tuple."""
+__all__ = [  # the settings' constants are re-exported: older code imports them from here
+    "CCDATA_META", "FINAL_KEY", "FORMAT_VERSION", "IDENTITY_KEYS", "POLICY_ORDER",
+    "VIDEO_ENCODER", "camera_key", "ccdata_metadata", "check_identity", "episode_table",
+    "existing_keys", "features", "measure_dataset", "quiet_libraries", "read_ccdata_metadata",
+    "write_json",
+]
 
 CCDATA_META = "meta/ccdata.json"
 """Generation settings stored inside every dataset (relative to its root)."""
 
-FORMAT_VERSION = 1
-
-VIDEO_ENCODER: dict = {
-    "vcodec": "h264",
-    "pix_fmt": "yuv444p",
-    "crf": 0,
-    "g": 10,
-    "preset": "medium",
-    "extra_options": {"bf": 0},
-}
-"""Camera video encoding. libx264 with crf 0 is lossless in YUV 4:4:4, so the only loss is the
-RGB<->YUV rounding: ~52 dB PSNR on every frame (LeRobot's default AV1 4:2:0 crf 30 gives ~27 dB).
-No B-frames keep presentation and decoding order equal, which keeps concatenated episode videos'
-timestamps exact; a keyframe every 10 frames bounds the decoding work per random access."""
-
-IDENTITY_KEYS = ("suite", "seed", "image_size", "noise_std", "random_prob", "max_steps")
-"""Config fields that must match to append to an existing dataset (plus render, fps, video)."""
+FINAL_KEY = "is_final_observation"
+"""Per frame: True on the last frame of every episode, which holds the observation after the
+episode's last action and no transition of its own (action zeros, next.reward 0)."""
 
 
 def camera_key(camera: str) -> str:
@@ -68,6 +61,7 @@ def features(image_size: int) -> dict:
         "task_id_index": {"dtype": "int64", "shape": (1,), "names": None},
         "policy_index": {"dtype": "int64", "shape": (1,), "names": None},
         "episode_seed": {"dtype": "int64", "shape": (1,), "names": None},
+        FINAL_KEY: {"dtype": "bool", "shape": (1,), "names": None},
     })
     return feats
 
@@ -82,7 +76,7 @@ def _versions() -> dict:
     return out
 
 
-def ccdata_metadata(config: GenerateConfig) -> dict:
+def ccdata_metadata(config: DatasetSettings) -> dict:
     """The content of `meta/ccdata.json`: how the dataset was made, and how to read its ids."""
     suite = get_suite(config.suite)
     return {
@@ -91,7 +85,8 @@ def ccdata_metadata(config: GenerateConfig) -> dict:
         "axis": suite.axis,
         "repo_id": config.repo_id,
         "identity": config.identity(),
-        "config": {k: v for k, v in config.to_dict().items() if k not in ("root", "workers")},
+        "config": {k: v for k, v in DatasetSettings.to_dict(config).items()
+                   if k not in ("root", "workers")},
         "tasks": [
             {"index": i, "id": t.id, "title": t.title, "instruction": t.instruction}
             for i, t in enumerate(suite.tasks)
@@ -101,7 +96,11 @@ def ccdata_metadata(config: GenerateConfig) -> dict:
         "policies": list(POLICY_ORDER),
         "policy_params": {
             "oracle": {"kind": "scripted privileged-state oracle"},
-            "noisy-oracle": {"noise_std": config.noise_std, "random_prob": config.random_prob},
+            "noisy-oracle": {
+                "kind": "oracle + Gaussian noise (noise_std), uniform action w.p. random_prob",
+                "per_task": config.exploration_table(),
+                "calibrated": config.noise_std is None and config.random_prob is None,
+            },
             "random": {"kind": "uniform in [-1, 1]^4"},
         },
         "seeds": {
@@ -114,7 +113,11 @@ def ccdata_metadata(config: GenerateConfig) -> dict:
         "video": VIDEO_ENCODER,
         "env": {"fps": FPS, "action_repeat": ACTION_REPEAT, "episode_steps": EPISODE_STEPS,
                 "max_steps": config.max_steps},
-        "frame_convention": "obs_t, action_t, next.reward_t, next.done_t, next.success_t",
+        "frame_convention": (
+            "frames 0..T-1: obs_t, action_t, next.reward_t, next.done_t, next.success_t; "
+            f"frame T ({FINAL_KEY}): obs_T after the last action, action 0, next.reward 0, "
+            "next.done true, next.success = success of obs_T"
+        ),
         "versions": _versions(),
     }
 
@@ -132,7 +135,7 @@ def write_json(path: Path, content: dict) -> None:
     os.replace(tmp, path)
 
 
-def check_identity(found: dict, config: GenerateConfig, where: Path) -> None:
+def check_identity(found: dict, config: DatasetSettings, where: Path) -> None:
     expected = config.identity()
     diffs = [
         f"{k}: found {found.get(k)!r}, requested {expected[k]!r}"
@@ -179,26 +182,73 @@ def existing_keys(root: Path) -> list[str]:
 
 
 def episode_table(root: Path) -> dict[str, np.ndarray]:
-    """Per-episode arrays read from the data parquet files: task_id_index, policy_index,
-    episode_seed, frames, success, discounted return, in episode order."""
+    """Per-episode arrays read from the data parquet files, in episode order: task_id_index,
+    policy_index, episode_seed, frames (stored, final observation included), steps (actions
+    taken), success, discounted return."""
     import pyarrow.parquet as pq
 
     from ccdata.scoring import discounted_return
 
     cols = ["episode_index", "task_id_index", "policy_index", "episode_seed", "next.reward",
             "next.success"]
-    tables = [pq.read_table(p, columns=cols).to_pydict()
-              for p in sorted((Path(root) / "data").rglob("*.parquet"))]
+    paths = sorted((Path(root) / "data").rglob("*.parquet"))
+    if FINAL_KEY in pq.read_schema(paths[0]).names:
+        cols.append(FINAL_KEY)
+    tables = [pq.read_table(p, columns=cols).to_pydict() for p in paths]
     merged = {c: np.concatenate([np.asarray(t[c]) for t in tables]) for c in cols}
+    final = (merged[FINAL_KEY].reshape(-1).astype(bool) if FINAL_KEY in merged
+             else np.zeros(len(merged["episode_index"]), dtype=bool))
     episodes = np.unique(merged["episode_index"])
     out = {k: [] for k in ("episode_index", "task_id_index", "policy_index", "episode_seed",
-                           "frames", "success", "return")}
+                           "frames", "steps", "success", "return")}
     for e in episodes:
         m = merged["episode_index"] == e
+        step = m & ~final
         out["episode_index"].append(int(e))
         for c in ("task_id_index", "policy_index", "episode_seed"):
             out[c].append(int(merged[c][m][0]))
         out["frames"].append(int(m.sum()))
-        out["success"].append(bool(merged["next.success"][m].any()))
-        out["return"].append(discounted_return(merged["next.reward"][m]))
+        out["steps"].append(int(step.sum()))
+        out["success"].append(bool(merged["next.success"][step].any()))
+        out["return"].append(discounted_return(merged["next.reward"][step]))
     return {k: np.asarray(v) for k, v in out.items()}
+
+
+def measure_dataset(root: Path, task_ids: list[str]) -> dict:
+    """What a dataset holds, measured from its files: totals, bytes per 1000 stored frames, and
+    per task and policy (in suite and plan order) episodes, frames, steps, success rate, mean
+    discounted return and mean normalised return (None without an oracle reference)."""
+    from ccdata.scoring import normalize
+
+    root = Path(root)
+    table = episode_table(root)
+    rows = []
+    for t, task_id in enumerate(task_ids):
+        for p, policy in enumerate(POLICY_ORDER):
+            m = (table["task_id_index"] == t) & (table["policy_index"] == p)
+            if not m.any():
+                continue
+            try:
+                norm = float(np.mean([normalize(task_id, r) for r in table["return"][m]]))
+            except ValueError:
+                norm = None
+            rows.append({
+                "task": task_id, "policy": policy, "episodes": int(m.sum()),
+                "frames": int(table["frames"][m].sum()), "steps": int(table["steps"][m].sum()),
+                "success_rate": float(table["success"][m].mean()),
+                "mean_return": float(np.mean(table["return"][m])),
+                "mean_normalized_return": norm,
+            })
+    frames = int(table["frames"].sum())
+
+    def per_1000(sub: str) -> float:
+        size = sum(p.stat().st_size for p in (root / sub).rglob("*") if p.is_file())
+        return round(1000 * size / frames) if frames else 0
+
+    return {
+        "episodes": int(len(table["episode_index"])),
+        "frames": frames,
+        "steps": int(table["steps"].sum()),
+        "bytes_per_1000_frames": {"videos": per_1000("videos"), "data": per_1000("data")},
+        "per_task_policy": rows,
+    }

@@ -40,9 +40,10 @@ from ccdata.dataset_format import (
     read_ccdata_metadata,
     write_json,
 )
+from ccdata.lerobot_speedups import faster_lerobot
 
 if TYPE_CHECKING:
-    from ccdata.record import GenerateConfig
+    from ccdata.settings import DatasetSettings
 
 GROUP = 16
 """Datasets merged per `aggregate_datasets` call, and episodes per batch of the merger process;
@@ -119,7 +120,7 @@ def chunks_of(keys: list[str]) -> list[list[str]]:
     return [keys[i:i + GROUP] for i in range(0, len(keys) - GROUP + 1, GROUP)]
 
 
-def merge_batch(config: GenerateConfig, keys: list[str]) -> Path:
+def merge_batch(config: DatasetSettings, keys: list[str]) -> Path:
     """Aggregate the journal's pieces of `keys` (all finished) into one batch, atomically."""
     from lerobot.datasets.aggregate import aggregate_datasets
 
@@ -128,8 +129,9 @@ def merge_batch(config: GenerateConfig, keys: list[str]) -> Path:
     shutil.rmtree(tmp, ignore_errors=True)
     paths.batches.mkdir(parents=True, exist_ok=True)
     try:
-        aggregate_datasets([config.repo_id] * len(keys), config.repo_id,
-                           roots=[paths.pieces / k for k in keys], aggr_root=tmp)
+        with faster_lerobot():
+            aggregate_datasets([config.repo_id] * len(keys), config.repo_id,
+                               roots=[paths.pieces / k for k in keys], aggr_root=tmp)
         write_json(tmp / BATCH_RECORD, {"keys": list(keys)})
         os.replace(tmp, final)
     except BaseException:
@@ -138,7 +140,7 @@ def merge_batch(config: GenerateConfig, keys: list[str]) -> Path:
     return final
 
 
-def merge_chunks(config: GenerateConfig, chunks: list[list[str]], finished) -> None:
+def merge_chunks(config: DatasetSettings, chunks: list[list[str]], finished) -> None:
     """What the merger process runs: batch each chunk, in order, as soon as all its pieces
     exist; return when all are batched or `finished` (an Event) is set, leaving the rest to the
     final merge. Needs only its arguments and the journal (an independent job)."""
@@ -159,7 +161,7 @@ def merge_chunks(config: GenerateConfig, chunks: list[list[str]], finished) -> N
         return  # Ctrl-C reaches the whole process group; the main process merges the rest
 
 
-def _merger_main(config: GenerateConfig, chunks: list[list[str]], finished, parent: int) -> None:
+def _merger_main(config: DatasetSettings, chunks: list[list[str]], finished, parent: int) -> None:
     die_with_parent(parent)
     merge_chunks(config, chunks, finished)
 
@@ -198,7 +200,7 @@ def _aggregate(sources: list[Path], dst: Path, repo_id: str, scratch: Path) -> N
     aggregate_datasets([repo_id] * len(sources), repo_id, roots=sources, aggr_root=dst)
 
 
-def merge_pieces(config: GenerateConfig, order: list[str] | None = None) -> int:
+def merge_pieces(config: DatasetSettings, order: list[str] | None = None) -> int:
     """Merge the journal (batches and pieces) after the episodes already at the root; swap
     atomically. `order`: the plan's keys, which fixes the episode order and the chunks.
 
@@ -229,12 +231,15 @@ def merge_pieces(config: GenerateConfig, order: list[str] | None = None) -> int:
     shutil.rmtree(paths.new, ignore_errors=True)
     scratch = paths.work / "merge"
     scratch.mkdir(parents=True, exist_ok=True)
-    _aggregate(sources, paths.new, config.repo_id, scratch)
+    with faster_lerobot():
+        _aggregate(sources, paths.new, config.repo_id, scratch)
     shutil.rmtree(scratch, ignore_errors=True)
     from ccdata.cards import render_card
 
-    (paths.new / "README.md").write_text(render_card(config.suite))  # the dataset card
-    write_json(paths.new / CCDATA_META, ccdata_metadata(config))  # written last: "complete"
+    meta = ccdata_metadata(config)
+    # The card states this dataset's settings and what was measured on it.
+    (paths.new / "README.md").write_text(render_card(config, dataset=paths.new, metadata=meta))
+    write_json(paths.new / CCDATA_META, meta)  # written last: "complete"
     if paths.root.exists():
         os.replace(paths.root, paths.old)
     os.replace(paths.new, paths.root)
@@ -245,7 +250,7 @@ def merge_pieces(config: GenerateConfig, order: list[str] | None = None) -> int:
     return sum(len(e[2]) for e in entries)
 
 
-def prepare(config: GenerateConfig) -> JournalPaths:
+def prepare(config: DatasetSettings) -> JournalPaths:
     """Check the target and the journal belong to these settings; repair leftovers."""
     paths = JournalPaths(config.dataset_root)
     _recover(paths)
@@ -266,7 +271,7 @@ def prepare(config: GenerateConfig) -> JournalPaths:
 class Merger:
     """`merge_chunks` in a spawned process beside the rollouts (none when nothing is to batch)."""
 
-    def __init__(self, config: GenerateConfig, chunks: list[list[str]]) -> None:
+    def __init__(self, config: DatasetSettings, chunks: list[list[str]]) -> None:
         self.process = None
         if not chunks:
             return

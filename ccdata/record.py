@@ -1,8 +1,9 @@
 """`ccdata generate`'s engine: roll out a suite's policies and write one LeRobot v3 dataset.
 
-Each episode is recorded into its own small finalized LeRobot dataset (a piece) in a journal
-beside the target, and the pieces are merged into the target in plan order (`ccdata.journal`
-describes the layout and why no interruption can leave a half-written dataset). Episodes are
+Each episode is recorded (`ccdata.writer`) into its own small finalized LeRobot dataset (a
+piece) in a journal beside the target, and the pieces are merged into the target in plan order
+(`ccdata.journal` describes the layout and why no interruption can leave a half-written
+dataset). Episodes are
 identified by (task id, policy, episode seed); a run skips every episode already in the target
 or the journal, so re-running the same command completes the requested counts without
 duplicates. Workers (`workers > 1`) are spawned processes, each running `write_shard` on a
@@ -12,7 +13,6 @@ the result does not depend on the number of workers.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import shutil
@@ -26,20 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ccdata.dataset_format import (
-    FORMAT_VERSION,
-    IDENTITY_KEYS,
-    POLICY_ORDER,
-    VIDEO_ENCODER,
-    camera_key,
-    episode_table,
-    existing_keys,
-    features,
-    quiet_libraries,
-    read_ccdata_metadata,
-    write_json,
-)
-from ccdata.env import EPISODE_STEPS, FPS, make_env
+from ccdata.dataset_format import existing_keys, measure_dataset, read_ccdata_metadata
 from ccdata.journal import (
     JournalPaths,
     Merger,
@@ -49,102 +36,23 @@ from ccdata.journal import (
     merge_pieces,
     prepare,
 )
-from ccdata.render import CAMERAS, RenderSettings
-from ccdata.suites import SUITES, get_suite
+from ccdata.settings import POLICY_ORDER, DatasetSettings
+from ccdata.suites import get_suite
+from ccdata.writer import write_shard
 
 
 @dataclass
-class GenerateConfig:
-    """Everything that determines a generated dataset. Validated on construction."""
+class GenerateConfig(DatasetSettings):
+    """A dataset's settings (`ccdata.settings.DatasetSettings`) plus how to run its generation.
+    Validated on construction."""
 
-    suite: str
-    """Suite name (one of `ccdata.SUITES`); the dataset holds every task of the suite."""
-    episodes: int = 50
-    """Oracle episodes per task."""
-    explore_episodes: int = 25
-    """Episodes per task for each exploration policy (noisy-oracle and random)."""
-    image_size: int = 64
-    """Side of the square camera images in pixels."""
-    seed: int = 0
-    """Base seed; every episode seed derives from it, the task, the policy and the index."""
     workers: int = 1
     """Processes rolling out episodes in parallel (one environment each). No effect on content."""
-    root: str | Path | None = None
-    """Dataset directory; None -> LeRobot's default `$HF_LEROBOT_HOME/<repo_id>`, so that
-    `LeRobotDataset(repo_id)` opens it with no other argument."""
-    repo_id: str | None = None
-    """LeRobot / Hub repository id; None -> `ccdata/<Suite>`."""
-    noise_std: float = 0.3
-    """Std of the Gaussian noise the noisy oracle adds to the oracle's action."""
-    random_prob: float = 0.1
-    """Probability that the noisy oracle takes a uniform random action instead."""
-    shadows: bool = False
-    """Render shadows (see `ccdata.RenderSettings`)."""
-    reflections: bool = False
-    """Render reflections."""
-    skybox: bool = False
-    """Render the skybox."""
-    msaa_samples: int = 0
-    """Multisample anti-aliasing samples."""
-    max_steps: int | None = None
-    """Cut every episode after this many agent steps (tests, previews); None -> full episodes
-    (250 steps or success). A cut episode's last frame has `next.done` True."""
 
     def __post_init__(self) -> None:
-        if self.suite not in SUITES:
-            raise ValueError(f"unknown suite {self.suite!r}; valid suites: {', '.join(SUITES)}")
-        for name in ("episodes", "explore_episodes"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if self.episodes + self.explore_episodes == 0:
-            raise ValueError("episodes and explore_episodes are both 0: nothing to generate")
+        super().__post_init__()
         if self.workers < 1:
             raise ValueError(f"workers must be >= 1, got {self.workers}")
-        if self.seed < 0:
-            raise ValueError(f"seed must be >= 0, got {self.seed}")
-        if self.max_steps is not None and not 1 <= self.max_steps <= EPISODE_STEPS:
-            raise ValueError(
-                f"max_steps must be in [1, {EPISODE_STEPS}] or None, got {self.max_steps}"
-            )
-        if self.noise_std < 0 or not 0.0 <= self.random_prob <= 1.0:
-            raise ValueError("noise_std must be >= 0 and random_prob in [0, 1]")
-        if self.repo_id is None:
-            self.repo_id = f"ccdata/{self.suite}"
-        if self.repo_id.count("/") != 1 or not all(self.repo_id.split("/")):
-            raise ValueError(f"repo_id must look like 'owner/name', got {self.repo_id!r}")
-        _ = self.render_settings  # validates image_size and msaa_samples
-
-    @property
-    def render_settings(self) -> RenderSettings:
-        return RenderSettings(
-            image_size=self.image_size,
-            shadows=self.shadows,
-            reflections=self.reflections,
-            skybox=self.skybox,
-            msaa_samples=self.msaa_samples,
-        )
-
-    @property
-    def dataset_root(self) -> Path:
-        if self.root is not None:
-            return Path(self.root).expanduser().resolve()
-        from lerobot.utils.constants import HF_LEROBOT_HOME
-
-        return (HF_LEROBOT_HOME / self.repo_id).resolve()
-
-    def to_dict(self) -> dict:
-        d = dataclasses.asdict(self)
-        d["root"] = str(self.dataset_root)
-        return d
-
-    def identity(self) -> dict:
-        """The settings an existing dataset must share to be appended to."""
-        ident = {k: getattr(self, k) for k in IDENTITY_KEYS}
-        ident["render"] = self.render_settings.to_dict()
-        ident["fps"] = FPS
-        ident["video"] = VIDEO_ENCODER
-        ident["format"] = FORMAT_VERSION
-        return json.loads(json.dumps(ident))
 
 
 # ── The plan ──────────────────────────────────────────────────────────────────────────────
@@ -203,122 +111,6 @@ def plan(config: GenerateConfig) -> list[EpisodeSpec]:
     if len({s.seed for s in specs}) != len(specs):  # 62-bit seeds: practically never
         raise RuntimeError("episode seed collision; choose another base seed")
     return specs
-
-
-# ── Recording ─────────────────────────────────────────────────────────────────────────────
-
-
-def _video_encoder():
-    from lerobot.configs import RGBEncoderConfig
-
-    return RGBEncoderConfig(**json.loads(json.dumps(VIDEO_ENCODER)))
-
-
-def record_episode(dataset, env, spec: EpisodeSpec, config: GenerateConfig,
-                   instruction: str) -> int:
-    """Roll out `spec` in `env` and add its frames to `dataset` (not saved). Returns frames."""
-    from ccdata.policies import make_policy
-
-    policy = make_policy(spec.policy, spec.task_id, seed=policy_seed(spec.seed),
-                         noise_std=config.noise_std, random_prob=config.random_prob)
-    policy.reset()
-    obs, _ = env.reset(seed=spec.seed)
-    limit = config.max_steps or EPISODE_STEPS
-    ids = {
-        "task_id_index": np.array([spec.task_index], dtype=np.int64),
-        "policy_index": np.array([spec.policy_index], dtype=np.int64),
-        "episode_seed": np.array([spec.seed], dtype=np.int64),
-    }
-    for t in range(limit):
-        action = np.asarray(policy.act(obs), dtype=np.float32)
-        next_obs, reward, terminated, truncated, info = env.step(action)
-        done = terminated or truncated or t + 1 == limit
-        frame = {camera_key(c): obs[c] for c in CAMERAS}
-        frame.update({
-            "observation.state": obs["proprio"],
-            "observation.environment_state": obs["state"],
-            "action": action,
-            "next.reward": np.array([reward], dtype=np.float32),
-            "next.done": np.array([done], dtype=bool),
-            "next.success": np.array([bool(info["success"])], dtype=bool),
-            "task": instruction,
-            **ids,
-        })
-        dataset.add_frame(frame)
-        obs = next_obs
-        if done:
-            return t + 1
-    raise AssertionError("unreachable: the loop ends on done")
-
-
-def write_shard(
-    config: GenerateConfig,
-    specs: list[EpisodeSpec],
-    pieces_dir: str | Path,
-    on_piece: Callable[[dict], None] | None = None,
-) -> list[dict]:
-    """Write each episode of `specs` as its own finalized LeRobot dataset in `pieces_dir`.
-
-    An independent job (a process, a submitit/SLURM task): it needs only its arguments. It stops
-    before the next episode when `<pieces_dir>/../STOP` exists. Returns the pieces' records."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    quiet_libraries()
-    pieces_dir = Path(pieces_dir)
-    stop_file = pieces_dir.parent / "STOP"
-    suite = get_suite(config.suite)
-    instructions = {t.id: t.instruction for t in suite.tasks}
-    feats = features(config.image_size)
-    done: list[dict] = []
-    env, env_task = None, None
-    try:
-        for spec in specs:
-            if stop_file.exists():
-                break
-            final = pieces_dir / spec.key
-            if final.exists():
-                continue
-            if env_task != spec.task_id:
-                if env is not None:
-                    env.close()  # one render context per process at a time
-                env = make_env(spec.task_id, render_settings=config.render_settings)
-                env_task = spec.task_id
-            tmp = pieces_dir / f".tmp-{spec.key}"
-            shutil.rmtree(tmp, ignore_errors=True)
-            start = time.perf_counter()
-            ds = LeRobotDataset.create(
-                f"{config.repo_id}-piece", fps=FPS, features=feats, root=tmp,
-                robot_type="sawyer", rgb_encoder=_video_encoder(), streaming_encoding=True,
-                encoder_threads=1,
-            )
-            try:
-                frames = record_episode(ds, env, spec, config, instructions[spec.task_id])
-                ds.save_episode()
-                ds.finalize()
-            except BaseException:
-                _abandon(ds, tmp)
-                raise
-            record = {**dataclasses.asdict(spec), "key": spec.key, "frames": frames,
-                      "seconds": time.perf_counter() - start}
-            write_json(tmp / "piece.json", record)
-            os.replace(tmp, final)
-            done.append(record)
-            if on_piece is not None:
-                on_piece(record)
-    finally:
-        if env is not None:
-            env.close()
-    return done
-
-
-def _abandon(ds, tmp: Path) -> None:
-    """Drop an episode in progress: stop its encoder threads, delete its directory."""
-    try:
-        ds.clear_episode_buffer()
-        ds.finalize()
-    except Exception:  # noqa: BLE001 - best effort; the directory goes anyway
-        pass
-    shutil.rmtree(tmp, ignore_errors=True)
 
 
 # ── generate ──────────────────────────────────────────────────────────────────────────────
@@ -409,45 +201,30 @@ def _run_workers(config: GenerateConfig, todo: list[EpisodeSpec], paths: Journal
 
 def summarize(root: Path, new_records: Iterable[dict] = (), wall_time: float | None = None
               ) -> dict:
-    """Per task and policy: episodes, frames, success rate, mean normalised return (None without
-    an oracle reference), and for this run's new episodes: count, seconds, frames/s."""
-    from ccdata.scoring import normalize
-
+    """`measure_dataset` of the dataset at `root` (per task and policy: episodes, frames, steps,
+    success rate, mean discounted and normalised return), plus this run's new episodes: count,
+    seconds of work and frames per second per row, and the run's wall time."""
     meta = read_ccdata_metadata(root)
-    task_ids = [t["id"] for t in meta["tasks"]]
-    table = episode_table(root)
+    measured = measure_dataset(root, [t["id"] for t in meta["tasks"]])
     new = {}
     for r in new_records:
         agg = new.setdefault((r["task_id"], r["policy"]), [0, 0, 0.0])
         agg[0] += 1
         agg[1] += r["frames"]
         agg[2] += r["seconds"]
-    rows = []
-    for t, task_id in enumerate(task_ids):
-        for p, policy in enumerate(meta["policies"]):
-            m = (table["task_id_index"] == t) & (table["policy_index"] == p)
-            if not m.any():
-                continue
-            try:
-                norm = float(np.mean([normalize(task_id, r) for r in table["return"][m]]))
-            except ValueError:
-                norm = None
-            n_new, f_new, s_new = new.get((task_id, policy), [0, 0, 0.0])
-            rows.append({
-                "task": task_id, "policy": policy, "episodes": int(m.sum()),
-                "frames": int(table["frames"][m].sum()),
-                "success_rate": float(table["success"][m].mean()),
-                "mean_normalized_return": norm,
-                "new_episodes": n_new, "wall_time_s": s_new,
-                "frames_per_s": f_new / s_new if s_new > 0 else None,
-            })
+    for row in measured["per_task_policy"]:
+        n_new, f_new, s_new = new.get((row["task"], row["policy"]), [0, 0, 0.0])
+        row.update(new_episodes=n_new, wall_time_s=s_new,
+                   frames_per_s=f_new / s_new if s_new > 0 else None)
     new_frames = sum(r["frames"] for r in new_records)
+    new_steps = sum(r.get("steps", r["frames"]) for r in new_records)
     return {
         "root": str(root),
-        "episodes": int(len(table["episode_index"])),
-        "frames": int(table["frames"].sum()),
-        "new_episodes": sum(r["new_episodes"] for r in rows),
+        **{k: measured[k] for k in ("episodes", "frames", "steps", "bytes_per_1000_frames")},
+        "new_episodes": sum(r["new_episodes"] for r in measured["per_task_policy"]),
+        "new_steps": new_steps,
         "wall_time_s": wall_time,
         "frames_per_s": new_frames / wall_time if wall_time else None,
-        "per_task_policy": rows,
+        "steps_per_s": new_steps / wall_time if wall_time else None,
+        "per_task_policy": measured["per_task_policy"],
     }

@@ -1,7 +1,9 @@
-"""Oracle reference returns: the '100' of the normalised score, stored as package data.
+"""Reference measurements per task, stored as package data (`references.json`).
 
 Regenerate with `ccdata references`. Each task's reference is the oracle's mean discounted
-return over a fixed block of seeds that no other part of the toolkit uses.
+return over a fixed block of seeds that no other part of the toolkit uses (the '100' of the
+normalised score), and, on the same layouts, the noisy oracle's success rate with the task's
+calibrated exploration noise (what the dataset cards quote).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ccdata.calibration import noisy_oracle_rollouts
 from ccdata.env import EPISODE_STEPS, make_env
 from ccdata.policies import make_policy
 from ccdata.scoring import GAMMA, REFERENCE_FILE, discounted_return, references
@@ -21,6 +24,8 @@ from ccdata.tasks import TASKS, get_task
 
 REFERENCE_SEED_BASE = 900_000
 """Reference episodes use seeds REFERENCE_SEED_BASE + i."""
+NOISY_POLICY_SEED_OFFSET = 10**6
+"""The noisy oracle's own seed on reference layout s is s + NOISY_POLICY_SEED_OFFSET."""
 
 
 def oracle_rollouts(task_id: str, seeds) -> dict:
@@ -66,19 +71,25 @@ def write_references(tasks=None, episodes: int = 50, path: Path | None = None) -
     seeds = [REFERENCE_SEED_BASE + i for i in range(episodes)]
     for task_id in task_ids:
         r = oracle_rollouts(task_id, seeds)
+        noise = get_task(task_id).exploration
+        noisy = noisy_oracle_rollouts(task_id, noise, [(s, s + NOISY_POLICY_SEED_OFFSET)
+                                                       for s in seeds])
         data["tasks"][task_id] = {
             "mean_discounted_return": float(np.mean(r["returns"])),
             "std_discounted_return": float(np.std(r["returns"])),
             "success_rate": float(np.mean(r["successes"])),
             "median_length": float(np.median(r["lengths"])),
             "episodes": episodes,
+            "noisy_oracle_success_rate": float(np.mean(noisy["successes"])),
+            "noisy_oracle_mean_discounted_return": float(np.mean(noisy["returns"])),
+            "noisy_oracle": noise.to_dict(),
         }
     data["tasks"] = dict(sorted(data["tasks"].items()))
     data.update(
         gamma=GAMMA,
         episode_steps=EPISODE_STEPS,
         seeds=f"{REFERENCE_SEED_BASE} + range(episodes)",
-        policy="oracle",
+        policy="oracle; noisy-oracle with each task's calibrated noise",
         versions=_versions(),
     )
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ccdata.dataset_format import FINAL_KEY
+
 CODEBASE_VERSION = "v3.0"
 LEROBOT_COLUMNS = ("timestamp", "frame_index", "episode_index", "index", "task_index")
 
@@ -197,10 +199,16 @@ def _check_frames(data: dict, episodes, info: dict, ccmeta: dict | None,
                             "meta/episodes")
         if "next.done" in data:
             done = data["next.done"].reshape(-1)[m][order].astype(bool)
-            if not done[-1]:
-                findings.append(f"{where}: last frame is not done (truncated episode)")
+            if FINAL_KEY in data:  # format 2: the last frame is the final observation
+                final = data[FINAL_KEY].reshape(-1)[m][order].astype(bool)
+                if not final[-1] or final[:-1].any():
+                    findings.append(f"{where}: its last frame, and only it, must be its final "
+                                    f"observation ({FINAL_KEY})")
+                done = done[:-1] if final[-1] else done
+            if len(done) and not done[-1]:
+                findings.append(f"{where}: last step is not done (truncated episode)")
             if done[:-1].any():
-                findings.append(f"{where}: done before its last frame")
+                findings.append(f"{where}: done before its last step")
         if task_ids is None or "task_id_index" not in data:
             continue
         tid = np.unique(data["task_id_index"].reshape(-1)[m])

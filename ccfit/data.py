@@ -6,7 +6,15 @@ camera's video file once, sequentially, with PyAV, cutting it into episodes by t
 metadata (each episode's from/to timestamps inside its video file).
 
 `episode_to_replay` turns one episode into replay-buffer arrays through `ccfit.obs`, the same
-function live observations go through.
+function live observations go through, and `seed_buffer` preloads a replay buffer with a task's
+episodes.
+
+The observation after an episode's last action (for a successful episode: the success state,
+which every terminal transition leads to) is recorded by ccdata datasets of format 2 as the
+episode's last frame (`is_final_observation`), so every transition of every episode, the
+terminal successes included, reaches the buffer in every observation mode. Datasets of format 1
+lack that frame: their successful episodes get it back by replaying their actions without
+rendering (state mode only; in pixel mode their last transition is dropped).
 """
 
 from __future__ import annotations
@@ -21,6 +29,8 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from ccdata.dataset_format import CCDATA_META
+from ccdata.errors import InputError
 from ccfit.obs import obs_to_arrays
 
 IMAGE_PREFIX = "observation.images."
@@ -38,13 +48,14 @@ ACTION_KEY = "action"
 REWARD_KEY = "next.reward"
 DONE_KEY = "next.done"
 SUCCESS_KEY = "next.success"
+FINAL_KEY = "is_final_observation"
+"""Per frame: the episode's final observation, not a transition (ccdata format 2)."""
 TASK_ID_INDEX_KEY = "task_id_index"
 """Per-frame index of the task id in the suite's order (names in meta/ccdata.json)."""
 POLICY_INDEX_KEY = "policy_index"
 """Per-frame index of the policy that played the episode (names in meta/ccdata.json)."""
 EPISODE_SEED_KEY = "episode_seed"
 """Per-frame layout seed: `make_env(task_id).reset(seed=...)` reproduces the episode."""
-CCDATA_META = "meta/ccdata.json"
 """ccdata's own metadata: 'tasks' [{'index', 'id', ...}] and 'policies' [names]."""
 EPISODE_INDEX = "episode_index"
 FRAME_INDEX = "frame_index"
@@ -69,7 +80,7 @@ def resolve_source(source: str | Path, endpoint: str | None = None) -> Path:
     try:
         return download_dataset(str(source), endpoint=endpoint)
     except HubError as e:
-        raise ValueError(
+        raise InputError(
             f"cannot read LeRobot dataset {str(source)!r}: no such directory, and {e}"
         ) from None
 
@@ -116,7 +127,7 @@ def _open_metadata(source: str | Path, endpoint: str | None = None) -> tuple[_Me
         tasks = pq.read_table(root / "meta" / "tasks.parquet").to_pandas()
     except Exception as e:  # noqa: BLE001 - missing or corrupt metadata: one clear message
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise ValueError(f"cannot read LeRobot dataset at {root}: {msg}") from e
+        raise InputError(f"cannot read LeRobot dataset at {root}: {msg}") from e
     return _Metadata(info, episodes.set_index(EPISODE_INDEX), tasks), root
 
 
@@ -136,13 +147,13 @@ def _index_of(value: str | int, names: dict[str, int], what: str) -> int:
         return int(value)
     if value not in names:
         valid = ", ".join(names) or "(dataset has no meta/ccdata.json)"
-        raise ValueError(f"{what} {value!r} is not in this dataset; valid: {valid}")
+        raise InputError(f"{what} {value!r} is not in this dataset; valid: {valid}")
     return names[value]
 
 
 def _matches(table, column: str, index: int) -> np.ndarray:
     if column not in table.column_names:
-        raise ValueError(f"dataset has no {column!r} column to filter on")
+        raise InputError(f"dataset has no {column!r} column to filter on")
     return _column(table, column).reshape(-1) == index
 
 
@@ -192,7 +203,7 @@ def load_episodes(
     """
     meta, root = _open_metadata(source, endpoint)
     if len(meta.episodes) == 0:
-        raise ValueError(f"dataset {str(source)!r} has no episodes")
+        raise InputError(f"dataset {str(source)!r} has no episodes")
     ep_meta = meta.episodes
     fps = float(meta.fps)
     tasks_by_index = {int(i): str(t) for t, i in meta.tasks["task_index"].items()}
@@ -227,7 +238,7 @@ def load_episodes(
         for ep, a, b in zip(eps, starts, stops, strict=True):
             rows[int(ep)].append(table.take(pa.array(order[a:b])))
     if not rows:
-        raise ValueError(f"no episodes in {str(source)!r} match task={task!r} policy={policy!r}")
+        raise InputError(f"no episodes in {str(source)!r} match task={task!r} policy={policy!r}")
 
     episodes: dict[int, dict[str, np.ndarray]] = {}
     for ep, parts in sorted(rows.items()):
@@ -258,7 +269,7 @@ def load_episodes(
                 for ep, a, b in spans:
                     missing = [i for i in range(a, b) if i not in frames]
                     if missing:
-                        raise ValueError(
+                        raise InputError(
                             f"{rel}: episode {ep} lacks {len(missing)} of its {b - a} frames"
                         )
                     episodes[ep][key] = np.stack([frames[i] for i in range(a, b)])
@@ -283,14 +294,14 @@ def final_observation(episode: dict[str, np.ndarray], task_id: str) -> dict[str,
     from ccdata.env import make_env
 
     if EPISODE_SEED_KEY not in episode:
-        raise ValueError(f"episode lacks {EPISODE_SEED_KEY!r}: cannot replay it")
+        raise InputError(f"episode lacks {EPISODE_SEED_KEY!r}: cannot replay it")
     states = _stack(episode[STATE_KEY])
     env = make_env(task_id, render=False)
     try:
         obs, _ = env.reset(seed=int(np.asarray(episode[EPISODE_SEED_KEY]).reshape(-1)[0]))
         for t, action in enumerate(_stack(episode[ACTION_KEY])):
             if not np.allclose(obs["state"], states[t], atol=1e-5):
-                raise ValueError(
+                raise InputError(
                     f"episode {episode.get('episode_index')}: replay departs from the recorded "
                     f"states at step {t} (another task, or another simulator version?)"
                 )
@@ -300,20 +311,36 @@ def final_observation(episode: dict[str, np.ndarray], task_id: str) -> dict[str,
     return obs
 
 
+def has_final_observation(episode: dict[str, np.ndarray]) -> bool:
+    """Whether the episode's last frame is its recorded final observation (format 2)."""
+    if FINAL_KEY not in episode:
+        return False
+    final = np.asarray(episode[FINAL_KEY]).reshape(-1).astype(bool)
+    if final[:-1].any():
+        raise InputError(f"episode {episode.get('episode_index')}: {FINAL_KEY} is set before its "
+                         "last frame")
+    return bool(final[-1])
+
+
 def episode_to_replay(
     episode: dict[str, np.ndarray], mode: str, final_obs: dict[str, np.ndarray] | None = None
 ) -> dict:
-    """One loaded episode -> `ReplayBuffer.add_episode` keyword arguments.
+    """One loaded episode -> `ReplayBuffer.add_episode` keyword arguments: obs (T+1, ...),
+    action (T, 4), reward (T,), terminated (T,) (the success that ended the episode).
 
-    LeRobot stores T frames (observation t, action t, next.reward t, next.success t); the
-    observation after the last action is not stored. Given `final_obs` (state mode, e.g. from
-    `final_observation`), all T transitions go to the buffer, the success that ended the
-    episode included; without it the last transition is dropped (T observations, T-1
+    Frames are (observation t, action t, next.reward t, next.success t). A format-2 episode ends
+    with its final observation (`FINAL_KEY`), so all T transitions are kept. For a format-1
+    episode, the final observation may be given as `final_obs` (state mode, e.g. from
+    `final_observation`); without it the last transition is dropped (T observations, T-1
     transitions).
     """
-    length = len(episode[ACTION_KEY])
-    if length < 2 and final_obs is None:
-        raise ValueError(f"episode {episode.get('episode_index')} has {length} frame(s); need 2")
+    recorded = has_final_observation(episode)
+    if recorded and final_obs is not None:
+        raise ValueError("the episode records its final observation: pass no final_obs")
+    frames = len(episode[ACTION_KEY])
+    length = frames - 1 if recorded else frames  # transitions stored
+    if length < 1 or (length < 2 and final_obs is None and not recorded):
+        raise ValueError(f"episode {episode.get('episode_index')} holds no transition")
     obs = {"state": _stack(episode[STATE_KEY]), "proprio": _stack(episode[PROPRIO_KEY])}
     if mode == "pixels":
         if final_obs is not None:
@@ -324,11 +351,11 @@ def episode_to_replay(
             obs[cam] = episode[key]
     arrays = obs_to_arrays(obs, mode)
     keep = length
-    if final_obs is None:
-        keep = length - 1
-    else:
+    if final_obs is not None:
         last = obs_to_arrays(final_obs, mode)
         arrays = {k: np.concatenate([v, last[k][None]]) for k, v in arrays.items()}
+    elif not recorded:
+        keep = length - 1
     success = np.asarray(episode[SUCCESS_KEY], dtype=np.float32).reshape(-1)
     return {
         "obs": arrays,
@@ -336,10 +363,6 @@ def episode_to_replay(
         "reward": np.asarray(episode[REWARD_KEY], dtype=np.float32).reshape(-1)[:keep],
         "terminated": success[:keep],
     }
-
-
-def _stack(values) -> np.ndarray:
-    return np.asarray(values, dtype=np.float32)
 
 
 def seed_buffer(
@@ -351,27 +374,34 @@ def seed_buffer(
     task_index: int = 0,
     endpoint: str | None = None,
 ) -> int:
-    """Preload `task_id`'s episodes of a LeRobot dataset; returns how many were added.
+    """Preload `task_id`'s episodes of a LeRobot dataset into `buffer` (through
+    `buffer.add_episode(obs=(T+1, ...), action=(T, 4), reward=(T,), terminated=(T,), task=)`);
+    returns how many were added.
 
-    In state mode, episodes that ended in success get their unrecorded final observation back
-    by replaying them (`ccfit.data.final_observation`), so the terminal transition is kept; in
-    pixel mode (and for other episodes) the last transition is dropped.
+    Every transition is kept, the successes that ended episodes included: format-2 datasets
+    record each episode's final observation; for format-1 datasets it is replayed for successful
+    episodes in state mode (`final_observation`), and dropped otherwise.
     """
     episodes = load_episodes(source, task=task_id, images=obs_mode == "pixels", endpoint=endpoint)
     added = 0
     for ep in episodes:
         final = None
-        if obs_mode == "state" and bool(np.asarray(ep[SUCCESS_KEY]).reshape(-1)[-1]):
-            final = final_observation(ep, task_id)
-        if final is None and len(ep["action"]) < 2:
-            continue  # one frame: no transition once the unobserved last one is dropped
+        if not has_final_observation(ep):
+            if obs_mode == "state" and bool(np.asarray(ep[SUCCESS_KEY]).reshape(-1)[-1]):
+                final = final_observation(ep, task_id)
+            if final is None and len(ep[ACTION_KEY]) < 2:
+                continue  # one frame: no transition once the unobserved last one is dropped
         item = episode_to_replay(ep, obs_mode, final)
         if obs_mode == "pixels" and image_size is not None:
             side = item["obs"]["pixels"].shape[-1]
             if side != image_size:
-                raise ValueError(
+                raise InputError(
                     f"seed dataset images are {side} px but the run uses {image_size} px"
                 )
         buffer.add_episode(**item, task=task_index)
         added += 1
     return added
+
+
+def _stack(values) -> np.ndarray:
+    return np.asarray(values, dtype=np.float32)

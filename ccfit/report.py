@@ -1,11 +1,16 @@
 """`ccfit report`: tables and plots over continual runs, in the layout of the paper.
 
-Runs are grouped by (backbone, suite, method); seeds within a group are averaged *before* a
-metric (the paper's protocol), and the per-seed metrics give the min/max. Outputs:
-- `table_<backbone>.md` / `.csv`: suites x methods, BWT and FWT as mean [min, max]
-  (the paper's Appendix B layout);
+Runs are grouped by their whole resolved config (config.json, flattened to dotted keys) except
+what legitimately differs between the seeds of one experiment: the seed itself, seeds derived
+from it and output paths (`PER_SEED`). Only runs of one group are averaged; seeds within a group
+are averaged *before* a metric (the paper's protocol), and the per-seed metrics give the
+min/max. A group is named by (backbone, suite, method) and, when groups of one table differ in
+anything else (observation mode, preset, router, method options, step budget, ...), by a
+variant label naming those settings ("obs=pixels, preset=cpu"). Outputs:
+- `table_<backbone>.md` / `.csv`: (suite, variant) x methods, BWT and FWT as mean [min, max]
+  (the paper's Appendix B layout), with the settings the variants differ in;
 - `bars_<backbone>.png`: BWT and FWT bars per suite and method with min-max whiskers (Fig. 4);
-- `curves_<backbone>_<suite>_<method>.png`: every task's normalised return over the
+- `curves_<backbone>_<suite>_<method>[_<variant>].png`: every task's normalised return over the
   curriculum, the forgetting (BWT) region shaded after each task's end and the forward
   transfer (FWT) region between the composition curve and its from-scratch reference.
 - `routing_<suite>_<method>_s<seed>.png`: the paper's Fig. 5 for every PWM run with a
@@ -15,10 +20,12 @@ metric (the paper's protocol), and the per-seed metrics give the min/max. Output
 from __future__ import annotations
 
 import csv
+import fnmatch
 import json
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -26,9 +33,58 @@ from ccfit import metrics as M
 from ccfit.analysis import report_routing
 from ccfit.curriculum import METRICS_JSON
 from ccfit.metrics import metrics_from_curves, task_curves
+from ccfit.report_plots import (
+    METHOD_ORDER,
+    method_columns,
+    plot_bars,
+    plot_curves,
+    row_label,
+    slug,
+)
 from ccfit.train import CONFIG, METRICS
 
-METHOD_ORDER = ("ft", "er", "ewc", "packnet", "experts")
+__all__ = ["METHOD_ORDER", "PER_SEED", "Run", "find_runs", "flatten", "group_metrics",
+           "group_runs", "load_groups", "plot_bars", "plot_curves", "table_frame",
+           "write_report", "write_tables"]
+
+PER_SEED = ("seed", "*.seed", "*_seed", "*.*_seed", "out", "*.out", "*_dir", "*.*_dir",
+            "*_path", "*.*_path")
+"""Flattened config keys (fnmatch patterns) that differ between the seeds of one experiment
+and so do not split groups: the seed, seeds derived from it, where outputs went."""
+AXES = ("suite", "model", "method", "encoder")
+"""Settings that are the table's own axes (backbone, suite, method), never variant labels."""
+
+
+def flatten(config: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested dicts -> {'a.b.c': value}; lists and other unhashable leaves as JSON text. An
+    empty dict adds no key (no options = options absent)."""
+    if isinstance(config, dict):
+        out: dict[str, Any] = {}
+        for k, v in config.items():
+            out.update(flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    try:
+        hash(config)
+    except TypeError:
+        return {prefix: json.dumps(config, sort_keys=True, default=str)}
+    return {prefix: config}
+
+
+def _is_per_seed(key: str) -> bool:
+    return any(fnmatch.fnmatchcase(key, p) for p in PER_SEED)
+
+
+def _axis_name(config: dict, name: str) -> Any:
+    """`config[name]`, or its 'type' / 'name' when the setting is a nested config."""
+    value = config.get(name)
+    if isinstance(value, dict):
+        return value.get("type", value.get("name"))
+    return value
+
+
+def _is_axis(key: str) -> bool:
+    head, _, rest = key.partition(".")
+    return head in AXES and rest in ("", "type", "name")
 
 
 @dataclass
@@ -41,11 +97,24 @@ class Run:
 
     @property
     def backbone(self) -> str:
-        return self.config["model"]["type"] + ("+frozen-enc" if self.config.get("encoder") else "")
+        return _axis_name(self.config, "model") + (
+            "+frozen-enc" if _axis_name(self.config, "encoder") else "")
 
     @property
     def key(self) -> tuple[str, str, str]:
-        return self.backbone, self.config["suite"], self.config["method"]["type"]
+        return self.backbone, _axis_name(self.config, "suite"), _axis_name(self.config, "method")
+
+    @property
+    def seed(self) -> int:
+        flat = flatten(self.config)
+        keys = sorted((k for k in flat if k == "seed" or k.endswith(".seed")),
+                      key=lambda k: (k.count("."), k))
+        return int(flat[keys[0]]) if keys else 0
+
+    @property
+    def identity(self) -> dict[str, Any]:
+        """The flattened config without what may differ between seeds (`PER_SEED`)."""
+        return {k: v for k, v in flatten(self.config).items() if not _is_per_seed(k)}
 
 
 def find_runs(paths: list[Path]) -> list[Run]:
@@ -80,7 +149,14 @@ def _scratch_dir(run_dir: Path, metrics: dict) -> Path:
 
 
 def group_metrics(runs: list[Run]) -> dict:
-    """Metrics of seed-averaged curves, plus min/max of the per-seed metrics."""
+    """Metrics of seed-averaged curves, plus min/max of the per-seed metrics. Refuses runs that
+    differ in anything but `PER_SEED` settings."""
+    identities = [r.identity for r in runs]
+    if any(i != identities[0] for i in identities[1:]):
+        differ = sorted(k for k in set().union(*identities)
+                        if len({repr(i.get(k)) for i in identities}) > 1)
+        raise ValueError(f"refusing to average runs whose configs differ in {differ}: "
+                         + ", ".join(str(r.path) for r in runs))
     num_tasks = len(runs[0].metrics["task_ends"])
     budget = runs[0].metrics["budget"]
     ends = runs[0].metrics["task_ends"]
@@ -88,14 +164,71 @@ def group_metrics(runs: list[Run]) -> dict:
     curves = [M.average_curves([c[t] for c in per_seed]) for t in range(num_tasks)]
     scratch = M.average_curves([task_curves(r.scratch, num_tasks)[-1] for r in runs])
     mean = metrics_from_curves(curves, ends, scratch, budget)
-    out = {"seeds": sorted(r.config["seed"] for r in runs), "curves": curves, "scratch": scratch,
-           "ends": ends, "budget": budget}  # fmt: skip
+    out = {"seeds": sorted(r.seed for r in runs), "curves": curves, "scratch": scratch,
+           "ends": ends, "budget": budget, "runs": [str(r.path) for r in runs]}  # fmt: skip
     for name in ("bwt", "fwt"):
         values = [r.metrics[name] for r in runs if r.metrics[name] is not None]
         out[name] = mean[name]
         out[f"{name}_min"] = min(values) if values else None
         out[f"{name}_max"] = max(values) if values else None
     return out
+
+
+_MISSING = "—"
+
+
+def _distinguishing_keys(identities: list[dict[str, Any]]) -> list[str]:
+    """Few settings whose values tell `identities` apart: shallow keys first (`obs` before
+    `train.obs`), each kept only if it separates groups the earlier ones did not."""
+    keys = sorted({k for i in identities for k in i if not _is_axis(k)},
+                  key=lambda k: (k.count("."), k))
+
+    def classes(ks: list[str]) -> int:
+        return len({tuple(repr(i.get(k, _MISSING)) for k in ks) for i in identities})
+
+    chosen: list[str] = []
+    for k in keys:
+        if classes(chosen) == len(identities):
+            break
+        if classes([*chosen, k]) > classes(chosen):
+            chosen.append(k)
+    return chosen
+
+
+def _variant(identity: dict[str, Any], keys: list[str]) -> str:
+    return ", ".join(f"{k}={identity[k]}" for k in keys if k in identity)
+
+
+def group_runs(runs: list[Run]) -> dict[tuple[str, str, str, str], list[Run]]:
+    """Runs by (backbone, suite, method, variant): one group per distinct config (seeds and
+    paths aside). The variant names the settings that tell apart groups sharing a backbone,
+    suite and method ('' when nothing does); the same settings label every group of the
+    backbone, so rows line up across methods."""
+    by_identity: dict[tuple, list[Run]] = defaultdict(list)
+    for r in runs:
+        by_identity[tuple(sorted((k, repr(v)) for k, v in r.identity.items()))].append(r)
+    groups = list(by_identity.values())
+    cells: dict[tuple[str, str, str], list[dict]] = defaultdict(list)
+    for g in groups:
+        cells[g[0].key].append(g[0].identity)
+    keys_of: dict[str, list[str]] = defaultdict(list)
+    for (backbone, _, _), identities in cells.items():
+        for k in _distinguishing_keys(identities) if len(identities) > 1 else []:
+            if k not in keys_of[backbone]:
+                keys_of[backbone].append(k)
+    out = {}
+    for g in groups:
+        backbone, suite, method = g[0].key
+        keys = sorted(keys_of[backbone], key=lambda k: (k.count("."), k))
+        out[(backbone, suite, method, _variant(g[0].identity, keys))] = g
+    return dict(sorted(out.items()))
+
+
+def differing_settings(groups: dict, backbone: str) -> list[str]:
+    """The settings the variants of `backbone`'s groups are named by."""
+    names = [part.split("=", 1)[0] for k in groups if k[0] == backbone and k[3]
+             for part in k[3].split(", ")]
+    return list(dict.fromkeys(names))
 
 
 def _cell(g: dict, name: str) -> str:
@@ -106,168 +239,103 @@ def _cell(g: dict, name: str) -> str:
     return f"{g[name]:.2f} [{g[f'{name}_min']:.2f}, {g[f'{name}_max']:.2f}]"
 
 
+def _rows(groups: dict, backbone: str) -> list[tuple[str, str]]:
+    return sorted({(k[1], k[3]) for k in groups if k[0] == backbone})
+
+
 def write_tables(groups: dict, out: Path) -> list[Path]:
     written = []
     for backbone in sorted({k[0] for k in groups}):
-        suites = sorted({k[1] for k in groups if k[0] == backbone})
-        methods = [m for m in METHOD_ORDER if any(k[0] == backbone and k[2] == m for k in groups)]
+        methods = method_columns(groups, backbone)
         header = ["suite"] + [f"{m} {x}" for m in methods for x in ("BWT", "FWT")]
         rows = []
-        for suite in suites:
-            row = [suite]
+        for suite, variant in _rows(groups, backbone):
+            row = [row_label(suite, variant)]
             for m in methods:
-                g = groups.get((backbone, suite, m))
+                g = groups.get((backbone, suite, m, variant))
                 row += [_cell(g, "bwt"), _cell(g, "fwt")] if g else ["", ""]
             rows.append(row)
-        md = out / f"table_{backbone}.md"
         lines = [f"# {backbone}: BWT (lower is better) and FWT (higher is better)", "",
-                 "Mean over seeds of the seed-averaged curves' metric, [min, max] per seed.", "",
-                 "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]  # fmt: skip
+                 "Mean over seeds of the seed-averaged curves' metric, [min, max] per seed."]
+        differ = differing_settings(groups, backbone)
+        if differ:
+            lines += ["", f"Runs differ in {', '.join(f'`{d}`' for d in differ)}: each row "
+                      "names its values, and only runs of one row and method are averaged."]
+        lines += ["", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         lines += ["| " + " | ".join(r) + " |" for r in rows]
+        md = out / f"table_{backbone}.md"
         md.write_text("\n".join(lines) + "\n")
         path = out / f"table_{backbone}.csv"
         with path.open("w", newline="") as f:
             writer = csv.writer(f)
-            writer.writerow(["backbone", "suite", "method", "seeds", "bwt", "bwt_min", "bwt_max",
-                             "fwt", "fwt_min", "fwt_max"])  # fmt: skip
-            for (b, suite, m), g in sorted(groups.items()):
+            writer.writerow(["backbone", "suite", "method", "variant", "seeds", "bwt", "bwt_min",
+                             "bwt_max", "fwt", "fwt_min", "fwt_max"])  # fmt: skip
+            for (b, suite, m, variant), g in sorted(groups.items()):
                 if b == backbone:
-                    writer.writerow([b, suite, m, len(g["seeds"])] + [
+                    writer.writerow([b, suite, m, variant, len(g["seeds"])] + [
                         g[k] for k in ("bwt", "bwt_min", "bwt_max", "fwt", "fwt_min", "fwt_max")
                     ])  # fmt: skip
         written += [md, path]
     return written
 
 
-def plot_bars(groups: dict, out: Path) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    written = []
-    for backbone in sorted({k[0] for k in groups}):
-        suites = sorted({k[1] for k in groups if k[0] == backbone})
-        methods = [m for m in METHOD_ORDER if any(k[0] == backbone and k[2] == m for k in groups)]
-        fig, axes = plt.subplots(1, 2, figsize=(4 + 1.6 * len(suites), 3.6))
-        width = 0.8 / max(len(methods), 1)
-        for ax, name, better in zip(axes, ("bwt", "fwt"), ("lower", "higher"), strict=True):
-            for k, m in enumerate(methods):
-                xs, ys, lo, hi = [], [], [], []
-                for s, suite in enumerate(suites):
-                    g = groups.get((backbone, suite, m))
-                    if g is None or g[name] is None:
-                        continue
-                    xs.append(s + (k - (len(methods) - 1) / 2) * width)
-                    ys.append(g[name])
-                    low, high = g[f"{name}_min"], g[f"{name}_max"]
-                    lo.append(g[name] - (g[name] if low is None else low))
-                    hi.append((g[name] if high is None else high) - g[name])
-                ax.bar(xs, ys, width, label=m, yerr=[np.maximum(lo, 0), np.maximum(hi, 0)],
-                       capsize=2)  # fmt: skip
-            ax.set_xticks(range(len(suites)), suites, rotation=20)
-            ax.set_title(f"{name.upper()} ({better} is better)")
-            ax.axhline(0, color="k", lw=0.5)
-        axes[1].legend(fontsize=8)
-        fig.suptitle(backbone)
-        fig.tight_layout()
-        path = out / f"bars_{backbone}.png"
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
-        written.append(path)
-    return written
-
-
-def plot_curves(key: tuple[str, str, str], g: dict, task_ids: list[str], out: Path) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(8, 3.8))
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    ends = g["ends"]
-    for i, (steps, scores) in enumerate(g["curves"]):
-        c = colours[i % len(colours)]
-        ax.plot(steps, scores, color=c, lw=1.5, label=task_ids[i])
-        if i < len(ends) - 1:
-            # Forgetting region: below the score the task had when its training ended.
-            after = steps >= ends[i]
-            c_i = M.value_at((steps, scores), ends[i])
-            ax.fill_between(steps[after], scores[after], c_i,
-                            where=scores[after] < c_i, color=c, alpha=0.2, lw=0)  # fmt: skip
-    # Forward transfer: composition curve vs from-scratch over the same budget.
-    s_steps, s_scores = g["scratch"]
-    start = ends[-1] - g["budget"]
-    ax.plot(s_steps + start, s_scores, "k--", lw=1.2, label=f"{task_ids[-1]} (scratch)")
-    seq_steps, seq_scores = g["curves"][-1]
-    grid = np.union1d(seq_steps[seq_steps >= start], s_steps + start)
-    seq = np.interp(grid, seq_steps, seq_scores)
-    scr = np.interp(grid - start, s_steps, s_scores)
-    ax.fill_between(grid, seq, scr, where=seq >= scr, color="tab:green", alpha=0.15, lw=0,
-                    label="FWT +")  # fmt: skip
-    ax.fill_between(grid, seq, scr, where=seq < scr, color="tab:red", alpha=0.15, lw=0,
-                    label="FWT -")  # fmt: skip
-    for e in ends[:-1]:
-        ax.axvline(e, color="grey", lw=0.6, ls=":")
-    backbone, suite, method = key
-    bwt, fwt = g["bwt"], g["fwt"]
-    ax.set_title(f"{suite} / {backbone} / {method}: BWT {bwt if bwt is None else round(bwt, 2)}, "
-                 f"FWT {fwt if fwt is None else round(fwt, 2)} (seeds {g['seeds']})")  # fmt: skip
-    ax.set_xlabel("global step")
-    ax.set_ylabel("normalised return")
-    ax.legend(fontsize=7, ncol=2, loc="best")
-    fig.tight_layout()
-    path = out / f"curves_{backbone}_{suite}_{method}.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
-
-
-def load_groups(paths: list[Path]) -> dict[tuple[str, str, str], dict]:
-    """Finished runs under `paths`, grouped by (backbone, suite, method) (`group_metrics`)."""
-    by_key: dict[tuple, list[Run]] = defaultdict(list)
-    for r in find_runs([Path(p) for p in paths]):
-        by_key[r.key].append(r)
-    return {k: group_metrics(v) for k, v in sorted(by_key.items())}
+def load_groups(paths: list[Path]) -> dict[tuple[str, str, str, str], dict]:
+    """Finished runs under `paths` grouped by (backbone, suite, method, variant)
+    (`group_runs`), each group's metrics (`group_metrics`)."""
+    groups = group_runs(find_runs([Path(p) for p in paths]))
+    return {k: group_metrics(v) for k, v in groups.items()}
 
 
 def table_frame(groups: dict, backbone: str):
-    """One backbone's table as a pandas DataFrame: suites x (method, BWT / FWT), the metric of
-    the seed-averaged curves (numbers; `table_<backbone>.md` adds the per-seed [min, max])."""
+    """One backbone's table as a pandas DataFrame: (suite [variant]) x (method, BWT / FWT), the
+    metric of the seed-averaged curves (numbers; `table_<backbone>.md` adds [min, max])."""
     import pandas as pd
 
-    keys = [k for k in groups if k[0] == backbone]
-    if not keys:
+    if not any(k[0] == backbone for k in groups):
         valid = ", ".join(sorted({k[0] for k in groups}))
         raise ValueError(f"no runs of backbone {backbone!r}; valid: {valid}")
-    suites = sorted({k[1] for k in keys})
-    methods = [m for m in METHOD_ORDER if any(k[2] == m for k in keys)]
+    rows = _rows(groups, backbone)
+    methods = method_columns(groups, backbone)
     columns = pd.MultiIndex.from_product([methods, ["BWT", "FWT"]], names=["method", "metric"])
-    frame = pd.DataFrame(index=pd.Index(suites, name="suite"), columns=columns, dtype=float)
-    for _, suite, method in keys:
-        g = groups[(backbone, suite, method)]
-        frame.loc[suite, (method, "BWT")] = np.nan if g["bwt"] is None else g["bwt"]
-        frame.loc[suite, (method, "FWT")] = np.nan if g["fwt"] is None else g["fwt"]
+    index = pd.Index([row_label(s, v) for s, v in rows], name="suite")
+    frame = pd.DataFrame(index=index, columns=columns, dtype=float)
+    for (b, suite, method, variant), g in groups.items():
+        if b != backbone:
+            continue
+        label = row_label(suite, variant)
+        frame.loc[label, (method, "BWT")] = np.nan if g["bwt"] is None else g["bwt"]
+        frame.loc[label, (method, "FWT")] = np.nan if g["fwt"] is None else g["fwt"]
     return frame
 
 
+def _summary_name(key: tuple[str, str, str, str]) -> str:
+    return "/".join(key[:3]) + (f" [{key[3]}]" if key[3] else "")
+
+
 def write_report(paths: list[Path], out: Path) -> list[Path]:
-    """Tables and plots for every (backbone, suite, method) group of finished runs."""
-    groups = load_groups(paths)
+    """Tables and plots for every (backbone, suite, method, variant) group of finished runs."""
+    run_groups = group_runs(find_runs([Path(p) for p in paths]))
+    groups = {k: group_metrics(v) for k, v in run_groups.items()}
     out.mkdir(parents=True, exist_ok=True)
     written = write_tables(groups, out) + plot_bars(groups, out)
+    summary = {}
     for k, g in groups.items():
         written.append(plot_curves(k, g, _task_ids(k[1]), out))
-    summary = {
-        "/".join(k): {n: g[n] for n in ("seeds", "bwt", "bwt_min", "bwt_max", "fwt", "fwt_min",
-                                         "fwt_max")}  # fmt: skip
-        for k, g in groups.items()
-    }
-    pngs, routing = report_routing(find_runs([Path(p) for p in paths]), out)  # Fig. 5, PWM runs
-    for key, per_seed in routing.items():
-        summary["/".join(key)]["routing"] = per_seed
-    written += pngs
+        summary[_summary_name(k)] = {
+            "variant": k[3],
+            **{n: g[n] for n in ("seeds", "bwt", "bwt_min", "bwt_max", "fwt", "fwt_min",
+                                 "fwt_max", "runs")},
+        }  # fmt: skip
+        # Fig. 5 of the group's PWM runs; a variant's figures in a folder of their own, since
+        # their file names only say suite, method and seed.
+        where = out / f"routing_{slug(k[3])}" if k[3] else out
+        where.mkdir(exist_ok=True)
+        pngs, routing = report_routing(run_groups[k], where)
+        for per_seed in routing.values():
+            summary[_summary_name(k)]["routing"] = per_seed
+        written += pngs
+        if where != out and not any(where.iterdir()):
+            where.rmdir()
     path = out / "summary.json"
     path.write_text(json.dumps(summary, indent=2) + "\n")
     return written + [path]

@@ -7,9 +7,11 @@ import subprocess
 import sys
 
 import av
-import imageio.v3 as iio
+import cv2
+import numpy as np
 import pytest
 
+import ccdata
 from ccdata.cli import main
 
 
@@ -50,8 +52,12 @@ def test_render_writes_three_views_and_an_episode(tmp_path, capsys):
          "--image-size", "48"]
     )
     assert code == 0
-    image = iio.imread(png)
+    image = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)[..., ::-1]  # BGR -> RGB
     assert image.shape == (48, 144, 3)
+    env = ccdata.make_env("reach-xy", seed=0, image_size=48)
+    env.reset()
+    np.testing.assert_array_equal(image, env.render())  # lossless, channels in RGB order
+    env.close()
     with av.open(str(mp4)) as container:
         frames = sum(1 for _ in container.decode(video=0))
     assert 2 <= frames <= 251

@@ -249,14 +249,14 @@ def test_ewc_fisher_anchor_and_quadratic_growth():
             for k, p in bb.named_parameters():
                 p.copy_(anchor[k] + scale * direction[k])
         values.append(ewc.penalty(bb, bb.backbone_loss).item())
-    # lambda / 2 * sum F d^2 * scale^2: monotone, and x4 per doubling.
-    quad = 0.5 * 10.0 * sum((manual[k] * direction[k] ** 2).sum().item() for k in manual)
+    # lambda * sum F d^2 * scale^2 (the authors' form, no 1/2): monotone, and x4 per doubling.
+    quad = 10.0 * sum((manual[k] * direction[k] ** 2).sum().item() for k in manual)
     assert values == pytest.approx([quad * s**2 for s in (0.25, 0.5, 1.0, 2.0)], rel=1e-5)
     assert all(a < b for a, b in zip(values, values[1:], strict=False))
-    # Gradient of the penalty: lambda * F * (theta - theta*).
+    # Gradient of the penalty: 2 lambda * F * (theta - theta*).
     bb.zero_grad()
     ewc.penalty(bb, bb.backbone_loss).backward()
-    expected = 10.0 * manual["dynamics.weight"] * 2.0 * direction["dynamics.weight"]
+    expected = 2.0 * 10.0 * manual["dynamics.weight"] * 2.0 * direction["dynamics.weight"]
     torch.testing.assert_close(bb.dynamics.weight.grad, expected)
 
 

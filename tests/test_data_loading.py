@@ -84,6 +84,8 @@ def tiny_dataset(tmp_path_factory):
                 "task_id_index": np.array([task_i]),
                 "policy_index": np.array([pol_i]),
                 "episode_seed": np.array([seed]),
+                # no final-observation frame: the layout of format-1 datasets
+                "is_final_observation": np.array([False]),
                 "task": meta["tasks"][task_i]["instruction"],
             })  # fmt: skip
             obs = nxt

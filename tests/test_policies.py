@@ -57,3 +57,71 @@ def test_bad_policy_name_and_parameters():
     with pytest.raises(ValueError, match="random_prob"):
         ccdata.make_policy("noisy-oracle", "reach-xy", random_prob=1.5)
     assert isinstance(ccdata.make_policy("random", "reach-xy"), RandomPolicy)
+
+
+# ---------------------------------------------------------------- calibrated noisy oracle
+
+
+def dataset_noisy_rates(task_id: str, episodes: int = 20) -> float:
+    """Success rate of the noisy-oracle episodes a default dataset holds for `task_id` (its
+    first `episodes`, seed 0), rolled out state-only with the dataset's own seeds."""
+    from ccdata.calibration import noisy_oracle_rollouts
+    from ccdata.record import EpisodeSpec, episode_seed, policy_seed
+
+    seeds = [episode_seed(0, task_id, "noisy-oracle", i) for i in range(episodes)]
+    assert EpisodeSpec(task_id, 0, "noisy-oracle", 0, seeds[0]).seed == seeds[0]
+    noise = ccdata.get_task(task_id).exploration
+    out = noisy_oracle_rollouts(task_id, noise, [(s, policy_seed(s)) for s in seeds])
+    return float(np.mean(out["successes"]))
+
+
+def check_band(task_ids) -> None:
+    from ccdata.calibration import TARGET_BAND
+
+    rates = {t: dataset_noisy_rates(t) for t in task_ids}
+    low, high = TARGET_BAND
+    outside = {t: r for t, r in rates.items() if not low <= r <= high}
+    assert not outside, f"noisy-oracle success outside {TARGET_BAND} on 20 episodes: {outside}"
+
+
+@pytest.mark.parametrize("task_id", ["reach-xy", "box-close"])
+def test_noisy_oracle_succeeds_about_half_the_time_on_an_easy_and_a_precise_task(task_id):
+    check_band([task_id])
+
+
+@pytest.mark.slow
+def test_noisy_oracle_succeeds_about_half_the_time_on_every_task():
+    check_band(list(ccdata.TASKS))
+
+
+def test_noisy_oracle_defaults_to_the_tasks_calibration():
+    for task_id in ("reach-xy", "drawer-pnp"):
+        calibrated = ccdata.get_task(task_id).exploration
+        policy = ccdata.make_policy("noisy-oracle", task_id, seed=0)
+        assert policy.params() == calibrated.to_dict()
+    assert ccdata.make_policy("noisy-oracle", "reach-xy", noise_std=0.05).params()[
+        "random_prob"] == ccdata.get_task("reach-xy").exploration.random_prob
+
+
+def test_calibration_search_reaches_the_target_and_is_reproducible():
+    from ccdata.calibration import at_level, calibrate, calibration_seeds, success_rate
+
+    noise, rate, history = calibrate("reach-xz", target=0.5, episodes=10, tolerance=0.15)
+    assert abs(rate - 0.5) <= 0.15
+    assert history[0]["level"] == 1.0 and history[-1]["success_rate"] == rate
+    assert (noise.noise_std, noise.random_prob) == (history[-1]["noise_std"],
+                                                     history[-1]["random_prob"])
+    # More noise, fewer successes; the same seeds give the same rate.
+    seeds = calibration_seeds(10)
+    assert success_rate("reach-xz", noise, seeds) == rate
+    assert success_rate("reach-xz", at_level(16.0), seeds) < rate
+    assert at_level(16.0).random_prob == 1.0
+
+
+def test_a_task_must_declare_its_exploration_noise():
+    from ccdata.tasks import TaskSpec
+
+    reach = ccdata.get_task("reach-xy")
+    with pytest.raises(ValueError, match="declare its calibrated exploration"):
+        TaskSpec(id="x", title="x", instruction="x", success="x", scene=reach.scene,
+                 oracle=reach.oracle, components={"action": ("reach",)})

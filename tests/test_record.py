@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -99,11 +100,19 @@ def test_dataset_features_metadata_and_loading(tiny):
     meta = json.loads((root / "meta/ccdata.json").read_text())
     assert [t["id"] for t in meta["tasks"]] == list(ccdata.get_suite("Reach").task_ids)
     assert meta["video"]["crf"] == 0 and meta["versions"]["lerobot"].startswith("0.6")
-    assert meta["policy_params"]["noisy-oracle"] == {"noise_std": 0.3, "random_prob": 0.1}
+    # The noisy oracle's noise is each task's calibration, recorded per task.
+    noisy = meta["policy_params"]["noisy-oracle"]
+    assert noisy["calibrated"] and set(noisy["per_task"]) == set(ccdata.get_suite("Reach").task_ids)
+    for task_id, noise in noisy["per_task"].items():
+        assert noise == ccdata.get_task(task_id).exploration.to_dict()
+    assert meta["identity"]["exploration"] == noisy["per_task"]
 
     assert summary["episodes"] == 12 == info["total_episodes"]
     rows = {(r["task"], r["policy"]): r for r in summary["per_task_policy"]}
-    assert len(rows) == 12 and rows[("reach-xy", "random")]["frames"] == 12
+    # A random episode is cut after 12 steps: 12 transitions + the final observation.
+    assert len(rows) == 12 and rows[("reach-xy", "random")]["steps"] == 12
+    assert rows[("reach-xy", "random")]["frames"] == 13
+    assert summary["frames"] == summary["steps"] + 12
     assert all(r["new_episodes"] == 1 and r["frames_per_s"] > 0 for r in rows.values())
 
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -151,11 +160,16 @@ def test_fidelity_and_replay_reproduce_live_steps(tiny):
             for cam in ccdata.CAMERAS:
                 img = item[f"observation.images.{cam}"].permute(1, 2, 0).numpy()
                 worst[cam] = min(worst[cam], psnr((img * 255).round(), obs[cam]))
+            if cols["is_final_observation"][row]:
+                break  # the observation after the last action: no action of its own
             obs, reward, term, trunc, info = env.step(cols["action"][row])
             assert reward == pytest.approx(float(cols["next.reward"][row]), abs=1e-6)
             assert info["success"] == bool(cols["next.success"][row])
         env.close()
-        assert cols["next.done"][rows[-1]] and not cols["next.done"][rows[:-1]].any()
+        final = cols["is_final_observation"][rows].reshape(-1)
+        assert final[-1] and not final[:-1].any()  # the last frame, and only it
+        assert not cols["action"][rows[-1]].any() and cols["next.reward"][rows[-1]] == 0
+        assert cols["next.done"][rows[-2:]].all() and not cols["next.done"][rows[:-2]].any()
     assert min(worst.values()) >= 40.0, worst
 
 
@@ -191,10 +205,12 @@ def test_keyboard_interrupt_leaves_valid_dataset_and_resume_completes(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         generate(cfg, on_episode=stop_after_two, progress=False)
     assert verify_dataset(cfg.dataset_root) == []
-    assert existing_keys(cfg.dataset_root) == [s.key for s in plan(cfg)[:2]]
+    # The two reported episodes, and any the writer was finishing meanwhile, in plan order.
+    kept = existing_keys(cfg.dataset_root)
+    assert 2 <= len(kept) < 4 and kept == [s.key for s in plan(cfg)[:len(kept)]]
 
     _, summary = generate(cfg, progress=False)
-    assert summary["new_episodes"] == 2
+    assert summary["new_episodes"] == 4 - len(kept)
     keys = existing_keys(cfg.dataset_root)
     assert keys == [s.key for s in plan(cfg)] and len(set(keys)) == 4
     assert verify_dataset(cfg.dataset_root) == []
@@ -270,7 +286,7 @@ def test_verify_reports_corruption(tiny, tmp_path):
     table = pq.read_table(data)
     pq.write_table(table.slice(0, table.num_rows - 1), data)
     findings = verify_dataset(truncated)
-    assert any("last frame is not done" in f for f in findings)
+    assert any("must be its final observation" in f for f in findings)
     assert any("frames in data" in f for f in findings)
 
 
@@ -319,7 +335,52 @@ def test_batched_generation_is_byte_identical_across_workers(tmp_path, monkeypat
     # Same numbers to the last bit (LeRobot writes the stats' keys in no fixed order).
     stats = [json.loads((r / "meta/stats.json").read_text()) for r in roots]
     assert stats[0] == stats[1]
-    for path in sorted((roots[0] / "data").rglob("*.parquet")):
+    files = sorted(p for sub in ("data", "videos", "meta/episodes")
+                   for p in (roots[0] / sub).rglob("*") if p.is_file())
+    assert files
+    for path in files:
         rel = path.relative_to(roots[0])
         assert path.read_bytes() == (roots[1] / rel).read_bytes(), rel
     assert existing_keys(roots[0]) == [s.key for s in plan(cfg)]
+
+
+def test_faster_lerobot_writes_and_merges_the_same_bytes(tmp_path):
+    """`ccdata.lerobot_speedups` changes LeRobot's speed, not its output: pieces written and
+    merged with and without it are the same files, byte for byte."""
+    from lerobot.datasets.aggregate import aggregate_datasets
+
+    from ccdata.env import make_env
+    from ccdata.lerobot_speedups import faster_lerobot
+    from ccdata.writer import rollout_episode, write_piece
+
+    cfg = GenerateConfig(**{**TINY, "max_steps": 6})
+    specs = plan(cfg)[:2]
+    instruction = ccdata.get_task(specs[0].task_id).instruction
+    env = make_env(specs[0].task_id, render_settings=cfg.render_settings)
+    episodes = [rollout_episode(env, s, cfg) for s in specs]
+    env.close()
+    roots = {}
+    for name in ("lerobot", "faster"):
+        pieces = tmp_path / name / "pieces"
+        pieces.mkdir(parents=True)
+        with faster_lerobot() if name == "faster" else contextlib.nullcontext():
+            for spec, episode in zip(specs, episodes, strict=True):
+                write_piece(cfg, spec, episode, pieces, instruction)
+            roots[name] = tmp_path / name / "merged"
+            aggregate_datasets([cfg.repo_id] * 2, cfg.repo_id, aggr_root=roots[name],
+                               roots=[pieces / s.key for s in specs])
+    for sub in ("pieces", "merged"):
+        a_root, b_root = tmp_path / "lerobot" / sub, tmp_path / "faster" / sub
+        files = sorted(p.relative_to(a_root) for p in a_root.rglob("*") if p.is_file()
+                       and p.name != "piece.json")  # piece.json holds timings
+        assert files == sorted(p.relative_to(b_root) for p in b_root.rglob("*") if p.is_file()
+                               and p.name != "piece.json")
+        for rel in files:
+            a, b = (a_root / rel).read_bytes(), (b_root / rel).read_bytes()
+            if rel.name == "stats.json":  # LeRobot writes the stats' keys in no fixed order
+                assert json.loads(a) == json.loads(b), rel
+            else:
+                assert a == b, rel
+    info = json.loads((roots["faster"] / "meta/info.json").read_text())
+    assert info["total_episodes"] == 2
+    assert info["total_frames"] == sum(len(e["action"]) for e in episodes)

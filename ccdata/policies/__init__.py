@@ -27,7 +27,9 @@ class RandomPolicy:
 
 @dataclass
 class NoisyOracle:
-    """The oracle's action plus Gaussian noise; with probability `random_prob` a uniform one."""
+    """The oracle's action plus Gaussian noise; with probability `random_prob` a uniform one.
+
+    The oracle runs at every step, so its phase memory stays in step with the episode."""
 
     oracle: Oracle
     noise_std: float = 0.3
@@ -57,15 +59,24 @@ def make_policy(
     name: str,
     task_id: str,
     seed: int | None = None,
-    noise_std: float = 0.3,
-    random_prob: float = 0.1,
+    noise_std: float | None = None,
+    random_prob: float | None = None,
 ) -> Policy:
-    """'oracle', 'noisy-oracle' or 'random' for task `task_id`."""
+    """'oracle', 'noisy-oracle' or 'random' for task `task_id`.
+
+    The noisy oracle's `noise_std` and `random_prob` default to the task's calibrated values
+    (`TaskSpec.exploration`)."""
     task = get_task(task_id)
     if name == "oracle":
         return task.oracle()
     if name == "noisy-oracle":
-        return NoisyOracle(task.oracle(), noise_std=noise_std, random_prob=random_prob, seed=seed)
+        calibrated = task.exploration
+        return NoisyOracle(
+            task.oracle(),
+            noise_std=calibrated.noise_std if noise_std is None else noise_std,
+            random_prob=calibrated.random_prob if random_prob is None else random_prob,
+            seed=seed,
+        )
     if name == "random":
         return RandomPolicy(seed)
     raise ValueError(f"unknown policy {name!r}; valid policies: {', '.join(POLICIES)}")

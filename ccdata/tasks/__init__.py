@@ -3,7 +3,7 @@
 import importlib
 import pkgutil
 
-from ccdata.tasks.registry import TASKS, TaskSpec, get_task, register_task
+from ccdata.tasks.registry import TASKS, ExplorationNoise, TaskSpec, get_task, register_task
 
 _NOT_FAMILIES = {"base", "registry"}
 
@@ -12,4 +12,4 @@ for _module in sorted(m.name for m in pkgutil.iter_modules(__path__)):
     if _module not in _NOT_FAMILIES:
         importlib.import_module(f"{__name__}.{_module}")
 
-__all__ = ["TASKS", "TaskSpec", "get_task", "register_task"]
+__all__ = ["TASKS", "ExplorationNoise", "TaskSpec", "get_task", "register_task"]

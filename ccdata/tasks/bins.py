@@ -18,7 +18,16 @@ from metaworld.utils import reward_utils
 
 from ccdata.policies.base import Oracle, State, move, pose_action
 from ccdata.tasks.base import SceneEnv, add_cube
-from ccdata.tasks.registry import TaskSpec, register_task
+from ccdata.tasks.registry import ExplorationNoise, TaskSpec, register_task
+
+EXPLORATION: dict[str, ExplorationNoise] = {
+    "bin-red-blue": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "bin-yellow-blue": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "bin-red-purple": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "bin-yellow-purple": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+}
+"""Calibrated noisy-oracle noise per task (`ccdata calibrate`): about half of the noisy-oracle
+episodes succeed."""
 
 BIN_RGBA: dict[str, tuple[float, float, float, float]] = {
     "red": (0.85, 0.1, 0.1, 1.0),
@@ -220,6 +229,7 @@ for _source, _target in _TASKS:
             ),
             scene=lambda a=_source, b=_target: BinScene(a, b),
             oracle=BinOracle,
+            exploration=EXPLORATION[f"bin-{_source}-{_target}"],
             components={
                 "action": ("reach-object", "grasp", "lift", "transport", "release"),
                 "perception": (f"{_source}-bin", f"{_target}-bin"),

@@ -26,7 +26,15 @@ from ccdata.tasks.grasp import (
     sample_xy,
     transport_reward,
 )
-from ccdata.tasks.registry import TaskSpec, register_task
+from ccdata.tasks.registry import ExplorationNoise, TaskSpec, register_task
+
+EXPLORATION: dict[str, ExplorationNoise] = {
+    "pnp-red-block": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "pnp-blue-block": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "stack-blocks": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+}
+"""Calibrated noisy-oracle noise per task (`ccdata calibrate`): about half of the noisy-oracle
+episodes succeed."""
 
 BLOCK_RGBA = {"red": (0.85, 0.1, 0.1, 1.0), "blue": (0.1, 0.2, 0.9, 1.0)}
 """Block colours; neither is the cube's green nor the goal's magenta."""
@@ -192,6 +200,7 @@ for _colour in ("red", "blue"):
             success=f"{_colour} block centre within {PLACE_RADIUS} m of the marker",
             scene=lambda c=_colour: BlockScene((c,)),
             oracle=BlockOracle,
+            exploration=EXPLORATION[f"pnp-{_colour}-block"],
             components={"action": PNP_ACTIONS, "perception": (f"{_colour}-block",)},
         )
     )
@@ -210,6 +219,7 @@ register_task(
         ),
         scene=lambda: BlockScene(("red", "blue"), stack=True),
         oracle=StackOracle,
+        exploration=EXPLORATION["stack-blocks"],
         components={"action": (*PNP_ACTIONS, "stack"), "perception": ("red-block", "blue-block")},
     )
 )

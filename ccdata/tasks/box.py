@@ -21,7 +21,14 @@ from metaworld.utils import reward_utils
 from ccdata.policies.base import Oracle, State, move, pose_action
 from ccdata.tasks.base import CUBE_HALF_SIZE, SceneEnv, add_cube, add_marker
 from ccdata.tasks.drawer import carry_score
-from ccdata.tasks.registry import TaskSpec, register_task
+from ccdata.tasks.registry import ExplorationNoise, TaskSpec, register_task
+
+EXPLORATION: dict[str, ExplorationNoise] = {
+    "box-close": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "box-pnp-close": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+}
+"""Calibrated noisy-oracle noise per task (`ccdata calibrate`): about half of the noisy-oracle
+episodes succeed."""
 
 LID_TARGET_Z = 0.133
 """Meta-World's lid target height above the box's centre."""
@@ -282,6 +289,7 @@ register_task(
         success=f"lid within {CLOSE_TOL} m of Meta-World's target above the box",
         scene=lambda: BoxScene(with_cube=False),
         oracle=BoxCloseOracle,
+        exploration=EXPLORATION["box-close"],
         components={
             "action": ("reach-handle", "grasp", "lift", "transport", "lower-lid"),
             "perception": ("box",),
@@ -299,6 +307,7 @@ register_task(
         ),
         scene=lambda: BoxScene(with_cube=True),
         oracle=BoxPnPCloseOracle,
+        exploration=EXPLORATION["box-pnp-close"],
         components={
             "action": (
                 "reach-object",

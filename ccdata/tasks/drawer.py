@@ -22,7 +22,14 @@ from metaworld.utils import reward_utils
 from ccdata.policies.base import Oracle, State, move, pose_action
 from ccdata.tasks.base import CUBE_HALF_SIZE, SceneEnv, add_cube, add_marker
 from ccdata.tasks.grasp import transport_reward
-from ccdata.tasks.registry import TaskSpec, register_task
+from ccdata.tasks.registry import ExplorationNoise, TaskSpec, register_task
+
+EXPLORATION: dict[str, ExplorationNoise] = {
+    "drawer-open": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "drawer-pnp": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+}
+"""Calibrated noisy-oracle noise per task (`ccdata calibrate`): about half of the noisy-oracle
+episodes succeed."""
 
 DRAWER_Y = 0.9
 """Meta-World keeps the drawer body at y = 0.9 and randomises only x."""
@@ -294,6 +301,7 @@ register_task(
         success=f"handle within {OPEN_TOL} m of Meta-World's open target (drawer pulled out)",
         scene=lambda: DrawerScene(with_cube=False),
         oracle=DrawerOpenOracle,
+        exploration=EXPLORATION["drawer-open"],
         components={"action": ("reach-handle", "pull"), "perception": ("drawer",)},
     )
 )
@@ -308,6 +316,7 @@ register_task(
         ),
         scene=lambda: DrawerScene(with_cube=True),
         oracle=DrawerPnPOracle,
+        exploration=EXPLORATION["drawer-pnp"],
         components={
             "action": (
                 "reach-handle",

@@ -19,7 +19,15 @@ from metaworld.utils import reward_utils
 
 from ccdata.policies.base import Oracle, State, move, pose_action
 from ccdata.tasks.base import CUBE_HALF_SIZE, SceneEnv, add_cube, add_marker
-from ccdata.tasks.registry import TaskSpec, register_task
+from ccdata.tasks.registry import ExplorationNoise, TaskSpec, register_task
+
+EXPLORATION: dict[str, ExplorationNoise] = {
+    "pick-cube": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "place-cube": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "pnp-cube": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+}
+"""Calibrated noisy-oracle noise per task (`ccdata calibrate`): about half of the noisy-oracle
+episodes succeed."""
 
 REST_Z = CUBE_HALF_SIZE
 """Height of a cube's centre when it rests on the table."""
@@ -299,6 +307,7 @@ register_task(
         success=f"cube centre within {PICK_RADIUS} m of the marker floating above its start",
         scene=lambda: GraspScene("pick"),
         oracle=PickOracle,
+        exploration=EXPLORATION["pick-cube"],
         components={"action": ("reach-object", "grasp", "lift"), "perception": ("cube",)},
     )
 )
@@ -310,6 +319,7 @@ register_task(
         success=f"cube centre within {PLACE_RADIUS} m of the marker on the table",
         scene=lambda: GraspScene("place"),
         oracle=PlaceOracle,
+        exploration=EXPLORATION["place-cube"],
         components={"action": ("transport", "release"), "perception": ("cube",)},
     )
 )
@@ -321,6 +331,7 @@ register_task(
         success=PNP_CUBE_SUCCESS,
         scene=lambda: GraspScene("pnp"),
         oracle=PickOracle,
+        exploration=EXPLORATION["pnp-cube"],
         components={
             "action": ("reach-object", "grasp", "lift", "transport", "release"),
             "perception": ("cube",),

@@ -11,7 +11,16 @@ from metaworld.utils import reward_utils
 
 from ccdata.policies.base import Oracle, State, move, pose_action
 from ccdata.tasks.base import SceneEnv, add_marker
-from ccdata.tasks.registry import TaskSpec, register_task
+from ccdata.tasks.registry import ExplorationNoise, TaskSpec, register_task
+
+EXPLORATION: dict[str, ExplorationNoise] = {
+    "reach-xy": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "reach-xz": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "reach-yz": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "reach-xyz": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+}
+"""Calibrated noisy-oracle noise per task (`ccdata calibrate`): about half of the noisy-oracle
+episodes succeed."""
 
 GOAL_LOW = np.array([-0.2, 0.45, 0.08])
 GOAL_HIGH = np.array([0.2, 0.85, 0.35])
@@ -82,6 +91,7 @@ for _plane in ("xy", "xz", "yz", "xyz"):
             success=f"gripper centre within {SUCCESS_RADIUS} m of the marker",
             scene=lambda p=_plane: ReachScene(p),
             oracle=ReachOracle,
+            exploration=EXPLORATION[f"reach-{_plane}"],
             components={"action": tuple(f"move-{a}" for a in _axes), "perception": ("marker",)},
         )
     )

@@ -14,6 +14,29 @@ AXES = ("action", "perception")
 
 
 @dataclass(frozen=True)
+class ExplorationNoise:
+    """How the `noisy-oracle` policy perturbs a task's oracle.
+
+    Calibrated per task (`ccdata.calibration`) so that noisy-oracle episodes succeed about half
+    the time: exploration data then holds both successes and near misses on every task."""
+
+    noise_std: float
+    """Std of the Gaussian noise added to each of the oracle's four action components."""
+    random_prob: float
+    """Probability that a step takes a uniform random action instead."""
+
+    def __post_init__(self) -> None:
+        if not self.noise_std >= 0 or not 0.0 <= self.random_prob <= 1.0:
+            raise ValueError(
+                f"noise_std must be >= 0 and random_prob in [0, 1], got {self.noise_std}, "
+                f"{self.random_prob}"
+            )
+
+    def to_dict(self) -> dict[str, float]:
+        return {"noise_std": self.noise_std, "random_prob": self.random_prob}
+
+
+@dataclass(frozen=True)
 class TaskSpec:
     """One task: its scene, its scripted oracle, and what it is made of."""
 
@@ -31,8 +54,16 @@ class TaskSpec:
     """Builds the scripted privileged-state oracle."""
     components: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
     """Reusable components per axis: {'action': (...), 'perception': (...)}."""
+    exploration: ExplorationNoise | None = None
+    """The noisy oracle's calibrated noise for this task (required; `ccdata calibrate` finds
+    it)."""
 
     def __post_init__(self) -> None:
+        if not isinstance(self.exploration, ExplorationNoise):
+            raise ValueError(
+                f"task {self.id}: declare its calibrated exploration=ExplorationNoise(...) "
+                "(find it with `ccdata calibrate --task ...`)"
+            )
         unknown = set(self.components) - set(AXES)
         if unknown:
             raise ValueError(f"task {self.id}: unknown axes {sorted(unknown)}; use {AXES}")

@@ -5,7 +5,10 @@ backbone loss over `fisher_batches` (50) batches of that task, each gradient bei
 batch-mean loss's (the "empirical Fisher" at batch level, as in the authors' setting). The
 penalty is
 
-    lambda / 2 * sum_j F_j * (theta_j - theta*_j)^2
+    lambda * sum_j F_j * (theta_j - theta*_j)^2
+
+with no 1/2, as in the authors' code (their lambda * sum_t F_t (theta - theta*_t)^2), so that
+`lam` means what their lambda meant; Kirkpatrick et al.'s lambda / 2 form would halve it.
 
 Accumulation across tasks: a single anchor theta* = the parameters after the latest task,
 and F <- fisher_decay * F + F_task. With fisher_decay = 1 (default) the Fisher of all
@@ -54,7 +57,7 @@ class EWC(ContinualMethod):
         if not 0.0 <= fisher_decay <= 1.0:
             raise ValueError(f"fisher_decay must be in [0, 1], got {fisher_decay}")
         self.lam = lam
-        """Penalty strength lambda."""
+        """Penalty strength lambda: the penalty is lambda * sum F (theta - theta*)^2 (no 1/2)."""
         self.fisher_batches = fisher_batches
         """Batches of squared gradients averaged per task."""
         self.fisher_decay = fisher_decay
@@ -98,7 +101,7 @@ class EWC(ContinualMethod):
             if f.shape != p.shape:
                 raise ValueError(f"EWC: {name} changed shape {tuple(f.shape)} -> {tuple(p.shape)}")
             total = total + (f * (p - self.anchor[name]) ** 2).sum()
-        return 0.5 * self.lam * total
+        return self.lam * total
 
     def state_dict(self) -> dict[str, Any]:
         return {"fisher": dict(self.fisher), "anchor": dict(self.anchor)}

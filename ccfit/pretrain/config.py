@@ -46,8 +46,8 @@ class PretrainConfig:
     suites: tuple[str, ...] = tuple(SUITES)
     """Suites whose oracle episodes are used (default: all six)."""
     dataset_roots: dict[str, str] = field(default_factory=dict)
-    """Suite -> dataset directory; a suite not listed uses `GenerateConfig(suite).dataset_root`
-    (LeRobot's cache for `ccdata/<Suite>`)."""
+    """Suite -> dataset directory; a suite not listed uses
+    `ccdata.settings.suite_dataset_root(suite)` (LeRobot's cache for `ccdata/<Suite>`)."""
     image_size: int = 64
     """Camera image side; every dataset must have been generated at this size."""
     steps: int = 20_000
@@ -139,11 +139,11 @@ class PretrainConfig:
 
     def resolved_roots(self) -> dict[str, Path]:
         """Suite -> dataset directory for every suite of the run."""
-        from ccdata.record import GenerateConfig
+        from ccdata.settings import suite_dataset_root
 
         return {
             s: Path(self.dataset_roots[s]).expanduser().resolve()
-            if s in self.dataset_roots else GenerateConfig(suite=s).dataset_root
+            if s in self.dataset_roots else suite_dataset_root(s)
             for s in self.suites
         }  # fmt: skip
 

@@ -72,10 +72,10 @@ def missing_datasets(config: PretrainConfig) -> dict[str, Path]:
 
 
 def _generate_command(suite: str, root: Path) -> str:
-    from ccdata.record import GenerateConfig
+    from ccdata.settings import suite_dataset_root
 
     cmd = f"ccdata generate --suite {suite}"
-    if root != GenerateConfig(suite=suite).dataset_root:
+    if root != suite_dataset_root(suite):
         cmd += f" --root {root}"
     return cmd
 

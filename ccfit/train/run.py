@@ -55,9 +55,9 @@ def dataset_source(cfg: RunConfig, suite: str | None) -> str | None:
         return cfg.seed_dataset
     if suite is None:
         return None
-    from ccdata.record import GenerateConfig
+    from ccdata.settings import suite_dataset_root
 
-    root = GenerateConfig(suite=suite).dataset_root
+    root = suite_dataset_root(suite)
     return str(root) if (root / "meta" / "info.json").is_file() else None
 
 

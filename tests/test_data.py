@@ -1,0 +1,82 @@
+"""Seeding replay from a generated dataset (`ccfit.data`): every transition of every episode
+reaches the buffer, the successes that ended episodes included, in pixel and in state mode."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import ccdata
+from ccdata.record import GenerateConfig, generate
+from ccfit.data import FINAL_KEY, episode_to_replay, load_episodes, seed_buffer
+from ccfit.obs import stack_cameras
+from ccfit.replay import ReplayBuffer
+
+TASK = "reach-xy"
+
+
+@pytest.fixture(scope="module")
+def reach(tmp_path_factory) -> Path:
+    """Oracle and noisy-oracle reach episodes succeed within 40 steps; random ones are cut."""
+    root = tmp_path_factory.mktemp("seed") / "Reach"
+    root, _ = generate(GenerateConfig("Reach", episodes=3, explore_episodes=2, image_size=32,
+                                      max_steps=40, root=root), progress=False)
+    return root
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return 99.0 if mse == 0 else float(10 * np.log10(255.0**2 / mse))
+
+
+def all_transitions(buffer: ReplayBuffer):
+    return buffer.gather(torch.arange(buffer.num_starts(1)), 1)
+
+
+def test_seeded_pixel_replay_holds_one_terminal_success_per_successful_episode(reach):
+    episodes = load_episodes(reach, task=TASK)
+    successful = [ep for ep in episodes if ep["next.success"].any()]
+    assert len(successful) >= 3 and len(successful) < len(episodes)  # random ones fail
+    buffer = ReplayBuffer(10_000)
+    assert seed_buffer(buffer, reach, TASK, "pixels", image_size=32) == len(episodes)
+    # Every step of every episode is a transition (the final frame is an observation only).
+    steps = [int((~ep[FINAL_KEY].reshape(-1).astype(bool)).sum()) for ep in episodes]
+    assert buffer.num_transitions == sum(steps)
+    batch = all_transitions(buffer)
+    terminal = batch.terminated[0, :, 0] == 1
+    assert int(terminal.sum()) == len(successful)
+    # Each terminal transition leads to its episode's success state: the recorded final frame,
+    # which is what the env shows after replaying the episode's actions.
+    reached = batch.obs["pixels"][1, terminal].numpy()
+    for ep, pixels in zip(successful, reached, strict=True):
+        final = {c: ep[f"observation.images.{c}"][-1] for c in ccdata.CAMERAS}
+        np.testing.assert_array_equal(pixels, stack_cameras(final))
+        env = ccdata.make_env(TASK, image_size=32)
+        obs, _ = env.reset(seed=int(ep["episode_seed"].reshape(-1)[0]))
+        for action in ep["action"][:-1]:
+            obs, _, terminated, _, info = env.step(action)
+        env.close()
+        assert terminated and info["success"]
+        np.testing.assert_array_equal(obs["state"], ep["observation.environment_state"][-1])
+        assert psnr(pixels, stack_cameras({c: obs[c] for c in ccdata.CAMERAS})) >= 40.0
+
+
+def test_state_replay_keeps_every_transition_without_a_simulator(reach):
+    episodes = load_episodes(reach, task=TASK, images=False)
+    for ep in episodes:
+        item = episode_to_replay(ep, "state")
+        steps = len(ep["action"]) - 1
+        assert item["obs"]["state"].shape == (steps + 1, 39)
+        np.testing.assert_array_equal(item["obs"]["state"], ep["observation.environment_state"])
+        assert item["action"].shape == (steps, 4) and item["reward"].shape == (steps,)
+        success = bool(ep["next.success"].any())
+        assert item["terminated"].tolist() == [0.0] * (steps - 1) + [float(success)]
+        with pytest.raises(ValueError, match="records its final observation"):
+            episode_to_replay(ep, "state", final_obs={"state": item["obs"]["state"][-1]})
+    buffer = ReplayBuffer(10_000)
+    assert seed_buffer(buffer, reach, TASK, "state") == len(episodes)
+    batch = all_transitions(buffer)
+    assert int(batch.terminated.sum()) == sum(bool(ep["next.success"].any()) for ep in episodes)

@@ -1,0 +1,132 @@
+"""`ccfit report` groups runs by their whole config: runs that differ in anything but the seed
+(and seed-derived values, output paths) are never averaged, and the tables and plots name what
+differs. Run directories are written in the layout `ccfit run` leaves (config.json,
+metrics.jsonl, metrics.json, the from-scratch reference's done.json), with metrics computed by
+the same `ccfit.curriculum.compute_metrics` a run uses."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ccfit.curriculum import compute_metrics
+from ccfit.report import find_runs, flatten, group_metrics, group_runs, load_groups, write_report
+
+SUITE, TASKS, STEPS = "Reach", 4, 100
+
+
+def curve_records(task_scores: list[list[float]]) -> list[dict]:
+    """Evaluation records: task t's score list is sampled every 50 steps from its start."""
+    records = []
+    for t, scores in enumerate(task_scores):
+        for i, score in enumerate(scores):
+            records.append({"task_index": t, "global_step": t * STEPS + 50 * i,
+                            "normalized_return": score})
+    return records
+
+
+def write_run(root: Path, name: str, config: dict, scale: float) -> Path:
+    """A finished run whose task t scores rise to 80 * scale then fall by 10 * t afterwards."""
+    run = root / name
+    run.mkdir(parents=True)
+    scores = []
+    for t in range(TASKS):
+        points = (TASKS - t) * 2 + 1
+        scores.append([min(80.0, 40.0 * i) * scale - (10.0 * t if i > 2 else 0.0)
+                       for i in range(points)])
+    records = curve_records(scores)
+    scratch_dir = root / "scratch" / f"{name}-scratch"
+    scratch_dir.mkdir(parents=True)
+    scratch = [{"task_index": TASKS - 1, "global_step": 50 * i, "normalized_return": 30.0 * i}
+               for i in range(3)]
+    (scratch_dir / "done.json").write_text(json.dumps(scratch))
+    metrics = compute_metrics(records, scratch, TASKS, STEPS)
+    metrics["scratch_dir"] = str(scratch_dir)
+    (run / "config.json").write_text(json.dumps(config))
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    return run
+
+
+def config(obs: str = "state", seed: int = 0, **top) -> dict:
+    return {"suite": SUITE, "model": "tdmpc2", "method": "ft", "method_options": {},
+            "preset": "smoke", "obs": obs, "seed": seed, "encoder": None, **top,
+            "train": {"steps": STEPS, "seed": seed, "obs": obs, "buffer_capacity": 1000},
+            "model_config": {"latent_dim": 64, "obs_mode": obs}}
+
+
+def test_flatten_makes_dotted_hashable_keys():
+    flat = flatten({"a": 1, "b": {"c": [1, 2], "d": {"e": None}}, "f": {}})
+    assert flat == {"a": 1, "b.c": "[1, 2]", "b.d.e": None}
+
+
+def test_report_refuses_to_average_runs_differing_in_obs_mode(tmp_path):
+    root = tmp_path / "runs"
+    state0 = write_run(root, "state-s0", config("state", 0), 1.0)
+    state1 = write_run(root, "state-s1", config("state", 1), 0.5)
+    pixels = write_run(root, "pixels-s0", config("pixels", 0), 0.25)
+
+    runs = find_runs([root])
+    with pytest.raises(ValueError, match=r"refusing to average runs whose configs differ in "
+                                         r"\['model_config.obs_mode', 'obs', 'train.obs'\]"):
+        group_metrics(runs)
+    groups = group_runs(runs)
+    # Seeds of the same config average; the other observation mode is a group of its own,
+    # named by the one setting that tells them apart (not by its echoes in train/model_config).
+    assert {k: sorted(r.path.name for r in v) for k, v in groups.items()} == {
+        ("tdmpc2", SUITE, "ft", "obs=pixels"): ["pixels-s0"],
+        ("tdmpc2", SUITE, "ft", "obs=state"): ["state-s0", "state-s1"],
+    }
+    metrics = load_groups([root])
+    pix = metrics[("tdmpc2", SUITE, "ft", "obs=pixels")]
+    assert pix["seeds"] == [0] and pix["runs"] == [str(pixels)]
+    single = json.loads((pixels / "metrics.json").read_text())
+    assert pix["bwt"] == pytest.approx(single["bwt"]) and pix["fwt"] == pytest.approx(
+        single["fwt"])
+    st = metrics[("tdmpc2", SUITE, "ft", "obs=state")]
+    assert st["seeds"] == [0, 1] and sorted(st["runs"]) == sorted(map(str, (state0, state1)))
+    per_seed = [json.loads((r / "metrics.json").read_text())["bwt"] for r in (state0, state1)]
+    assert st["bwt_min"] == pytest.approx(min(per_seed))
+    assert st["bwt_max"] == pytest.approx(max(per_seed))
+    # The mean curve of the two state seeds (scales 1 and 0.5) is the scale-0.75 curve.
+    mean_run = write_run(tmp_path / "probe", "mean", config("state", 0), 0.75)
+    assert st["bwt"] == pytest.approx(json.loads((mean_run / "metrics.json").read_text())["bwt"])
+
+    out = tmp_path / "report"
+    written = {p.name for p in write_report([root], out)}
+    md = (out / "table_tdmpc2.md").read_text()
+    assert "Runs differ in `obs`" in md
+    rows = [line for line in md.splitlines() if line.startswith(f"| {SUITE}")]
+    assert [r.split("|")[1].strip() for r in rows] == [f"{SUITE} [obs=pixels]",
+                                                       f"{SUITE} [obs=state]"]
+    with (out / "table_tdmpc2.csv").open() as f:
+        table = {r["variant"]: r for r in csv.DictReader(f)}
+    assert set(table) == {"obs=pixels", "obs=state"}
+    assert table["obs=state"]["seeds"] == "2" and table["obs=pixels"]["seeds"] == "1"
+    assert float(table["obs=pixels"]["bwt"]) == pytest.approx(single["bwt"])
+    assert {"curves_tdmpc2_Reach_ft_obs=pixels.png", "curves_tdmpc2_Reach_ft_obs=state.png"
+            } <= written
+    summary = json.loads((out / "summary.json").read_text())
+    assert sorted(summary) == [f"tdmpc2/{SUITE}/ft [obs=pixels]", f"tdmpc2/{SUITE}/ft [obs=state]"]
+
+
+def test_step_budget_and_method_options_split_groups_but_output_paths_do_not(tmp_path):
+    root = tmp_path / "runs"
+    write_run(root, "a", config(out="/x/a", derived_seed=11), 1.0)
+    write_run(root, "b", config(out="/y/b", derived_seed=12, seed=1), 1.0)
+    longer = config()
+    longer["train"]["steps"] = 2 * STEPS
+    write_run(root, "c", longer, 1.0)
+    write_run(root, "d", config(method_options={"lam": 10}), 1.0)
+    groups = group_runs(find_runs([root]))
+    names = {k[3]: sorted(r.path.name for r in v) for k, v in groups.items()}
+    assert names == {
+        "train.steps=100": ["a", "b"],
+        "train.steps=200": ["c"],
+        "method_options.lam=10, train.steps=100": ["d"],
+    }
+    assert all(np.isfinite(g["bwt"]) for g in load_groups([root]).values())
