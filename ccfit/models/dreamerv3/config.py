@@ -91,6 +91,11 @@ class DreamerV3Config(ModelConfig):
     """Hidden layers of those MLPs."""
     cnn_depth: int = 32
     """Channels of the first conv layer; doubled at each stride-2 stage down to 4 x 4."""
+    vector_units: int | None = None
+    """Width of the vector (state / proprio) encoder and decoder MLPs; None: `units`
+    (dreamerv3-torch's default is 1024, with 5 layers)."""
+    vector_layers: int | None = None
+    """Hidden layers of the vector encoder and decoder MLPs; None: `layers`."""
 
     # World-model loss.
     unimix: float = 0.01
@@ -156,10 +161,11 @@ class DreamerV3Config(ModelConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         name = type(self).__name__
-        for f in ("deter", "hidden", "stoch", "units", "cnn_depth", "horizon"):
+        for f in ("deter", "hidden", "stoch", "units", "cnn_depth", "horizon", "vector_width"):
             check(getattr(self, f) >= 1, f"{name}.{f} must be >= 1, got {getattr(self, f)}")
         check(self.classes >= 2, f"{name}.classes must be >= 2, got {self.classes}")
-        check(self.layers >= 0, f"{name}.layers must be >= 0, got {self.layers}")
+        for f in ("layers", "vector_depth"):
+            check(getattr(self, f) >= 0, f"{name}.{f} must be >= 0, got {getattr(self, f)}")
         check(self.reward_bins >= 2, f"{name}.reward_bins must be >= 2, got {self.reward_bins}")
         check(self.bin_range > 0, f"{name}.bin_range must be > 0, got {self.bin_range}")
         check(
@@ -203,6 +209,16 @@ class DreamerV3Config(ModelConfig):
                 f"{name}: the CNN halves the image down to 4 x 4, so image_size must be a "
                 f"power of two (32, 64, 128), got {s}",
             )
+
+    @property
+    def vector_width(self) -> int:
+        """Width of the vector encoder and decoder MLPs (`vector_units` or `units`)."""
+        return self.units if self.vector_units is None else self.vector_units
+
+    @property
+    def vector_depth(self) -> int:
+        """Hidden layers of the vector encoder and decoder MLPs (`vector_layers` or `layers`)."""
+        return self.layers if self.vector_layers is None else self.vector_layers
 
     @property
     def feat_dim(self) -> int:
