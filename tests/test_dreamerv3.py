@@ -111,7 +111,7 @@ def test_presets_defaults_and_validation():
     paper = DreamerV3Config.preset("paper")
     assert (paper.deter, paper.hidden, paper.stoch, paper.classes) == (4096, 1024, 32, 32)
     assert (paper.units, paper.layers) == (1024, 5)
-    assert DreamerV3Config.preset("cpu").deter == 256
+    assert DreamerV3Config.preset("cpu").deter == 128
     assert DreamerV3Config.preset("smoke").type == "dreamerv3"
     for bad in (
         dict(kl_dyn=-1.0),

@@ -34,20 +34,21 @@ class DreamerV3Config(ModelConfig):
             seq_len=8,
             horizon=4,
             train_ratio=0.5,
+            pretrain_updates=2,
         ),
         # A Reach task in minutes on 2 cores (to be tuned by measurement): small RSSM,
-        # imagination from the last 16 rows of each window (256 starts instead of 1024).
+        # imagination from the last 8 rows of each window (128 starts instead of 1024).
         "cpu": dict(
-            deter=256,
+            deter=128,
             hidden=64,
-            stoch=16,
+            stoch=8,
             classes=8,
-            units=128,
+            units=64,
             layers=2,
             cnn_depth=16,
             batch_size=16,
-            seq_len=64,
-            imag_last=16,
+            seq_len=32,
+            imag_last=8,
             train_ratio=0.5,
         ),
         # The paper's scale (authors' README: ~300M parameters on a GPU); units/layers/depth
@@ -75,6 +76,8 @@ class DreamerV3Config(ModelConfig):
     """Updates per env step: 512 replayed steps per env step = 0.5 updates of 16 x 64."""
     grad_clip: float = 1000.0
     """Global-norm clip of the world-model update (recipe: 1000)."""
+    pretrain_updates: int = 100
+    """Updates at once after the seed steps of the run's first task (recipe: 100)."""
 
     # Sizes.
     deter: int = 512
