@@ -121,9 +121,31 @@ def test_presets_defaults_and_validation():
         dict(actor_min_std=2.0),
         dict(classes=1),
         dict(horizon=0.5),
+        dict(vector_units=0),
+        dict(vector_layers=-1),
     ):
         with pytest.raises(ConfigError):
             DreamerV3Config(**bad)
+
+
+@pytest.mark.parametrize(
+    "obs_mode, sizes, expected",
+    [
+        ("state", dict(deter=256, hidden=64, stoch=16, classes=8, units=128), 738_094),
+        ("state", dict(vector_units=1024, vector_layers=5), 18_735_662),
+        ("pixels", dict(vector_units=1024, vector_layers=5), 28_449_687),
+    ],
+)
+def test_parameter_counts_equal_dreamerv3_torch_at_its_sizes(obs_mode, sizes, expected):
+    """Trainable parameters (world model + actor + critic, no slow critic) equal those of
+    object814/dreamerv3-torch counted at the same sizes (its `cpu` size, its defaults with
+    39-D state, its defaults with 64 px 9-channel images + 7-D proprio): same layers."""
+    cfg = DreamerV3Config(obs_mode=obs_mode, image_size=64, **sizes)
+    with torch.device("meta"):
+        model = DreamerV3(cfg, device="meta")
+        heads = model.new_heads()
+    trainable = [*model.backbone.parameters(), *heads.parameters()]
+    assert sum(p.numel() for p in trainable if p.requires_grad) == expected
 
 
 # ------------------------------------------------------------------------------ math

@@ -164,11 +164,13 @@ class DreamerV3Config(ModelConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         name = type(self).__name__
-        for f in ("deter", "hidden", "stoch", "units", "cnn_depth", "horizon", "vector_width"):
+        for f in ("deter", "hidden", "stoch", "units", "cnn_depth", "horizon"):
             check(getattr(self, f) >= 1, f"{name}.{f} must be >= 1, got {getattr(self, f)}")
         check(self.classes >= 2, f"{name}.classes must be >= 2, got {self.classes}")
-        for f in ("layers", "vector_depth"):
-            check(getattr(self, f) >= 0, f"{name}.{f} must be >= 0, got {getattr(self, f)}")
+        check(self.layers >= 0, f"{name}.layers must be >= 0, got {self.layers}")
+        for f, low in (("vector_units", 1), ("vector_layers", 0)):
+            v = getattr(self, f)
+            check(v is None or v >= low, f"{name}.{f} must be None or >= {low}, got {v}")
         check(self.reward_bins >= 2, f"{name}.reward_bins must be >= 2, got {self.reward_bins}")
         check(self.bin_range > 0, f"{name}.bin_range must be > 0, got {self.bin_range}")
         check(
