@@ -1,10 +1,28 @@
-"""TD-MPC2 updates/s and MPPI plans/s: state and pixel modes, `cpu` and `paper` sizes (plus the
-official 1M size), with and without a frozen encoder, and with the frozen encoder's latents cached
-in replay (what `ccfit run --encoder frozen:PATH` does). Prints JSON.
+"""Seconds per update and per acting step of the world models (TD-MPC2, DreamerV3) in state and
+pixel modes at their presets, with a frozen encoder and with its latents cached in replay (what
+`ccfit run --encoder frozen:PATH` does); DreamerV3 also at the sizes the dreamerv3-torch anchor
+times. Prints one JSON object.
 
-Reference (the official TD-MPC2, eager mode, 2 threads, batch 256, on these machines):
-1M state 0.156 s/update and 0.214 s/plan; 5M state 0.546 and 0.558; 5M 64 px 1.21 s/update.
-Our `paper` preset is the official 5M configuration.
+One update is what the training loop does (`Trainer._update` without replay sampling): loss,
+backward, global-norm clip, world-model step, `head_update`, on a fixed synthetic batch with
+replay's shapes. One act is `model.act` on one observation (TD-MPC2: a warm-started MPPI plan;
+DreamerV3: a posterior step and the actor). Each is the median of --repeats calls after --warmup
+calls, as wall time and as CPU time of this process (on a shared machine wall time inflates with
+other load; CPU time much less so).
+
+    python bench/update_rate.py                          # default set, minutes on 2 cores
+    python bench/update_rate.py --models dreamerv3 --presets cpu,paper --variants state,pixels
+    python bench/update_rate.py --models dreamerv3 --presets none --threads 2 --repeats 5 \\
+        --warmup 2 --sizes anchor-small,anchor-default,anchor-pixels --anchor-json dv3-torch.json
+
+References on this machine (2 threads):
+- official TD-MPC2, batch 256: 1M state 0.156 s/update and 0.214 s/plan; 5M state 0.546 and
+  0.558; 5M 64 px 1.21 s/update (our `paper` preset is the official 5M).
+- dreamerv3-torch (object814 fork), batch 16 x 64, imagination from all 1024 starts:
+  ../shared/tools/anchors/run_dreamerv3.sh; pass its JSON as --anchor-json to get the ratio
+  anchor / ours per size (> 1: ours is faster). Anchor sizes (`ANCHOR_SIZES`): anchor-small =
+  its `cpu` (0.74M parameters), anchor-default = its defaults (18.7M), anchor-pixels = defaults
+  with 64 px 9-channel images + 7-D proprio (28.4M).
 """
 
 from __future__ import annotations
@@ -20,128 +38,233 @@ from pathlib import Path
 
 import torch
 
+from ccfit.models import make_model
 from ccfit.models.base import Batch
 from ccfit.models.encoders import load_frozen_encoder, save_encoder
+from ccfit.models.registry import config_class
 from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
 
-OFFICIAL_SECONDS = {
-    ("1M", "state"): {"update": 0.156, "plan": 0.214},
-    ("paper", "state"): {"update": 0.546, "plan": 0.558},
+MODELS = ("tdmpc2", "dreamerv3")
+DEFAULT_PRESETS = {"tdmpc2": ("cpu", "1M", "paper"), "dreamerv3": ("cpu",)}
+"""Presets timed when --presets is not given (DreamerV3 `paper`, ~128M parameters, takes
+minutes per update on a CPU: ask for it)."""
+VARIANTS = {  # name -> (obs mode, frozen encoder, latents cached in replay)
+    "state": ("state", False, False),
+    "pixels": ("pixels", False, False),
+    "frozen": ("pixels", True, False),
+    "cached": ("pixels", True, True),
+}
+OFFICIAL_TDMPC2_S = {
+    ("1M", "state"): {"update": 0.156, "act": 0.214},
+    ("paper", "state"): {"update": 0.546, "act": 0.558},
     ("paper", "pixels"): {"update": 1.21},
 }
+_ANCHOR_SMALL = dict(deter=256, hidden=64, stoch=16, classes=8, units=128, layers=2)
+_ANCHOR_DEFAULT = dict(deter=512, hidden=512, stoch=32, classes=32, units=512, layers=2,
+                       vector_units=1024, vector_layers=5, cnn_depth=32)  # fmt: skip
+ANCHOR_SIZES: dict[str, tuple[str, str, dict]] = {
+    # name -> (anchor config name, obs mode, DreamerV3Config fields). Common to all: batch
+    # 16 x 64, horizon 15, imagination from every posterior (imag_last 0), 64 px images.
+    "anchor-small": ("cpu", "state", _ANCHOR_SMALL),
+    "anchor-default": ("default", "state", _ANCHOR_DEFAULT),
+    "anchor-pixels": ("default-rgb", "pixels", _ANCHOR_DEFAULT),
+}
+_ANCHOR_COMMON = dict(batch_size=16, seq_len=64, horizon=15, imag_last=0, image_size=64)
 
 
-def synthetic_batch(cfg, batch_size: int, generator: torch.Generator) -> Batch:
-    """Random data with the shapes and dtypes replay produces (values do not affect timing)."""
-    steps = cfg.seq_len
+def synthetic_batch(cfg, generator: torch.Generator) -> Batch:
+    """Random data with replay's shapes and dtypes; every window starts an episode (values do
+    not affect timing)."""
+    steps, size = cfg.seq_len, cfg.batch_size
     if cfg.obs_mode == "state":
-        obs = {"state": torch.randn(steps, batch_size, cfg.state_dim, generator=generator)}
+        obs = {"state": torch.randn(steps, size, cfg.state_dim, generator=generator)}
     else:
-        size = cfg.image_size
+        s = cfg.image_size
         obs = {
-            "pixels": torch.randint(
-                0, 256, (steps, batch_size, 9, size, size), generator=generator, dtype=torch.uint8
-            ),
-            "proprio": torch.randn(steps, batch_size, cfg.proprio_dim, generator=generator),
-        }
+            "pixels": torch.randint(0, 256, (steps, size, 9, s, s), generator=generator,
+                                    dtype=torch.uint8),
+            "proprio": torch.randn(steps, size, cfg.proprio_dim, generator=generator),
+        }  # fmt: skip
+    is_first = torch.zeros(steps, size, 1)
+    is_first[0] = 1.0
     return Batch(
         obs=obs,
-        action=torch.rand(steps, batch_size, 4, generator=generator) * 2 - 1,
-        reward=-torch.rand(steps, batch_size, 1, generator=generator),
-        terminated=torch.zeros(steps, batch_size, 1),
-        is_first=torch.zeros(steps, batch_size, 1),
-        task=torch.zeros(steps, batch_size, dtype=torch.long),
+        action=torch.rand(steps, size, cfg.action_dim, generator=generator) * 2 - 1,
+        reward=-torch.rand(steps, size, 1, generator=generator),
+        terminated=torch.zeros(steps, size, 1),
+        is_first=is_first,
+        task=torch.zeros(steps, size, dtype=torch.long),
     )
 
 
-def time_model(
-    preset: str, mode: str, frozen: bool, cached: bool, batch_size: int, repeats: int
-) -> dict:
+def frozen_encoder(cfg, preset: str):
+    """A frozen pixel encoder as `ccfit pretrain-encoder` makes it: the TD-MPC2 encoder of the
+    preset of the same name (random weights; only its cost matters here)."""
+    enc_cfg = TDMPC2Config.preset(preset if preset in TDMPC2Config.PRESETS else "cpu",
+                                  obs_mode="pixels", image_size=cfg.image_size)  # fmt: skip
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "encoder.pt"
+        save_encoder(TDMPC2(enc_cfg, device="cpu").backbone.encoder, enc_cfg, path)
+        return load_frozen_encoder(path)[0]
+
+
+def count_parameters(model, heads) -> dict[str, int]:
+    """Trainable parameters of backbone and heads (target / slow copies excluded)."""
+    if hasattr(model, "num_parameters"):
+        return model.num_parameters(heads)
+    out = {
+        "backbone": sum(p.numel() for p in model.backbone.parameters() if p.requires_grad),
+        "heads": sum(p.numel() for p in heads.parameters() if p.requires_grad),
+    }
+    out["total"] = out["backbone"] + out["heads"]
+    return out
+
+
+def _median_times(fn, repeats: int, warmup: int) -> dict[str, float]:
+    for _ in range(warmup):  # allocator, first-call overheads
+        fn()
+    wall, cpu = [], []
+    for _ in range(repeats):
+        w0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        wall.append(time.perf_counter() - w0)
+        cpu.append(time.process_time() - c0)
+    return {"wall": statistics.median(wall), "cpu": statistics.median(cpu)}
+
+
+def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmup: int) -> dict:
+    """Times one update and one act of the model of `cfg`."""
     torch.manual_seed(0)
-    cfg = TDMPC2Config.preset(preset, obs_mode=mode)
-    encoder = None
-    if frozen:
-        with tempfile.TemporaryDirectory() as tmp:
-            path = Path(tmp) / "encoder.pt"
-            save_encoder(TDMPC2(cfg, device="cpu").backbone.encoder, cfg, path)
-            encoder, _ = load_frozen_encoder(path)
-    model = TDMPC2(cfg, device="cpu", encoder=encoder)
+    model = make_model(cfg, "cpu", encoder=frozen_encoder(cfg, preset) if frozen else None)
+    model.begin_task(0, 1000)
     heads = model.new_heads()
-    optim = model.world_model_optimizer(heads)
-    head_optims = model.head_optimizers(heads)
-    batch = synthetic_batch(cfg, batch_size, torch.Generator().manual_seed(0))
+    optim, head_optims = model.world_model_optimizer(heads), model.head_optimizers(heads)
+    params = [p for g in optim.param_groups for p in g["params"]]
+    batch = synthetic_batch(cfg, torch.Generator().manual_seed(0))
     if cached:  # replay then holds latents, encoded once when the episode was stored
         batch = dataclasses.replace(batch, obs=model.replay_obs(batch.obs))
-    obs = {k: v[0, 0] for k, v in synthetic_batch(cfg, 1, torch.Generator()).obs.items()}
+    one = dataclasses.replace(cfg, batch_size=1)
+    obs = {k: v[0, 0] for k, v in synthetic_batch(one, torch.Generator()).obs.items()}
 
     def update() -> None:
         out = model.loss(batch, heads)
         optim.zero_grad(set_to_none=True)
         out.total.backward()
-        torch.nn.utils.clip_grad_norm_(
-            [p for g in optim.param_groups for p in g["params"]], cfg.grad_clip
-        )
+        torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
         optim.step()
         model.head_update(batch, heads, out, head_optims)
 
-    state = model.act(obs, heads, None, eval_mode=False)[1]  # a warm-started plan is timed
+    with torch.no_grad():  # a warm-started plan / a mid-episode recurrent state is timed
+        state = model.act(obs, heads, model.initial_state(heads), eval_mode=False)[1]
 
-    def plan() -> None:
-        model.act(obs, heads, state, eval_mode=False)
+    def act() -> None:
+        with torch.no_grad():
+            model.act(obs, heads, state, eval_mode=False)
 
-    result = {}
-    for name, fn in (("update", update), ("plan", plan)):
-        fn()  # warm-up (allocator, first-call overheads)
-        times = []
-        for _ in range(repeats):
-            start = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - start)
-        result[f"{name}_s_median"] = statistics.median(times)
-        result[f"{name}s_per_s"] = 1.0 / statistics.median(times)
-    result["parameters"] = model.num_parameters(heads)
-    official = OFFICIAL_SECONDS.get((preset, mode))
-    if official and not frozen:
-        result["official_s"] = official
-        result["speedup_vs_official"] = {k: official[k] / result[f"{k}_s_median"] for k in official}
+    result = {"parameters": count_parameters(model, heads)}
+    for name, fn in (("update", update), ("act", act)):
+        t = _median_times(fn, repeats, warmup)
+        result[f"{name}_s_median"] = t["wall"]
+        result[f"{name}_cpu_s_median"] = t["cpu"]
+    # The names run_tdmpc2.sh reads (an MPPI plan is TD-MPC2's act).
+    result["plan_s_median"] = result["act_s_median"]
+    result["updates_per_s"] = 1.0 / result["update_s_median"]
     return result
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--presets", default="cpu,1M,paper")
-    parser.add_argument("--batch-size", type=int, default=256)
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--threads", type=int, default=2)
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+def rows_to_time(args) -> list[dict]:
+    """(model, preset or size, variant, config) of every requested row, in order."""
     rows = []
-    for preset in args.presets.split(","):
-        variants = (("state", False, False), ("pixels", False, False), ("pixels", True, False),
-                    ("pixels", True, True))  # fmt: skip
-        for mode, frozen, cached in variants:
-            if preset == "1M" and mode == "pixels":
-                continue  # the official reference at 1M is state only
-            row = {
-                "preset": preset,
-                "obs": mode,
-                "frozen_encoder": frozen,
-                "latents_cached": cached,
-            }
-            row.update(time_model(preset, mode, frozen, cached, args.batch_size, args.repeats))
-            rows.append(row)
-    print(
-        json.dumps(
-            {
-                "batch_size": args.batch_size,
-                "threads": args.threads,
-                "cpu_count": os.cpu_count(),
-                "torch": torch.__version__,
-                "results": rows,
-            },
-            indent=2,
-        )
-    )
+    for name in args.models:
+        cls = config_class(name)
+        presets = DEFAULT_PRESETS[name] if args.presets is None else args.presets
+        for preset in presets:
+            if preset not in cls.PRESETS:
+                continue  # e.g. TD-MPC2's '1M' for DreamerV3
+            for variant in args.variants:
+                mode, frozen, cached = VARIANTS[variant]
+                if name == "tdmpc2" and preset == "1M" and mode == "pixels":
+                    continue  # the official reference at 1M is state only
+                over = {"obs_mode": mode, "image_size": args.image_size}
+                if args.batch_size:
+                    over["batch_size"] = args.batch_size
+                rows.append(dict(model=name, preset=preset, obs=mode, frozen_encoder=frozen,
+                                 latents_cached=cached, cfg=cls.preset(preset, **over)))
+        if name == "dreamerv3":
+            for size in args.sizes:
+                _, mode, fields = ANCHOR_SIZES[size]
+                over = {**_ANCHOR_COMMON, **fields, "obs_mode": mode}
+                if args.batch_size:
+                    over["batch_size"] = args.batch_size
+                rows.append(dict(model=name, preset=size, obs=mode, frozen_encoder=False,
+                                 latents_cached=False, cfg=cls(**over)))
+    return rows
+
+
+def attach_references(row: dict, anchor: dict | None) -> None:
+    official = OFFICIAL_TDMPC2_S.get((row["preset"], row["obs"]))
+    if row["model"] == "tdmpc2" and official and not row["frozen_encoder"]:
+        row["official_s"] = official
+        row["speedup_vs_official"] = {k: v / row[f"{k}_s_median"] for k, v in official.items()}
+    if anchor is not None and row["preset"] in ANCHOR_SIZES:
+        ref = anchor.get(ANCHOR_SIZES[row["preset"]][0])
+        if ref is not None:
+            row["anchor"] = {"train_step_s": ref["train_step"]["s_median"],
+                             "parameters": ref["parameters"]["total_trainable"]}  # fmt: skip
+            row["ratio_anchor_over_ours"] = ref["train_step"]["s_median"] / row["update_s_median"]
+
+
+def _names(text: str) -> list[str]:
+    return [] if text in ("", "none") else text.split(",")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--models", default=",".join(MODELS), help="comma-separated")
+    parser.add_argument("--presets", default=None,
+                        help=f"comma-separated model presets ('none': only --sizes); default "
+                             f"per model {DEFAULT_PRESETS}")  # fmt: skip
+    parser.add_argument("--sizes", default="", help=f"DreamerV3 anchor sizes: {list(ANCHOR_SIZES)}")
+    parser.add_argument("--variants", default=",".join(VARIANTS), help=f"of {list(VARIANTS)}")
+    parser.add_argument("--batch-size", type=int, default=None,
+                        help="replay windows per update (default: the preset's / size's)")
+    parser.add_argument("--image-size", type=int, default=64)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--warmup", type=int, default=1)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--anchor-json", default=None,
+                        help="output of ../shared/tools/anchors/run_dreamerv3.sh")
+    args = parser.parse_args()
+    args.models = _names(args.models)
+    args.presets = None if args.presets is None else _names(args.presets)
+    args.sizes = _names(args.sizes)
+    args.variants = _names(args.variants)
+    for what, names, valid in (("model", args.models, MODELS), ("size", args.sizes, ANCHOR_SIZES),
+                               ("variant", args.variants, VARIANTS)):  # fmt: skip
+        bad = [n for n in names if n not in valid]
+        if bad:
+            parser.error(f"unknown {what} {bad}; valid: {list(valid)}")
+    anchor = None
+    if args.anchor_json:
+        anchor = {r["config"]: r for r in json.loads(Path(args.anchor_json).read_text())["results"]}
+    torch.set_num_threads(args.threads)
+    results = []
+    for spec in rows_to_time(args):
+        cfg = spec.pop("cfg")
+        row = {**spec, "batch": [cfg.batch_size, cfg.seq_len]}
+        if spec["model"] == "dreamerv3":
+            row.update(imag_last=cfg.imag_last, horizon=cfg.horizon)
+        row.update(time_model(cfg, spec["preset"], spec["frozen_encoder"], spec["latents_cached"],
+                              args.repeats, args.warmup))  # fmt: skip
+        attach_references(row, anchor)
+        results.append(row)
+    print(json.dumps({
+        "batch_size": args.batch_size, "threads": args.threads, "repeats": args.repeats,
+        "warmup": args.warmup, "image_size": args.image_size, "cpu_count": os.cpu_count(),
+        "loadavg": Path("/proc/loadavg").read_text().split()[:3], "torch": torch.__version__,
+        "results": results,
+    }, indent=2))  # fmt: skip
 
 
 if __name__ == "__main__":

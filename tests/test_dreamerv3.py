@@ -28,6 +28,7 @@ from ccfit.models.dreamerv3.math import (
     categorical_kl,
     kl_loss,
     lambda_return,
+    sample_onehot,
     symexp,
     symlog,
     unimix_logits,
@@ -110,7 +111,7 @@ def test_presets_defaults_and_validation():
     paper = DreamerV3Config.preset("paper")
     assert (paper.deter, paper.hidden, paper.stoch, paper.classes) == (4096, 1024, 32, 32)
     assert (paper.units, paper.layers) == (1024, 5)
-    assert DreamerV3Config.preset("cpu").deter == 256
+    assert DreamerV3Config.preset("cpu").deter == 128
     assert DreamerV3Config.preset("smoke").type == "dreamerv3"
     for bad in (
         dict(kl_dyn=-1.0),
@@ -120,9 +121,31 @@ def test_presets_defaults_and_validation():
         dict(actor_min_std=2.0),
         dict(classes=1),
         dict(horizon=0.5),
+        dict(vector_units=0),
+        dict(vector_layers=-1),
     ):
         with pytest.raises(ConfigError):
             DreamerV3Config(**bad)
+
+
+@pytest.mark.parametrize(
+    "obs_mode, sizes, expected",
+    [
+        ("state", dict(deter=256, hidden=64, stoch=16, classes=8, units=128), 738_094),
+        ("state", dict(vector_units=1024, vector_layers=5), 18_735_662),
+        ("pixels", dict(vector_units=1024, vector_layers=5), 28_449_687),
+    ],
+)
+def test_parameter_counts_equal_dreamerv3_torch_at_its_sizes(obs_mode, sizes, expected):
+    """Trainable parameters (world model + actor + critic, no slow critic) equal those of
+    object814/dreamerv3-torch counted at the same sizes (its `cpu` size, its defaults with
+    39-D state, its defaults with 64 px 9-channel images + 7-D proprio): same layers."""
+    cfg = DreamerV3Config(obs_mode=obs_mode, image_size=64, **sizes)
+    with torch.device("meta"):
+        model = DreamerV3(cfg, device="meta")
+        heads = model.new_heads()
+    trainable = [*model.backbone.parameters(), *heads.parameters()]
+    assert sum(p.numel() for p in trainable if p.requires_grad) == expected
 
 
 # ------------------------------------------------------------------------------ math
@@ -155,6 +178,24 @@ def test_unimix_floor_and_finite_kl_of_one_hot_logits():
     # Without unimix the same KL is infinite (or NaN): the mix is what keeps it finite.
     raw = categorical_kl(unimix_logits(onehot_logits, 0.0), unimix_logits(other, 0.0))
     assert not torch.isfinite(raw).all()
+
+
+def test_onehot_samples_follow_the_probabilities_with_straight_through_gradient():
+    logits = torch.log(torch.tensor([0.1, 0.2, 0.3, 0.4])).expand(50_000, 4).clone()
+    logits.requires_grad_(True)
+    torch.manual_seed(0)
+    sample = sample_onehot(logits)
+    hard = sample.detach().round()  # one-hot up to the rounding of onehot + p - sg(p)
+    assert torch.allclose(sample.detach(), hard, atol=1e-6)
+    assert torch.equal(hard.sum(-1), torch.ones(50_000))
+    freq = hard.mean(0)  # binomial std <= 0.0022 at n = 50k
+    assert torch.allclose(freq, torch.tensor([0.1, 0.2, 0.3, 0.4]), atol=0.01)
+    # Straight through: the gradient is that of the probabilities.
+    weights = torch.tensor([1.0, -2.0, 3.0, 0.5])
+    (sample * weights).sum().backward()
+    probs = F.softmax(logits.detach()[:1], -1)
+    hand = probs * (weights - (probs * weights).sum())
+    assert torch.allclose(logits.grad[:1], hand, atol=1e-6)
 
 
 def test_kl_balancing_values_and_gradient_paths():
@@ -579,7 +620,9 @@ def test_option_actor_gradient_matches_its_estimator(actor_grad):
     assert torch.isclose(actor_loss, hand, rtol=1e-5)
     params = list(heads.actor.parameters())
     for g, h in zip(grads(actor_loss, params), grads(hand, params), strict=True):
-        assert torch.allclose(g, h, rtol=1e-4, atol=1e-9)
+        # The loss reuses imagination's actor outputs (one graph, another summation order):
+        # equal up to float rounding relative to the gradient's scale.
+        assert torch.allclose(g, h, rtol=1e-4, atol=1e-6 * float(h.abs().max()))
     if actor_grad == "dynamics":  # the gradient flows through the sampled actions
         no_path = -((adv.detach() + bonus) * traj.weight[:-1]).mean()
         assert not all(
@@ -658,8 +701,8 @@ def test_packnet_prunes_every_backbone_weight_including_the_gru():
 
 
 def test_frozen_encoder_embeds_caches_and_is_reconstructed():
-    from ccfit.config import TDMPC2Config
     from ccfit.models.encoders import FrozenEncoder, build_encoder
+    from ccfit.models.tdmpc2 import TDMPC2Config
 
     torch.manual_seed(0)
     enc_cfg = TDMPC2Config(obs_mode="state", enc_dim=32, latent_dim=64, num_enc_layers=2)

@@ -202,3 +202,41 @@ def test_trainer_calls_continual_hooks_once_per_update():
     assert buffer.num_transitions == 30 + 50  # the episode in progress is stored at the end
     after = list(model.backbone.parameters())
     assert any(not torch.equal(a, b) for a, b in zip(before, after, strict=True))
+
+
+@pytest.mark.parametrize("global_offset, burst", [(0, 5), (100, 0)])
+def test_pretrain_updates_run_once_on_the_runs_first_task_only(global_offset, burst):
+    """`pretrain_updates` run at once when updates first become possible on a fresh model (the
+    run's first task, global offset 0); a later task of a curriculum does not repeat them."""
+    from ccdata import make_env
+    from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
+    from ccfit.train import Trainer
+
+    torch.manual_seed(0)
+    cfg = TrainConfig(steps=50, seed_steps=20, eval_interval=50, eval_episodes=1,
+                      checkpoint_interval=50, buffer_capacity=1000, device="cpu")  # fmt: skip
+    model = TDMPC2(TDMPC2Config.preset("smoke", batch_size=4, train_ratio=0.5,
+                                       pretrain_updates=5), device="cpu")  # fmt: skip
+    env = make_env("reach-xy", render=False)
+    buffer = ReplayBuffer(1000)
+    buffer.add_episode({"state": np.zeros((31, 39), np.float32)}, np.zeros((30, 4), np.float32),
+                       np.zeros(30, np.float32), np.zeros(30, np.float32))  # fmt: skip
+    method = _CountingMethod()
+    trainer = Trainer(env=env, model=model, heads=model.new_heads(), buffer=buffer, config=cfg,
+                      seed=0, obs_mode="state", task_id="reach-xy", method=method,
+                      global_offset=global_offset, progress=False)  # fmt: skip
+    updates_at: dict[int, int] = {}
+    real_update = trainer._update
+
+    def counting_update() -> None:
+        updates_at[trainer.task_step] = updates_at.get(trainer.task_step, 0) + 1
+        real_update()
+
+    trainer._update = counting_update
+    trainer.run()
+    env.close()
+    # Steps 20..49 add 0.5 each: 15 regular updates, the first at step 21; the burst runs at
+    # step 20, where updates first become possible.
+    assert trainer.updates == burst + 15 == method.after_steps == sum(updates_at.values())
+    assert updates_at.get(20, 0) == burst and updates_at[21] == 1
+    assert min(updates_at) == (20 if burst else 21)

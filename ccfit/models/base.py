@@ -18,7 +18,8 @@ The shared training loop (ccfit.train) drives a model only through this interfac
     total = out.total + method.penalty(backbone, losses)
     total.backward(); clip to model.cfg.grad_clip; opt.step(); method.after_step(backbone)
     model.head_update(batch, heads, out, head_opts)   # never changes the backbone
-    # `model.cfg.train_ratio` updates per env step (fractional ratios accumulate)
+    # `model.cfg.train_ratio` updates per env step (fractional ratios accumulate), after a
+    # one-off burst of `model.cfg.pretrain_updates` on a fresh model (the run's first task)
 
     state = model.initial_state(heads)          # per episode, per set of heads
     action, state = model.act(obs, heads, state, eval_mode=...)

@@ -63,6 +63,10 @@ class ModelConfig(draccus.ChoiceRegistry):
     second step)."""
     grad_clip: float = 20.0
     """Global-norm clip of the world-model update (`WorldModel.world_model_optimizer`)."""
+    pretrain_updates: int = 0
+    """Updates run in one burst when updates first become possible on a fresh model (the
+    run's first task, right after the seed steps), before `train_ratio` takes over
+    (DreamerV3's recipe: 100). Later tasks of a curriculum do not repeat it."""
 
     def __post_init__(self) -> None:
         check_types(self)
@@ -75,6 +79,8 @@ class ModelConfig(draccus.ChoiceRegistry):
                                  f"{self.seq_len}")  # fmt: skip
         check(self.train_ratio > 0, f"{name}.train_ratio must be > 0, got {self.train_ratio}")
         check(self.grad_clip > 0, f"{name}.grad_clip must be > 0, got {self.grad_clip}")
+        check(self.pretrain_updates >= 0,
+              f"{name}.pretrain_updates must be >= 0, got {self.pretrain_updates}")  # fmt: skip
 
     @property
     def type(self) -> str:

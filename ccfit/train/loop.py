@@ -2,8 +2,9 @@
 
 `Trainer` is handed its collaborators (env, model, heads, replay, config, logger, optional
 continual method) and runs Algorithm 1's inner loop on one task: random actions for the seed
-steps (the model observes them), then `model.cfg.train_ratio` updates per env step (fractions
-accumulate), evaluation at a fixed interval, atomic checkpoints, and resume.
+steps (the model observes them), then `model.cfg.pretrain_updates` updates at once if the
+model is fresh (the run's first task), then `model.cfg.train_ratio` updates per env step
+(fractions accumulate), evaluation at a fixed interval, atomic checkpoints, and resume.
 
 Determinism: every episode's layout seed is derived from (seed, episode index), evaluation uses
 a fixed set of layouts, and the checkpoint stores every RNG state. The training episode in
@@ -137,6 +138,9 @@ class Trainer:
                 if self.task_step >= cfg.seed_steps and self.buffer.can_sample(
                     self.model.cfg.seq_len
                 ):
+                    if self.updates == 0 and self.global_offset == 0:
+                        # The run's first task and no update yet: the model is fresh.
+                        self.extra_updates(self.model.cfg.pretrain_updates)
                     self.update_credit += self.model.cfg.train_ratio
                     while self.update_credit >= 1.0:
                         self.update_credit -= 1.0

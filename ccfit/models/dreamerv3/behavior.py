@@ -39,6 +39,10 @@ class Trajectory:
     """Continue flags of s_0..s_H (c_0 from the start, then the continue head's mode)."""
     weight: torch.Tensor
     """Loss weights cumprod(discount * c) / discount, (H + 1, N, 1), no gradient."""
+    mean: torch.Tensor
+    """The actor's mean at s_0..s_{H-1} (H, N, A), with a graph when imagined with one."""
+    std: torch.Tensor
+    """The actor's standard deviation at s_0..s_{H-1} (H, N, A)."""
 
 
 def imagine(
@@ -55,29 +59,38 @@ def imagine(
     The actor reads detached states, as in the recipe: its gradient is the path through
     its sampled actions only."""
     feats = [rssm.feat(deter, stoch)]
-    actions = []
+    actions, means, stds = [], [], []
     for _ in range(horizon):
         mean, std = heads.actor(feats[-1].detach())
         action = mean + std * torch.randn_like(mean)
         deter, stoch = rssm.img_step(deter, stoch, action)
         actions.append(action)
+        means.append(mean)
+        stds.append(std)
         feats.append(rssm.feat(deter, stoch))
     feat = torch.stack(feats)
     with torch.no_grad():
         cont = (heads.cont(feat[1:]) > 0).to(feat.dtype)
         cont = torch.cat([start_cont[None], cont])
         weight = torch.cumprod(discount * cont, 0) / discount
-    return Trajectory(feat, torch.stack(actions), cont, weight)
+    stack = torch.stack
+    return Trajectory(feat, stack(actions), cont, weight, stack(means), stack(stds))
 
 
 def imagined_returns(
-    cfg: DreamerV3Config, heads: DreamerV3Heads, traj: Trajectory
+    cfg: DreamerV3Config,
+    heads: DreamerV3Heads,
+    traj: Trajectory,
+    critic_logits: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(lambda-returns R_0..R_{H-1} (H, N, 1), values v(s_0..s_H) (H + 1, N, 1)); with a
-    graph only when the trajectory has one (the 'dynamics' actor gradient needs it)."""
+    graph only when the trajectory has one (the 'dynamics' actor gradient needs it).
+    `critic_logits`: the critic's logits at s_0..s_H when the caller has them."""
     with torch.set_grad_enabled(traj.feat.requires_grad):
         reward = heads.reward_mean(traj.feat[1:])
-        value = heads.value(traj.feat)
+        if critic_logits is None:
+            critic_logits = heads.critic(traj.feat)
+        value = heads.twohot.logits_to_scalar(critic_logits)
     return lambda_return(reward, traj.cont[1:], value, cfg.discount, cfg.return_lambda), value
 
 
@@ -85,15 +98,21 @@ def behavior_losses(
     cfg: DreamerV3Config, heads: DreamerV3Heads, traj: Trajectory, update_retnorm: bool = True
 ) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
     """(actor loss, critic loss, detached logs); updates the return normaliser first, as the
-    recipe does, then scales the advantage with the updated statistics."""
-    ret, value = imagined_returns(cfg, heads, traj)
+    recipe does, then scales the advantage with the updated statistics.
+
+    One critic pass serves the returns (the actor's path through the values) and the critic's
+    loss: the critic's parameter gradient does not depend on whether its inputs are detached,
+    and each loss is differentiated for its own module only (`DreamerV3._step`). Likewise the
+    actor's outputs from imagination are reused when they carry a graph."""
+    logits = heads.critic(traj.feat)
+    ret, value = imagined_returns(cfg, heads, traj, logits)
     if update_retnorm:
         heads.retnorm.update(ret)
     scale = heads.retnorm.scale()
     adv = (ret - value[:-1]) / scale
     states = traj.feat[:-1].detach()
     weight = traj.weight[:-1]
-    mean, std = heads.actor(states)
+    mean, std = (traj.mean, traj.std) if traj.std.requires_grad else heads.actor(states)
     entropy = normal_entropy(std)
     if cfg.actor_grad == "dynamics":
         objective = adv
@@ -101,7 +120,7 @@ def behavior_losses(
         objective = normal_log_prob(traj.action.detach(), mean, std) * adv.detach()
     actor_loss = -((objective + cfg.actor_entropy * entropy) * weight).mean()
 
-    logits = heads.critic(states)
+    logits = logits[:-1]
     target = ret.detach()
     critic = heads.twohot.cross_entropy(logits, target)
     reg = heads.twohot.cross_entropy(logits, heads.slow_value(states))

@@ -34,20 +34,21 @@ class DreamerV3Config(ModelConfig):
             seq_len=8,
             horizon=4,
             train_ratio=0.5,
+            pretrain_updates=2,
         ),
         # A Reach task in minutes on 2 cores (to be tuned by measurement): small RSSM,
-        # imagination from the last 16 rows of each window (256 starts instead of 1024).
+        # imagination from the last 8 rows of each window (128 starts instead of 1024).
         "cpu": dict(
-            deter=256,
+            deter=128,
             hidden=64,
-            stoch=16,
+            stoch=8,
             classes=8,
-            units=128,
+            units=64,
             layers=2,
             cnn_depth=16,
             batch_size=16,
-            seq_len=64,
-            imag_last=16,
+            seq_len=32,
+            imag_last=8,
             train_ratio=0.5,
         ),
         # The paper's scale (authors' README: ~300M parameters on a GPU); units/layers/depth
@@ -75,6 +76,8 @@ class DreamerV3Config(ModelConfig):
     """Updates per env step: 512 replayed steps per env step = 0.5 updates of 16 x 64."""
     grad_clip: float = 1000.0
     """Global-norm clip of the world-model update (recipe: 1000)."""
+    pretrain_updates: int = 100
+    """Updates at once after the seed steps of the run's first task (recipe: 100)."""
 
     # Sizes.
     deter: int = 512
@@ -91,6 +94,11 @@ class DreamerV3Config(ModelConfig):
     """Hidden layers of those MLPs."""
     cnn_depth: int = 32
     """Channels of the first conv layer; doubled at each stride-2 stage down to 4 x 4."""
+    vector_units: int | None = None
+    """Width of the vector (state / proprio) encoder and decoder MLPs; None: `units`
+    (dreamerv3-torch's default is 1024, with 5 layers)."""
+    vector_layers: int | None = None
+    """Hidden layers of the vector encoder and decoder MLPs; None: `layers`."""
 
     # World-model loss.
     unimix: float = 0.01
@@ -160,6 +168,9 @@ class DreamerV3Config(ModelConfig):
             check(getattr(self, f) >= 1, f"{name}.{f} must be >= 1, got {getattr(self, f)}")
         check(self.classes >= 2, f"{name}.classes must be >= 2, got {self.classes}")
         check(self.layers >= 0, f"{name}.layers must be >= 0, got {self.layers}")
+        for f, low in (("vector_units", 1), ("vector_layers", 0)):
+            v = getattr(self, f)
+            check(v is None or v >= low, f"{name}.{f} must be None or >= {low}, got {v}")
         check(self.reward_bins >= 2, f"{name}.reward_bins must be >= 2, got {self.reward_bins}")
         check(self.bin_range > 0, f"{name}.bin_range must be > 0, got {self.bin_range}")
         check(
@@ -203,6 +214,16 @@ class DreamerV3Config(ModelConfig):
                 f"{name}: the CNN halves the image down to 4 x 4, so image_size must be a "
                 f"power of two (32, 64, 128), got {s}",
             )
+
+    @property
+    def vector_width(self) -> int:
+        """Width of the vector encoder and decoder MLPs (`vector_units` or `units`)."""
+        return self.units if self.vector_units is None else self.vector_units
+
+    @property
+    def vector_depth(self) -> int:
+        """Hidden layers of the vector encoder and decoder MLPs (`vector_layers` or `layers`)."""
+        return self.layers if self.vector_layers is None else self.vector_layers
 
     @property
     def feat_dim(self) -> int:

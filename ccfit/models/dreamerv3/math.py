@@ -41,10 +41,11 @@ def unimix_logits(logits: torch.Tensor, unimix: float) -> torch.Tensor:
 
 
 def sample_onehot(logits: torch.Tensor) -> torch.Tensor:
-    """One-hot sample (Gumbel-max) with straight-through gradients of the probabilities."""
+    """One-hot sample with straight-through gradients of the probabilities. Sampled as an
+    exponential race, argmax p_i / E_i with E_i ~ Exp(1) (Gumbel-max in another form: the
+    same distribution in fewer operations)."""
     probs = F.softmax(logits, dim=-1)
-    noise = -torch.log(-torch.log(torch.rand_like(probs).clamp_min(1e-20)))
-    index = (logits.detach() + noise).argmax(-1)
+    index = (probs.detach() / torch.empty_like(probs).exponential_()).argmax(-1)
     onehot = F.one_hot(index, logits.shape[-1]).to(probs.dtype)
     return onehot + probs - probs.detach()
 

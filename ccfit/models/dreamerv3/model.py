@@ -223,16 +223,18 @@ class DreamerV3(WorldModel):
             r = aux.replay
             repval = replay_value_loss(cfg, heads, heads.critic(r.feat), r.feat, r.target, r.mask)
             critic_loss = critic_loss + cfg.critic_replay_scale * repval
-        logs["actor_grad_norm"] = self._step(actor_loss, heads.actor, optimizers["actor"])
+        # The critic's forward pass is shared by both losses: keep its graph for the second.
+        logs["actor_grad_norm"] = self._step(actor_loss, heads.actor, optimizers["actor"], True)
         logs["critic_grad_norm"] = self._step(critic_loss, heads.critic, optimizers["critic"])
         heads.update_slow_critic(cfg.slow_critic_fraction)
         return _floats(logs)
 
-    def _step(self, loss: torch.Tensor, module: nn.Module, opt: torch.optim.Optimizer):
+    def _step(self, loss: torch.Tensor, module: nn.Module, opt: torch.optim.Optimizer,
+              retain_graph: bool = False):  # fmt: skip
         """Gradient of `loss` for `module` only (autograd.grad leaves every other .grad, the
         backbone's included, untouched), clipped, one optimiser step."""
         params = list(module.parameters())
-        grads = torch.autograd.grad(loss, params)
+        grads = torch.autograd.grad(loss, params, retain_graph=retain_graph)
         for p, g in zip(params, grads, strict=True):
             p.grad = g
         norm = nn.utils.clip_grad_norm_(params, self.cfg.ac_grad_clip)

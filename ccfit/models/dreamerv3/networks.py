@@ -71,8 +71,8 @@ class Encoder(nn.Module):
             self.out_dim = frozen.latent_dim
             return
         vec_dim = cfg.state_dim if cfg.obs_mode == "state" else cfg.proprio_dim
-        self.vector = mlp(vec_dim, cfg.units, cfg.layers)
-        self.out_dim = cfg.units if cfg.layers else vec_dim
+        self.vector = mlp(vec_dim, cfg.vector_width, cfg.vector_depth)
+        self.out_dim = cfg.vector_width if cfg.vector_depth else vec_dim
         if cfg.obs_mode == "pixels":
             self.image_size = cfg.image_size
             convs: list[nn.Module] = []
@@ -124,8 +124,8 @@ class Decoder(nn.Module):
             self.vectors["proprio"] = cfg.proprio_dim
         out = sum(self.vectors.values())
         self.vector = nn.Sequential(
-            mlp(cfg.feat_dim, cfg.units, cfg.layers),
-            nn.Linear(cfg.units if cfg.layers else cfg.feat_dim, out),
+            mlp(cfg.feat_dim, cfg.vector_width, cfg.vector_depth),
+            nn.Linear(cfg.vector_width if cfg.vector_depth else cfg.feat_dim, out),
         )
         self.image = frozen_dim is None and cfg.obs_mode == "pixels"
         if self.image:

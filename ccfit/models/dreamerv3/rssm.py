@@ -18,6 +18,12 @@ from ccfit.models.dreamerv3.math import mode_onehot, sample_onehot, unimix_logit
 from ccfit.models.dreamerv3.networks import NORM_EPS, dense
 
 
+def clip_action(action: torch.Tensor) -> torch.Tensor:
+    """Actions beyond [-1, 1] (unclipped imagined samples) scaled back elementwise, i.e.
+    clipped in value, with the scale a constant for the gradient."""
+    return action / action.detach().abs().clamp(min=1.0)
+
+
 class RSSM(nn.Module):
     """Prior, posterior and learned initial state; time-major sequences."""
 
@@ -54,11 +60,13 @@ class RSSM(nn.Module):
         deter = torch.tanh(self.initial).expand(n, self.deter)
         return deter, mode_onehot(self.prior(deter))
 
-    def core(self, deter: torch.Tensor, stoch: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Next deterministic state after taking `action` from (deter, stoch)."""
-        # Actions beyond [-1, 1] (unclipped imagined samples) are scaled back elementwise,
-        # i.e. clipped in value, with the scale treated as a constant for the gradient.
-        action = action / action.detach().abs().clamp(min=1.0)
+    def core(
+        self, deter: torch.Tensor, stoch: torch.Tensor, action: torch.Tensor, clipped: bool = False
+    ) -> torch.Tensor:
+        """Next deterministic state after taking `action` from (deter, stoch); `clipped`:
+        the caller has applied `clip_action` already."""
+        if not clipped:
+            action = clip_action(action)
         x = self.img_in(torch.cat([stoch.flatten(-2), action], -1))
         gates = self.gru_norm(self.gru(torch.cat([deter, x], -1)))
         reset, cand, update = gates.chunk(3, -1)
@@ -87,17 +95,21 @@ class RSSM(nn.Module):
         embed: torch.Tensor,
         is_first: torch.Tensor,
         sample: bool = True,
+        initial: tuple[torch.Tensor, torch.Tensor] | None = None,
+        clipped: bool = False,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Filtering step: (deter', stoch' from the posterior, posterior logits).
 
         Where is_first (..., 1) is 1 the previous state becomes the learned initial state and
-        the previous action zero before the step, as at the start of every episode."""
-        first = is_first.to(deter.dtype)
-        init_deter, init_stoch = self.initial_state(deter.shape[0])
-        deter = deter * (1.0 - first) + init_deter * first
-        stoch = stoch * (1.0 - first[..., None]) + init_stoch * first[..., None]
-        action = action * (1.0 - first)
-        deter = self.core(deter, stoch, action)
+        the previous action zero before the step, as at the start of every episode.
+        `initial`: `initial_state(n)` when the caller has it already (one per sequence);
+        `clipped`: as in `core`."""
+        first = is_first > 0
+        init_deter, init_stoch = initial or self.initial_state(deter.shape[0])
+        deter = torch.where(first, init_deter, deter)
+        stoch = torch.where(first[..., None], init_stoch, stoch)
+        action = torch.where(first, 0.0, action)
+        deter = self.core(deter, stoch, action, clipped)
         logits = self.posterior(deter, embed)
         return deter, sample_onehot(logits) if sample else mode_onehot(logits), logits
 
@@ -114,12 +126,14 @@ class RSSM(nn.Module):
         came before the window is unknown). Returns deter (L, B, D), stoch (L, B, S, C),
         posterior and prior log-probabilities (L, B, S, C)."""
         length, batch = embed.shape[:2]
-        deter, stoch = self.initial_state(batch)
+        initial = self.initial_state(batch)
+        deter, stoch = initial
+        action = clip_action(action)  # once for the window, not at every step
         prev_action = torch.zeros_like(action[0])
         deters, stochs, posts = [], [], []
         for t in range(length):
             deter, stoch, post = self.obs_step(
-                deter, stoch, prev_action, embed[t], is_first[t], sample
+                deter, stoch, prev_action, embed[t], is_first[t], sample, initial, clipped=True
             )
             prev_action = action[t]
             deters.append(deter)
