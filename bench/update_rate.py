@@ -221,7 +221,9 @@ def _names(text: str) -> list[str]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--models", default=",".join(MODELS), help="comma-separated")
+    parser.add_argument("--models", default=None,
+                        help="comma-separated (default: every model that has all of --presets, "
+                             "so the TD-MPC2 anchor's '--presets 1M,paper' times TD-MPC2 only)")
     parser.add_argument("--presets", default=None,
                         help=f"comma-separated model presets ('none': only --sizes); default "
                              f"per model {DEFAULT_PRESETS}")  # fmt: skip
@@ -236,8 +238,12 @@ def main() -> None:
     parser.add_argument("--anchor-json", default=None,
                         help="output of ../shared/tools/anchors/run_dreamerv3.sh")
     args = parser.parse_args()
-    args.models = _names(args.models)
     args.presets = None if args.presets is None else _names(args.presets)
+    if args.models is None:
+        args.models = [m for m in MODELS if args.presets is None or args.presets == ["none"]
+                       or all(p in config_class(m).PRESETS for p in args.presets)]  # fmt: skip
+    else:
+        args.models = _names(args.models)
     args.sizes = _names(args.sizes)
     args.variants = _names(args.variants)
     for what, names, valid in (("model", args.models, MODELS), ("size", args.sizes, ANCHOR_SIZES),
