@@ -153,6 +153,7 @@ class RunConfig:
             check(self.obs == "pixels", "a frozen pretrained encoder needs --obs pixels")
             check(Path(self.encoder_path).is_file(),
                   f"encoder checkpoint not found: {self.encoder_path}")
+            self.model = _with_encoder(self.model, self.encoder_path, self.image_size)
 
     @property
     def encoder_path(self) -> str | None:
@@ -166,6 +167,22 @@ class RunConfig:
         from ccfit.io import atomic_write_json
 
         atomic_write_json(path, self.to_dict())
+
+
+def _with_encoder(model: ModelConfig, path: str, image_size: int) -> ModelConfig:
+    """`model` with the frozen encoder's sizes (those fields the model's config has), so the
+    saved config states what the run used; its image size must be the run's."""
+    from ccfit.models.encoders import load_frozen_encoder
+
+    try:
+        _, spec = load_frozen_encoder(path)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    size = spec.pop("image_size")
+    check(size == image_size, f"the encoder {path} reads {size} px images but the run renders "
+                              f"{image_size} px (--image_size)")  # fmt: skip
+    names = {f.name for f in dataclasses.fields(model)} - {"obs_mode"}
+    return dataclasses.replace(model, **{k: v for k, v in spec.items() if k in names})
 
 
 @dataclass

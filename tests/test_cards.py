@@ -98,7 +98,7 @@ def test_settings_is_a_leaf_that_readers_import_instead_of_the_engine():
     code = ("import sys, ccdata.settings; engine = ('record', 'journal', 'dataset_format', "
             "'writer', 'cards'); print(sorted(m for m in sys.modules if m.startswith('ccdata.') "
             "and m.split('.')[1] in engine)); import ccdata.cards, ccdata.journal, "
-            "ccdata.dataset_format, ccfit.data, ccfit.curriculum, ccfit.pretrain_data; "
+            "ccdata.dataset_format, ccfit.data, ccfit.curriculum, ccfit.pretrain.data; "
             "print(sorted(m for m in ('ccdata.record', 'ccdata.writer') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout.split("\n")

@@ -288,6 +288,8 @@ def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeyp
     encoder's latents (dataset and live episodes alike) and the encoder ends bit-identical."""
     import ccdata.env
     import ccfit.curriculum as C
+    import ccfit.train.run as R
+    from ccfit.config import CurriculumConfig, resolve
     from ccfit.models.base import LATENT_KEY
     from ccfit.models.encoders import build_encoder, load_frozen_encoder, save_encoder
     from ccfit.models.tdmpc2 import TDMPC2Config
@@ -298,18 +300,19 @@ def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeyp
     save_encoder(build_encoder(enc_cfg), enc_cfg, path)
     buffers = []
 
-    class SpyBuffer(C.ReplayBuffer):
+    class SpyBuffer(R.ReplayBuffer):
         def add_episode(self, *args, **kwargs):
             super().add_episode(*args, **kwargs)
             buffers.append(self)
 
-    monkeypatch.setattr(C, "ReplayBuffer", SpyBuffer)
+    monkeypatch.setattr(R, "ReplayBuffer", SpyBuffer)
     monkeypatch.setattr(ccdata.env, "EPISODE_STEPS", 30)
-    cfg = C.CurriculumConfig(
-        suite="Reach", model="pwm", method="experts", obs="pixels", image_size=SIZE,
-        preset="smoke", seed_dataset=str(reach_root), encoder=f"frozen:{path}",
-        train_overrides=dict(steps=60, seed_steps=30, eval_interval=60, checkpoint_interval=60),
-    )  # fmt: skip
+    cfg = resolve(CurriculumConfig, {
+        "suite": "Reach", "obs": "pixels", "image_size": SIZE, "preset": "smoke",
+        "seed_dataset": str(reach_root), "encoder": f"frozen:{path}",
+        "model": {"type": "pwm"}, "method": {"type": "experts"},
+        "train": dict(steps=60, seed_steps=30, eval_interval=60, checkpoint_interval=60),
+    })  # fmt: skip
     result = C.Curriculum(cfg, tmp_path / "run", tmp_path / "scratch", progress=False).run()
     assert len(set(map(id, buffers))) == 5  # four tasks and the from-scratch reference
     for buf in buffers:
@@ -321,5 +324,5 @@ def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeyp
     for name, value in frozen.state_dict().items():
         assert torch.equal(state["model"][f"backbone.encoder.{name}"], value), name
     with pytest.raises(ValueError, match="reads 32 px images but the run renders 48 px"):
-        C.CurriculumConfig(suite="Reach", obs="pixels", image_size=48, preset="smoke",
-                           encoder=f"frozen:{path}").model_config()  # fmt: skip
+        resolve(CurriculumConfig, {"suite": "Reach", "obs": "pixels", "image_size": 48,
+                                   "preset": "smoke", "encoder": f"frozen:{path}"})

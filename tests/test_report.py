@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ccfit.curriculum import compute_metrics
+from ccfit.metrics import compute_metrics
 from ccfit.report import find_runs, flatten, group_metrics, group_runs, load_groups, write_report
 
 SUITE, TASKS, STEPS = "Reach", 4, 100
