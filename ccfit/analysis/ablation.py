@@ -52,7 +52,7 @@ def ablate(run_dir: str | Path, episodes: int | None = None, horizon: int | None
     horizon: open-loop steps H (default: the model's planning horizon)."""
     run_dir = Path(run_dir)
     cfg, model, stored, method = load_pwm_run(run_dir, device)
-    train = cfg.train_config()
+    train = cfg.train
     if train.torch_threads > 0:
         torch.set_num_threads(train.torch_threads)
     device = model.device
@@ -65,7 +65,7 @@ def ablate(run_dir: str | Path, episodes: int | None = None, horizon: int | None
     episodes = train.eval_episodes if episodes is None else int(episodes)
     horizon = int(model.cfg.horizon) if horizon is None else int(horizon)
     if episodes < 1 or horizon < 1:
-        raise ValueError(f"episodes and horizon must be >= 1, got {episodes} and {horizon}")
+        raise InputError(f"episodes and horizon must be >= 1, got {episodes} and {horizon}")
     comp = len(cfg.tasks) - 1
     task_id, heads = cfg.tasks[comp], stored[comp]
     routed = int(heads.task_index)
