@@ -58,8 +58,8 @@ def ablate(run_dir: str | Path, episodes: int | None = None, horizon: int | None
     device = model.device
     mixture = model.dynamics
     if int(mixture.num_groups) < 2:
-        raise ValueError(
-            f"{run_dir}: one expert group only (method {cfg.method!r}); the ablation compares "
+        raise InputError(
+            f"{run_dir}: one expert group only (method {cfg.method.type!r}); the ablation compares "
             "prior and new experts of a run with method 'experts'"
         )
     episodes = train.eval_episodes if episodes is None else int(episodes)
