@@ -220,6 +220,9 @@ class CurriculumConfig(RunConfig):
         except ValueError as e:
             raise ConfigError(str(e)) from None
         self.method.check_model(self.model.type)
+        from ccfit.continual.base import build_method
+
+        build_method(self.method, len(self.tasks), self.seed)  # bad options fail here, early
         check(self.train.steps % self.train.eval_interval == 0,
               f"steps per task ({self.train.steps}) must be a multiple of eval_interval "
               f"({self.train.eval_interval}) so every task is evaluated at its end")  # fmt: skip

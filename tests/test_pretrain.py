@@ -51,7 +51,8 @@ def test_loss_falls_split_and_sidecar(reach_root, tmp_path):
     assert history[:, 0].tolist() == list(range(5, STEPS + 1, 5))
     assert history[-2:, 1].mean() < 0.6 * history[:2, 1].mean()  # training loss falls
     held, init = metrics["heldout"], metrics["heldout_initial"]
-    assert held["frames"] == 8 and held["image_mse"] < 0.7 * init["image_mse"]
+    # 8 steps and the recorded final observation
+    assert held["frames"] == 9 and held["image_mse"] < 0.7 * init["image_mse"]
     for cam in ("topview", "frontview", "gripperPOV"):
         assert 0 < held["cameras"][cam]["mse"] < init["cameras"][cam]["mse"]
         assert held["cameras"][cam]["psnr_db"] == pytest.approx(
@@ -64,7 +65,7 @@ def test_loss_falls_split_and_sidecar(reach_root, tmp_path):
     held_keys, train_keys = {key(e) for e in data["held_out"]}, {key(e) for e in data["train"]}
     assert len(held_keys) == 1 and len(train_keys) == 3 and not held_keys & train_keys
     assert held_keys | train_keys == {("Reach", i) for i in range(4)}
-    assert data["frames"] == {"train": 24, "heldout": 8}
+    assert data["frames"] == {"train": 27, "heldout": 9}  # 9 frames an episode: 8 + final
     suite = data["suites"][0]
     assert suite["repo_id"] == "ccdata/Reach" and suite["root"] == str(reach_root.resolve())
     assert sum(suite["oracle_episodes"].values()) == 4
@@ -102,9 +103,9 @@ def test_resume_equals_uninterrupted_and_frozen_round_trip(reach_root, tmp_path)
 
     with pytest.raises(KeyboardInterrupt):
         pretrain_encoder(config, cut, progress=False, on_step=interrupt)
-    assert not cut.exists() and torch.load(ckpt, weights_only=True)["step"] == 25
+    assert not cut.exists() and torch.load(ckpt, weights_only=False)["step"] == 25
     shutil.copy(backup, ckpt)
-    assert torch.load(ckpt, weights_only=True)["step"] == 20
+    assert torch.load(ckpt, weights_only=False)["step"] == 20
     pretrain_encoder(config, cut, progress=False)
     assert not ckpt.exists()  # removed once the result is written
     a, b = weights(full), weights(cut)
@@ -124,7 +125,7 @@ def test_resume_equals_uninterrupted_and_frozen_round_trip(reach_root, tmp_path)
 
     with pytest.raises(KeyboardInterrupt):
         pretrain_encoder(config, last, progress=False, on_step=stop_at_end)
-    state = torch.load(last.with_suffix(".ckpt.pt"), weights_only=True)["model"]
+    state = torch.load(last.with_suffix(".ckpt.pt"), weights_only=False)["model"]
     trained = build_encoder(config.encoder_config())
     trained.load_state_dict({k[len("encoder."):]: v for k, v in state.items()
                              if k.startswith("encoder.")})  # fmt: skip

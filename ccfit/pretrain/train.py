@@ -136,7 +136,8 @@ def _pretrain(
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     step, history, window, initial = 0, [], [], None
     if ckpt_path.is_file():
-        ck = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+        # Our own file; it holds the RNG states of ccfit.io.rng_state (NumPy and Python objects).
+        ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
         if ck.get("version") != CHECKPOINT_VERSION or ck.get("identity") != identity:
             raise ValueError(
                 f"{ckpt_path} is a checkpoint of other settings; rerun with those or delete it"
