@@ -134,6 +134,7 @@ SUMMARY_COLUMNS = (
     ("task", "task", -18, ""),
     ("policy", "policy", -13, ""),
     ("episodes", "episodes", 8, "d"),
+    ("steps", "steps", 8, "d"),
     ("frames", "frames", 8, "d"),
     ("success_rate", "success", 8, ".2f"),
     ("mean_normalized_return", "norm.ret", 9, ".1f"),
@@ -154,7 +155,8 @@ def format_summary(summary: dict) -> str:
         lines.append("  ".join(_cell(row[k], w, n) for k, _, w, n in SUMMARY_COLUMNS))
     fps = summary["frames_per_s"]
     lines.append(
-        f"{summary['episodes']} episodes, {summary['frames']} frames; this run: "
+        f"{summary['episodes']} episodes, {summary['steps']} steps, {summary['frames']} frames "
+        "(with each episode's final observation); this run: "
         f"{summary['new_episodes']} new episodes in {summary['wall_time_s'] or 0:.1f} s"
         + (f" ({fps:.1f} frames/s)" if fps else "")
     )

@@ -22,9 +22,9 @@ from ccdata.tasks.base import CUBE_HALF_SIZE, SceneEnv, add_cube, add_marker
 from ccdata.tasks.registry import ExplorationNoise, TaskSpec, register_task
 
 EXPLORATION: dict[str, ExplorationNoise] = {
-    "pick-cube": ExplorationNoise(noise_std=0.6347, random_prob=0.2116),
-    "place-cube": ExplorationNoise(noise_std=1.427, random_prob=0.4757),
-    "pnp-cube": ExplorationNoise(noise_std=0.7494, random_prob=0.2498),
+    "pick-cube": ExplorationNoise(noise_std=0.699, random_prob=0.233),
+    "place-cube": ExplorationNoise(noise_std=1.3193, random_prob=0.4398),
+    "pnp-cube": ExplorationNoise(noise_std=0.6683, random_prob=0.2228),
 }
 """Calibrated noisy-oracle noise per task (`ccdata calibrate`): about half of the noisy-oracle
 episodes succeed."""
