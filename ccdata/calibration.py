@@ -31,6 +31,11 @@ TARGET_BAND = (0.3, 0.7)
 """Noisy-oracle success rates a calibrated task must reach on its datasets' episodes."""
 
 
+def level_of(noise: ExplorationNoise) -> float:
+    """The level of a noise on the search line (by its std)."""
+    return noise.noise_std / BASE_NOISE.noise_std
+
+
 def at_level(level: float) -> ExplorationNoise:
     """The noise at `level` on the search line (random_prob saturates at 1: a random policy)."""
     return ExplorationNoise(
@@ -89,23 +94,28 @@ def calibrate(
     tolerance: float = 0.1,
     low: float = 1 / 16,
     high: float = 16.0,
+    start: float = 1.0,
+    step: float = 4.0,
     on_step=None,
 ) -> tuple[ExplorationNoise, float, list[dict]]:
     """Search the noise level whose success rate on `episodes` calibration seeds is within
     `tolerance` of `target`, in at most `iterations` evaluations. Returns (the best noise found,
     its rate, every evaluation); `on_step(record)` sees each evaluation as it is made.
 
-    The success rate falls with the level, steeply. Starting from level 1, the search steps by
-    x4 until the target is bracketed, then interpolates log(level) linearly between the bracket's
-    rates (kept inside the bracket's central 80%, so it always shrinks)."""
+    The success rate falls with the level, steeply. Starting from level `start` (1, or a
+    previous calibration to refine), the search steps by x`step` until the target is bracketed,
+    then interpolates log(level) linearly between the bracket's rates (kept inside the
+    bracket's central 80%, so it always shrinks)."""
     get_task(task_id)
-    if not 0 < target < 1 or episodes < 1 or iterations < 1 or not 0 < low <= 1 <= high:
-        raise ValueError("need 0 < target < 1, episodes >= 1, iterations >= 1, low <= 1 <= high")
+    if (not 0 < target < 1 or episodes < 1 or iterations < 1 or not 0 < low <= start <= high
+            or step <= 1):
+        raise ValueError("need 0 < target < 1, episodes >= 1, iterations >= 1, "
+                         "low <= start <= high, step > 1")
     seeds = calibration_seeds(episodes)
     lo_bound, hi_bound = math.log(low), math.log(high)
     below: tuple[float, float] | None = None  # (log level, rate > target): too little noise
     above: tuple[float, float] | None = None  # (log level, rate <= target): too much
-    x = 0.0
+    x = math.log(start)
     history: list[dict] = []
     for _ in range(iterations):
         noise = at_level(math.exp(x))
@@ -128,10 +138,10 @@ def calibrate(
         elif above is None:
             if x >= hi_bound:
                 break  # succeeds too often even at the highest level
-            x = min(hi_bound, x + math.log(4))
+            x = min(hi_bound, x + math.log(step))
         else:
             if x <= lo_bound:
                 break  # fails too often even at the lowest level
-            x = max(lo_bound, x - math.log(4))
+            x = max(lo_bound, x - math.log(step))
     best = min(history, key=lambda r: (abs(r["success_rate"] - target), r["level"]))
     return ExplorationNoise(best["noise_std"], best["random_prob"]), best["success_rate"], history

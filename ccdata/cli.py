@@ -180,6 +180,7 @@ SUMMARY_COLUMNS = (
     ("task", "task", -18, ""),
     ("policy", "policy", -13, ""),
     ("episodes", "episodes", 8, "d"),
+    ("steps", "steps", 8, "d"),
     ("frames", "frames", 8, "d"),
     ("success_rate", "success", 8, ".2f"),
     ("mean_normalized_return", "norm.ret", 9, ".1f"),
@@ -200,7 +201,8 @@ def format_summary(summary: dict) -> str:
         lines.append("  ".join(_cell(row[k], w, n) for k, _, w, n in SUMMARY_COLUMNS))
     fps = summary["frames_per_s"]
     lines.append(
-        f"{summary['episodes']} episodes, {summary['frames']} frames; this run: "
+        f"{summary['episodes']} episodes, {summary['steps']} steps, {summary['frames']} frames "
+        "(with each episode's final observation); this run: "
         f"{summary['new_episodes']} new episodes in {summary['wall_time_s'] or 0:.1f} s"
         + (f" ({fps:.1f} frames/s)" if fps else "")
     )
@@ -239,15 +241,17 @@ def _cmd_card(args: argparse.Namespace) -> None:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> None:
-    from ccdata.calibration import calibrate
-    from ccdata.tasks import TASKS
+    from ccdata.calibration import calibrate, level_of
+    from ccdata.tasks import TASKS, get_task
 
     tasks = args.task or list(TASKS)
     found = {}
     for task_id in tasks:
+        refine = {"start": level_of(get_task(task_id).exploration), "step": 1.5} if args.refine \
+            else {}
         noise, rate, _ = calibrate(
             task_id, target=args.target, episodes=args.episodes, iterations=args.iterations,
-            tolerance=args.tolerance,
+            tolerance=args.tolerance, **refine,
             on_step=lambda r: print(json.dumps(r), file=sys.stderr, flush=True),
         )
         found[task_id] = {**noise.to_dict(), "success_rate": rate, "episodes": args.episodes}
@@ -310,6 +314,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--target", type=float, default=0.5, help="noisy-oracle success rate")
     p.add_argument("--iterations", type=int, default=8, help="evaluations at most, per task")
     p.add_argument("--tolerance", type=float, default=0.1, help="accepted |rate - target|")
+    p.add_argument("--refine", action="store_true",
+                   help="start from each task's current calibration, in smaller steps")
     p.add_argument("--json", action="store_true", help="also print the results as JSON")
     p.set_defaults(func=_cmd_calibrate)
 

@@ -14,7 +14,8 @@ Grasp) showed:
 - writing: `save_episode` runs `embed_images`, a per-row `datasets.map`, to embed image files
   into the parquet (~2 ms per frame). A ccdata dataset has no image features (cameras are
   videos), so the map rewrites nothing; the stand-in returns the dataset as is in that case and
-  calls LeRobot's function otherwise.
+  calls LeRobot's function otherwise. The parquet tables written are identical; only the
+  `datasets` cache fingerprint that the map stamps into their schema metadata is absent.
 
 Both apply only inside `faster_lerobot()` (which also turns off the progress bars LeRobot's
 merges print), and only when LeRobot still has the functions they replace (pinned lerobot 0.6);

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import threading
 import time
 import zlib
 from collections.abc import Callable, Iterable
@@ -26,7 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ccdata.dataset_format import existing_keys, measure_dataset, read_ccdata_metadata
+from ccdata.dataset_format import (
+    existing_keys,
+    measure_dataset,
+    quiet_libraries,
+    read_ccdata_metadata,
+)
 from ccdata.journal import (
     JournalPaths,
     Merger,
@@ -123,6 +129,9 @@ def generate(
 ) -> tuple[Path, dict]:
     """Generate (or complete) the dataset of `config`. Returns (dataset root, summary).
 
+    It starts processes (`multiprocessing` spawn): a script calling it needs the usual
+    `if __name__ == "__main__":` guard.
+
     `on_episode(record)` is called in this process after each completed episode. A
     KeyboardInterrupt (Ctrl-C, or raised by `on_episode`) stops the workers after their current
     episode, merges every completed episode into a valid dataset, and is re-raised."""
@@ -147,6 +156,11 @@ def generate(
 
     interrupted = False
     merger = Merger(config, chunks_of([s.key for s in todo]))
+    # The rollouts run in this process and the writing in another, so LeRobot would otherwise
+    # be imported here only by the final merge, delaying it by seconds.
+    warm_up = threading.Thread(target=_import_merge_libraries, name="ccdata-import",
+                               daemon=True)
+    warm_up.start()
     try:
         if config.workers == 1 or len(todo) <= 1:
             write_shard(config, todo, paths.pieces, on_piece=done_one)
@@ -157,6 +171,7 @@ def generate(
     finally:
         bar.close()
         merger.finish()
+        warm_up.join()
         merge_pieces(config, order)
         wall = time.perf_counter() - start  # end to end: the merge is part of the work
         (paths.work / "STOP").unlink(missing_ok=True)
@@ -164,6 +179,12 @@ def generate(
         raise KeyboardInterrupt
     shutil.rmtree(paths.work, ignore_errors=True)
     return paths.root, summarize(paths.root, new_records, wall)
+
+
+def _import_merge_libraries() -> None:
+    import lerobot.datasets.aggregate  # noqa: F401
+
+    quiet_libraries()
 
 
 def _run_workers(config: GenerateConfig, todo: list[EpisodeSpec], paths: JournalPaths,

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ccdata.dataset_format import FINAL_KEY
+from ccdata.dataset_format import FINAL_KEY, FORMAT_VERSION
 
 CODEBASE_VERSION = "v3.0"
 LEROBOT_COLUMNS = ("timestamp", "frame_index", "episode_index", "index", "task_index")
@@ -65,6 +65,10 @@ def _check_info(info: dict, ccmeta: dict | None, findings: list[str]) -> None:
     from ccdata.suites import SUITES
 
     identity = ccmeta.get("identity", {})
+    if identity.get("format") != FORMAT_VERSION:
+        findings.append(f"generated in ccdata format {identity.get('format')}, this version "
+                        f"writes format {FORMAT_VERSION} (final observations recorded): "
+                        "regenerate it")
     if info.get("fps") != identity.get("fps"):
         findings.append(f"info.json fps {info.get('fps')} != generation fps {identity.get('fps')}")
     size = identity.get("image_size")

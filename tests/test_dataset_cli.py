@@ -33,6 +33,9 @@ def test_generate_prints_summary_and_writes_card(tiny_reach, capsys):
     assert "4 episodes" in out and "0 new episodes" in out
     card = (tiny_reach / "README.md").read_text()
     assert card.startswith("---\nlicense: mit") and "composition_matrix" in card
+    # The card is this dataset's: 32 px, one oracle episode per task, no exploration.
+    assert "square 32 px" in card and "Per task: 1 episodes of the scripted `oracle`" in card
+    assert "4 episodes," in card and "| `reach-xyz` | oracle | 1 |" in card
 
 
 def test_generate_refuses_other_settings(tiny_reach, capsys):

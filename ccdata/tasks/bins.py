@@ -21,10 +21,10 @@ from ccdata.tasks.base import SceneEnv, add_cube
 from ccdata.tasks.registry import ExplorationNoise, TaskSpec, register_task
 
 EXPLORATION: dict[str, ExplorationNoise] = {
-    "bin-red-blue": ExplorationNoise(noise_std=0.3, random_prob=0.1),
-    "bin-yellow-blue": ExplorationNoise(noise_std=0.3, random_prob=0.1),
-    "bin-red-purple": ExplorationNoise(noise_std=0.3, random_prob=0.1),
-    "bin-yellow-purple": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "bin-red-blue": ExplorationNoise(noise_std=0.5894, random_prob=0.1965),
+    "bin-yellow-blue": ExplorationNoise(noise_std=0.5894, random_prob=0.1965),
+    "bin-red-purple": ExplorationNoise(noise_std=0.5894, random_prob=0.1965),
+    "bin-yellow-purple": ExplorationNoise(noise_std=0.5894, random_prob=0.1965),
 }
 """Calibrated noisy-oracle noise per task (`ccdata calibrate`): about half of the noisy-oracle
 episodes succeed."""

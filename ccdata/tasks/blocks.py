@@ -29,9 +29,9 @@ from ccdata.tasks.grasp import (
 from ccdata.tasks.registry import ExplorationNoise, TaskSpec, register_task
 
 EXPLORATION: dict[str, ExplorationNoise] = {
-    "pnp-red-block": ExplorationNoise(noise_std=0.3, random_prob=0.1),
-    "pnp-blue-block": ExplorationNoise(noise_std=0.3, random_prob=0.1),
-    "stack-blocks": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "pnp-red-block": ExplorationNoise(noise_std=0.6834, random_prob=0.2278),
+    "pnp-blue-block": ExplorationNoise(noise_std=0.6834, random_prob=0.2278),
+    "stack-blocks": ExplorationNoise(noise_std=0.3347, random_prob=0.1116),
 }
 """Calibrated noisy-oracle noise per task (`ccdata calibrate`): about half of the noisy-oracle
 episodes succeed."""

@@ -24,8 +24,8 @@ from ccdata.tasks.drawer import carry_score
 from ccdata.tasks.registry import ExplorationNoise, TaskSpec, register_task
 
 EXPLORATION: dict[str, ExplorationNoise] = {
-    "box-close": ExplorationNoise(noise_std=0.3, random_prob=0.1),
-    "box-pnp-close": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "box-close": ExplorationNoise(noise_std=0.2006, random_prob=0.0669),
+    "box-pnp-close": ExplorationNoise(noise_std=0.1175, random_prob=0.0392),
 }
 """Calibrated noisy-oracle noise per task (`ccdata calibrate`): about half of the noisy-oracle
 episodes succeed."""

@@ -25,8 +25,8 @@ from ccdata.tasks.grasp import transport_reward
 from ccdata.tasks.registry import ExplorationNoise, TaskSpec, register_task
 
 EXPLORATION: dict[str, ExplorationNoise] = {
-    "drawer-open": ExplorationNoise(noise_std=0.3, random_prob=0.1),
-    "drawer-pnp": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "drawer-open": ExplorationNoise(noise_std=0.5725, random_prob=0.1908),
+    "drawer-pnp": ExplorationNoise(noise_std=0.1758, random_prob=0.0586),
 }
 """Calibrated noisy-oracle noise per task (`ccdata calibrate`): about half of the noisy-oracle
 episodes succeed."""

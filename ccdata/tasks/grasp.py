@@ -22,9 +22,9 @@ from ccdata.tasks.base import CUBE_HALF_SIZE, SceneEnv, add_cube, add_marker
 from ccdata.tasks.registry import ExplorationNoise, TaskSpec, register_task
 
 EXPLORATION: dict[str, ExplorationNoise] = {
-    "pick-cube": ExplorationNoise(noise_std=0.3, random_prob=0.1),
-    "place-cube": ExplorationNoise(noise_std=0.3, random_prob=0.1),
-    "pnp-cube": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "pick-cube": ExplorationNoise(noise_std=0.699, random_prob=0.233),
+    "place-cube": ExplorationNoise(noise_std=1.3193, random_prob=0.4398),
+    "pnp-cube": ExplorationNoise(noise_std=0.6683, random_prob=0.2228),
 }
 """Calibrated noisy-oracle noise per task (`ccdata calibrate`): about half of the noisy-oracle
 episodes succeed."""

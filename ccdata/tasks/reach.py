@@ -14,10 +14,10 @@ from ccdata.tasks.base import SceneEnv, add_marker
 from ccdata.tasks.registry import ExplorationNoise, TaskSpec, register_task
 
 EXPLORATION: dict[str, ExplorationNoise] = {
-    "reach-xy": ExplorationNoise(noise_std=0.3, random_prob=0.1),
-    "reach-xz": ExplorationNoise(noise_std=0.3, random_prob=0.1),
-    "reach-yz": ExplorationNoise(noise_std=0.3, random_prob=0.1),
-    "reach-xyz": ExplorationNoise(noise_std=0.3, random_prob=0.1),
+    "reach-xy": ExplorationNoise(noise_std=2.2979, random_prob=0.766),
+    "reach-xz": ExplorationNoise(noise_std=2.3784, random_prob=0.7928),
+    "reach-yz": ExplorationNoise(noise_std=2.4266, random_prob=0.8089),
+    "reach-xyz": ExplorationNoise(noise_std=2.443, random_prob=0.8143),
 }
 """Calibrated noisy-oracle noise per task (`ccdata calibrate`): about half of the noisy-oracle
 episodes succeed."""
