@@ -149,7 +149,7 @@ def test_seed_buffer_preloads_the_tasks_episodes(tiny_dataset):
     assert seed_buffer(buf, root, "reach-xy", "state") == 1
     # The success ended the episode: its final observation is replayed, the terminal kept.
     assert buf.num_episodes == 1 and buf.num_transitions == steps
-    b = buf.sample(256, 1)
+    b = buf.sample(256, 2)  # windows of two rows: one transition each
     final = b.terminated[0, :, 0] == 1
     assert final.any()
     assert torch.equal(b.obs["state"][1, final][0], torch.from_numpy(written[0]["final_state"]))
