@@ -105,7 +105,7 @@ def ablate(run_dir: str | Path, episodes: int | None = None, horizon: int | None
         m["latent_error_ratio"] = e / e0 if e0 > 0 else None
         m["fidelity_ratio"] = e0 / e if e > 0 else None
     result = {
-        "run": str(run_dir), "suite": cfg.suite, "method": cfg.method, "seed": cfg.seed,
+        "run": str(run_dir), "suite": cfg.suite, "method": cfg.method.type, "seed": cfg.seed,
         "task": task_id, "task_index": comp, "episodes": episodes, "horizon": horizon,
         "num_active": mixture.num_active, "experts_per_task": mixture.k, "modes": modes,
     }  # fmt: skip
