@@ -25,8 +25,8 @@ PAPER = {
     "url": "https://object814.github.io/Compositional-Continual-Learning/",
 }
 
-REFERENCE_SIZE_PER_1000_FRAMES = {"videos_mb": 4.3, "data_mb": 0.21, "measured_on": (
-    "a Grasp dataset at 64 px (4 oracle, 2 noisy-oracle, 2 random episodes per task), "
+REFERENCE_SIZE_PER_1000_FRAMES = {"videos_mb": 4.3, "data_mb": 0.20, "measured_on": (
+    "a Grasp dataset with 4 oracle, 2 noisy-oracle and 2 random episodes per task, by "
     "bench/dataset_write.py")}
 """Size of the default settings' datasets per 1000 stored frames, for the default cards (a
 generated dataset's card states its own measured size)."""

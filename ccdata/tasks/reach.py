@@ -17,7 +17,7 @@ EXPLORATION: dict[str, ExplorationNoise] = {
     "reach-xy": ExplorationNoise(noise_std=2.2979, random_prob=0.766),
     "reach-xz": ExplorationNoise(noise_std=2.3784, random_prob=0.7928),
     "reach-yz": ExplorationNoise(noise_std=2.4266, random_prob=0.8089),
-    "reach-xyz": ExplorationNoise(noise_std=2.443, random_prob=0.8143),
+    "reach-xyz": ExplorationNoise(noise_std=2.3459, random_prob=0.782),
 }
 """Calibrated noisy-oracle noise per task (`ccdata calibrate`): about half of the noisy-oracle
 episodes succeed."""
