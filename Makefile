@@ -17,9 +17,10 @@ install: $(BIN)/.installed
 demo: install
 	$(BIN)/ccdata generate --suite PnPBoxClose
 
+# One worker per core; a test file stays on one worker (its module fixtures run once).
 test: install
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadfile --durations=20
 
 test-slow: install
 	$(BIN)/python -m pytest -q -m slow

@@ -20,8 +20,9 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 from ccdata.env import EPISODE_STEPS, make_env  # noqa: E402
+from ccdata.episode_plan import plan, policy_seed  # noqa: E402
 from ccdata.policies import make_policy  # noqa: E402
-from ccdata.record import GenerateConfig, generate, plan, policy_seed  # noqa: E402
+from ccdata.record import GenerateConfig, generate  # noqa: E402
 
 
 def env_only_rate(config: GenerateConfig) -> tuple[float, int, float]:

@@ -33,8 +33,9 @@ import numpy as np
 import submitit
 
 from ccdata.dataset_format import existing_keys, write_json
+from ccdata.episode_plan import plan
 from ccdata.journal import JournalPaths, finished_pieces, merge_pieces, prepare
-from ccdata.record import GenerateConfig, plan, summarize, write_shard
+from ccdata.record import GenerateConfig, summarize
 from ccdata.slurm import (
     LaunchError,
     SlurmSettings,
@@ -45,6 +46,7 @@ from ccdata.slurm import (
     code_version,
     submitting,
 )
+from ccdata.writer import write_shard
 
 SUBMISSION_RECORD = "slurm-submission.json"
 """In the journal: the last submission's job ids, code version and shards."""

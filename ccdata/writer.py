@@ -26,7 +26,6 @@ import traceback
 from collections.abc import Callable
 from multiprocessing import get_context
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -38,13 +37,11 @@ from ccdata.dataset_format import (
     write_json,
 )
 from ccdata.env import EPISODE_STEPS, FPS, make_env
+from ccdata.episode_plan import EpisodeSpec, policy_seed
 from ccdata.lerobot_speedups import faster_lerobot
 from ccdata.render import CAMERAS
 from ccdata.settings import VIDEO_ENCODER, DatasetSettings
 from ccdata.suites import get_suite
-
-if TYPE_CHECKING:
-    from ccdata.record import EpisodeSpec
 
 QUEUED = 2
 """Rolled-out episodes that may wait for the writer (memory: one 250-step episode at 64 px is
@@ -58,7 +55,6 @@ def rollout_episode(env, spec: EpisodeSpec, config: DatasetSettings) -> dict[str
     observation the last action led to, a success state when the episode succeeded) as a frame
     of its own with no transition: action zeros, next.reward 0, `FINAL_KEY` true."""
     from ccdata.policies import make_policy
-    from ccdata.record import policy_seed
 
     noise = config.exploration(spec.task_id)
     policy = make_policy(spec.policy, spec.task_id, seed=policy_seed(spec.seed),

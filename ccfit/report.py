@@ -101,8 +101,17 @@ class Run:
             "+frozen-enc" if _axis_name(self.config, "encoder") else "")
 
     @property
+    def suite(self) -> str:
+        return _axis_name(self.config, "suite")
+
+    @property
+    def method(self) -> str:
+        """The continual method's type (its options are in `config['method']`)."""
+        return _axis_name(self.config, "method")
+
+    @property
     def key(self) -> tuple[str, str, str]:
-        return self.backbone, _axis_name(self.config, "suite"), _axis_name(self.config, "method")
+        return self.backbone, self.suite, self.method
 
     @property
     def seed(self) -> int:

@@ -51,6 +51,21 @@ def slurm_unavailable() -> str | None:
     return None
 
 
+@pytest.fixture(autouse=True)
+def one_slurm_test_at_a_time(request):
+    """Tests marked `slurm` share the one-node cluster and its partitions (one of them preempts
+    the other): under pytest-xdist, a lock file keeps them from running at the same time."""
+    if request.node.get_closest_marker("slurm") is None:
+        yield
+        return
+    import fcntl
+    import tempfile
+
+    with open(os.path.join(tempfile.gettempdir(), "ccbench-slurm-tests.lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
+
+
 def pytest_runtest_setup(item):
     """Skip a `slurm` test when no SLURM answers, with the reason; fail it instead when
     CCBENCH_REQUIRE_SLURM is set (CI sets it once its SLURM is up)."""

@@ -33,7 +33,7 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def all_transitions(buffer: ReplayBuffer):
-    return buffer.gather(torch.arange(buffer.num_starts(1)), 1)
+    return buffer.transitions(torch.arange(buffer.num_transitions))
 
 
 def test_seeded_pixel_replay_holds_one_terminal_success_per_successful_episode(reach):
@@ -46,11 +46,11 @@ def test_seeded_pixel_replay_holds_one_terminal_success_per_successful_episode(r
     steps = [int((~ep[FINAL_KEY].reshape(-1).astype(bool)).sum()) for ep in episodes]
     assert buffer.num_transitions == sum(steps)
     batch = all_transitions(buffer)
-    terminal = batch.terminated[0, :, 0] == 1
+    terminal = batch.terminated == 1
     assert int(terminal.sum()) == len(successful)
     # Each terminal transition leads to its episode's success state: the recorded final frame,
     # which is what the env shows after replaying the episode's actions.
-    reached = batch.obs["pixels"][1, terminal].numpy()
+    reached = batch.next_obs["pixels"][terminal].numpy()
     for ep, pixels in zip(successful, reached, strict=True):
         final = {c: ep[f"observation.images.{c}"][-1] for c in ccdata.CAMERAS}
         np.testing.assert_array_equal(pixels, stack_cameras(final))

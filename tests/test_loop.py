@@ -68,6 +68,7 @@ def test_resume_after_interruption_matches_uninterrupted_run(tmp_path, monkeypat
         train_task(_run_config(broken, steps=180), progress=False)
 
 
+@pytest.mark.slow  # two 300-step runs (~60 s); resume equality is covered by the tests below
 def test_wall_clock_checkpoints_do_not_change_the_run(tmp_path):
     """A checkpoint written at an episode end (checkpoint_minutes) cuts nothing: the run's
     parameters equal those of a run without it."""

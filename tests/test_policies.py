@@ -66,7 +66,7 @@ def dataset_noisy_rates(task_id: str, episodes: int = 20) -> float:
     """Success rate of the noisy-oracle episodes a default dataset holds for `task_id` (its
     first `episodes`, seed 0), rolled out state-only with the dataset's own seeds."""
     from ccdata.calibration import noisy_oracle_rollouts
-    from ccdata.record import EpisodeSpec, episode_seed, policy_seed
+    from ccdata.episode_plan import EpisodeSpec, episode_seed, policy_seed
 
     seeds = [episode_seed(0, task_id, "noisy-oracle", i) for i in range(episodes)]
     assert EpisodeSpec(task_id, 0, "noisy-oracle", 0, seeds[0]).seed == seeds[0]

@@ -19,7 +19,8 @@ import pytest
 
 import ccdata
 from ccdata.dataset_format import POLICY_ORDER, existing_keys, features
-from ccdata.record import GenerateConfig, generate, plan
+from ccdata.episode_plan import plan
+from ccdata.record import GenerateConfig, generate
 from ccdata.verify import verify_dataset
 
 TINY = dict(suite="Reach", episodes=1, explore_episodes=1, image_size=32, max_steps=12)
@@ -228,7 +229,7 @@ def test_sigkill_loses_at_most_the_episode_in_progress(tmp_path):
     proc = subprocess.Popen([sys.executable, "-c", script], env={**os.environ},
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     pieces = tmp_path / ".Reach.ccdata-work" / "pieces"
-    deadline = time.time() + 60
+    deadline = time.time() + 240  # spawned writer and merger import torch, LeRobot: slow
     try:
         while time.time() < deadline:
             if pieces.exists() and len([p for p in pieces.iterdir()
@@ -303,10 +304,17 @@ def test_merger_batches_complete_chunks_only(tiny, tmp_path):
     record.write_shard(cfg, specs[:6], paths.pieces)  # chunk 2 of 4 incomplete
     chunks = [[s.key for s in specs[i:i + 4]] for i in (0, 4)]
     stop = threading.Event()
-    timer = threading.Timer(20.0, stop.set)  # the second chunk never completes
-    timer.start()
+
+    def stop_once_the_first_chunk_is_batched() -> None:  # the second chunk never completes
+        deadline = time.monotonic() + 120
+        while not journal.finished_batches(paths) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        stop.set()
+
+    watcher = threading.Thread(target=stop_once_the_first_chunk_is_batched)
+    watcher.start()
     journal.merge_chunks(cfg, chunks, stop)
-    timer.cancel()
+    watcher.join()
     batches = journal.finished_batches(paths)
     assert list(batches) == [tuple(chunks[0])]
     record.write_shard(cfg, specs[6:], paths.pieces)
@@ -319,6 +327,7 @@ def test_merger_batches_complete_chunks_only(tiny, tmp_path):
     assert not paths.batches.exists() and not any(paths.pieces.iterdir())
 
 
+@pytest.mark.slow  # two generations (~50 s); test_workers_give_the_same_episodes runs in CI
 def test_batched_generation_is_byte_identical_across_workers(tmp_path, monkeypatch):
     """With chunks of 2 (6 batches, merged in a tree of pairs), the merge tree is fixed by the
     plan: one worker or two, merger fast or slow, the dataset's data files are the same bytes

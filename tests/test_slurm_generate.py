@@ -18,9 +18,10 @@ from pathlib import Path
 import pytest
 
 from ccdata.cli import SLURM_TIME, main
+from ccdata.episode_plan import plan
 from ccdata.journal import JournalPaths, finished_pieces
 from ccdata.launch import SUBMISSION_RECORD
-from ccdata.record import GenerateConfig, generate, plan
+from ccdata.record import GenerateConfig, generate
 from ccdata.slurm import (
     LaunchError,
     SlurmSettings,

@@ -237,8 +237,9 @@ def plot_routing(run_dir: str | Path, out: str | Path) -> dict:
     if stages == len(names):
         ax.add_patch(Rectangle((-0.5, stages - 1.5), norm_w.shape[1], 1, fill=False, lw=2))
     statement = top_statement(data)
-    fig.suptitle(f"{config['suite']} / {config['model']} / {config['method']} / seed "
-                 f"{config['seed']}: {statement}", fontsize=10)  # fmt: skip
+    model, method = (config[k]["type"] for k in ("model", "method"))
+    fig.suptitle(f"{config['suite']} / {model} / {method} / seed {config['seed']}: {statement}",
+                 fontsize=10)  # fmt: skip
     fig.savefig(out, dpi=120)
     plt.close(fig)
     return {**data, "statement": statement}
@@ -254,10 +255,10 @@ def report_routing(runs, out: Path) -> tuple[list[Path], dict[tuple, dict]]:
             continue
         backbone, suite, method = run.key
         prefix = "routing" if backbone == "pwm" else f"routing_{backbone}"
-        path = out / f"{prefix}_{suite}_{method}_s{run.config['seed']}.png"
+        path = out / f"{prefix}_{suite}_{method}_s{run.seed}.png"
         data = plot_routing(run.path, path)
         top = data["top_expert"]
-        summary.setdefault(run.key, {})[f"s{run.config['seed']}"] = {
+        summary.setdefault(run.key, {})[f"s{run.seed}"] = {
             "top_expert_stays_top": top["k"], "of": top["n"], "statement": data["statement"],
         }  # fmt: skip
         written.append(path)

@@ -80,11 +80,20 @@ def check_saved_config(out: Path, resolved: dict) -> None:
 
     saved = out / CONFIG
     if saved.exists():
-        if json.loads(saved.read_text()) != json.loads(json.dumps(resolved)):
-            raise ConfigError(f"{out} holds a run with a different config; use another --out "
-                              f"or delete it")  # fmt: skip
+        differ = _differing_keys(json.loads(saved.read_text()), json.loads(json.dumps(resolved)))
+        if differ:
+            raise ConfigError(f"{out} holds a run with a different config (differs in "
+                              f"{', '.join(differ)}); use another --out or delete it")  # fmt: skip
         return
     atomic_write_json(saved, resolved)
+
+
+def _differing_keys(a, b, prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two nested dicts."""
+    if not (isinstance(a, dict) and isinstance(b, dict)):
+        return [] if a == b else [prefix or "<root>"]
+    return [d for k in sorted(set(a) | set(b), key=str)
+            for d in _differing_keys(a.get(k), b.get(k), f"{prefix}.{k}" if prefix else str(k))]
 
 
 def default_out(cfg: TaskRunConfig) -> Path:

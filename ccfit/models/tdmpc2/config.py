@@ -36,10 +36,11 @@ class TDMPC2Config(ModelConfig):
     """
 
     PRESETS = {
-        # Tiny: unit tests and smoke runs finish in seconds.
+        # Tiny: unit tests and smoke runs finish in seconds. One MPPI iteration: evaluation
+        # episodes (250 plans each) dominate a smoke curriculum's time.
         "smoke": dict(
             latent_dim=32, enc_dim=64, mlp_dim=64, num_enc_layers=2, num_channels=8, num_q=2,
-            num_bins=21, iterations=2, num_samples=32, num_elites=8, num_pi_trajs=4,
+            num_bins=21, iterations=1, num_samples=32, num_elites=8, num_pi_trajs=4,
             batch_size=16,
         ),
         # Sized by measurement for 2 CPU cores (bench/learn_reach.py, 1 torch thread): an update
