@@ -101,6 +101,8 @@ def generate(
     merger = Merger(config, chunks_of([s.key for s in todo]))
     # The rollouts run in this process and the writing in another, so LeRobot would otherwise
     # be imported here only by the final merge, delaying it by seconds.
+    import torch  # noqa: F401  (before the thread: see _import_merge_libraries)
+
     warm_up = threading.Thread(target=_import_merge_libraries, name="ccdata-import",
                                daemon=True)
     warm_up.start()
@@ -125,6 +127,9 @@ def generate(
 
 
 def _import_merge_libraries() -> None:
+    """LeRobot, imported off the rollout thread. torch is imported by the caller first: while a
+    thread initialises torch, `sys.modules['torch']` is a partial module, and scipy (the
+    camera set-up of every environment) looks up `torch.Tensor` there directly and fails."""
     import lerobot.datasets.aggregate  # noqa: F401
 
     quiet_libraries()

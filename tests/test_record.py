@@ -226,8 +226,10 @@ def test_sigkill_loses_at_most_the_episode_in_progress(tmp_path):
         journal.GROUP = 2  # so that a merger process is running when the kill comes
         record.generate(record.GenerateConfig(**{kwargs!r}, root={str(root)!r}), progress=False)
     """)
-    proc = subprocess.Popen([sys.executable, "-c", script], env={**os.environ},
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    log = tmp_path / "generate.log"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen([sys.executable, "-c", script], env={**os.environ},
+                                stdout=out, stderr=subprocess.STDOUT)
     pieces = tmp_path / ".Reach.ccdata-work" / "pieces"
     deadline = time.time() + 240  # spawned writer and merger import torch, LeRobot: slow
     try:
@@ -237,7 +239,8 @@ def test_sigkill_loses_at_most_the_episode_in_progress(tmp_path):
                 break
             time.sleep(0.05)
         else:
-            pytest.fail("the generating subprocess made no progress")
+            pytest.fail(f"the generating subprocess made no progress (exit {proc.poll()}): "
+                        f"{log.read_text()[-2000:]}")
         children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
     finally:
         proc.send_signal(signal.SIGKILL)
