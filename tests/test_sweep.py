@@ -170,6 +170,7 @@ def _mtimes(paths) -> list[int]:
     return [p.stat().st_mtime_ns for p in paths]
 
 
+@pytest.mark.slow  # ~50 s; in CI the SLURM smoke sweep runs the same grid end to end
 def test_local_sweep_trains_once_and_resubmits_only_unfinished_work(tmp_path, capsys):
     root = tmp_path / "runs"
     args = ["--suites", "Reach", "--methods", "ft,er", "--seeds", "0", "--out", str(root),
