@@ -288,6 +288,21 @@ def _deep_merge(base: dict, top: dict) -> dict:
     return out
 
 
+def flatten(config: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested dicts -> {'a.b.c': value}; lists and other unhashable leaves as JSON text. An
+    empty dict adds no key (no options = options absent)."""
+    if isinstance(config, dict):
+        out: dict[str, Any] = {}
+        for k, v in config.items():
+            out.update(flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    try:
+        hash(config)
+    except TypeError:
+        return {prefix: json.dumps(config, sort_keys=True, default=str)}
+    return {prefix: config}
+
+
 def _decode[C: RunConfig](cls: type[C], data: dict) -> C:
     try:
         return draccus.decode(cls, data)

@@ -31,6 +31,7 @@ import numpy as np
 
 from ccfit import metrics as M
 from ccfit.analysis import report_routing
+from ccfit.config import flatten
 from ccfit.curriculum import METRICS_JSON
 from ccfit.metrics import metrics_from_curves, task_curves
 from ccfit.report_plots import (
@@ -53,21 +54,6 @@ PER_SEED = ("seed", "*.seed", "*_seed", "*.*_seed", "out", "*.out", "*_dir", "*.
 and so do not split groups: the seed, seeds derived from it, where outputs went."""
 AXES = ("suite", "model", "method", "encoder")
 """Settings that are the table's own axes (backbone, suite, method), never variant labels."""
-
-
-def flatten(config: Any, prefix: str = "") -> dict[str, Any]:
-    """Nested dicts -> {'a.b.c': value}; lists and other unhashable leaves as JSON text. An
-    empty dict adds no key (no options = options absent)."""
-    if isinstance(config, dict):
-        out: dict[str, Any] = {}
-        for k, v in config.items():
-            out.update(flatten(v, f"{prefix}.{k}" if prefix else str(k)))
-        return out
-    try:
-        hash(config)
-    except TypeError:
-        return {prefix: json.dumps(config, sort_keys=True, default=str)}
-    return {prefix: config}
 
 
 def _is_per_seed(key: str) -> bool:

@@ -64,7 +64,7 @@ def test_resume_after_interruption_matches_uninterrupted_run(tmp_path, monkeypat
     rec_b = (broken / "metrics.jsonl").read_text().splitlines()
     assert rec_a == rec_b and [json.loads(x)["task_step"] for x in rec_a] == [0, 60, 120]
     # A different config must not silently reuse the directory.
-    with pytest.raises(ConfigError, match="different config"):
+    with pytest.raises(ConfigError, match=r"different config \(differs in train\.steps\)"):
         train_task(_run_config(broken, steps=180), progress=False)
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 
-from ccfit.config import RunConfig, TaskRunConfig
+from ccfit.config import RunConfig, TaskRunConfig, flatten
 from ccfit.data import seed_buffer
 from ccfit.io import derived_seed, seed_everything
 from ccfit.models.base import WorldModel
@@ -80,20 +80,15 @@ def check_saved_config(out: Path, resolved: dict) -> None:
 
     saved = out / CONFIG
     if saved.exists():
-        differ = _differing_keys(json.loads(saved.read_text()), json.loads(json.dumps(resolved)))
-        if differ:
+        old, new = json.loads(saved.read_text()), json.loads(json.dumps(resolved))
+        if old != new:
+            a, b = flatten(old), flatten(new)
+            differ = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
             raise ConfigError(f"{out} holds a run with a different config (differs in "
-                              f"{', '.join(differ)}); use another --out or delete it")  # fmt: skip
+                              f"{', '.join(differ) or 'empty option groups'}); use another "
+                              "--out or delete it")  # fmt: skip
         return
     atomic_write_json(saved, resolved)
-
-
-def _differing_keys(a, b, prefix: str = "") -> list[str]:
-    """Dotted keys whose values differ between two nested dicts."""
-    if not (isinstance(a, dict) and isinstance(b, dict)):
-        return [] if a == b else [prefix or "<root>"]
-    return [d for k in sorted(set(a) | set(b), key=str)
-            for d in _differing_keys(a.get(k), b.get(k), f"{prefix}.{k}" if prefix else str(k))]
 
 
 def default_out(cfg: TaskRunConfig) -> Path:
