@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -116,6 +118,24 @@ def test_calibration_search_reaches_the_target_and_is_reproducible():
     assert success_rate("reach-xz", noise, seeds) == rate
     assert success_rate("reach-xz", at_level(16.0), seeds) < rate
     assert at_level(16.0).random_prob == 1.0
+
+
+def test_calibrate_refine_starts_at_the_tasks_calibration_in_smaller_steps(capsys):
+    """`ccdata calibrate --refine`: the first evaluation is the task's stored noise, the next
+    one level x1.5 away (a target no 8-episode rate can hit keeps the search going)."""
+    from ccdata.cli import main
+
+    stored = ccdata.get_task("reach-xz").exploration
+    main(["calibrate", "--task", "reach-xz", "--refine", "--target", "0.37", "--tolerance",
+          "0", "--episodes", "8", "--iterations", "2"])  # fmt: skip
+    steps = [json.loads(x) for x in capsys.readouterr().err.splitlines() if x.startswith("{")]
+    assert len(steps) == 2
+    assert (steps[0]["noise_std"], steps[0]["random_prob"]) == (stored.noise_std,
+                                                                stored.random_prob)
+    ratio = steps[1]["level"] / steps[0]["level"]
+    assert ratio == pytest.approx(1.5, rel=1e-3) or ratio == pytest.approx(1 / 1.5, rel=1e-3)
+    # More noise when the stored one succeeded too often, less when too rarely.
+    assert (ratio > 1) == (steps[0]["success_rate"] > 0.37)
 
 
 def test_a_task_must_declare_its_exploration_noise():
