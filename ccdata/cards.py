@@ -25,7 +25,7 @@ PAPER = {
     "url": "https://object814.github.io/Compositional-Continual-Learning/",
 }
 
-REFERENCE_SIZE_PER_1000_FRAMES = {"videos_mb": 4.3, "data_mb": 0.20, "measured_on": (
+REFERENCE_SIZE_PER_1000_FRAMES = {"videos_mb": 4.5, "data_mb": 0.20, "measured_on": (
     "a Grasp dataset with 4 oracle, 2 noisy-oracle and 2 random episodes per task, by "
     "bench/dataset_write.py")}
 """Size of the default settings' datasets per 1000 stored frames, for the default cards (a

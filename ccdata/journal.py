@@ -161,9 +161,21 @@ def merge_chunks(config: DatasetSettings, chunks: list[list[str]], finished) -> 
         return  # Ctrl-C reaches the whole process group; the main process merges the rest
 
 
-def _merger_main(config: DatasetSettings, chunks: list[list[str]], finished, parent: int) -> None:
+def _merger_main(config: DatasetSettings, chunks: list[list[str]], order: list[str], finished,
+                 final, parent: int) -> None:
     die_with_parent(parent)
+    import lerobot.datasets.aggregate  # noqa: F401  (now, while the first episodes roll out)
+
     merge_chunks(config, chunks, finished)
+    try:
+        finished.wait()  # the rollouts are over (merge_chunks may have run out of chunks before)
+    except KeyboardInterrupt:
+        finished.wait()
+    if final.is_set():
+        try:
+            merge_pieces(config, order)
+        except KeyboardInterrupt:  # the merge is atomic; the main process redoes it
+            return
 
 
 def die_with_parent(parent: int) -> None:
@@ -269,26 +281,29 @@ def prepare(config: DatasetSettings) -> JournalPaths:
 
 
 class Merger:
-    """`merge_chunks` in a spawned process beside the rollouts (none when nothing is to batch)."""
+    """`merge_chunks` in a spawned process beside the rollouts, and at the end the final merge
+    (`merge_pieces`), so that the rolling-out process never imports LeRobot (torch and LeRobot
+    take seconds to import; the merger imports them while the first episodes roll out)."""
 
-    def __init__(self, config: DatasetSettings, chunks: list[list[str]]) -> None:
-        self.process = None
-        if not chunks:
-            return
+    def __init__(self, config: DatasetSettings, chunks: list[list[str]], order: list[str]
+                 ) -> None:
         ctx = get_context("spawn")
-        self.finished = ctx.Event()
+        self.finished, self.final = ctx.Event(), ctx.Event()
         self.process = ctx.Process(target=_merger_main, name="ccdata-merger", daemon=True,
-                                   args=(config, chunks, self.finished, os.getpid()))
+                                   args=(config, chunks, order, self.finished, self.final,
+                                         os.getpid()))
         self.process.start()
 
-    def finish(self) -> None:
-        """Let the merger complete the batch it is writing, then stop it."""
-        if self.process is None:
-            return
+    def finish(self, final_merge: bool = True) -> None:
+        """Let the merger complete the batch it is writing and, with `final_merge`, merge the
+        journal into the dataset; wait for it to exit. The caller then runs `merge_pieces`
+        itself, which finds nothing to do unless the merger failed or was interrupted."""
+        if final_merge:
+            self.final.set()
         self.finished.set()
         while True:
             try:
                 self.process.join()
                 return
-            except KeyboardInterrupt:  # a second Ctrl-C: still wait, the batch is atomic
+            except KeyboardInterrupt:  # a second Ctrl-C: still wait, merges are atomic
                 continue

@@ -3,12 +3,11 @@
 Each episode is recorded (`ccdata.writer`) into its own small finalized LeRobot dataset (a
 piece) in a journal beside the target, and the pieces are merged into the target in plan order
 (`ccdata.journal` describes the layout and why no interruption can leave a half-written
-dataset). Episodes are
-identified by (task id, policy, episode seed); a run skips every episode already in the target
-or the journal, so re-running the same command completes the requested counts without
-duplicates. Workers (`workers > 1`) are spawned processes, each running `write_shard` on a
-contiguous slice of the plan with its own environment; the merge puts pieces in plan order, so
-the result does not depend on the number of workers.
+dataset). Episodes are identified by (task id, policy, episode seed); a run skips every episode
+already in the target or the journal, so re-running the same command completes the requested
+counts without duplicates. Workers (`workers > 1`) are spawned processes, each running
+`write_shard` on its share of the plan (every `workers`-th episode) with its own environment;
+the merge puts pieces in plan order, so the result does not depend on the number of workers.
 """
 
 from __future__ import annotations
@@ -16,7 +15,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import threading
 import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -24,12 +22,9 @@ from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
 
-import numpy as np
-
 from ccdata.dataset_format import (
     existing_keys,
     measure_dataset,
-    quiet_libraries,
     read_ccdata_metadata,
 )
 from ccdata.episode_plan import EpisodeSpec, plan
@@ -98,14 +93,7 @@ def generate(
             on_episode(record)
 
     interrupted = False
-    merger = Merger(config, chunks_of([s.key for s in todo]))
-    # The rollouts run in this process and the writing in another, so LeRobot would otherwise
-    # be imported here only by the final merge, delaying it by seconds.
-    import torch  # noqa: F401  (before the thread: see _import_merge_libraries)
-
-    warm_up = threading.Thread(target=_import_merge_libraries, name="ccdata-import",
-                               daemon=True)
-    warm_up.start()
+    merger = Merger(config, chunks_of([s.key for s in todo]), order) if todo else None
     try:
         if config.workers == 1 or len(todo) <= 1:
             write_shard(config, todo, paths.pieces, on_piece=done_one)
@@ -115,9 +103,9 @@ def generate(
         interrupted = True
     finally:
         bar.close()
-        merger.finish()
-        warm_up.join()
-        merge_pieces(config, order)
+        if merger is not None:
+            merger.finish()
+        merge_pieces(config, order)  # nothing left to do unless the merger failed
         wall = time.perf_counter() - start  # end to end: the merge is part of the work
         (paths.work / "STOP").unlink(missing_ok=True)
     if interrupted:
@@ -126,19 +114,12 @@ def generate(
     return paths.root, summarize(paths.root, new_records, wall)
 
 
-def _import_merge_libraries() -> None:
-    """LeRobot, imported off the rollout thread. torch is imported by the caller first: while a
-    thread initialises torch, `sys.modules['torch']` is a partial module, and scipy (the
-    camera set-up of every environment) looks up `torch.Tensor` there directly and fails."""
-    import lerobot.datasets.aggregate  # noqa: F401
-
-    quiet_libraries()
-
-
 def _run_workers(config: GenerateConfig, todo: list[EpisodeSpec], paths: JournalPaths,
                  done_one: Callable[[dict], None]) -> None:
-    slices = [list(s) for s in np.array_split(np.array(todo, dtype=object), config.workers)
-              if len(s)]
+    # Every workers-th episode: each worker gets the same mix of tasks and policies, so about
+    # the same steps (contiguous slices put the long random episodes of different tasks
+    # unevenly), and chunks of consecutive episodes complete early for the merger.
+    slices = [todo[i::config.workers] for i in range(min(config.workers, len(todo)))]
     seen: set[str] = set(finished_pieces(paths))
     wanted = {s.key for s in todo}
     records = {}

@@ -29,13 +29,16 @@ VIDEO_ENCODER: dict = {
     "pix_fmt": "yuv444p",
     "crf": 0,
     "g": 10,
-    "preset": "medium",
+    "preset": "veryfast",
     "extra_options": {"bf": 0},
 }
 """Camera video encoding. libx264 with crf 0 is lossless in YUV 4:4:4, so the only loss is the
 RGB<->YUV rounding: ~52 dB PSNR on every frame (LeRobot's default AV1 4:2:0 crf 30 gives ~27 dB).
 No B-frames keep presentation and decoding order equal, which keeps concatenated episode videos'
-timestamps exact; a keyframe every 10 frames bounds the decoding work per random access."""
+timestamps exact; a keyframe every 10 frames bounds the decoding work per random access. Being
+lossless, the x264 preset trades only file size for encoding time, never the decoded frames:
+`veryfast` against `medium` measured -0.7 ms of writer CPU per frame (3 cameras, 64 px) for +5%
+bytes; `ultrafast` saves 0.6 ms more for +23%."""
 
 IDENTITY_KEYS = ("suite", "seed", "image_size", "noise_std", "random_prob", "max_steps")
 """Settings that must match to append to an existing dataset (plus the resolved exploration

@@ -7,8 +7,10 @@ import pytest
 
 try:
     from hubserver import HubServer
+    from short_episodes import shorter_episodes
 except ImportError:  # tests/ imported as a package
     from tests.hubserver import HubServer
+    from tests.short_episodes import shorter_episodes
 
 
 @pytest.fixture
@@ -24,6 +26,13 @@ def hub_server(tmp_path_factory):
         yield server
     finally:
         server.close()
+
+
+@pytest.fixture
+def short_episodes():
+    """Episodes of `short_episodes.EPISODE_STEPS` steps during the test (yields the length)."""
+    with shorter_episodes() as steps:
+        yield steps
 
 
 @pytest.fixture(autouse=True)

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-import ccdata.env
 from ccfit.analysis import (
     ABLATION_JSON,
     ABLATION_PNG,
@@ -25,10 +24,11 @@ from ccfit.config import CurriculumConfig, resolve
 from ccfit.curriculum import Curriculum
 from ccfit.train import CONFIG
 
-EPISODE = 50
-"""Episode length in these tests (the benchmark's is 250): evaluation episodes dominate the
-cost of a curriculum, and episodes that end inside a 100-step task put data in replay, so the
-heads do get trained."""
+try:
+    from short_episodes import shorter_episodes
+except ImportError:  # tests/ imported as a package
+    from tests.short_episodes import shorter_episodes
+
 K, TASKS, MAX_EXPERTS = 3, 4, 24  # PWM defaults: 3 experts per task, 8 groups allocated
 
 
@@ -40,11 +40,6 @@ def smoke_config(model: str = "pwm", method: str = "experts") -> CurriculumConfi
     })  # fmt: skip
 
 
-@pytest.fixture
-def short_episodes(monkeypatch):
-    monkeypatch.setattr(ccdata.env, "EPISODE_STEPS", EPISODE)
-
-
 @pytest.fixture(scope="module")
 def pwm_run(tmp_path_factory):
     """A finished 4-task PWM + experts curriculum (about a minute on a loaded machine)."""
@@ -52,8 +47,9 @@ def pwm_run(tmp_path_factory):
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(ccdata.env, "EPISODE_STEPS", EPISODE)
+        # Short episodes also end inside a 100-step task, so replay holds data and the heads
+        # do get trained.
+        with shorter_episodes():
             Curriculum(smoke_config(), root / "run", root / "scratch", progress=False,
                        callbacks=[routing_callback]).run()
     finally:

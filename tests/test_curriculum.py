@@ -15,7 +15,6 @@ import csv
 import json
 import os
 import subprocess
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,13 +31,15 @@ from ccfit.curriculum import Curriculum
 from ccfit.io import derived_seed
 from ccfit.train import CONFIG, METRICS, build_model
 
+try:
+    from short_episodes import ccfit_command, shorter_episodes
+except ImportError:  # tests/ imported as a package
+    from tests.short_episodes import ccfit_command, shorter_episodes
+
 SUITE = "Grasp"
 TASKS = ("pick-cube", "place-cube", "pnp-cube")
 METHODS = ("ft", "er", "ewc", "packnet")
 STEPS, EVAL = 100, 100
-EPISODE_STEPS = 50
-"""Episode length here (the benchmark's is 250): evaluation episodes dominate these runs' time,
-and nothing checked here depends on the length."""
 TRAIN = {"steps": STEPS, "seed_steps": 50, "eval_interval": EVAL, "checkpoint_interval": 50}
 OPTIONS = {
     "ft": {},
@@ -65,13 +66,6 @@ def _cli_argv(method: str, out: Path, scratch_root: Path) -> list[str]:
     return argv
 
 
-def _cli(argv: list[str]) -> list[str]:
-    """The command `ccfit *argv`, run with this module's episode length."""
-    code = (f"import sys, ccdata.env; ccdata.env.EPISODE_STEPS = {EPISODE_STEPS}; "
-            "from ccfit.cli import main; sys.exit(main(sys.argv[1:]))")
-    return [sys.executable, "-c", code, *argv]
-
-
 def _records(run_dir: Path) -> list[dict]:
     return [json.loads(x) for x in (run_dir / METRICS).read_text().splitlines() if x.strip()]
 
@@ -92,8 +86,6 @@ class Seen:
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-    import ccdata.env
-
     torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("curriculum")
     current: list[Seen] = []
@@ -132,8 +124,7 @@ def runs(tmp_path_factory):
     out = {}
     done_mtimes = []
     start = time.monotonic()
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(ccdata.env, "EPISODE_STEPS", EPISODE_STEPS)
+    with shorter_episodes(), pytest.MonkeyPatch.context() as mp:
         mp.setattr(R, "ReplayBuffer", SpyBuffer)
         mp.setattr(C, "Trainer", SpyTrainer)
         mp.setattr(C, "evaluate", spy_evaluate)
@@ -386,7 +377,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(runs, tmp_path):
     command, and compare with the fixture's uninterrupted run of the same seed."""
     method = "packnet"
     out = tmp_path / "killed"
-    cmd = _cli(_cli_argv(method, out, runs.scratch_root))
+    cmd = ccfit_command(_cli_argv(method, out, runs.scratch_root))
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     ckpt = out / "tasks" / f"1-{TASKS[1]}" / "checkpoint.pt"
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)

@@ -24,6 +24,11 @@ from ccfit.curriculum import METRICS_JSON, Curriculum, Stage
 from ccfit.models.dreamerv3 import DreamerV3
 from ccfit.train import METRICS
 
+try:
+    from short_episodes import shorter_episodes
+except ImportError:  # tests/ imported as a package
+    from tests.short_episodes import shorter_episodes
+
 SUITE = "Grasp"
 TASKS = ("pick-cube", "place-cube", "pnp-cube")
 STEPS = 60
@@ -40,6 +45,11 @@ def _records(run_dir: Path) -> list[dict]:
 def runs(tmp_path_factory):
     torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("dv3_curriculum")
+    with shorter_episodes():
+        return _run_curricula(root)
+
+
+def _run_curricula(root: Path) -> dict[str, SimpleNamespace]:
     out = {}
     for method, options in METHODS.items():
         cfg = resolve(CurriculumConfig, {

@@ -5,6 +5,7 @@ seed reaches ER's reservoir."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from ccdata import make_env
@@ -32,6 +33,7 @@ def _finished_task(model: TDMPC2, buffer: ReplayBuffer) -> TaskData:
                                 backbone_loss=model.backbone_loss)  # fmt: skip
 
 
+@pytest.mark.usefixtures("short_episodes")
 def test_replay_through_stored_heads_trains_the_backbone_only():
     torch.manual_seed(0)
     model = TDMPC2(TDMPC2Config.preset("smoke", batch_size=8), device="cpu")
@@ -59,7 +61,7 @@ def test_replay_through_stored_heads_trains_the_backbone_only():
     # A trainer with this method on the next task leaves the stored heads bit-identical.
     cfg = TrainConfig(steps=60, seed_steps=20, eval_interval=60, eval_episodes=1,
                       checkpoint_interval=60, buffer_capacity=1000, device="cpu")  # fmt: skip
-    env = make_env("reach-xz")
+    env = make_env("reach-xz", render=False)
     trainer = Trainer(env=env, model=model, heads=model.new_heads(), config=cfg, seed=0,
                       obs_mode="state", task_id="reach-xz", task_index=1, method=er,
                       buffer=_random_buffer(1), progress=False,

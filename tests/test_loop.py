@@ -15,6 +15,13 @@ from ccfit.config import TaskRunConfig, TrainConfig, parse_cli, resolve
 from ccfit.models.registry import ConfigError
 from ccfit.replay import ReplayBuffer
 
+try:
+    from short_episodes import ccfit_command
+except ImportError:  # tests/ imported as a package
+    from tests.short_episodes import ccfit_command
+
+pytestmark = pytest.mark.usefixtures("short_episodes")
+
 
 def _run_config(out: Path, steps=120, checkpoint_interval=60) -> TaskRunConfig:
     return resolve(TaskRunConfig, {
@@ -85,8 +92,8 @@ def test_wall_clock_checkpoints_do_not_change_the_run(tmp_path):
 
 def test_cli_smoke_run_writes_config_metrics_checkpoint(tmp_path):
     out = tmp_path / "run"
-    cmd = [sys.executable, "-m", "ccfit.cli", "train", "--task", "reach-xy", "--obs", "state",
-           "--preset", "smoke", "--seed_dataset", "null", "--out", str(out), "--quiet"]
+    cmd = ccfit_command(["train", "--task", "reach-xy", "--obs", "state", "--preset", "smoke",
+                         "--seed_dataset", "null", "--out", str(out), "--quiet"])
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     cfg = json.loads((out / "config.json").read_text())

@@ -307,12 +307,12 @@ def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeyp
             buffers.append(self)
 
     monkeypatch.setattr(R, "ReplayBuffer", SpyBuffer)
-    monkeypatch.setattr(ccdata.env, "EPISODE_STEPS", 30)
+    monkeypatch.setattr(ccdata.env, "EPISODE_STEPS", 20)
     cfg = resolve(CurriculumConfig, {
         "suite": "Reach", "obs": "pixels", "image_size": SIZE, "preset": "smoke",
         "seed_dataset": str(reach_root), "encoder": f"frozen:{path}",
         "model": {"type": "pwm"}, "method": {"type": "experts"},
-        "train": dict(steps=60, seed_steps=30, eval_interval=60, checkpoint_interval=60),
+        "train": dict(steps=40, seed_steps=20, eval_interval=40, checkpoint_interval=40),
     })  # fmt: skip
     result = C.Curriculum(cfg, tmp_path / "run", tmp_path / "scratch", progress=False).run()
     assert len(set(map(id, buffers))) == 5  # four tasks and the from-scratch reference

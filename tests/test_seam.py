@@ -108,6 +108,7 @@ class ToyModel(WorldModel):
         return state + 1
 
 
+pytestmark = pytest.mark.usefixtures("short_episodes")
 SMOKE_TRAIN = {"steps": 200, "seed_steps": 60, "eval_interval": 100, "checkpoint_interval": 100}
 
 
@@ -115,14 +116,25 @@ def test_toy_is_registered_beside_the_builtin_models():
     assert {"toy", "tdmpc2", "pwm"} <= set(model_names())
 
 
-def test_loop_calls_the_model_as_its_contract_says(tmp_path):
+def test_loop_calls_the_model_as_its_contract_says(tmp_path, monkeypatch):
+    import ccfit.train.loop
     from ccdata.env import make_env
+
+    eval_lengths = []
+
+    def evaluate_and_count(*args, **kwargs):
+        result = real_evaluate(*args, **kwargs)
+        eval_lengths.extend(result.lengths)
+        return result
+
+    real_evaluate = ccfit.train.loop.evaluate
+    monkeypatch.setattr(ccfit.train.loop, "evaluate", evaluate_and_count)
 
     cfg = resolve(TaskRunConfig, {"task": "reach-xy", "preset": "smoke", "seed_dataset": None,
                                   "model": {"type": "toy"}, "train": dict(SMOKE_TRAIN)})
     model = build_model(cfg, torch.device("cpu"))
     heads = model.new_heads()
-    env = make_env("reach-xy")
+    env = make_env("reach-xy", render=False)
     buffer = make_replay(cfg, model, "reach-xy", 0, None)
     buffer.add_episode({"state": np.zeros((6, 39), np.float32)}, np.zeros((5, 4), np.float32),
                        np.zeros(5, np.float32), np.zeros(5, np.float32))  # sampleable at once
@@ -138,8 +150,8 @@ def test_loop_calls_the_model_as_its_contract_says(tmp_path):
     # train_ratio 0.5: one update every second step once replay holds a window
     assert CALLS["loss"] == CALLS["head_update"] == trainer.updates
     assert trainer.updates == (steps - seed_steps) // 2
-    # three evaluations (steps 0, 100, 200) of one 250-step episode each
-    assert CALLS["act_eval"] == 3 * 250
+    # three evaluations (steps 0, 100, 200) of one episode each, one act per step
+    assert len(eval_lengths) == 3 and CALLS["act_eval"] == sum(eval_lengths)
     # every episode, training or evaluation, starts from a fresh acting state
     assert CALLS["initial_state"] == trainer.episode_index + 3
 

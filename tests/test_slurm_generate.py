@@ -196,41 +196,22 @@ def test_unreachable_controller_is_one_line_and_exit_2(tmp_path, monkeypatch):
 
 
 @pytest.mark.slurm
-def test_sharded_generation_equals_one_worker(one_worker, tmp_path):
+def test_missing_shard_fails_the_merge_and_a_rerun_fills_it_to_the_one_worker_dataset(
+        one_worker, tmp_path):
+    """One scenario (each submission of tiny shards costs tens of seconds): a sharded
+    submission, a shard lost halfway, the merge refusing the gap, and a rerun that fills only
+    the gap; the result is the dataset one local worker writes."""
     root = tmp_path / "Reach"
-    sub = submit(root, "--shards", "2", "--partition", "low", "--cpus-per-task", "1",
-                 "--mem", "1G", "--setup", "echo ccdata-setup-ran")
+    first = submit(root, "--shards", "2")
+    array, shard1 = first["array_job"], first["shards"]["1"]
     keys = [s.key for s in plan(GenerateConfig(**TINY))]
-    assert sub["planned"] == 12 and list(sub["shards"]) == ["0", "1"]
-    assert [k for shard in sub["shards"].values() for k in shard] == keys  # contiguous ranges
-    assert sub["code"].startswith("ccbench ")
-
+    assert first["planned"] == 12 and list(first["shards"]) == ["0", "1"]
+    assert [k for shard in first["shards"].values() for k in shard] == keys  # contiguous
+    assert first["code"].startswith("ccbench ")
     # A second submission while these jobs are queued would repair the journal under them.
     again = generate_cli(*TINY_ARGS, "--root", str(root), "--launcher", "slurm")
     assert again.returncode == 2 and "still queued or running" in again.stderr
 
-    rows = wait_for([*shard_ids(sub), sub["merge_job"]])
-    assert {j: r["state"] for j, r in rows.items()} == \
-        {j: "COMPLETED" for j in [*shard_ids(sub), sub["merge_job"]]}
-    merge_start = when(rows[sub["merge_job"]]["start"])
-    assert all(merge_start >= when(rows[j]["end"]) for j in shard_ids(sub))
-
-    assert_same_dataset(one_worker, root)
-    assert not JournalPaths(root).work.exists()  # the merge cleared its journal
-    merge_dir = Path(sub["log_dir"]) / sub["merge_job"]
-    script = (merge_dir / f"{sub['merge_job']}_submission.sh").read_text()
-    for line in ("--partition=low", "--cpus-per-task=1", "--mem=1G", "--time=30", "--requeue",
-                 f"--dependency=afterany:{sub['array_job']}", "\necho ccdata-setup-ran\n"):
-        assert line in script
-    log = (merge_dir / f"{sub['merge_job']}_0_log.out").read_text()
-    assert "ccdata-setup-ran" in log and f"submitted with {sub['code']}" in log
-
-
-@pytest.mark.slurm
-def test_missing_shard_fails_the_merge_and_a_rerun_fills_it(one_worker, tmp_path):
-    root = tmp_path / "Reach"
-    first = submit(root, "--shards", "2")
-    array, shard1 = first["array_job"], first["shards"]["1"]
     # Kill shard 1 once it has written its first episode (of 6): it dies halfway.
     deadline = time.monotonic() + JOB_WAIT_S
     while not any(k in finished_pieces(JournalPaths(root)) for k in shard1):
@@ -243,7 +224,6 @@ def test_missing_shard_fails_the_merge_and_a_rerun_fills_it(one_worker, tmp_path
     assert rows[first["merge_job"]]["state"] == "FAILED"  # afterany: it ran, and failed
     assert when(rows[first["merge_job"]]["start"]) >= when(rows[f"{array}_1"]["end"])
 
-    keys = [s.key for s in plan(GenerateConfig(**TINY))]
     written = finished_pieces(JournalPaths(root))
     missing = [k for k in keys if k not in written]
     assert missing and set(missing) < set(shard1)  # some of shard 1's episodes were written
@@ -256,11 +236,23 @@ def test_missing_shard_fails_the_merge_and_a_rerun_fills_it(one_worker, tmp_path
     assert not root.exists()  # nothing merged
     assert (JournalPaths(root).work / SUBMISSION_RECORD).is_file()
 
-    second = submit(root, "--shards", "2")
+    second = submit(root, "--shards", "2", "--partition", "low", "--cpus-per-task", "1",
+                    "--mem", "1G", "--setup", "echo ccdata-setup-ran")
     assert second["shards"] == {"1": missing}  # only the shard with gaps, only its gaps
     rows = wait_for([*shard_ids(second), second["merge_job"]])
-    assert rows[second["merge_job"]]["state"] == "COMPLETED"
+    assert {j: r["state"] for j, r in rows.items()} == \
+        {j: "COMPLETED" for j in [*shard_ids(second), second["merge_job"]]}
+    merge_start = when(rows[second["merge_job"]]["start"])
+    assert all(merge_start >= when(rows[j]["end"]) for j in shard_ids(second))
     assert_same_dataset(one_worker, root)
+    assert not JournalPaths(root).work.exists()  # the merge cleared its journal
+    merge_dir = Path(second["log_dir"]) / second["merge_job"]
+    script = (merge_dir / f"{second['merge_job']}_submission.sh").read_text()
+    for line in ("--partition=low", "--cpus-per-task=1", "--mem=1G", "--time=30", "--requeue",
+                 f"--dependency=afterany:{second['array_job']}", "\necho ccdata-setup-ran\n"):
+        assert line in script
+    log = (merge_dir / f"{second['merge_job']}_0_log.out").read_text()
+    assert "ccdata-setup-ran" in log and f"submitted with {second['code']}" in log
 
     third = generate_cli(*TINY_ARGS, "--root", str(root), "--launcher", "slurm")
     assert third.returncode == 0 and "nothing to submit" in third.stdout

@@ -1,0 +1,31 @@
+"""Shorter episodes for tests that train or evaluate a model.
+
+The benchmark's episodes last 250 steps. In a smoke run, evaluation episodes are most of the
+time, and nothing these tests check depends on the length, so they run with `EPISODE_STEPS`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+
+import pytest
+
+import ccdata.env
+
+EPISODE_STEPS = 50
+
+
+@contextlib.contextmanager
+def shorter_episodes(steps: int = EPISODE_STEPS):
+    """Within the block, every environment episode ends after `steps` steps."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(ccdata.env, "EPISODE_STEPS", steps)
+        yield steps
+
+
+def ccfit_command(argv: list[str], steps: int = EPISODE_STEPS) -> list[str]:
+    """The command `ccfit *argv` in a fresh interpreter whose episodes last `steps` steps."""
+    code = (f"import sys, ccdata.env; ccdata.env.EPISODE_STEPS = {steps}; "
+            "from ccfit.cli import main; sys.exit(main(sys.argv[1:]))")
+    return [sys.executable, "-c", code, *argv]
