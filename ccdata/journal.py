@@ -147,35 +147,30 @@ def merge_chunks(config: DatasetSettings, chunks: list[list[str]], finished) -> 
     quiet_libraries()
     paths = JournalPaths(config.dataset_root)
     done = set(finished_batches(paths))
-    try:
-        for keys in chunks:
-            if tuple(keys) in done:
-                continue
-            while not all((paths.pieces / k / "piece.json").is_file() for k in keys):
-                if finished.wait(0.25):
-                    return
-            if finished.is_set():
+    for keys in chunks:
+        if tuple(keys) in done:
+            continue
+        while not all((paths.pieces / k / "piece.json").is_file() for k in keys):
+            if finished.wait(0.25):
                 return
-            merge_batch(config, keys)
-    except KeyboardInterrupt:
-        return  # Ctrl-C reaches the whole process group; the main process merges the rest
+        if finished.is_set():
+            return
+        merge_batch(config, keys)
 
 
 def _merger_main(config: DatasetSettings, chunks: list[list[str]], order: list[str], finished,
-                 final, parent: int) -> None:
+                 parent: int) -> None:
+    import signal
+
     die_with_parent(parent)
+    # Ctrl-C reaches the whole process group: the generating process decides what stops, and
+    # then sets `finished`.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     import lerobot.datasets.aggregate  # noqa: F401  (now, while the first episodes roll out)
 
     merge_chunks(config, chunks, finished)
-    try:
-        finished.wait()  # the rollouts are over (merge_chunks may have run out of chunks before)
-    except KeyboardInterrupt:
-        finished.wait()
-    if final.is_set():
-        try:
-            merge_pieces(config, order)
-        except KeyboardInterrupt:  # the merge is atomic; the main process redoes it
-            return
+    finished.wait()  # merge_chunks returns early when it runs out of chunks
+    merge_pieces(config, order)
 
 
 def die_with_parent(parent: int) -> None:
@@ -288,18 +283,15 @@ class Merger:
     def __init__(self, config: DatasetSettings, chunks: list[list[str]], order: list[str]
                  ) -> None:
         ctx = get_context("spawn")
-        self.finished, self.final = ctx.Event(), ctx.Event()
+        self.finished = ctx.Event()
         self.process = ctx.Process(target=_merger_main, name="ccdata-merger", daemon=True,
-                                   args=(config, chunks, order, self.finished, self.final,
-                                         os.getpid()))
+                                   args=(config, chunks, order, self.finished, os.getpid()))
         self.process.start()
 
-    def finish(self, final_merge: bool = True) -> None:
-        """Let the merger complete the batch it is writing and, with `final_merge`, merge the
-        journal into the dataset; wait for it to exit. The caller then runs `merge_pieces`
-        itself, which finds nothing to do unless the merger failed or was interrupted."""
-        if final_merge:
-            self.final.set()
+    def finish(self) -> None:
+        """Let the merger complete the batch it is writing, then merge the journal into the
+        dataset; wait for it to exit. The caller then runs `merge_pieces` itself, which finds
+        nothing to do unless the merger failed."""
         self.finished.set()
         while True:
             try:

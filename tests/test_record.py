@@ -193,6 +193,25 @@ def test_workers_give_the_same_episodes(tiny, tmp_path):
     assert verify_dataset(root2) == []
 
 
+def test_the_generating_process_imports_neither_torch_nor_lerobot(tmp_path):
+    """Writing and merging happen in the writer and merger processes; the process that rolls
+    out (and that a user's script runs in) never pays the seconds of importing torch."""
+    script = textwrap.dedent(f"""
+        import sys
+        from ccdata import record
+        cfg = record.GenerateConfig("Reach", episodes=1, explore_episodes=0, image_size=32,
+                                    max_steps=3, root={str(tmp_path / "Reach")!r})
+        root, summary = record.generate(cfg, progress=False)
+        print(summary["episodes"], "torch" in sys.modules,
+              any(m.split(".")[0] == "lerobot" for m in sys.modules))
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split()[-3:] == ["4", "False", "False"]
+    assert verify_dataset(tmp_path / "Reach") == []
+
+
 def test_keyboard_interrupt_leaves_valid_dataset_and_resume_completes(tmp_path):
     cfg = GenerateConfig("Reach", episodes=1, explore_episodes=0, image_size=32, max_steps=8,
                          root=tmp_path / "Reach")
