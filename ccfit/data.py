@@ -29,16 +29,12 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ccdata.dataset_format import CCDATA_META
+from ccdata.dataset_format import CCDATA_META, FINAL_KEY, camera_key
 from ccdata.errors import InputError
+from ccdata.render import CAMERAS
 from ccfit.obs import obs_to_arrays
 
-IMAGE_PREFIX = "observation.images."
-CAMERA_KEYS = {
-    "topview": "observation.images.topview",
-    "frontview": "observation.images.frontview",
-    "gripperPOV": "observation.images.gripperPOV",
-}
+CAMERA_KEYS = {camera: camera_key(camera) for camera in CAMERAS}
 """Camera name (as in the env's obs dict) -> LeRobot video feature."""
 PROPRIO_KEY = "observation.state"
 """7-D proprio: end-effector position, velocity, gripper opening."""
@@ -48,15 +44,12 @@ ACTION_KEY = "action"
 REWARD_KEY = "next.reward"
 DONE_KEY = "next.done"
 SUCCESS_KEY = "next.success"
-FINAL_KEY = "is_final_observation"
-"""Per frame: the episode's final observation, not a transition (ccdata format 2)."""
 TASK_ID_INDEX_KEY = "task_id_index"
 """Per-frame index of the task id in the suite's order (names in meta/ccdata.json)."""
 POLICY_INDEX_KEY = "policy_index"
 """Per-frame index of the policy that played the episode (names in meta/ccdata.json)."""
 EPISODE_SEED_KEY = "episode_seed"
 """Per-frame layout seed: `make_env(task_id).reset(seed=...)` reproduces the episode."""
-"""ccdata's own metadata: 'tasks' [{'index', 'id', ...}] and 'policies' [names]."""
 EPISODE_INDEX = "episode_index"
 FRAME_INDEX = "frame_index"
 TASK_INDEX = "task_index"
