@@ -117,9 +117,12 @@ class BoxScene(SceneEnv):
                 return box, lid, cube
 
     def reset_model(self) -> np.ndarray:
-        self._reset_hand()
         box, lid, cube = self._sample_layout()
+        # The box is part of the model, not of the state that mj_resetData clears: it moves
+        # before the hand's reset steps, or those would run against the previous episode's box
+        # and carry it into this one (through the solver's warm start).
         self.model.body("boxbody").pos = [box[0], box[1], 0.0]
+        self._reset_hand()
         self.set_free_body("lidjoint", [lid[0], lid[1], LID_REST_Z], LID_QUAT)
         # goal (both tasks): Meta-World's lid target above the box's centre. In box-pnp-close
         # the cube's own target is straight below it, on the box's floor.
