@@ -1,7 +1,8 @@
-"""Shared pytest fixtures."""
+"""Shared pytest fixtures, and the order in which pytest-xdist hands out test files."""
 
 import functools
 import os
+from pathlib import Path
 
 import pytest
 
@@ -86,3 +87,40 @@ def pytest_runtest_setup(item):
     if os.environ.get("CCBENCH_REQUIRE_SLURM"):
         pytest.fail(f"SLURM is required here (CCBENCH_REQUIRE_SLURM) but: {reason}")
     pytest.skip(f"no usable SLURM: {reason}")
+
+
+# ------------------------------------------------------------------ xdist scheduling
+
+SLURM_FILES = ("test_slurm_generate.py", "test_sweep_slurm.py")
+LONGEST_FIRST = (
+    *SLURM_FILES, "test_record.py", "test_curriculum.py", "test_tasks_contract.py",
+    "test_analysis.py", "test_pretrain.py", "test_data.py", "test_dreamerv3_loop.py",
+    "test_seam.py", "test_loop.py", "test_policies.py", "test_tasks_grasp_blocks.py",
+    "test_cards.py", "test_dataset_cli.py",
+)  # fmt: skip
+"""Test files of more than ~40 s (2026-11 file totals under `--durations`), longest first (the
+two SLURM files run as one unit); the rest follow in collection order."""
+
+
+def pytest_collection_modifyitems(config, items):
+    """Longest files first: under `--dist loadfile` xdist hands files out in collection order
+    as workers free up, so a long file collected last keeps one worker busy while the other
+    idles. (xdist's own reordering, by test count, sends files of a few long tests last.)"""
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(Path(str(item.path)).name, len(rank)))
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """`--dist loadfile` with the SLURM files as one unit (they take the cluster in turn; on two
+    workers one would wait on the other's lock) and the collection order kept."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class LongestFirstFileScheduling(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = super()._split_scope(nodeid)
+            return "slurm" if Path(path).name in SLURM_FILES else path
+
+    config.option.loadscopereorder = False
+    return LongestFirstFileScheduling(config, log)
