@@ -25,9 +25,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import sys
 from dataclasses import dataclass
-from multiprocessing import get_context
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -41,6 +39,7 @@ from ccdata.dataset_format import (
     write_json,
 )
 from ccdata.lerobot_speedups import faster_lerobot
+from ccdata.processes import die_with, process_context
 
 if TYPE_CHECKING:
     from ccdata.settings import DatasetSettings
@@ -162,29 +161,14 @@ def _merger_main(config: DatasetSettings, chunks: list[list[str]], order: list[s
                  parent: int) -> None:
     import signal
 
-    die_with_parent(parent)
+    die_with(parent)
     # Ctrl-C reaches the whole process group: the generating process decides what stops, and
     # then sets `finished`.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    import lerobot.datasets.aggregate  # noqa: F401  (now, while the first episodes roll out)
 
     merge_chunks(config, chunks, finished)
     finished.wait()  # merge_chunks returns early when it runs out of chunks
     merge_pieces(config, order)
-
-
-def die_with_parent(parent: int) -> None:
-    """On Linux, be SIGKILLed when the generating process dies, so that killing it leaves no
-    orphan writing into its journal."""
-    if not sys.platform.startswith("linux"):
-        return
-    import ctypes
-    import signal
-
-    libc = ctypes.CDLL(None, use_errno=True)
-    libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    if os.getppid() != parent:  # it died before prctl took effect
-        os._exit(1)
 
 
 def _aggregate(sources: list[Path], dst: Path, repo_id: str, scratch: Path) -> None:
@@ -276,13 +260,13 @@ def prepare(config: DatasetSettings) -> JournalPaths:
 
 
 class Merger:
-    """`merge_chunks` in a spawned process beside the rollouts, and at the end the final merge
-    (`merge_pieces`), so that the rolling-out process never imports LeRobot (torch and LeRobot
-    take seconds to import; the merger imports them while the first episodes roll out)."""
+    """`merge_chunks` in a process of its own (`ccdata.processes`) beside the rollouts, and at
+    the end the final merge (`merge_pieces`), so that the rolling-out process never imports
+    LeRobot (torch and LeRobot take seconds to import)."""
 
     def __init__(self, config: DatasetSettings, chunks: list[list[str]], order: list[str]
                  ) -> None:
-        ctx = get_context("spawn")
+        ctx = process_context()
         self.finished = ctx.Event()
         self.process = ctx.Process(target=_merger_main, name="ccdata-merger", daemon=True,
                                    args=(config, chunks, order, self.finished, os.getpid()))

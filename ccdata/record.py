@@ -5,9 +5,10 @@ piece) in a journal beside the target, and the pieces are merged into the target
 (`ccdata.journal` describes the layout and why no interruption can leave a half-written
 dataset). Episodes are identified by (task id, policy, episode seed); a run skips every episode
 already in the target or the journal, so re-running the same command completes the requested
-counts without duplicates. Workers (`workers > 1`) are spawned processes, each running
-`write_shard` on its share of the plan (every `workers`-th episode) with its own environment;
-the merge puts pieces in plan order, so the result does not depend on the number of workers.
+counts without duplicates. Workers (`workers > 1`) are processes (`ccdata.processes`), each
+running `write_shard` on its share of the plan (every `workers`-th episode) with its own
+environment; the merge puts pieces in plan order, so the result does not depend on the number
+of workers.
 """
 
 from __future__ import annotations
@@ -19,7 +20,6 @@ import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
-from multiprocessing import get_context
 from pathlib import Path
 
 from ccdata.dataset_format import (
@@ -32,11 +32,11 @@ from ccdata.journal import (
     JournalPaths,
     Merger,
     chunks_of,
-    die_with_parent,
     finished_pieces,
     merge_pieces,
     prepare,
 )
+from ccdata.processes import die_with, process_context
 from ccdata.settings import DatasetSettings
 from ccdata.writer import write_shard
 
@@ -67,7 +67,8 @@ def generate(
 ) -> tuple[Path, dict]:
     """Generate (or complete) the dataset of `config`. Returns (dataset root, summary).
 
-    It starts processes (`multiprocessing` spawn): a script calling it needs the usual
+    It starts processes (`ccdata.processes`: a multiprocessing fork server, whose children
+    import the main module as spawned ones do): a script calling it needs the usual
     `if __name__ == "__main__":` guard.
 
     `on_episode(record)` is called in this process after each completed episode. A
@@ -131,8 +132,8 @@ def _run_workers(config: GenerateConfig, todo: list[EpisodeSpec], paths: Journal
                 records[key] = json.loads((piece / "piece.json").read_text())
                 done_one(records[key])
 
-    pool = ProcessPoolExecutor(len(slices), mp_context=get_context("spawn"),
-                               initializer=die_with_parent, initargs=(os.getpid(),))
+    pool = ProcessPoolExecutor(len(slices), mp_context=process_context(),
+                               initializer=die_with, initargs=(os.getpid(),))
     try:
         futures = [pool.submit(write_shard, config, s, paths.pieces) for s in slices]
         pending = set(futures)

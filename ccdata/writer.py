@@ -24,7 +24,6 @@ import signal
 import time
 import traceback
 from collections.abc import Callable
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +38,7 @@ from ccdata.dataset_format import (
 from ccdata.env import EPISODE_STEPS, FPS, make_env
 from ccdata.episode_plan import EpisodeSpec, policy_seed
 from ccdata.lerobot_speedups import faster_lerobot
+from ccdata.processes import die_with, process_context
 from ccdata.render import CAMERAS
 from ccdata.settings import VIDEO_ENCODER, DatasetSettings
 from ccdata.suites import get_suite
@@ -145,9 +145,7 @@ def _writer_main(config: DatasetSettings, pieces_dir: Path, jobs, results, stop,
                  parent: int) -> None:
     """The writer process: write each (spec, episode, rollout seconds) from `jobs` until the
     sentinel None, or until `stop` is set (then the episodes still queued are dropped)."""
-    from ccdata.journal import die_with_parent
-
-    die_with_parent(parent)
+    die_with(parent)
     # Ctrl-C reaches the whole process group: the rollout process decides what stops.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     quiet_libraries()
@@ -184,7 +182,7 @@ class _Writer:
 
     def __init__(self, config: DatasetSettings, pieces_dir: Path,
                  on_piece: Callable[[dict], None] | None) -> None:
-        ctx = get_context("spawn")
+        ctx = process_context()
         self.jobs = ctx.Queue(maxsize=QUEUED)
         self.results = ctx.Queue()
         self.stop = ctx.Event()
