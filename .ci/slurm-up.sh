@@ -200,6 +200,9 @@ TaskPlugin=task/none
 SelectType=select/cons_tres
 SelectTypeParameters=CR_Core
 SchedulerType=sched/backfill
+# A requeued (preempted) job becomes eligible cred_expire + 1 s after its requeue, and only a
+# periodic scheduling pass starts it then (by default every 60 s, backfill every 30 s).
+SchedulerParameters=sched_interval=2,bf_interval=2
 ReturnToService=2
 KillWait=5
 StateSaveLocation=$STATE/slurmctld
