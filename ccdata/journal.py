@@ -39,7 +39,7 @@ from ccdata.dataset_format import (
     write_json,
 )
 from ccdata.lerobot_speedups import faster_lerobot
-from ccdata.processes import die_with, process_context
+from ccdata.processes import die_with, process_context, start_soon
 
 if TYPE_CHECKING:
     from ccdata.settings import DatasetSettings
@@ -270,13 +270,14 @@ class Merger:
         self.finished = ctx.Event()
         self.process = ctx.Process(target=_merger_main, name="ccdata-merger", daemon=True,
                                    args=(config, chunks, order, self.finished, os.getpid()))
-        self.process.start()
+        self.starting = start_soon(self.process)
 
     def finish(self) -> None:
         """Let the merger complete the batch it is writing, then merge the journal into the
         dataset; wait for it to exit. The caller then runs `merge_pieces` itself, which finds
         nothing to do unless the merger failed."""
         self.finished.set()
+        self.starting.join()
         while True:
             try:
                 self.process.join()

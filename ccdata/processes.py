@@ -19,6 +19,7 @@ import threading
 import time
 from multiprocessing import get_context
 from multiprocessing.context import BaseContext
+from multiprocessing.process import BaseProcess
 
 PRELOAD = (
     "ccdata.writer", "ccdata.journal",
@@ -36,6 +37,16 @@ def process_context() -> BaseContext:
     ctx = get_context("forkserver")
     ctx.set_forkserver_preload(list(PRELOAD))
     return ctx
+
+
+def start_soon(process: BaseProcess) -> threading.Thread:
+    """Start `process` from a helper thread, returned: join it before using the process.
+
+    The fork server forks its first child only once its imports are done (seconds); the
+    rollouts of the calling process need not wait for them."""
+    thread = threading.Thread(target=process.start, name=f"start-{process.name}", daemon=True)
+    thread.start()
+    return thread
 
 
 def die_with(parent: int) -> None:

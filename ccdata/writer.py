@@ -38,7 +38,7 @@ from ccdata.dataset_format import (
 from ccdata.env import EPISODE_STEPS, FPS, make_env
 from ccdata.episode_plan import EpisodeSpec, policy_seed
 from ccdata.lerobot_speedups import faster_lerobot
-from ccdata.processes import die_with, process_context
+from ccdata.processes import die_with, process_context, start_soon
 from ccdata.render import CAMERAS
 from ccdata.settings import VIDEO_ENCODER, DatasetSettings
 from ccdata.suites import get_suite
@@ -193,13 +193,15 @@ class _Writer:
             target=_writer_main, name="ccdata-writer", daemon=True,
             args=(config, pieces_dir, self.jobs, self.results, self.stop, os.getpid()),
         )
-        self.process.start()
+        self.starting = start_soon(self.process)
 
     def _handle(self, block: bool) -> bool:
         """Take one message from the writer; False when there was none."""
         try:
             kind, payload = self.results.get(timeout=0.2) if block else self.results.get_nowait()
         except queue.Empty:
+            if self.starting.is_alive():
+                return False
             if not self.process.is_alive() and not self.exited:
                 raise WriterError(f"the writer process died (exit code {self.process.exitcode})"
                                   ) from None
@@ -233,11 +235,13 @@ class _Writer:
         self.submit(None)
         while not self.exited:
             self._handle(block=True)
+        self.starting.join()
         self.process.join()
 
     def abort(self) -> None:
         """Let the writer complete the piece it is writing (pieces are atomic), drop the rest."""
         self.stop.set()
+        self.starting.join()
         self.jobs.cancel_join_thread()  # episodes never written must not block our exit
         deadline = time.monotonic() + 120
         while self.process.is_alive() and time.monotonic() < deadline:
