@@ -4,15 +4,21 @@ Prints JSON. The env-only baseline replays exactly the generated plan (same task
 seeds, noise, rendering) without writing anything, so the ratio isolates the cost of recording.
 Each repeat runs 1 worker, 2 workers and env-only back to back and its ratios are computed
 within the repeat, so that a machine shared with other work biases them as little as possible.
+Each generation runs in a fresh interpreter, as `ccdata generate` does: no fork server warmed
+by an earlier generation (`ccdata.processes`). Its cores busy count every process it started
+(Linux: this script becomes their subreaper, so their CPU time reaches it).
 """
 
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import os
 import resource
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -22,7 +28,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 from ccdata.env import EPISODE_STEPS, make_env  # noqa: E402
 from ccdata.episode_plan import plan, policy_seed  # noqa: E402
 from ccdata.policies import make_policy  # noqa: E402
-from ccdata.record import GenerateConfig, generate  # noqa: E402
+from ccdata.record import GenerateConfig  # noqa: E402
 
 
 def env_only_rate(config: GenerateConfig) -> tuple[float, int, float]:
@@ -59,26 +65,48 @@ def env_only_rate(config: GenerateConfig) -> tuple[float, int, float]:
     return frames / wall, frames, (time.process_time() - cpu) / wall
 
 
+GENERATE = """
+import json, sys
+from ccdata.record import GenerateConfig, generate
+if __name__ == "__main__":
+    config = GenerateConfig(**json.loads(sys.argv[1]))
+    print(json.dumps(generate(config, progress=False)[1]))
+"""
+
+
 def generate_rate(args, workers: int, root: Path) -> tuple[float, int, float]:
-    """Steps/s of `generate` (end to end, merge included), the steps, and the cores it kept
-    busy."""
-    config = GenerateConfig(
-        suite=args.suite,
-        episodes=args.episodes,
-        explore_episodes=args.explore_episodes,
-        workers=workers,
-        root=root,
-    )
-    start, cpu = time.perf_counter(), _cpu_seconds()
-    _, summary = generate(config, progress=False)
+    """Steps/s of a one-shot `generate` (end to end, merge included), the steps, and the cores
+    it kept busy (all its processes)."""
+    config = dict(suite=args.suite, episodes=args.episodes,
+                  explore_episodes=args.explore_episodes, workers=workers, root=str(root))
+    start, cpu = time.perf_counter(), _children_cpu_seconds()
+    done = subprocess.run([sys.executable, "-c", GENERATE, json.dumps(config)],
+                          capture_output=True, text=True, check=True)  # fmt: skip
     wall = time.perf_counter() - start
-    return summary["steps"] / wall, summary["steps"], (_cpu_seconds() - cpu) / wall
+    _reap_orphans()
+    summary = json.loads(done.stdout.strip().splitlines()[-1])
+    return summary["steps"] / wall, summary["steps"], (_children_cpu_seconds() - cpu) / wall
 
 
-def _cpu_seconds() -> float:
-    """CPU time of this process (all threads) and of its finished children (workers, merger)."""
+def _become_subreaper() -> None:
+    """Orphans of our children (the fork server and what it forked outlive the generating
+    process by moments) are reparented to us, so that waiting for them adds their CPU time."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(36, 1) != 0:  # PR_SET_CHILD_SUBREAPER
+        raise OSError(ctypes.get_errno(), "prctl(PR_SET_CHILD_SUBREAPER) failed")
+
+
+def _reap_orphans() -> None:
+    while True:
+        try:
+            os.waitpid(-1, 0)
+        except ChildProcessError:
+            return
+
+
+def _children_cpu_seconds() -> float:
     children = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return time.process_time() + children.ru_utime + children.ru_stime
+    return children.ru_utime + children.ru_stime
 
 
 def dir_bytes(root: Path, sub: str) -> int:
@@ -98,6 +126,7 @@ def main() -> None:
         help="rounds of (1 worker, 2 workers, env-only); medians are reported",
     )
     args = parser.parse_args()
+    _become_subreaper()
     rates: dict[str, list[float]] = {
         "w1": [],
         "w2": [],
