@@ -110,6 +110,7 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: rank.get(Path(str(item.path)).name, len(rank)))
 
 
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist, absent under `-p no:xdist`
 def pytest_xdist_make_scheduler(config, log):
     """`--dist loadfile` with the SLURM files as one unit (they take the cluster in turn; on two
     workers one would wait on the other's lock) and the collection order kept."""

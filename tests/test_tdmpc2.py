@@ -10,7 +10,7 @@ from ccfit.models.base import Batch
 from ccfit.models.encoders import preprocess_frames, random_shift
 from ccfit.models.layers import EnsembleMLP, SimNorm, TwoHot, mlp, symexp, symlog
 from ccfit.models.registry import ConfigError
-from ccfit.models.tdmpc2 import TDMPC2, TDMPC2_SIZES, TDMPC2Config
+from ccfit.models.tdmpc2 import TDMPC2, TDMPC2_SIZES, TDMPC2Config, modules_in_eval
 
 try:
     from replay_data import random_buffer
@@ -225,6 +225,25 @@ def test_state_dict_round_trip(mode, tmp_path):
         l2 = other.loss(batch, other_heads).total
         assert torch.equal(l1, l2)
     assert torch.equal(heads.q_scale, other_heads.q_scale)
+
+
+def test_modules_in_eval_switches_every_submodule_and_restores_each_flag():
+    model, heads = build("state", dropout=0.5)
+    heads.reward.train(False)  # a mixed tree: the restore must not reset it to the top's flag
+    trees = (model.backbone, heads)
+
+    def flags():
+        return [m.training for tree in trees for m in tree.modules()]
+
+    before = flags()
+    assert any(before) and not all(before)  # (target Qs too are in eval)
+    za = torch.ones(8, model.cfg.latent_dim + 4)
+    torch.nn.init.normal_(heads.qs.out.weight)  # zero-initialised: it would hide the dropout
+    assert not torch.equal(heads.qs(za), heads.qs(za))  # dropout on while training
+    with modules_in_eval(*trees):
+        assert not any(flags())
+        assert torch.equal(heads.qs(za), heads.qs(za))  # dropout off
+    assert flags() == before
 
 
 @pytest.mark.parametrize("mode", MODES)

@@ -81,8 +81,9 @@ def modules_in_eval(*modules: nn.Module) -> Iterator[None]:
     """Modules (and their submodules) in eval mode inside the block, each submodule's previous
     mode restored after it."""
     # Acting enters this once per env step. `Module.train` sets the flag through
-    # `Module.__setattr__` (~10 us a module, about a fifth of a smoke PWM act); the flag is a
-    # plain instance attribute, so it is set directly, and only where it changes.
+    # `Module.__setattr__` (~10 us a module, about a quarter of a smoke PWM act); the flag is a
+    # plain instance attribute, so it is set directly. Only modules now training are touched,
+    # so what a `train` override keeps in eval (target Qs, frozen encoders) stays so.
     training = [sub for m in modules for sub in m.modules() if sub.training]
     try:
         for sub in training:
