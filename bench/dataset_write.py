@@ -91,6 +91,9 @@ def generate_rate(args, workers: int, root: Path) -> tuple[float, int, float]:
 def _become_subreaper() -> None:
     """Orphans of our children (the fork server and what it forked outlive the generating
     process by moments) are reparented to us, so that waiting for them adds their CPU time."""
+    if not sys.platform.startswith("linux"):
+        sys.exit("bench/dataset_write.py counts its generations' CPU through Linux's "
+                 "PR_SET_CHILD_SUBREAPER")
     libc = ctypes.CDLL(None, use_errno=True)
     if libc.prctl(36, 1) != 0:  # PR_SET_CHILD_SUBREAPER
         raise OSError(ctypes.get_errno(), "prctl(PR_SET_CHILD_SUBREAPER) failed")

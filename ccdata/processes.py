@@ -39,14 +39,32 @@ def process_context() -> BaseContext:
     return ctx
 
 
+class _Starter(threading.Thread):
+    def __init__(self, process: BaseProcess) -> None:
+        super().__init__(name=f"start-{process.name}", daemon=True)
+        self.process, self.error = process, None
+
+    def run(self) -> None:
+        try:
+            self.process.start()
+        except BaseException as err:  # noqa: BLE001 - raised again by join, in the caller
+            self.error = err
+
+    def join(self, timeout: float | None = None) -> None:
+        super().join(timeout)
+        if self.error is not None:
+            raise self.error
+
+
 def start_soon(process: BaseProcess) -> threading.Thread:
-    """Start `process` from a helper thread, returned: join it before using the process.
+    """Start `process` from a helper thread, returned: join it before using the process (the
+    join raises what starting it raised).
 
     The fork server forks its first child only once its imports are done (seconds); the
     rollouts of the calling process need not wait for them."""
-    thread = threading.Thread(target=process.start, name=f"start-{process.name}", daemon=True)
-    thread.start()
-    return thread
+    starter = _Starter(process)
+    starter.start()
+    return starter
 
 
 def die_with(parent: int) -> None:

@@ -202,6 +202,7 @@ class _Writer:
         except queue.Empty:
             if self.starting.is_alive():
                 return False
+            self.starting.join()  # raises what starting the writer raised
             if not self.process.is_alive() and not self.exited:
                 raise WriterError(f"the writer process died (exit code {self.process.exitcode})"
                                   ) from None
