@@ -1,4 +1,4 @@
-"""The processes a generation starts (rollout workers, episode writers, the merger).
+"""The processes a generation starts to write episodes and merge them (writers, the merger).
 
 They are forked from one multiprocessing fork server that has imported their libraries once.
 Spawning a fresh interpreter for each imported torch and LeRobot again every time (about 7 s of
@@ -25,8 +25,7 @@ PRELOAD = (
     "ccdata.writer", "ccdata.journal",
     "lerobot.datasets.lerobot_dataset", "lerobot.datasets.aggregate",
 )  # fmt: skip
-"""What the fork server imports before it forks anything: all a rollout worker, writer or
-merger imports."""
+"""What the fork server imports before it forks anything: all a writer or the merger imports."""
 
 
 def process_context() -> BaseContext:

@@ -5,7 +5,7 @@ piece) in a journal beside the target, and the pieces are merged into the target
 (`ccdata.journal` describes the layout and why no interruption can leave a half-written
 dataset). Episodes are identified by (task id, policy, episode seed); a run skips every episode
 already in the target or the journal, so re-running the same command completes the requested
-counts without duplicates. Workers (`workers > 1`) are processes (`ccdata.processes`), each
+counts without duplicates. Workers (`workers > 1`) are spawned processes, each
 running `write_shard` on its share of the plan (every `workers`-th episode) with its own
 environment; the merge puts pieces in plan order, so the result does not depend on the number
 of workers.
@@ -20,6 +20,7 @@ import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
+from multiprocessing import get_context
 from pathlib import Path
 
 from ccdata.dataset_format import (
@@ -36,7 +37,7 @@ from ccdata.journal import (
     merge_pieces,
     prepare,
 )
-from ccdata.processes import die_with, process_context
+from ccdata.processes import die_with
 from ccdata.settings import DatasetSettings
 from ccdata.writer import write_shard
 
@@ -132,7 +133,10 @@ def _run_workers(config: GenerateConfig, todo: list[EpisodeSpec], paths: Journal
                 records[key] = json.loads((piece / "piece.json").read_text())
                 done_one(records[key])
 
-    pool = ProcessPoolExecutor(len(slices), mp_context=process_context(),
+    # Spawned, not forked from the fork server: the server forks nothing before its imports are
+    # done, and the rollouts need none of them (each worker's writer comes from a server of the
+    # worker's own, which imports while the worker rolls out).
+    pool = ProcessPoolExecutor(len(slices), mp_context=get_context("spawn"),
                                initializer=die_with, initargs=(os.getpid(),))
     try:
         futures = [pool.submit(write_shard, config, s, paths.pieces) for s in slices]
