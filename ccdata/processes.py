@@ -39,13 +39,14 @@ def process_context() -> BaseContext:
 
 
 class _Starter(threading.Thread):
-    def __init__(self, process: BaseProcess) -> None:
-        super().__init__(name=f"start-{process.name}", daemon=True)
-        self.process, self.error = process, None
+    def __init__(self, processes: tuple[BaseProcess, ...]) -> None:
+        super().__init__(name=f"start-{processes[0].name}", daemon=True)
+        self.processes, self.error = processes, None
 
     def run(self) -> None:
         try:
-            self.process.start()
+            for process in self.processes:
+                process.start()
         except BaseException as err:  # noqa: BLE001 - raised again by join, in the caller
             self.error = err
 
@@ -55,15 +56,30 @@ class _Starter(threading.Thread):
             raise self.error
 
 
-def start_soon(process: BaseProcess) -> threading.Thread:
-    """Start `process` from a helper thread, returned: join it before using the process (the
-    join raises what starting it raised).
+def start_soon(*processes: BaseProcess) -> threading.Thread:
+    """Start `processes` from a helper thread, returned: join it before using them (the join
+    raises what starting them raised).
 
     The fork server forks its first child only once its imports are done (seconds); the
     rollouts of the calling process need not wait for them."""
-    starter = _Starter(process)
+    starter = _Starter(processes)
     starter.start()
     return starter
+
+
+def end_processes(processes: list[BaseProcess], grace_s: float) -> None:
+    """Wait up to `grace_s` in all for `processes` to exit (a second Ctrl-C ends the wait),
+    then kill those still running."""
+    deadline = time.monotonic() + grace_s
+    for p in processes:
+        while p.pid is not None and p.is_alive() and time.monotonic() < deadline:
+            try:
+                p.join(0.2)
+            except KeyboardInterrupt:
+                deadline = 0
+        if p.pid is not None and p.is_alive():
+            p.kill()
+            p.join()
 
 
 def die_with(parent: int) -> None:

@@ -5,20 +5,20 @@ piece) in a journal beside the target, and the pieces are merged into the target
 (`ccdata.journal` describes the layout and why no interruption can leave a half-written
 dataset). Episodes are identified by (task id, policy, episode seed); a run skips every episode
 already in the target or the journal, so re-running the same command completes the requested
-counts without duplicates. Workers (`workers > 1`) are spawned processes, each
-running `write_shard` on its share of the plan (every `workers`-th episode) with its own
-environment; the merge puts pieces in plan order, so the result does not depend on the number
+counts without duplicates. With `workers > 1`, that many spawned rollout processes (one
+environment each) claim the episodes one at a time and queue them for as many writer
+processes; the merge puts pieces in plan order, so the result does not depend on the number
 of workers.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
+import signal
 import time
-from collections.abc import Callable, Iterable
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+import traceback
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
@@ -29,17 +29,10 @@ from ccdata.dataset_format import (
     read_ccdata_metadata,
 )
 from ccdata.episode_plan import EpisodeSpec, plan
-from ccdata.journal import (
-    JournalPaths,
-    Merger,
-    chunks_of,
-    finished_pieces,
-    merge_pieces,
-    prepare,
-)
-from ccdata.processes import die_with
+from ccdata.journal import JournalPaths, Merger, chunks_of, merge_pieces, prepare
+from ccdata.processes import die_with, end_processes
 from ccdata.settings import DatasetSettings
-from ccdata.writer import write_shard
+from ccdata.writer import GenerationError, Writers, roll_out, write_shard
 
 
 @dataclass
@@ -54,8 +47,6 @@ class GenerateConfig(DatasetSettings):
         super().__post_init__()
         if self.workers < 1:
             raise ValueError(f"workers must be >= 1, got {self.workers}")
-
-
 
 
 # ── generate ──────────────────────────────────────────────────────────────────────────────
@@ -118,40 +109,70 @@ def generate(
 
 def _run_workers(config: GenerateConfig, todo: list[EpisodeSpec], paths: JournalPaths,
                  done_one: Callable[[dict], None]) -> None:
-    # Every workers-th episode: each worker gets the same mix of tasks and policies, so about
-    # the same steps (contiguous slices put the long random episodes of different tasks
-    # unevenly), and chunks of consecutive episodes complete early for the merger.
-    slices = [todo[i::config.workers] for i in range(min(config.workers, len(todo)))]
-    seen: set[str] = set(finished_pieces(paths))
-    wanted = {s.key for s in todo}
-    records = {}
-
-    def poll() -> None:
-        for key, piece in finished_pieces(paths).items():
-            if key in wanted and key not in seen:
-                seen.add(key)
-                records[key] = json.loads((piece / "piece.json").read_text())
-                done_one(records[key])
-
+    writers = Writers(config, paths.pieces, done_one, count=config.workers)
     # Spawned, not forked from the fork server: the server forks nothing before its imports are
-    # done, and the rollouts need none of them (each worker's writer comes from a server of the
-    # worker's own, which imports while the worker rolls out).
-    pool = ProcessPoolExecutor(len(slices), mp_context=get_context("spawn"),
-                               initializer=die_with, initargs=(os.getpid(),))
+    # done, and rolling out needs none of them. The writers are the server's, so its imports
+    # (torch, LeRobot) are paid once whatever the number of workers.
+    ctx = get_context("spawn")
+    claimed = ctx.Value("q", 0)
+    stop_file = paths.work / "STOP"
+    rollouts = [
+        ctx.Process(target=_rollout_main, name=f"ccdata-rollout-{i}", daemon=True,
+                    args=(config, todo, claimed, writers.episodes, writers.results, stop_file,
+                          os.getpid()))
+        for i in range(min(config.workers, len(todo)))
+    ]  # fmt: skip
     try:
-        futures = [pool.submit(write_shard, config, s, paths.pieces) for s in slices]
-        pending = set(futures)
-        while pending:
-            finished, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
-            poll()
-            for f in finished:
-                f.result()  # re-raise a worker's error here
-    except BaseException:
-        (paths.work / "STOP").touch()  # workers stop after their current episode
-        pool.shutdown(wait=True, cancel_futures=True)
+        for r in rollouts:
+            r.start()
+        while any(r.is_alive() for r in rollouts):
+            writers.wait()
+            _raise_if_died(rollouts)
+        writers.poll()  # a failed rollout reports before it exits
+        _raise_if_died(rollouts)
+        writers.finish()
+    except BaseException as err:
+        stop_file.touch()  # rollouts stop after their current episode
+        # A process killed while sending an episode may leave the queue locked or half-written:
+        # then no one waits for a writer to finish its piece.
+        writers.abort(grace_s=0 if isinstance(err, GenerationError) else 120)
+        end_processes(rollouts, grace_s=60)
         raise
-    pool.shutdown(wait=True)
-    poll()
+
+
+def _raise_if_died(rollouts: list) -> None:
+    for r in rollouts:
+        if r.exitcode not in (None, 0):
+            raise GenerationError(f"{r.name} died (exit code {r.exitcode})")
+
+
+def _rollout_main(config: GenerateConfig, todo: list[EpisodeSpec], claimed, episodes,
+                  results, stop_file: Path, parent: int) -> None:
+    """A rollout process: roll out the next unclaimed episode of `todo` until none is left.
+
+    Claimed one at a time in plan order, so that the workers finish together whatever the
+    lengths of their episodes, and consecutive episodes (the merger's chunks) complete early."""
+    die_with(parent)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the generating process decides what stops
+
+    def next_spec() -> Iterator[EpisodeSpec]:
+        while True:
+            with claimed.get_lock():
+                i = claimed.value
+                claimed.value = i + 1
+            if i >= len(todo):
+                return
+            yield todo[i]
+
+    try:
+        roll_out(config, next_spec(), episodes, stop_file)
+        if episodes.stop.is_set():
+            episodes.jobs.cancel_join_thread()  # what was not sent is dropped: do not wait
+    except BaseException:
+        results.put(("error", f"a rollout process failed:\n{traceback.format_exc()}"))
+        results.close()
+        results.join_thread()  # the report is on its way before this process exits
+        raise SystemExit(1) from None
 
 
 def summarize(root: Path, new_records: Iterable[dict] = (), wall_time: float | None = None

@@ -1,16 +1,17 @@
-"""Rolling out planned episodes and writing each as a piece: the work of one generation job.
+"""Rolling out planned episodes and writing each as a piece: the work of a generation.
 
-`write_shard` runs a two-stage pipeline. This process steps the environment (physics and
-rendering: the part `ccdata generate` cannot avoid) and hands each finished episode, as numpy
-arrays, to a writer process, which encodes the camera videos, computes LeRobot's statistics and
-writes the episode as its own finalized LeRobot dataset (a piece, see `ccdata.journal`). The
-writer's work (video encoding, statistics, parquet, LeRobot's bookkeeping, roughly 0.5 s per
-episode plus a few ms per frame) then overlaps the next rollout on another core instead of
-delaying it, and the two never contend for one interpreter lock. At most `QUEUED` episodes
-wait between the stages.
+A two-stage pipeline. A rollout process steps the environment (physics and rendering: the part
+`ccdata generate` cannot avoid) and queues each finished episode, as numpy arrays, for the
+writer processes (`EpisodeQueue`); a writer encodes the camera videos, computes LeRobot's
+statistics and writes the episode as its own finalized LeRobot dataset (a piece, see
+`ccdata.journal`). The writing (video encoding, statistics, parquet, LeRobot's bookkeeping,
+roughly 0.3 s per episode plus a few ms per frame) then overlaps the next rollout on another
+core instead of delaying it, and the two never contend for one interpreter lock.
 
-Pieces are written in plan order by the one writer, and a piece is the same bytes whichever
-process rolled it out, so the dataset does not depend on how the plan was split.
+`write_shard` is one rollout (in the calling process) with one writer: a whole generation, or
+one job of a cluster's. `ccdata.record` runs several rollout processes on one queue instead.
+A piece is the same bytes whichever process rolled it out or wrote it, so the dataset does not
+depend on how the plan was split.
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ import shutil
 import signal
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from multiprocessing.context import BaseContext
 from pathlib import Path
 
 import numpy as np
@@ -38,14 +40,14 @@ from ccdata.dataset_format import (
 from ccdata.env import EPISODE_STEPS, FPS, make_env
 from ccdata.episode_plan import EpisodeSpec, policy_seed
 from ccdata.lerobot_speedups import faster_lerobot
-from ccdata.processes import die_with, process_context, start_soon
+from ccdata.processes import die_with, end_processes, process_context, start_soon
 from ccdata.render import CAMERAS
 from ccdata.settings import VIDEO_ENCODER, DatasetSettings
 from ccdata.suites import get_suite
 
-QUEUED = 2
-"""Rolled-out episodes that may wait for the writer (memory: one 250-step episode at 64 px is
-about 9 MB)."""
+QUEUED_BYTES = 256 * 2**20
+"""Memory that rolled-out episodes waiting for a writer may hold (a 250-step episode at 64 px
+is about 9 MB; one episode may always wait, whatever its size)."""
 PIECE_RECORD = "piece.json"
 
 
@@ -141,77 +143,120 @@ def _abandon(ds, tmp: Path) -> None:
     shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _writer_main(config: DatasetSettings, pieces_dir: Path, jobs, results, stop,
+class EpisodeQueue:
+    """Rolled-out episodes on their way to the writer processes, and the stop signal of the
+    writing. Made where the writers are started; a rollout process receives it as an argument
+    at its start (multiprocessing queues travel only then).
+
+    Held back by bytes, not episodes: rollouts never wait for a writer that is still starting
+    (the fork server's imports take seconds, during which short oracle episodes pile up), and
+    memory stays bounded whatever the image size."""
+
+    def __init__(self, ctx: BaseContext) -> None:
+        self.jobs = ctx.Queue()
+        self.waiting_bytes = ctx.Value("q", 0)
+        self.stop = ctx.Event()
+
+    def put(self, spec: EpisodeSpec, episode: dict[str, np.ndarray], rollout_s: float,
+            wait: Callable[[], None]) -> bool:
+        """Queue an episode once the episodes waiting leave it room (an empty queue always
+        does), calling `wait()` until then. False if writing stopped meanwhile: not queued."""
+        nbytes = sum(a.nbytes for a in episode.values())
+        while not self.stop.is_set():
+            with self.waiting_bytes.get_lock():
+                waiting = self.waiting_bytes.value
+                if waiting == 0 or waiting + nbytes <= QUEUED_BYTES:
+                    self.waiting_bytes.value = waiting + nbytes
+                    self.jobs.put((spec, episode, rollout_s, nbytes))
+                    return True
+            wait()
+        return False
+
+    def taken(self, nbytes: int) -> None:
+        """A writer is done with an episode of `nbytes`."""
+        with self.waiting_bytes.get_lock():
+            self.waiting_bytes.value -= nbytes
+
+
+def _writer_main(config: DatasetSettings, pieces_dir: Path, episodes: EpisodeQueue, results,
                  parent: int) -> None:
-    """The writer process: write each (spec, episode, rollout seconds) from `jobs` until the
-    sentinel None, or until `stop` is set (then the episodes still queued are dropped)."""
+    """A writer process: write each episode taken from `episodes` until it takes the sentinel
+    None, or until writing is stopped (the episodes still queued are then dropped)."""
     die_with(parent)
-    # Ctrl-C reaches the whole process group: the rollout process decides what stops.
+    # Ctrl-C reaches the whole process group: the generating process decides what stops.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     quiet_libraries()
     instructions = {t.id: t.instruction for t in get_suite(config.suite).tasks}
     try:
         with faster_lerobot():
-            _write_jobs(config, pieces_dir, jobs, results, stop, instructions)
-    except BaseException:  # noqa: BLE001 - reported to the rollout process, which raises it
-        results.put(("error", traceback.format_exc()))
+            _write_jobs(config, pieces_dir, episodes, results, instructions)
+    except BaseException:  # noqa: BLE001 - reported to the generating process, which raises it
+        results.put(("error", f"a writer process failed:\n{traceback.format_exc()}"))
         return
     results.put(("exit", None))
 
 
-def _write_jobs(config: DatasetSettings, pieces_dir: Path, jobs, results, stop,
+def _write_jobs(config: DatasetSettings, pieces_dir: Path, episodes: EpisodeQueue, results,
                 instructions: dict[str, str]) -> None:
-    while not stop.is_set():
+    while not episodes.stop.is_set():
         try:
-            job = jobs.get(timeout=0.2)
+            job = episodes.jobs.get(timeout=0.2)
         except queue.Empty:
             continue
         if job is None:
             return
-        spec, episode, rollout_s = job
-        results.put(("piece", write_piece(config, spec, episode, pieces_dir,
-                                          instructions[spec.task_id], rollout_s)))
+        spec, episode, rollout_s, nbytes = job
+        try:
+            record = write_piece(config, spec, episode, pieces_dir, instructions[spec.task_id],
+                                 rollout_s)
+        finally:
+            episodes.taken(nbytes)
+        results.put(("piece", record))
 
 
-class WriterError(RuntimeError):
-    """The writer process failed (its traceback is the message)."""
+class GenerationError(RuntimeError):
+    """A writer or rollout process failed (its traceback is in the message) or died."""
 
 
-class _Writer:
-    """The writer process and its two queues, seen from the rollout process."""
+class Writers:
+    """Writer processes sharing one `EpisodeQueue`, seen from the process that started them.
+
+    Everything they report comes back on `results`, which rollout processes share to report
+    their failures: a record per written piece (handed to `on_piece` and kept in `records`),
+    a writer's exit, or an error, raised here as `GenerationError`."""
 
     def __init__(self, config: DatasetSettings, pieces_dir: Path,
-                 on_piece: Callable[[dict], None] | None) -> None:
+                 on_piece: Callable[[dict], None] | None, count: int = 1) -> None:
         ctx = process_context()
-        self.jobs = ctx.Queue(maxsize=QUEUED)
+        self.episodes = EpisodeQueue(ctx)
         self.results = ctx.Queue()
-        self.stop = ctx.Event()
         self.on_piece = on_piece
         self.records: list[dict] = []
-        self.exited = False
-        self.process = ctx.Process(
-            target=_writer_main, name="ccdata-writer", daemon=True,
-            args=(config, pieces_dir, self.jobs, self.results, self.stop, os.getpid()),
-        )
-        self.starting = start_soon(self.process)
+        self.exits = 0
+        self.processes = [
+            ctx.Process(target=_writer_main, name=f"ccdata-writer-{i}", daemon=True,
+                        args=(config, pieces_dir, self.episodes, self.results, os.getpid()))
+            for i in range(count)
+        ]  # fmt: skip
+        self.starting = start_soon(*self.processes)
 
     def _handle(self, block: bool) -> bool:
-        """Take one message from the writer; False when there was none."""
+        """Take one report; False when there was none."""
         try:
             kind, payload = self.results.get(timeout=0.2) if block else self.results.get_nowait()
         except queue.Empty:
             if self.starting.is_alive():
                 return False
-            self.starting.join()  # raises what starting the writer raised
-            if not self.process.is_alive() and not self.exited:
-                raise WriterError(f"the writer process died (exit code {self.process.exitcode})"
-                                  ) from None
+            self.starting.join()  # raises what starting the writers raised
+            dead = [p for p in self.processes if not p.is_alive()]
+            if len(dead) > self.exits:
+                raise GenerationError(f"a writer process died (exit code {dead[0].exitcode})"
+                                      ) from None
             return False
         if kind == "error":
-            self.exited = True
-            raise WriterError(f"the writer process failed:\n{payload}")
+            raise GenerationError(payload)
         if kind == "exit":
-            self.exited = True
+            self.exits += 1
         else:
             self.records.append(payload)
             if self.on_piece is not None:
@@ -219,41 +264,33 @@ class _Writer:
         return True
 
     def poll(self) -> None:
+        """Handle every report that has arrived."""
         while self._handle(block=False):
             pass
 
-    def submit(self, job) -> None:
-        while True:
+    def wait(self) -> None:
+        """Handle the reports of the next moment (0.2 s at most)."""
+        if self._handle(block=True):
             self.poll()
-            try:
-                self.jobs.put(job, timeout=0.2)
-                return
-            except queue.Full:
-                continue
 
     def finish(self) -> None:
-        """Let the writer write everything submitted, then wait for it to exit."""
-        self.submit(None)
-        while not self.exited:
+        """Let the writers write everything queued, then wait for them to exit."""
+        for _ in self.processes:
+            self.episodes.jobs.put(None)
+        while self.exits < len(self.processes):
             self._handle(block=True)
         self.starting.join()
-        self.process.join()
+        for p in self.processes:
+            p.join()
 
-    def abort(self) -> None:
-        """Let the writer complete the piece it is writing (pieces are atomic), drop the rest."""
-        self.stop.set()
+    def abort(self, grace_s: float = 120) -> None:
+        """Let each writer complete the piece it is writing (pieces are atomic) within
+        `grace_s`, drop the rest."""
+        self.episodes.stop.set()
         self.starting.join()
-        self.jobs.cancel_join_thread()  # episodes never written must not block our exit
-        deadline = time.monotonic() + 120
-        while self.process.is_alive() and time.monotonic() < deadline:
-            try:
-                self.process.join(0.2)
-            except KeyboardInterrupt:  # a second Ctrl-C: still wait, briefly
-                break
-        if self.process.is_alive():
-            self.process.kill()
-            self.process.join()
-        try:  # report the pieces it completed meanwhile; raise nothing more
+        self.episodes.jobs.cancel_join_thread()  # episodes never written must not block exit
+        end_processes(self.processes, grace_s)
+        try:  # report the pieces completed meanwhile; raise nothing more
             while True:
                 kind, payload = self.results.get_nowait()
                 if kind == "piece":
@@ -262,28 +299,21 @@ class _Writer:
             pass
 
 
-def write_shard(
-    config: DatasetSettings,
-    specs: list[EpisodeSpec],
-    pieces_dir: str | Path,
-    on_piece: Callable[[dict], None] | None = None,
-) -> list[dict]:
-    """Write each episode of `specs` as its own finalized LeRobot dataset in `pieces_dir`.
+def roll_out(config: DatasetSettings, specs: Iterable[EpisodeSpec], episodes: EpisodeQueue,
+             stop_file: Path, poll: Callable[[], None] = lambda: None) -> None:
+    """Roll out each episode of `specs` and queue it for the writers, calling `poll()` after
+    each one and while it waits for room. Stops before the next episode when `stop_file` exists
+    or writing stopped."""
 
-    An independent job (a process, a submitit/SLURM task): it needs only its arguments. It stops
-    before the next episode when `<pieces_dir>/../STOP` exists. Returns the pieces' records;
-    `on_piece(record)` is called in this process as each piece is completed."""
-    pieces_dir = Path(pieces_dir)
-    stop_file = pieces_dir.parent / "STOP"
-    todo = [s for s in specs if not (pieces_dir / s.key).exists()]
-    if not todo:
-        return []
-    writer = _Writer(config, pieces_dir, on_piece)
+    def wait() -> None:
+        poll()
+        time.sleep(0.05)
+
     env, env_task = None, None
     try:
-        for spec in todo:
-            if stop_file.exists():
-                break
+        for spec in specs:
+            if stop_file.exists() or episodes.stop.is_set():
+                return
             if env_task != spec.task_id:
                 if env is not None:
                     env.close()  # one render context per process at a time
@@ -291,12 +321,35 @@ def write_shard(
                 env_task = spec.task_id
             start = time.perf_counter()
             episode = rollout_episode(env, spec, config)
-            writer.submit((spec, episode, time.perf_counter() - start))
-        writer.finish()
-    except BaseException:
-        writer.abort()
-        raise
+            if not episodes.put(spec, episode, time.perf_counter() - start, wait):
+                return
+            poll()
     finally:
         if env is not None:
             env.close()
-    return writer.records
+
+
+def write_shard(
+    config: DatasetSettings,
+    specs: list[EpisodeSpec],
+    pieces_dir: str | Path,
+    on_piece: Callable[[dict], None] | None = None,
+) -> list[dict]:
+    """Write each episode of `specs` as its own finalized LeRobot dataset in `pieces_dir`:
+    rolled out here, written by a writer process.
+
+    An independent job (a process, a submitit/SLURM task): it needs only its arguments. It stops
+    before the next episode when `<pieces_dir>/../STOP` exists. Returns the pieces' records;
+    `on_piece(record)` is called in this process as each piece is completed."""
+    pieces_dir = Path(pieces_dir)
+    todo = [s for s in specs if not (pieces_dir / s.key).exists()]
+    if not todo:
+        return []
+    writers = Writers(config, pieces_dir, on_piece)
+    try:
+        roll_out(config, todo, writers.episodes, pieces_dir.parent / "STOP", writers.poll)
+        writers.finish()
+    except BaseException:
+        writers.abort()
+        raise
+    return writers.records

@@ -202,6 +202,76 @@ def test_workers_give_the_same_episodes(tiny, tmp_path):
     assert verify_dataset(root2) == []
 
 
+def test_episode_queue_holds_back_by_bytes(monkeypatch):
+    """Episodes queue until their bytes would pass the budget (one always fits); a put waits,
+    calling `wait`, until a writer takes enough; a stopped queue takes nothing more."""
+    from multiprocessing import get_context
+
+    from ccdata import writer
+
+    monkeypatch.setattr(writer, "QUEUED_BYTES", 1000)
+    q = writer.EpisodeQueue(get_context("spawn"))
+    spec = plan(GenerateConfig("Reach", episodes=1, explore_episodes=0))[0]
+    big, small = {"x": np.zeros(1200, np.uint8)}, {"x": np.zeros(600, np.uint8)}
+    never = lambda: pytest.fail("should not wait")  # noqa: E731
+    assert q.put(spec, big, 0.0, never)  # over the budget, but the queue is empty
+    waited = []
+
+    def take_the_big_one() -> None:
+        waited.append(1)
+        if len(waited) == 3:
+            assert q.jobs.get(timeout=5)[3] == 1200
+            q.taken(1200)
+
+    assert q.put(spec, small, 0.0, take_the_big_one) and len(waited) == 3
+    assert q.put(spec, {"x": np.zeros(400, np.uint8)}, 0.0, never)  # 600 + 400 fit
+    q.stop.set()
+    assert not q.put(spec, small, 0.0, never)
+    assert [q.jobs.get(timeout=5)[3] for _ in range(2)] == [600, 400]
+
+
+def test_a_failing_writer_is_raised_with_its_traceback(tmp_path):
+    from ccdata.writer import GenerationError, write_shard
+
+    cfg = GenerateConfig(**TINY, root=tmp_path / "Reach")
+    (tmp_path / "not-a-directory").write_text("")
+    with pytest.raises(GenerationError, match="(?s)a writer process failed.*NotADirectoryError"):
+        write_shard(cfg, plan(cfg)[:1], tmp_path / "not-a-directory" / "pieces")
+
+
+def test_a_killed_rollout_process_fails_the_generation_without_a_hang(tmp_path):
+    """A rollout process killed (say by the OOM killer), maybe in the middle of sending an
+    episode: the generation raises at once, leaves no process behind, and a rerun completes."""
+    import multiprocessing
+    import threading
+
+    from ccdata.writer import GenerationError
+
+    cfg = GenerateConfig("Reach", episodes=1, explore_episodes=0, image_size=32, max_steps=60,
+                         workers=2, root=tmp_path / "Reach")
+
+    def kill_a_rollout() -> None:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            for child in multiprocessing.active_children():
+                if child.name == "ccdata-rollout-1" and child.pid:
+                    time.sleep(3)  # into its rollouts
+                    os.kill(child.pid, signal.SIGKILL)
+                    return
+            time.sleep(0.05)
+
+    killer = threading.Thread(target=kill_a_rollout)
+    killer.start()
+    start = time.monotonic()
+    with pytest.raises(GenerationError, match=r"ccdata-rollout-1 died \(exit code -9\)"):
+        generate(cfg, progress=False)
+    killer.join()
+    assert time.monotonic() - start < 60
+    assert not multiprocessing.active_children()
+    _, summary = generate(cfg, progress=False)
+    assert existing_keys(cfg.dataset_root) == [s.key for s in plan(cfg)]
+
+
 def test_the_generating_process_imports_neither_torch_nor_lerobot(tmp_path):
     """Writing and merging happen in the writer and merger processes; the process that rolls
     out (and that a user's script runs in) never pays the seconds of importing torch."""
