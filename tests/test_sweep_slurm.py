@@ -9,15 +9,16 @@ partition whose jobs a `high` partition's job preempts (requeue).
 from __future__ import annotations
 
 import json
+import re
 import subprocess
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
 from ccfit.cli import main
-from ccfit.sweep.grid import load_sweep
-from ccfit.sweep.launch import wait_report
+from ccfit.sweep.grid import load_sweep, read_record
 from ccfit.sweep.status import sweep_status
 
 try:
@@ -44,32 +45,10 @@ def toy_args(root: Path, methods: str, *run: str) -> list[str]:
             "--launcher", "slurm", "--time", "30", "--seed_dataset", "null", *run]  # fmt: skip
 
 
-def test_smoke_sweep_through_slurm(tmp_path, capsys):
-    root = tmp_path / "runs"
-    args = toy_args(root, "ft,er", "--train.steps=100", "--train.seed_steps=50",
-                    "--train.eval_interval=100", "--wait")  # fmt: skip
-    assert main(args) == 0, capsys.readouterr().err
-    out = capsys.readouterr().out
-    assert f"logs in {root / 'slurm'}" in out
-    sweep, record = load_sweep(root)
-    [entry] = record["submissions"]
-    jobs = entry["jobs"]
-    assert sorted(jobs) == sorted(["report", f"scratch:{sweep.runs[0].scratch_key}",
-                                   *(f"run:{r.name}" for r in sweep.runs)])  # fmt: skip
-    # one reference, trained before either run started (afterany dependency)
-    rows = sacct(list(jobs.values()))
-    scratch_end = when(rows[jobs[f"scratch:{sweep.runs[0].scratch_key}"]]["end"])
-    for run in sweep.runs:
-        assert scratch_end <= when(rows[jobs[f"run:{run.name}"]]["start"])
-        result = json.loads((sweep.run_dir(run) / "metrics.json").read_text())
-        assert result["method"] == run.config["method"]["type"] and result["fwt"] is not None
-    status = json.loads((root / "report" / "status.json").read_text())
-    assert sorted(status["done"]) == sorted(r.name for r in sweep.runs) and not status["missing"]
-    assert {s["state"] for s in sweep_status(root).values()} == {"done"}
-
-    assert main(args) == 0
-    assert "nothing to submit" in capsys.readouterr().out
-    assert len(load_sweep(root)[1]["submissions"]) == 1
+def _last_submission(root: Path) -> dict:
+    """The jobs of the sweep's last submission so far (they are recorded as submitted)."""
+    submissions = (read_record(root) or {}).get("submissions") or [{}]
+    return submissions[-1].get("jobs", {})
 
 
 def _log(root: Path, job: str) -> str:
@@ -77,36 +56,54 @@ def _log(root: Path, job: str) -> str:
 
 
 @pytest.mark.skipif(not {"low", "high"} <= partitions(), reason="needs low and high partitions")
-def test_a_preempted_run_is_requeued_and_ends_as_an_uninterrupted_one(tmp_path, capsys):
+def test_a_sweep_through_slurm_is_preempted_and_ends_as_an_uninterrupted_run(tmp_path, capsys):
+    """One scenario (each job costs seconds of imports): a two-run sweep, its reference trained
+    before either run, both runs preempted by a job of the `high` partition and requeued, the
+    report job at the end, and an uninterrupted run of the same config giving the same
+    metrics; a second submission finds nothing to do."""
     from ccfit.curriculum import Curriculum
+    from ccfit.sweep.jobs import config_from_dict
 
     root = tmp_path / "runs"
-    train = ["--train.steps=300", "--train.seed_steps=100", "--train.eval_interval=300",
-             "--train.checkpoint_interval=100"]  # fmt: skip
-    assert main(toy_args(root, "ft", "--partition", "low", *train)) == 0
+    args = toy_args(root, "ft,er", "--partition", "low", "--train.steps=300",
+                    "--train.seed_steps=100", "--train.eval_interval=300",
+                    "--train.checkpoint_interval=100")  # fmt: skip
+    # submitted with --wait: it returns once the report job ended, with the status
+    waited = []
+    submitter = threading.Thread(target=lambda: waited.append(main([*args, "--wait"])))
+    submitter.start()
+    deadline = time.monotonic() + 120
+    while "report" not in _last_submission(root):  # the report job is submitted last
+        assert submitter.is_alive() and time.monotonic() < deadline, "nothing was submitted"
+        time.sleep(0.2)
     sweep, record = load_sweep(root)
-    [run] = sweep.runs
-    job = record["submissions"][0]["jobs"][f"run:{run.name}"]
+    [entry] = record["submissions"]
+    jobs = entry["jobs"]
+    scratch = f"scratch:{sweep.runs[0].scratch_key}"
+    assert sorted(jobs) == sorted(["report", scratch, *(f"run:{r.name}" for r in sweep.runs)])
+    [run] = [r for r in sweep.runs if r.config["method"]["type"] == "ft"]
+    job = jobs[f"run:{run.name}"]
     deadline = time.monotonic() + 240
     while not list(sweep.run_dir(run).glob("tasks/*/checkpoint.pt")):
         assert time.monotonic() < deadline, "the run wrote no checkpoint"
         time.sleep(0.5)
     status = sweep_status(root)
     assert status[f"run:{run.name}"] == {"state": "running", "job": job, "detail": "RUNNING"}
-    assert status[f"scratch:{run.scratch_key}"]["state"] == "done"
+    assert status[scratch]["state"] == "done"
     assert status["report"]["state"] == "pending"
-    # all of the node's CPUs in the high partition: the low job must give way
+    # all of the node's CPUs in the high partition: the low jobs must give way
     subprocess.run(["sbatch", "--partition", "high", "--cpus-per-task", "2", "--time", "2",
                     "--job-name", "ccfit-preempt", "--output", "/dev/null", "--wrap", "sleep 3"],
                    check=True, capture_output=True)  # fmt: skip
 
     # meanwhile the same config uninterrupted, here
-    from ccfit.sweep.jobs import config_from_dict
+    reference = Curriculum(config_from_dict(run.config), tmp_path / "ref",
+                           tmp_path / "ref-scratch", progress=False).run()  # fmt: skip
 
-    cfg = config_from_dict(run.config)
-    reference = Curriculum(cfg, tmp_path / "ref", tmp_path / "ref-scratch", progress=False).run()
-
-    wait_report(load_sweep(root)[1]["submissions"][0], timeout_s=300)
+    submitter.join(timeout=300)
+    assert waited == [0]
+    out = capsys.readouterr().out
+    assert f"logs in {root / 'slurm'}" in out and re.search(r"(?m)^report\s+done", out), out
     log = _log(root, job)
     assert log.count("starting fresh") == 1 and "requeued" in log
     assert "resuming from tasks/" in log or "resuming from curriculum.pt" in log
@@ -118,6 +115,20 @@ def test_a_preempted_run_is_requeued_and_ends_as_an_uninterrupted_one(tmp_path, 
     reference = json.loads(json.dumps(reference))
     reference.pop("scratch_dir")
     assert result == reference
+
+    # one reference, trained before either run started (afterany dependency)
+    rows = sacct(list(jobs.values()))
+    for r in sweep.runs:
+        assert when(rows[jobs[scratch]]["end"]) <= when(rows[jobs[f"run:{r.name}"]]["start"])
+        metrics = json.loads((sweep.run_dir(r) / "metrics.json").read_text())
+        assert metrics["method"] == r.config["method"]["type"] and metrics["fwt"] is not None
+    status = json.loads((root / "report" / "status.json").read_text())
+    assert sorted(status["done"]) == sorted(r.name for r in sweep.runs) and not status["missing"]
+    assert {s["state"] for s in sweep_status(root).values()} == {"done"}
+
+    assert main(args) == 0
+    assert "nothing to submit" in capsys.readouterr().out
+    assert len(load_sweep(root)[1]["submissions"]) == 1
 
 
 def test_no_accounting_is_one_line(tmp_path, capsys, monkeypatch):
