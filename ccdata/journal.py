@@ -7,8 +7,9 @@ How the work is laid out on disk (target root `R`, e.g. `$HF_LEROBOT_HOME/ccdata
 - `R/../.<name>.ccdata-work/` is the journal of the run in progress: `settings.json` (the
   generation settings it belongs to) and `pieces/`, one small finalized LeRobot dataset per
   completed episode. An episode is written to `pieces/.tmp-<key>` and renamed to
-  `pieces/<key>` only after LeRobot's `finalize()`, so a SIGKILL loses at most the episode in
-  progress (its `.tmp-` directory is deleted by the next run).
+  `pieces/<key>` only after LeRobot's `finalize()`, so a SIGKILL loses only the episodes not
+  yet written: in progress, or rolled out and waiting for a writer (a `.tmp-` directory left
+  behind is deleted by the next run).
 - While episodes are being rolled out, a merger process (`merge_chunks`) aggregates each
   complete chunk of `GROUP` consecutive episodes into `batches/<first key>` (finalized before it
   is renamed into place, with `batch.json` naming its episodes), so most merging overlaps the

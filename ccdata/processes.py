@@ -1,4 +1,5 @@
-"""The processes a generation starts to write episodes and merge them (writers, the merger).
+"""The processes a generation starts to write episodes and merge them (writers, the merger),
+and ending any process it started (`end_processes`).
 
 They are forked from one multiprocessing fork server that has imported their libraries once.
 Spawning a fresh interpreter for each imported torch and LeRobot again every time (about 7 s of

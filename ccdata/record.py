@@ -166,8 +166,10 @@ def _rollout_main(config: GenerateConfig, todo: list[EpisodeSpec], claimed, epis
 
     try:
         roll_out(config, next_spec(), episodes, stop_file)
-        if episodes.stop.is_set():
-            episodes.jobs.cancel_join_thread()  # what was not sent is dropped: do not wait
+        if episodes.stop.is_set() or stop_file.exists():
+            # Stopped: the writers may read no more, and what was not sent is dropped. Waiting
+            # to send it would keep this process from exiting.
+            episodes.jobs.cancel_join_thread()
     except BaseException:
         results.put(("error", f"a rollout process failed:\n{traceback.format_exc()}"))
         results.close()

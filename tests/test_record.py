@@ -270,6 +270,7 @@ def test_a_killed_rollout_process_fails_the_generation_without_a_hang(tmp_path):
     assert not multiprocessing.active_children()
     _, summary = generate(cfg, progress=False)
     assert existing_keys(cfg.dataset_root) == [s.key for s in plan(cfg)]
+    assert summary["episodes"] == 4 and verify_dataset(cfg.dataset_root) == []
 
 
 def test_the_generating_process_imports_neither_torch_nor_lerobot(tmp_path):
@@ -316,7 +317,7 @@ def test_keyboard_interrupt_leaves_valid_dataset_and_resume_completes(tmp_path):
     assert not (tmp_path / ".Reach.ccdata-work").exists()
 
 
-def test_sigkill_loses_at_most_the_episode_in_progress(tmp_path):
+def test_sigkill_loses_only_episodes_not_yet_written(tmp_path):
     root = tmp_path / "Reach"
     kwargs = dict(suite="Reach", episodes=1, explore_episodes=0, image_size=32, max_steps=40)
     script = textwrap.dedent(f"""
