@@ -1,10 +1,10 @@
-"""Experience-replay memory per kept transition: the 2-row items ER keeps now, measured on a
-real ER memory, against the layout it replaced (a whole training window of `window` rows per
-kept transition, computed from that layout: `window` observation rows plus `window` - 1
-action/reward/terminated rows plus a task index). Prints JSON.
+"""Experience-replay memory per kept transition, measured on a real ER memory: ER keeps
+chunks of the model's `seq_len` consecutive rows (windows with their context), compared with
+the two layouts it has had before, computed from their formulas: 2-row items (o_t, o_{t+1}: no
+context for a sequence model) and a whole window of `seq_len` rows per kept transition.
+Prints JSON.
 
-Measured for the layout before the change (ccfit at ce34307, window 64): 11504 B per kept
-transition in state mode and 2362608 B at 64 px, which the formula below reproduces.
+    python bench/er_memory.py --windows 4,32,64
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import json
 import numpy as np
 import torch
 
-from ccfit.continual import TaskData, make_method
+from ccfit.continual import TaskData, make_method, method_config
 from ccfit.replay import ReplayBuffer
 
 
@@ -48,29 +48,31 @@ def measure(mode: str, window: int, image_size: int, episodes: int) -> dict:
     buf = ReplayBuffer(None, seed=0)
     for _ in range(episodes):
         buf.add_episode(**episode(mode, 250, image_size, rng))
-    er = make_method("er", fraction=0.05)
+    er = make_method(method_config("er", fraction=0.05), num_tasks=2)
     er.after_task(0, None, TaskData.from_buffer(0, buf, batch_size=1, seq_len=window,
                                                 backbone_loss=None))  # fmt: skip
-    kept = er.memory.num_episodes
-    new = nbytes(er.memory.state_dict()) / kept
-    obs_row = sum(v.numel() // v.shape[0] * v.element_size()
-                  for v in er.memory.state_dict()["obs"].values())  # fmt: skip
-    transition_row = (4 + 1 + 1) * 4  # action (4), reward, terminated: float32
-    old = window * obs_row + (window - 1) * transition_row + 8  # + the task index (int64)
+    kept = er.memory.num_transitions
+    chunks = nbytes(er.memory.state_dict()) / kept
+    state = er.memory.state_dict()
+    obs_row = sum(v.numel() // v.shape[0] * v.element_size() for v in state["obs"].values())
+    # action (4), reward, terminated: float32; is_first: bool; task: int64
+    row = obs_row + (4 + 1 + 1) * 4 + 1 + 8
     return {
         "obs": mode, "image_size": image_size if mode == "pixels" else None,
-        "window_rows": window, "kept_transitions": kept,
-        "bytes_per_kept_new": new, "bytes_per_kept_old": old, "ratio_old_new": old / new,
+        "seq_len": window, "task_transitions": buf.num_transitions, "kept_transitions": kept,
+        "kept_share": kept / buf.num_transitions, "bytes_per_kept": chunks,
+        "bytes_per_kept_2row_items": 2 * row, "bytes_per_kept_whole_window": window * row,
     }  # fmt: skip
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--window", type=int, default=64)
+    parser.add_argument("--windows", default="4,32,64", help="seq_len values (comma list)")
     parser.add_argument("--image-size", type=int, default=64)
     parser.add_argument("--episodes", type=int, default=8)
     args = parser.parse_args()
-    rows = [measure(m, args.window, args.image_size, args.episodes) for m in ("state", "pixels")]
+    rows = [measure(m, int(w), args.image_size, args.episodes)
+            for w in args.windows.split(",") for m in ("state", "pixels")]  # fmt: skip
     print(json.dumps({"results": rows}, indent=2))
 
 

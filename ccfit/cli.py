@@ -69,11 +69,11 @@ def _fmt(x) -> str:
 def cmd_train(argv: list[str]) -> None:
     """ccfit train --task reach-xy --preset smoke --out runs/smoke  (see --help)"""
     from ccfit.config import TaskRunConfig, parse_cli
-    from ccfit.train.run import default_out, train_task
+    from ccfit.train.run import default_out, train_single
 
     extra, argv = _split_flags(argv, {"quiet": False})
     cfg = parse_cli(TaskRunConfig, argv, prog="ccfit train")
-    record = train_task(cfg, progress=not extra.get("quiet"))
+    record = train_single(cfg, progress=not extra.get("quiet"))
     norm = record["normalized_return"]
     print(f"{cfg.task} step {record['global_step']}: return {record['discounted_return']:.2f}, "
           f"normalised {'n/a' if norm is None else f'{norm:.1f}'}, "

@@ -24,18 +24,17 @@ from typing import Any, ClassVar
 
 import draccus
 
-from ccfit.continual.base import MethodConfig, method_config_class
-from ccfit.models.registry import (
+from ccfit.config_base import (
+    DEFAULTS,
+    DEVICES,
     PRESETS,
     ConfigError,
-    ModelConfig,
     check,
     check_types,
-    config_class,
 )
+from ccfit.continual.base import MethodConfig, method_config_class
+from ccfit.models.registry import ModelConfig, config_class, model_class
 from ccfit.obs import OBS_MODES
-
-DEVICES: tuple[str, ...] = ("auto", "cpu", "cuda")
 
 
 @dataclass
@@ -100,29 +99,30 @@ class TrainConfig:
 
 
 def _default_model() -> ModelConfig:
-    return config_class("tdmpc2")()
+    return config_class(DEFAULTS["model"])()
 
 
 def _default_method() -> MethodConfig:
-    return method_config_class("ft")()
+    return method_config_class(DEFAULTS["method"])()
 
 
 @dataclass
 class RunConfig:
     """What every run has (one task with `ccfit train`, a curriculum with `ccfit run`)."""
 
-    obs: str = "state"
+    obs: str = DEFAULTS["obs"]
     """Observation mode: 'state' (39-D privileged state) or 'pixels' (the paper: three
     cameras channel-stacked to 9 channels plus the 7-D proprio)."""
     seed: int = 0
     """Seeds everything: model init, replay sampling, episode and evaluation layouts."""
-    preset: str = "cpu"
+    preset: str = DEFAULTS["preset"]
     """Size preset filling the defaults of model, method and train: smoke (seconds), cpu
     (2 CPU cores), paper (the paper's scale, for a GPU). Flags override it."""
     out: str | None = None
     """Run directory (None: a name made from the config under runs/)."""
-    image_size: int = 64
-    """Camera image side in pixel mode."""
+    image_size: int = DEFAULTS["image_size"]
+    """Camera image side in pixel mode (the other render settings are ccdata's defaults,
+    `ccdata.RenderSettings`, recorded in config.json)."""
     encoder: str | None = None
     """'frozen:PATH': a pretrained encoder (`ccfit pretrain-encoder`), frozen for the run."""
     seed_dataset: str | None = "auto"
@@ -219,10 +219,14 @@ class CurriculumConfig(RunConfig):
             get_suite(self.suite)
         except ValueError as e:
             raise ConfigError(str(e)) from None
-        self.method.check_model(self.model.type)
-        from ccfit.continual.base import build_method
-
-        build_method(self.method, len(self.tasks), self.seed)  # bad options fail here, early
+        # Everything that would fail once the run is under way fails here, before it starts.
+        missing = self.method.REQUIRES - model_class(self.model.type).capabilities
+        offering = ", ".join(models_offering(self.method.REQUIRES)) or "none"
+        check(not missing, f"method {self.method.type!r} needs a model offering "
+                           f"{', '.join(sorted(missing))}; models that do: {offering}")  # fmt: skip
+        self.model.check_curriculum(len(self.tasks))
+        self.method.check_curriculum(len(self.tasks))
+        check_references(self.tasks)
         check(self.train.steps % self.train.eval_interval == 0,
               f"steps per task ({self.train.steps}) must be a multiple of eval_interval "
               f"({self.train.eval_interval}) so every task is evaluated at its end")  # fmt: skip
@@ -234,23 +238,44 @@ class CurriculumConfig(RunConfig):
         return list(get_suite(self.suite).task_ids)
 
 
+def models_offering(capabilities: frozenset[str]) -> list[str]:
+    """Registered models declaring every one of `capabilities`."""
+    from ccfit.models.registry import MODELS
+
+    return sorted(n for n, cls in MODELS.items() if capabilities <= cls.capabilities)
+
+
+def check_references(tasks: list[str]) -> None:
+    """ConfigError unless every task has its oracle reference (normalised returns, hence
+    BWT and FWT, need it): found before a run starts, not after it."""
+    from ccdata.scoring import oracle_reference
+
+    for task in tasks:
+        try:
+            oracle_reference(task)
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+
+
 # ============================================================================== resolving
 
 
-def preset_defaults(cls: type[RunConfig], preset: str, model: str, method: str | None,
-                    obs: str, image_size: int) -> dict:  # fmt: skip
-    """The nested plain-data defaults of `cls` at `preset` for the chosen model and method."""
+def preset_defaults(cls: type[RunConfig], choices: dict[str, Any]) -> dict:
+    """The nested plain-data defaults of `cls` for `choices`: preset, obs, image_size,
+    model (its type) and method (its type), each `DEFAULTS[...]` unless given."""
+    c = {**DEFAULTS, **{k: v for k, v in choices.items() if v is not None}}
+    preset, model, method = c["preset"], c["model"], c["method"]
     check(preset in PRESETS, f"unknown preset {preset!r}; valid: {', '.join(PRESETS)}")
     mcls = config_class(model)
     check(preset in mcls.PRESETS, f"model {model!r} has no preset {preset!r}")
     out: dict[str, Any] = {
-        "preset": preset, "obs": obs, "image_size": image_size,
-        "model": {"type": model, **mcls.PRESETS[preset], "obs_mode": obs,
-                  "image_size": image_size},
+        "preset": preset, "obs": c["obs"], "image_size": c["image_size"],
+        "model": {"type": model, **mcls.preset_fields(preset), "obs_mode": c["obs"],
+                  "image_size": c["image_size"]},
         "train": dict(TrainConfig.PRESETS[preset]),
     }  # fmt: skip
-    if method is not None:
-        out["method"] = {"type": method, **method_config_class(method).PRESETS.get(preset, {})}
+    if _has_method(cls):
+        out["method"] = {"type": method, **method_config_class(method).preset_fields(preset)}
     return out
 
 
@@ -258,18 +283,10 @@ def resolve[C: RunConfig](cls: type[C], overrides: dict[str, Any]) -> C:
     """`cls` from nested plain data (`{"suite": ..., "model": {"type": "pwm", ...}}`): the
     preset's defaults (preset, model and method types, obs and image size taken from
     `overrides`), then `overrides` on top. The programmatic twin of `parse_cli`."""
-    base = {f.name: f.default for f in dataclasses.fields(cls) if f.name in _TOP_PREFILLED}
-    top = {**base, **{k: v for k, v in overrides.items() if k in _TOP_PREFILLED}}
-    model = overrides.get("model", {}).get("type", "tdmpc2")
-    method = overrides.get("method", {}).get("type", "ft") if _has_method(cls) else None
-    merged = _deep_merge(
-        preset_defaults(cls, top["preset"], model, method, top["obs"], top["image_size"]),
-        overrides,
-    )
-    return _decode(cls, merged)
-
-
-_TOP_PREFILLED = ("preset", "obs", "image_size")
+    choices = {k: overrides.get(k) for k in ("preset", "obs", "image_size")}
+    choices.update(model=overrides.get("model", {}).get("type"),
+                   method=overrides.get("method", {}).get("type"))  # fmt: skip
+    return _decode(cls, _deep_merge(preset_defaults(cls, choices), overrides))
 
 
 def _has_method(cls: type) -> bool:
@@ -345,13 +362,12 @@ def parse_cli[C: RunConfig](cls: type[C], argv: Sequence[str], prog: str | None 
         defaults = {k: v for k, v in defaults.items() if k in names}
         args = _without(args, "config_path")
     else:
-        obs = pre.get("obs", "state")
-        image_size = int(pre.get("image_size", 64)) if str(pre.get("image_size", 64)).isdigit() \
-            else 64  # a bad value is reported by draccus below
-        defaults = preset_defaults(
-            cls, pre.get("preset", "cpu"), pre.get("model.type", "tdmpc2"),
-            pre.get("method.type", "ft") if _has_method(cls) else None, obs, image_size,
-        )  # fmt: skip
+        size = pre.get("image_size")  # a bad value is reported by draccus below
+        defaults = preset_defaults(cls, {
+            "preset": pre.get("preset"), "obs": pre.get("obs"),
+            "image_size": int(size) if size is not None and size.isdigit() else None,
+            "model": pre.get("model.type"), "method": pre.get("method.type"),
+        })  # fmt: skip
     for nested, top in (("model.obs_mode", "obs"), ("model.image_size", "image_size")):
         check(nested not in pre, f"--{nested} follows the run's --{top}; set that instead")
     with tempfile.NamedTemporaryFile("w", suffix=".json") as f:

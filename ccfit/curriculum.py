@@ -9,10 +9,12 @@ through the rest of the curriculum (the BWT integral needs it). The composition 
 learnt from scratch with the same budget (the FWT reference), once per config without the
 method, and shared by every method's run.
 
-Model-specific analyses (PWM's routing) plug in as `StageCallback`s, called after each task.
+Analyses plug in as `StageCallback`s, called after each task (the routing record of a model
+offering 'routing'; `ccfit.analysis.stage_callbacks`).
 
 Run directory:
-    config.json          the resolved CurriculumConfig (plus the seed dataset it resolved to)
+    config.json          the resolved CurriculumConfig, plus what it resolved to where it ran
+                         (seed dataset, device, render settings)
     metrics.jsonl        evaluation records: task, task_index, stage (task being trained),
                          global_step, task_step, discounted/normalised return, success rate
     tasks/<i>-<task>/    the trainer's checkpoint while task i trains (removed when it is done)
@@ -30,7 +32,6 @@ import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import torch
 
@@ -38,24 +39,33 @@ from ccdata.env import make_env
 from ccdata.errors import InputError
 from ccfit import metrics as M
 from ccfit.config import CurriculumConfig
-from ccfit.continual.base import ContinualMethod, TaskData, build_method
-from ccfit.io import atomic_torch_save, atomic_write_json, rng_state, seed_everything, set_rng_state
+from ccfit.config_base import resolve_device
+from ccfit.continual.base import ContinualMethod, make_method
+from ccfit.io import (
+    atomic_torch_save,
+    atomic_write_json,
+    load_checkpoint,
+    rng_state,
+    seed_everything,  # fmt: skip
+    set_rng_state,
+)
 from ccfit.models.base import WorldModel
-from ccfit.train.evaluate import eval_record, eval_seeds, evaluate
-from ccfit.train.loop import CHECKPOINT, Trainer
+from ccfit.train.loop import Trainer
 from ccfit.train.records import RunLogger
 from ccfit.train.run import (
     CONFIG,
     build_model,
     check_saved_config,
-    dataset_source,
+    make_evaluator,
     make_replay,
-    resolve_device,
+    resolved_config,
+    train_task,
 )
 
 STATE = "curriculum.pt"
+STATE_KIND = "ccfit-curriculum"
+STATE_VERSION = 3
 METRICS_JSON = "metrics.json"
-STATE_VERSION = 2
 
 
 @dataclass
@@ -74,23 +84,18 @@ StageCallback = Callable[[Stage], None]
 """Called after each finished task (before its state is saved), e.g. PWM's routing record."""
 
 
-def resolved_config(cfg: CurriculumConfig) -> dict:
-    """config.json of a run: the config and the seed dataset 'auto' resolved to."""
-    return {**cfg.to_dict(), "resolved_seed_dataset": dataset_source(cfg, cfg.suite)}
+def scratch_config(cfg: CurriculumConfig) -> dict:
+    """config.json of the from-scratch reference: the run's, less what it does not depend
+    on (the method, the output directory)."""
+    resolved = resolved_config(cfg, cfg.suite)
+    return {k: v for k, v in resolved.items() if k not in ("method", "out")}
 
 
 def scratch_key(cfg: CurriculumConfig) -> str:
     """Runs with equal keys share one from-scratch reference: everything but the method and
-    the output directory."""
-    shared = {k: v for k, v in resolved_config(cfg).items() if k not in ("method", "out")}
-    digest = hashlib.sha1(json.dumps(shared, sort_keys=True).encode()).hexdigest()[:8]
-    return f"{cfg.suite}-{cfg.model.type}-{cfg.obs}-{cfg.preset}-s{cfg.seed}-{digest}"
-
-
-def _task_data(i: int, buffer, model: WorldModel, device: torch.device) -> TaskData:
-    return TaskData.from_buffer(i, buffer, batch_size=model.cfg.batch_size,
-                                seq_len=model.cfg.seq_len, backbone_loss=model.backbone_loss,
-                                device=device)  # fmt: skip
+    the output directory (the device it ran on included)."""
+    digest = hashlib.sha1(json.dumps(scratch_config(cfg), sort_keys=True).encode()).hexdigest()
+    return f"{cfg.suite}-{cfg.model.type}-{cfg.obs}-{cfg.preset}-s{cfg.seed}-{digest[:8]}"
 
 
 # ============================================================================ the run
@@ -104,48 +109,20 @@ def run_scratch(cfg: CurriculumConfig, out: Path, progress: bool = True) -> list
     dependency instead)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    done = out / "done.json"
     with open(out.parent / f".{out.name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
-            return _train_scratch(cfg, out, progress)
+            if done.is_file():
+                return json.loads(done.read_text())
+            n = len(cfg.tasks)
+            evals = train_task(cfg, out, task_id=cfg.tasks[-1], task_index=n - 1,
+                               saved=scratch_config(cfg), progress=progress)  # fmt: skip
+            atomic_write_json(done, evals)
+            (out / "checkpoint.pt").unlink(missing_ok=True)
+            return evals
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
-
-
-def _train_scratch(cfg: CurriculumConfig, out: Path, progress: bool) -> list[dict]:
-    n = len(cfg.tasks)
-    task_id = cfg.tasks[-1]
-    done = out / "done.json"
-    if done.is_file():
-        return json.loads(done.read_text())
-    atomic_write_json(out / CONFIG, {k: v for k, v in resolved_config(cfg).items()
-                                     if k != "method"})  # fmt: skip
-    if cfg.train.torch_threads > 0:
-        torch.set_num_threads(cfg.train.torch_threads)
-    device = resolve_device(cfg.train.device)
-    resumed = (out / CHECKPOINT).exists()
-    logger = RunLogger(out)
-    if not resumed:  # records of a run killed before its first checkpoint
-        logger.keep(lambda r: False)
-    seed_everything(cfg.seed)
-    model = build_model(cfg, device)
-    model.begin_task(n - 1, cfg.train.steps)
-    source = None if resumed else dataset_source(cfg, cfg.suite)
-    env = make_env(task_id, render=cfg.obs == "pixels", image_size=cfg.image_size)
-    trainer = Trainer(
-        env=env, model=model, heads=model.new_heads(), config=cfg.train, seed=cfg.seed,
-        obs_mode=cfg.obs, task_id=task_id, task_index=n - 1,
-        buffer=make_replay(cfg, model, task_id, n - 1, source), logger=logger, run_dir=out,
-        progress=progress,
-    )  # fmt: skip
-    try:
-        trainer.run()
-    finally:
-        env.close()
-        logger.close()
-    atomic_write_json(done, trainer.evals)
-    (out / CHECKPOINT).unlink(missing_ok=True)
-    return trainer.evals
 
 
 class Curriculum:
@@ -163,60 +140,48 @@ class Curriculum:
     def run(self) -> dict:
         cfg, train = self.cfg, self.cfg.train
         self.out.mkdir(parents=True, exist_ok=True)
-        check_saved_config(self.out, resolved_config(cfg))
+        check_saved_config(self.out, resolved_config(cfg, cfg.suite))
         if train.torch_threads > 0:
             torch.set_num_threads(train.torch_threads)
         tasks = cfg.tasks
         model, method, stored, completed = restore(cfg, self.out, self.device)
         logger = RunLogger(self.out)
-        eval_envs: dict[int, Any] = {}
-
-        def evaluate_earlier(global_step: int, stage: int) -> list[dict]:
-            records = []
-            for j in range(stage):
-                if j not in eval_envs:
-                    eval_envs[j] = make_env(tasks[j], render=cfg.obs == "pixels",
-                                            image_size=cfg.image_size)  # fmt: skip
-                with method.evaluating(j, model.backbone):
-                    res = evaluate(eval_envs[j], model, stored[j], obs_mode=cfg.obs,
-                                   seeds=eval_seeds(cfg.seed, j, train.eval_episodes),
-                                   device=self.device)  # fmt: skip
-                records.append(eval_record(tasks[j], j, stage, global_step, None, res))
-            return records
-
-        source = dataset_source(cfg, cfg.suite)
-        for i in range(completed, len(tasks)):
-            task_dir = self.out / "tasks" / f"{i}-{tasks[i]}"
-            resumed = (task_dir / CHECKPOINT).exists()
-            if not resumed:  # forget stages a killed run had started but not checkpointed
-                logger.keep(lambda r, i=i: r.get("stage", r["task_index"]) < i)
-            model.begin_task(i, train.steps)
-            method.before_task(i, model.backbone)
-            heads = model.new_heads()
-            buffer = make_replay(cfg, model, tasks[i], i, None if resumed else source)
-            env = make_env(tasks[i], render=cfg.obs == "pixels", image_size=cfg.image_size)
-            trainer = Trainer(
-                env=env, model=model, heads=heads, buffer=buffer, config=train, seed=cfg.seed,
-                obs_mode=cfg.obs, task_id=tasks[i], task_index=i, logger=logger, method=method,
-                run_dir=task_dir, global_offset=i * train.steps, progress=self.progress,
-                extra_eval=lambda step, stage=i: evaluate_earlier(step, stage),
-                stored_heads_loss=lambda batch, j: model.loss(batch, stored[j]).total,
-            )  # fmt: skip
-            trainer.run()
-            env.close()
-            method.after_task(i, model.backbone, _task_data(i, buffer, model, self.device))
-            if method.wants_retrain_steps:
-                trainer.extra_updates(method.wants_retrain_steps)
-            heads.requires_grad_(False)
-            heads.eval()
-            stored.append(heads)
-            for callback in self.callbacks:
-                callback(Stage(self.out, cfg, model, stored, method, self.device))
-            self._save(i + 1, model, method, stored)
-            shutil.rmtree(task_dir, ignore_errors=True)
-        for env in eval_envs.values():
-            env.close()
-        logger.close()
+        evaluator = make_evaluator(cfg, model, dict(enumerate(tasks)),
+                                   view=lambda j: method.evaluating(j, model.backbone))
+        evaluator.heads.update(enumerate(stored))
+        source = resolved_config(cfg, cfg.suite)["resolved_seed_dataset"]
+        try:
+            for i in range(completed, len(tasks)):
+                task_dir = self.out / "tasks" / f"{i}-{tasks[i]}"
+                resumed = (task_dir / "checkpoint.pt").exists()
+                if not resumed:  # forget stages a killed run had started but not checkpointed
+                    logger.keep(lambda r, i=i: r.get("stage", r["task_index"]) < i)
+                model.begin_task(i, train.steps)
+                method.before_task(i, model.backbone)
+                heads = model.new_heads()
+                buffer = make_replay(cfg, model, tasks[i], i, None if resumed else source)
+                env = make_env(tasks[i], render=cfg.obs == "pixels", image_size=cfg.image_size)
+                trainer = Trainer(
+                    env=env, model=model, heads=heads, buffer=buffer, evaluator=evaluator,
+                    config=train, seed=cfg.seed, obs_mode=cfg.obs, task_id=tasks[i],
+                    task_index=i, logger=logger, method=method, run_dir=task_dir,
+                    global_offset=i * train.steps, progress=self.progress,
+                    stored_heads_loss=lambda batch, j: model.loss(batch, stored[j]).total,
+                )  # fmt: skip
+                try:
+                    trainer.run()
+                finally:
+                    env.close()
+                heads.requires_grad_(False)
+                heads.eval()
+                stored.append(heads)
+                for callback in self.callbacks:
+                    callback(Stage(self.out, cfg, model, stored, method, self.device))
+                self._save(i + 1, model, method, stored)
+                shutil.rmtree(task_dir, ignore_errors=True)
+        finally:
+            evaluator.close()
+            logger.close()
         scratch_dir = (self.scratch_root / scratch_key(cfg)).resolve()
         scratch = run_scratch(cfg, scratch_dir, self.progress)
         result = M.compute_metrics(logger.read_evals(), scratch, len(tasks), train.steps)
@@ -229,6 +194,7 @@ class Curriculum:
 
     def _save(self, completed: int, model, method, stored) -> None:
         atomic_torch_save({
+            "kind": STATE_KIND,
             "version": STATE_VERSION,
             "completed": completed,
             "model": model.state_dict(),
@@ -247,14 +213,12 @@ def restore(cfg: CurriculumConfig, run_dir: Path, device: torch.device
     has no saved state yet). Global RNGs are seeded, or restored from the saved state."""
     seed_everything(cfg.seed)
     model = build_model(cfg, device)
-    method = build_method(cfg.method, len(cfg.tasks), cfg.seed)
+    method = make_method(cfg.method, len(cfg.tasks), cfg.seed)
     stored: list[torch.nn.Module] = []
     path = Path(run_dir) / STATE
     if not path.exists():
         return model, method, stored, 0
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    if state.get("version") != STATE_VERSION:
-        raise ValueError(f"{path}: unsupported curriculum state version")
+    state = load_checkpoint(path, STATE_KIND, STATE_VERSION)
     # Model structure never changes shape (PWM allocates its experts up front), so the
     # states load directly; the next task's before_task continues from them.
     model.load_state_dict(state["model"])
@@ -292,6 +256,6 @@ def load_run(run_dir: str | Path, device: torch.device | str | None = None) -> L
     saved = json.loads((run_dir / CONFIG).read_text())
     names = {f.name for f in dataclasses.fields(CurriculumConfig)}
     cfg = resolve(CurriculumConfig, {k: v for k, v in saved.items() if k in names})
-    dev = torch.device(device) if device is not None else resolve_device(cfg.train.device)
+    dev = resolve_device(device if device is not None else cfg.train.device)
     model, method, stored, completed = restore(cfg, run_dir, dev)
     return LoadedRun(cfg, model, method, stored, completed, dev)

@@ -5,16 +5,7 @@ the layout from `LeRobotDatasetMetadata`, reads the parquet files with pyarrow, 
 camera's video file once, sequentially, with PyAV, cutting it into episodes by the episodes
 metadata (each episode's from/to timestamps inside its video file).
 
-`episode_to_replay` turns one episode into replay-buffer arrays through `ccfit.obs`, the same
-function live observations go through, and `seed_buffer` preloads a replay buffer with a task's
-episodes.
-
-The observation after an episode's last action (for a successful episode: the success state,
-which every terminal transition leads to) is recorded by ccdata datasets of format 2 as the
-episode's last frame (`is_final_observation`), so every transition of every episode, the
-terminal successes included, reaches the buffer in every observation mode. Datasets of format 1
-lack that frame: their successful episodes get it back by replaying their actions without
-rendering (state mode only; in pixel mode their last transition is dropped).
+`ccfit.seeding` turns the episodes into replay (the suite dataset seeds each task's replay).
 """
 
 from __future__ import annotations
@@ -29,10 +20,9 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ccdata.dataset_format import CCDATA_META, FINAL_KEY, camera_key
+from ccdata.dataset_format import CCDATA_META, camera_key
 from ccdata.errors import InputError
 from ccdata.render import CAMERAS
-from ccfit.obs import obs_to_arrays
 
 CAMERA_KEYS = {camera: camera_key(camera) for camera in CAMERAS}
 """Camera name (as in the env's obs dict) -> LeRobot video feature."""
@@ -275,126 +265,3 @@ def _column(table, name: str) -> np.ndarray:
         # vectors: one flat buffer reshaped (T, D) rather than T Python lists
         return col.flatten().to_numpy(zero_copy_only=False).reshape(len(col), -1)
     return col.to_numpy(zero_copy_only=False)
-
-
-def final_observation(episode: dict[str, np.ndarray], task_id: str) -> dict[str, np.ndarray]:
-    """The env observation after the episode's last action (LeRobot does not store it).
-
-    Replays the recorded actions from the recorded `episode_seed` without rendering (so the
-    result has 'state' and 'proprio' but no images) and checks that the replay reproduces
-    every recorded state; a mismatch raises ValueError.
-    """
-    from ccdata.env import make_env
-
-    if EPISODE_SEED_KEY not in episode:
-        raise InputError(f"episode lacks {EPISODE_SEED_KEY!r}: cannot replay it")
-    states = _stack(episode[STATE_KEY])
-    env = make_env(task_id, render=False)
-    try:
-        obs, _ = env.reset(seed=int(np.asarray(episode[EPISODE_SEED_KEY]).reshape(-1)[0]))
-        for t, action in enumerate(_stack(episode[ACTION_KEY])):
-            if not np.allclose(obs["state"], states[t], atol=1e-5):
-                raise InputError(
-                    f"episode {episode.get('episode_index')}: replay departs from the recorded "
-                    f"states at step {t} (another task, or another simulator version?)"
-                )
-            obs, *_ = env.step(action)
-    finally:
-        env.close()
-    return obs
-
-
-def has_final_observation(episode: dict[str, np.ndarray]) -> bool:
-    """Whether the episode's last frame is its recorded final observation (format 2)."""
-    if FINAL_KEY not in episode:
-        return False
-    final = np.asarray(episode[FINAL_KEY]).reshape(-1).astype(bool)
-    if final[:-1].any():
-        raise InputError(f"episode {episode.get('episode_index')}: {FINAL_KEY} is set before its "
-                         "last frame")
-    return bool(final[-1])
-
-
-def episode_to_replay(
-    episode: dict[str, np.ndarray], mode: str, final_obs: dict[str, np.ndarray] | None = None
-) -> dict:
-    """One loaded episode -> `ReplayBuffer.add_episode` keyword arguments: obs (T+1, ...),
-    action (T, 4), reward (T,), terminated (T,) (the success that ended the episode).
-
-    Frames are (observation t, action t, next.reward t, next.success t). A format-2 episode ends
-    with its final observation (`FINAL_KEY`), so all T transitions are kept. For a format-1
-    episode, the final observation may be given as `final_obs` (state mode, e.g. from
-    `final_observation`); without it the last transition is dropped (T observations, T-1
-    transitions).
-    """
-    recorded = has_final_observation(episode)
-    if recorded and final_obs is not None:
-        raise ValueError("the episode records its final observation: pass no final_obs")
-    frames = len(episode[ACTION_KEY])
-    length = frames - 1 if recorded else frames  # transitions stored
-    if length < 1 or (length < 2 and final_obs is None and not recorded):
-        raise ValueError(f"episode {episode.get('episode_index')} holds no transition")
-    obs = {"state": _stack(episode[STATE_KEY]), "proprio": _stack(episode[PROPRIO_KEY])}
-    if mode == "pixels":
-        if final_obs is not None:
-            raise ValueError("final_obs is for state mode (it carries no camera images)")
-        for cam, key in CAMERA_KEYS.items():
-            if key not in episode:
-                raise ValueError(f"episode lacks {key!r} (load with images=True)")
-            obs[cam] = episode[key]
-    arrays = obs_to_arrays(obs, mode)
-    keep = length
-    if final_obs is not None:
-        last = obs_to_arrays(final_obs, mode)
-        arrays = {k: np.concatenate([v, last[k][None]]) for k, v in arrays.items()}
-    elif not recorded:
-        keep = length - 1
-    success = np.asarray(episode[SUCCESS_KEY], dtype=np.float32).reshape(-1)
-    return {
-        "obs": arrays,
-        "action": _stack(episode[ACTION_KEY])[:keep],
-        "reward": np.asarray(episode[REWARD_KEY], dtype=np.float32).reshape(-1)[:keep],
-        "terminated": success[:keep],
-    }
-
-
-def seed_buffer(
-    buffer,
-    source,
-    task_id: str,
-    obs_mode: str,
-    image_size: int | None = None,
-    task_index: int = 0,
-    endpoint: str | None = None,
-) -> int:
-    """Preload `task_id`'s episodes of a LeRobot dataset into `buffer` (through
-    `buffer.add_episode(obs=(T+1, ...), action=(T, 4), reward=(T,), terminated=(T,), task=)`);
-    returns how many were added.
-
-    Every transition is kept, the successes that ended episodes included: format-2 datasets
-    record each episode's final observation; for format-1 datasets it is replayed for successful
-    episodes in state mode (`final_observation`), and dropped otherwise.
-    """
-    episodes = load_episodes(source, task=task_id, images=obs_mode == "pixels", endpoint=endpoint)
-    added = 0
-    for ep in episodes:
-        final = None
-        if not has_final_observation(ep):
-            if obs_mode == "state" and bool(np.asarray(ep[SUCCESS_KEY]).reshape(-1)[-1]):
-                final = final_observation(ep, task_id)
-            if final is None and len(ep[ACTION_KEY]) < 2:
-                continue  # one frame: no transition once the unobserved last one is dropped
-        item = episode_to_replay(ep, obs_mode, final)
-        if obs_mode == "pixels" and image_size is not None:
-            side = item["obs"]["pixels"].shape[-1]
-            if side != image_size:
-                raise InputError(
-                    f"seed dataset images are {side} px but the run uses {image_size} px"
-                )
-        buffer.add_episode(**item, task=task_index)
-        added += 1
-    return added
-
-
-def _stack(values) -> np.ndarray:
-    return np.asarray(values, dtype=np.float32)

@@ -4,6 +4,10 @@ Every output of ccfit goes through `atomic_write_text` / `atomic_torch_save`, so
 process leaves the previous file or the new one. `rng_state` / `set_rng_state` capture every
 generator a run draws from (Python, NumPy, torch CPU and CUDA) so a resumed run continues
 exactly where it stopped.
+
+Checkpoints hold only tensors and plain Python data (no NumPy arrays, no classes), so
+`load_checkpoint` reads them with `torch.load(weights_only=True)`: a file that is not ours, or
+a pickle that would run code, is refused with one line instead of being executed.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import numpy as np
 import torch
 
 from ccdata.atomic import atomic_write, atomic_write_text
+from ccdata.errors import InputError
 
 __all__ = [
     "atomic_torch_save",
@@ -24,6 +29,7 @@ __all__ = [
     "atomic_write_json",
     "atomic_write_text",
     "derived_seed",
+    "load_checkpoint",
     "rng_state",
     "seed_everything",
     "set_rng_state",
@@ -33,6 +39,25 @@ __all__ = [
 def atomic_torch_save(obj: Any, path: str | Path) -> None:
     """`torch.save` to `path` atomically."""
     atomic_write(path, lambda tmp: torch.save(obj, tmp))
+
+
+def load_checkpoint(path: str | Path, kind: str, version: int) -> dict:
+    """A checkpoint this project wrote: a dict with `kind` and `version` as given, read with
+    `weights_only=True` onto the CPU. Anything else (another program's file, an older format,
+    a corrupt or truncated file, a pickle that would run code) is an `InputError` naming the
+    file: one line, exit 2 from the CLIs."""
+    path = Path(path)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # unpickling errors have no common type
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise InputError(f"{path} is not a readable {kind} checkpoint ({reason[:200]})") from None
+    if not isinstance(state, dict) or state.get("kind") != kind:
+        raise InputError(f"{path} is not a {kind} checkpoint")
+    if state.get("version") != version:
+        raise InputError(f"{path}: {kind} checkpoint version {state.get('version')!r}, this "
+                         f"ccfit reads version {version}; delete it to start over")  # fmt: skip
+    return state
 
 
 def atomic_write_json(path: str | Path, obj: Any) -> None:
@@ -56,9 +81,10 @@ def derived_seed(seed: int, tag: int, index: int, task_index: int = 0) -> int:
 def rng_state(**generators: np.random.Generator | torch.Generator) -> dict:
     """The global generators' states (Python, NumPy, torch CPU, CUDA when present) and those of
     the named `generators`."""
+    name, keys, pos, has_gauss, cached = np.random.get_state()
     state: dict[str, Any] = {
         "python": random.getstate(),
-        "numpy": np.random.get_state(),
+        "numpy": (name, torch.from_numpy(keys.astype(np.int64)), pos, has_gauss, cached),
         "torch": torch.get_rng_state(),
         "named": {k: _get(g) for k, g in generators.items()},
     }
@@ -70,7 +96,8 @@ def rng_state(**generators: np.random.Generator | torch.Generator) -> dict:
 def set_rng_state(state: dict, **generators: np.random.Generator | torch.Generator) -> None:
     """Restore what `rng_state` captured (the named generators by the same names)."""
     random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
+    name, keys, pos, has_gauss, cached = state["numpy"]
+    np.random.set_state((name, np.asarray(keys, dtype=np.uint32), pos, has_gauss, cached))
     torch.set_rng_state(state["torch"])
     if "cuda" in state and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])

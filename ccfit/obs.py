@@ -1,13 +1,14 @@
 """The one path from environment / dataset observations to model tensors.
 
-Live frames (`obs_to_tensors`, one env step) and offline frames (`stack_cameras` on a whole
-decoded episode) go through the same channel-stacking code, so an encoder sees the same layout
-online as in pretraining: topview, frontview, gripperPOV, each RGB, stacked into 9 channels.
+`obs_to_arrays` turns an env observation (one step) or a decoded dataset episode (a sequence)
+into what replay stores, through the same channel-stacking code, so an encoder sees the same
+layout online as in pretraining: topview, frontview, gripperPOV, each RGB, stacked into 9
+channels. `model_input` batches such arrays into the tensors `WorldModel.act` reads.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -56,6 +57,10 @@ def obs_to_arrays(obs: Mapping[str, np.ndarray], mode: str) -> dict[str, np.ndar
     }
 
 
-def obs_to_tensors(obs: Mapping[str, np.ndarray], mode: str) -> dict[str, torch.Tensor]:
-    """Env observation dict -> CPU tensors: {'state'} or {'pixels' (9,S,S) uint8, 'proprio'}."""
-    return {k: torch.from_numpy(v) for k, v in obs_to_arrays(obs, mode).items()}
+def model_input(arrays: Sequence[Mapping[str, np.ndarray]], device: torch.device
+                ) -> dict[str, torch.Tensor]:  # fmt: skip
+    """`obs_to_arrays` outputs of n observations -> model input tensors (n, ...) on
+    `device` (one host-to-device copy per key)."""
+    keys = arrays[0].keys()
+    return {k: torch.from_numpy(np.stack([a[k] for a in arrays])).to(device, non_blocking=True)
+            for k in keys}  # fmt: skip

@@ -16,36 +16,19 @@ surviving row then gets is_first = 1, so what is left of a partly overwritten ep
 shorter episode starting there (its remaining transitions stay usable). Hence the oldest
 stored row always has is_first = 1.
 
-`transitions(indices)` numbers the real transitions (o_t -> o_{t+1} inside one episode) and
-returns them as (o_t, o_{t+1}, a_t, r_t, terminated_t); `add_transitions` stores such
-transitions as 2-row episodes (what experience replay keeps of a finished task).
+`add_windows` stores windows taken from another buffer (`gather`), each as one stored episode
+whose first row is marked is_first: what experience replay keeps of a finished task.
 """
 
 from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Mapping
-from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from ccfit.models.base import Batch
-
-
-class Transitions(NamedTuple):
-    """k real transitions, on the CPU."""
-
-    obs: dict[str, torch.Tensor]
-    """o_t, (k, ...) per key."""
-    next_obs: dict[str, torch.Tensor]
-    """o_{t+1}, (k, ...) per key."""
-    action: torch.Tensor
-    """a_t, (k, A)."""
-    reward: torch.Tensor
-    """r_t, (k,)."""
-    terminated: torch.Tensor
-    """terminated_t, (k,) in {0, 1}."""
 
 
 def _tensor(x) -> torch.Tensor:
@@ -136,30 +119,29 @@ class ReplayBuffer:
             int(task),
         )
 
-    def add_transitions(self, transitions: Transitions, task: int = 0) -> None:
-        """Store k transitions as k 2-row episodes (o_t with a_t, r_t, terminated_t; then
-        o_{t+1}), in order. Observations are stored as given (no `obs_transform`)."""
-        obs, next_obs, action, reward, term = transitions
-        k = action.shape[0]
+    def add_windows(self, windows: Batch, task: int = 0) -> None:
+        """Store each window of `windows` ((L, k) rows, as `gather` returns them) as one
+        episode of L rows, in order. Row 0 of each becomes is_first (nothing before it is
+        stored); episode boundaries inside a window stay marked. Observations are stored as
+        given (no `obs_transform`)."""
+        length, k = windows.seq_len, windows.size
         if k == 0:
             return
-        if set(obs) != set(next_obs):
-            raise ValueError(f"obs keys {sorted(obs)} differ from next_obs {sorted(next_obs)}")
-        if self.capacity is not None and 2 * k > self.capacity:
-            raise ValueError(f"{k} transitions (2 rows each) exceed the capacity {self.capacity}")
+        if self.capacity is not None and length * k > self.capacity:
+            raise ValueError(f"{k} windows of {length} rows exceed the capacity {self.capacity}")
 
-        def rows(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # a_0, b_0, a_1, b_1, ...
-            return torch.stack([a, b], dim=1).reshape(2 * k, *a.shape[1:])
+        def rows(x: torch.Tensor) -> torch.Tensor:  # (L, k, ...) -> window after window
+            return x.transpose(0, 1).reshape(length * k, *x.shape[2:]).cpu()
 
-        action = action.float()
-        reward, term = reward.float().reshape(k), term.float().reshape(k)
+        first = windows.is_first.squeeze(-1).bool().clone()
+        first[0] = True
         self._append(
-            {key: rows(obs[key], next_obs[key]) for key in obs},
-            rows(action, torch.zeros_like(action)),
-            rows(reward, torch.zeros_like(reward)),
-            rows(term, torch.zeros_like(term)),
-            torch.tensor([True, False]).repeat(k),
-            [2] * k,
+            {key: rows(v) for key, v in windows.obs.items()},
+            rows(windows.action).float(),
+            rows(windows.reward.squeeze(-1)).float(),
+            rows(windows.terminated.squeeze(-1)).float(),
+            rows(first),
+            [length] * k,
             int(task),
         )
 
@@ -252,8 +234,11 @@ class ReplayBuffer:
 
     @property
     def num_transitions(self) -> int:
-        """Real transitions stored: every stored row but each episode's last one."""
-        return self.size - self.num_episodes
+        """Real transitions stored: rows followed by a stored row of the same episode."""
+        if "transitions" not in self._cache:
+            first = self._first[self._rows(torch.arange(1, self.size))]
+            self._cache["transitions"] = int((~first).sum())
+        return self._cache["transitions"]
 
     def __len__(self) -> int:
         return self.num_transitions
@@ -318,31 +303,6 @@ class ReplayBuffer:
             terminated=self._term[rows].unsqueeze(-1),
             is_first=self._first[rows].float().unsqueeze(-1),
             task=self._task[rows],
-        )
-
-    # ------------------------------------------------------------------------ transitions
-
-    def _transition_rows(self) -> torch.Tensor:
-        """Logical rows r whose transition is real (row r + 1 stored, same episode)."""
-        if "transitions" not in self._cache:
-            first = self._first[self._rows(torch.arange(self.size))]
-            self._cache["transitions"] = torch.nonzero(~first[1:]).reshape(-1)
-        return self._cache["transitions"]
-
-    def transitions(self, indices) -> Transitions:
-        """The real transitions numbered `indices` in [0, num_transitions), oldest first."""
-        pick = torch.as_tensor(np.asarray(indices), dtype=torch.long).reshape(-1)
-        rows = self._transition_rows()
-        if len(pick) and (int(pick.min()) < 0 or int(pick.max()) >= len(rows)):
-            raise ValueError(f"transition indices must be in [0, {len(rows)})")
-        now = self._rows(rows[pick])
-        nxt = self._rows(rows[pick] + 1)
-        return Transitions(
-            obs={k: v[now] for k, v in self._obs.items()},
-            next_obs={k: v[nxt] for k, v in self._obs.items()},
-            action=self._action[now],
-            reward=self._reward[now],
-            terminated=self._term[now],
         )
 
     # ------------------------------------------------------------------------- checkpoints

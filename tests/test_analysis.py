@@ -14,7 +14,7 @@ from ccfit.analysis import (
     ROUTING,
     append_routing,
     figure_data,
-    load_pwm_run,
+    load_routed_run,
     read_routing,
     routing_callback,
     routing_record,
@@ -79,7 +79,7 @@ def test_routing_record_per_stage(pwm_run):
 def test_routing_record_reproduces_from_saved_run(pwm_run, short_episodes):
     """Replaying the last stage from curriculum.pt gives the record written during the run:
     the record depends only on the model state and the run's seed."""
-    cfg, model, stored, method = load_pwm_run(pwm_run)
+    cfg, model, stored, method = load_routed_run(pwm_run)
     again = routing_record(
         model, stored, cfg.tasks, stage=TASKS - 1, seed=cfg.seed, episodes=1, obs_mode="state",
         device=model.device, view=lambda i: method.evaluating(i, model.backbone),
@@ -89,8 +89,9 @@ def test_routing_record_reproduces_from_saved_run(pwm_run, short_episodes):
 
 def test_resume_of_finished_run_keeps_routing(pwm_run):
     before = (pwm_run / ROUTING).read_bytes()
-    Curriculum(smoke_config(), pwm_run, pwm_run.parent / "scratch", progress=False,
-               callbacks=[routing_callback]).run()
+    with shorter_episodes():  # the run's config (its episode length) as the fixture made it
+        Curriculum(smoke_config(), pwm_run, pwm_run.parent / "scratch", progress=False,
+                   callbacks=[routing_callback]).run()
     assert (pwm_run / ROUTING).read_bytes() == before
 
 
@@ -168,7 +169,7 @@ def test_report_draws_routing_figure(pwm_run, tmp_path):
 
     out = tmp_path / "report"
     assert main(["report", str(pwm_run), "--out", str(out)]) == 0
-    png = out / "routing_Reach_experts_s0.png"
+    png = out / "routing_pwm_Reach_experts_s0.png"
     image = matplotlib.image.imread(png)
     assert image.shape[0] > 200 and image.shape[1] > 600
     summary = json.loads((out / "summary.json").read_text())
@@ -218,7 +219,8 @@ def test_ablate_errors(pwm_run, tmp_path, capsys):
     (tdmpc2 / CONFIG).write_text(json.dumps(cfg))
     assert main(["ablate", str(tdmpc2)]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "needs a PWM run" in err and "tdmpc2" in err
+    assert len(err.splitlines()) == 1 and "tdmpc2" in err
+    assert "needs a model offering 'routing'" in err
 
     unfinished = tmp_path / "unfinished"
     unfinished.mkdir()

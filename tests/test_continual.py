@@ -9,14 +9,20 @@ import pytest
 import torch
 from torch import nn
 
-from ccfit.continual import METHODS, TaskData, make_method, method_names, register_method
-from ccfit.continual.base import ContinualMethod
+from ccfit.config_base import ConfigError
+from ccfit.continual import METHODS, TaskData, make_method, method_config, method_names
+from ccfit.continual import register_method as register
+from ccfit.continual.base import ContinualMethod, MethodConfig
 from ccfit.continual.er import reservoir_indices
 from ccfit.continual.packnet import FREE, Phase
 from ccfit.models.base import Batch
-from ccfit.replay import Transitions
+from ccfit.replay import ReplayBuffer
 
 STATE, ACT = 6, 2
+
+
+def method(name: str, num_tasks: int = 3, seed: int = 0, **options) -> ContinualMethod:
+    return make_method(method_config(name, **options), num_tasks, seed)
 
 
 class TinyBackbone(nn.Module):
@@ -36,36 +42,26 @@ class TinyBackbone(nn.Module):
         return (err * batch.valid()[0]).mean() + z.pow(2).mean()
 
 
-def make_task_data(backbone: TinyBackbone, task: int, n: int, batch_size: int = 32) -> TaskData:
-    """n random transitions of task `task` (a task-specific offset); obs['id'] names each:
-    j for o_t, j + 0.5 for o_{t+1}. Training batches are 2-row windows of one transition."""
+def task_buffer(task: int, lengths: list[int]) -> ReplayBuffer:
+    """Episodes of the given lengths (transitions) with a task-specific state offset; obs['id']
+    is each row's number in the buffer (0, 1, ...), so kept windows can be traced back."""
     g = torch.Generator().manual_seed(100 + task)
-    state = torch.randn(2, n, STATE, generator=g) + 2.0 * task
-    ids = torch.arange(n, dtype=torch.float32).view(n, 1)
-    action = torch.randn(n, ACT, generator=g)
+    buffer = ReplayBuffer(capacity=None, seed=100 + task)
+    row = 0
+    for steps in lengths:
+        obs = {"state": torch.randn(steps + 1, STATE, generator=g) + 2.0 * task,
+               "id": torch.arange(row, row + steps + 1, dtype=torch.float32).view(-1, 1)}
+        buffer.add_episode(obs, torch.randn(steps, ACT, generator=g), -torch.ones(steps) / 2,
+                           torch.zeros(steps), task=task)  # fmt: skip
+        row += steps + 1
+    return buffer
 
-    def transitions(indices) -> Transitions:
-        rows = torch.as_tensor(np.asarray(indices), dtype=torch.long)
-        return Transitions(
-            obs={"state": state[0, rows], "id": ids[rows]},
-            next_obs={"state": state[1, rows], "id": ids[rows] + 0.5},
-            action=action[rows], reward=-torch.ones(len(rows)) / 2,
-            terminated=torch.zeros(len(rows)),
-        )  # fmt: skip
 
-    def sample() -> Batch:
-        rows = torch.randint(n, (batch_size,), generator=g)
-        tr = transitions(rows)
-        obs = {k: torch.stack([tr.obs[k], tr.next_obs[k]]) for k in tr.obs}
-        action = torch.stack([tr.action, torch.zeros_like(tr.action)])
-        zeros = torch.zeros(2, batch_size, 1)
-        is_first = torch.stack([torch.ones(batch_size, 1), torch.zeros(batch_size, 1)])
-        task_rows = torch.full((2, batch_size), task, dtype=torch.long)
-        return Batch(obs, action, zeros, zeros.clone(), is_first, task_rows)
-
-    return TaskData(task_index=task, sample=sample, num_transitions=n, transitions=transitions,
-                    seq_len=2, batch_size=batch_size,
-                    backbone_loss=backbone.backbone_loss)  # fmt: skip
+def make_task_data(backbone: TinyBackbone, task: int, n: int, batch_size: int = 32,
+                   seq_len: int = 2) -> TaskData:  # fmt: skip
+    """A task whose replay holds n one-transition episodes (n real transitions)."""
+    return TaskData.from_buffer(task, task_buffer(task, [1] * n), batch_size=batch_size,
+                                seq_len=seq_len, backbone_loss=backbone.backbone_loss)
 
 
 def train(backbone, method, opt, data: TaskData, steps: int) -> None:
@@ -87,26 +83,28 @@ def snapshot(module: nn.Module) -> dict[str, torch.Tensor]:
 def test_registry_names_and_errors():
     assert method_names() == ["er", "ewc", "experts", "ft", "packnet"]
     for name in method_names():
-        kwargs = {"num_tasks": 3}
-        assert isinstance(make_method(name, **kwargs), METHODS[name])
-        assert METHODS[name].name == name
+        built = method(name)
+        assert isinstance(built, METHODS[name]) and isinstance(built.cfg, MethodConfig)
+        assert METHODS[name].name == name == built.cfg.type
     valid = "er, ewc, experts, ft, packnet"
-    with pytest.raises(ValueError, match=f"unknown continual method 'si'.*{valid}"):
-        make_method("si")
-    with pytest.raises(ValueError, match="bad parameters for 'ewc'.*valid: num_tasks, lam"):
-        make_method("ewc", lamda=1.0)
+    with pytest.raises(ConfigError, match=f"unknown continual method 'si'.*{valid}"):
+        method_config("si")
+    with pytest.raises(ConfigError, match="method 'ewc'.*lamda.*its options: lam, "):
+        method_config("ewc", lamda=1.0)
     with pytest.raises(ValueError, match="already registered"):
-        register_method("ft")(ContinualMethod)
-    with pytest.raises(ValueError, match="needs num_tasks"):
-        make_method("packnet")
-    with pytest.raises(ValueError, match="fraction"):
-        make_method("er", fraction=0.0)
+        register("ft", METHODS["ft"].config_class)(ContinualMethod)
+    with pytest.raises(ConfigError, match="at most 127 tasks"):
+        method("packnet", num_tasks=128)
+    with pytest.raises(ConfigError, match="fraction"):
+        method_config("er", fraction=0.0)
+    with pytest.raises(ConfigError, match="lam must be >= 0"):
+        method_config("ewc", lam=-1.0)
 
 
 def test_ft_changes_nothing():
     torch.manual_seed(0)
     bb = TinyBackbone()
-    ft = make_method("ft")
+    ft = method("ft")
     before = snapshot(bb)
     ft.before_task(0, bb)
     assert ft.penalty(bb, bb.backbone_loss).item() == 0.0
@@ -134,37 +132,73 @@ def test_reservoir_is_a_uniform_subset():
     np.testing.assert_array_equal(reservoir_indices(7, 7, rng), np.arange(7))
 
 
-def test_er_keeps_fraction_as_two_row_items_and_replays_only_earlier_tasks():
+LENGTHS = [250, 37, 1, 120, 250, 9, 200, 250, 64]
+"""A task's replay as the loop leaves it: long failures, short successes (1181 transitions)."""
+
+
+def test_er_keeps_a_fraction_of_transitions_as_windows_of_the_model_length():
+    bb = TinyBackbone()
+    buffer = task_buffer(0, LENGTHS)
+    seq_len = 8
+    data = TaskData.from_buffer(0, buffer, batch_size=16, seq_len=seq_len,
+                                backbone_loss=bb.backbone_loss)  # fmt: skip
+    er = method("er", fraction=0.05, replay_ratio=0.2, batch_size=4000, seed=3)
+    assert er.penalty(bb, bb.backbone_loss).item() == 0.0 and er.replay_batch() is None
+    er.after_task(0, bb, data)
+    n = sum(LENGTHS)
+    k = round(0.05 * n / (seq_len - 1))
+    assert len(er.kept[0]) == k == er.memory.num_episodes == 8
+    assert er.memory.size == k * seq_len  # seq_len / (seq_len - 1) rows per kept transition
+    # About 5% of the task's transitions are kept (fewer where a window spans a boundary).
+    assert 0.8 * 0.05 * n <= er.memory.num_transitions <= 0.05 * n + seq_len
+    # Each replayed window is one kept chunk of the task's replay, rows in order, row 0
+    # marked as a start, the task's own episode boundaries inside it kept.
+    batch = er.replay_batch()
+    assert batch.obs["id"].shape == (seq_len, 4000, 1)
+    ids = batch.obs["id"][..., 0].long()
+    assert set(ids[0].tolist()) == set(er.kept[0].tolist())
+    assert torch.equal(ids, ids[0] + torch.arange(seq_len).unsqueeze(1))
+    source_first = buffer.gather(ids[0], seq_len).is_first[..., 0]
+    source_first[0] = 1.0
+    assert torch.equal(batch.is_first[..., 0], source_first)
+    # Uniform over the kept windows (each ~4000 / 8 = 500; binomial sd ~21).
+    counts = np.unique(ids[0].numpy(), return_counts=True)[1]
+    assert len(counts) == k and np.all(np.abs(counts - 4000 / k) < 110), counts
+    with pytest.raises(ValueError, match="seq_len 2 differs from 8"):
+        er.after_task(1, bb, make_task_data(bb, 1, 200))
+
+
+def test_er_gives_a_sequence_model_its_context():
+    """Replayed windows of a sequence model (DreamerV3 at seq_len 32) run through consecutive
+    transitions of one episode, as its training windows do, instead of a single transition
+    after the RSSM's initial state."""
+    bb = TinyBackbone()
+    buffer = task_buffer(0, [250] * 40)
+    data = TaskData.from_buffer(0, buffer, batch_size=16, seq_len=32,
+                                backbone_loss=bb.backbone_loss)  # fmt: skip
+    er = method("er", batch_size=1024)
+    er.after_task(0, bb, data)
+    assert len(er.kept[0]) == round(0.05 * 10_000 / 31)
+    transitions = er.replay_batch().rollout_mask()[..., 0].sum(0)  # from row 0, per window
+    # A window is cut short only where it crosses into the next episode (31 / 251 of them).
+    assert transitions.median() == 31 and transitions.mean() > 0.75 * 31
+
+
+def test_er_replays_only_earlier_tasks_with_its_weight():
     torch.manual_seed(0)
     bb = TinyBackbone()
-    er = make_method("er", fraction=0.05, replay_ratio=0.2, batch_size=64, seed=3)
-    assert er.penalty(bb, bb.backbone_loss).item() == 0.0  # nothing kept during task 0
-    assert er.replay_batch() is None
+    er = method("er", fraction=0.05, replay_ratio=0.2, batch_size=64, seed=3)
     data0, data1 = make_task_data(bb, 0, 1000), make_task_data(bb, 1, 620)
     er.after_task(0, bb, data0)
-    assert len(er.kept[0]) == round(0.05 * 1000) == er.memory.num_episodes
-    # Each kept transition is one item of exactly 2 rows: o_t (with a_t, r_t) and o_{t+1}.
-    assert er.memory.size == 100 and er.state_dict()["memory"]["obs"]["state"].shape[0] == 100
-    stored, kept = er.memory.transitions(np.arange(50)), data0.transitions(er.kept[0])
-    for x, y in zip(stored, kept, strict=True):
-        pairs = x.items() if isinstance(x, dict) else [("", x)]
-        assert all(torch.equal(v, y[k] if k else y) for k, v in pairs)
-    # During task 1 only task 0 is replayed, and only its kept transitions.
-    batch = er.replay_batch()
-    assert batch.size == 64 and batch.seq_len == 2 and set(batch.task.flatten().tolist()) == {0}
-    ids = batch.obs["id"][..., 0]
-    assert set(ids[0].long().tolist()) <= set(er.kept[0].tolist())
-    assert torch.equal(ids[1], ids[0] + 0.5)  # o_{t+1} of the same transition
+    assert len(er.kept[0]) == 50 and set(er.replay_batch().task.flatten().tolist()) == {0}
     er.after_task(1, bb, data1)
     assert len(er.kept[1]) == 31 and er.memory.num_episodes == 81  # round(0.05 * 620) = 31
-    assert er.memory.size == 162
     with pytest.raises(ValueError, match="already added"):
         er.after_task(1, bb, data1)
     batch = er.replay_batch()
     for task in (0, 1):
         rows = batch.task[0] == task
-        assert rows.any()
-        assert set(batch.obs["id"][0, rows, 0].long().tolist()) <= set(er.kept[task].tolist())
+        assert rows.any() and (batch.obs["state"][0, rows].mean() - 2.0 * task).abs() < 0.5
     # The penalty is r / (1 - r) = 0.25 times the backbone loss on the next replay sample.
     state = copy.deepcopy(er.state_dict())
     pen = er.penalty(bb, bb.backbone_loss)
@@ -175,42 +209,20 @@ def test_er_keeps_fraction_as_two_row_items_and_replays_only_earlier_tasks():
     assert bb.dynamics.weight.grad.abs().sum() > 0
     # A fresh method restored from the state continues with the same replay batches.
     er.load_state_dict(state)
-    other = make_method("er", fraction=0.05, replay_ratio=0.2, batch_size=64, seed=99)
+    other = method("er", fraction=0.05, replay_ratio=0.2, batch_size=64, seed=99)
     other.load_state_dict(copy.deepcopy(state))
     assert torch.equal(other.replay_batch().obs["id"], er.replay_batch().obs["id"])
-
-
-def test_er_windows_have_the_model_length_and_start_on_kept_items():
-    bb = TinyBackbone()
-    er = make_method("er", fraction=0.1, batch_size=4000, seed=1)
-    data = dataclasses.replace(make_task_data(bb, 0, 200), seq_len=5)
-    er.after_task(0, bb, data)
-    batch = er.replay_batch()
-    assert batch.obs["id"].shape == (5, 4000, 1)
-    # is_first at every item start: rows 0, 2, 4; each item's rows are o_t, o_{t+1}.
-    assert torch.equal(batch.is_first[..., 0], torch.tensor([1.0, 0, 1, 0, 1]).expand(4000, 5).T)
-    ids = batch.obs["id"][..., 0]
-    assert torch.equal(ids[1], ids[0] + 0.5) and torch.equal(ids[3], ids[2] + 0.5)
-    # Every window starts on a real transition and stops at the next item.
-    assert batch.rollout_mask()[..., 0].sum(0).tolist() == [1.0] * 4000
-    # Uniform over the 20 kept transitions (each ~200 of 4000; binomial sd ~13.8).
-    counts = np.bincount(np.searchsorted(er.kept[0], ids[0].long().numpy()), minlength=20)
-    assert set(ids[0].long().tolist()) == set(er.kept[0].tolist())
-    assert np.all(np.abs(counts - 200) < 70), counts
-    with pytest.raises(ValueError, match="seq_len 2 differs from 5"):
-        er.after_task(1, bb, make_task_data(bb, 1, 200))
 
 
 def test_er_is_deterministic_per_seed():
     bb = TinyBackbone()
     runs = []
     for seed in (5, 5, 6):
-        er = make_method("er", seed=seed, batch_size=16)
+        er = method("er", seed=seed, batch_size=16)
         er.after_task(0, bb, make_task_data(bb, 0, 400))
         runs.append((er.kept[0], er.replay_batch().obs["id"]))
-    np.testing.assert_array_equal(runs[0][0], runs[1][0])
-    assert torch.equal(runs[0][1], runs[1][1])
-    assert not np.array_equal(runs[0][0], runs[2][0])  # the reservoir differs across seeds
+    assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
+    assert not torch.equal(runs[0][0], runs[2][0])  # the reservoir differs across seeds
     assert not torch.equal(runs[0][1], runs[2][1])
 
 
@@ -220,7 +232,7 @@ def test_er_is_deterministic_per_seed():
 def test_ewc_fisher_anchor_and_quadratic_growth():
     torch.manual_seed(0)
     bb = TinyBackbone()
-    ewc = make_method("ewc", lam=10.0, fisher_batches=4)
+    ewc = method("ewc", lam=10.0, fisher_batches=4)
     assert ewc.penalty(bb, bb.backbone_loss).item() == 0.0
     data = make_task_data(bb, 0, 200)
     # Fisher by hand on the same four batches: mean of squared batch gradients.
@@ -264,13 +276,13 @@ def test_ewc_fisher_anchor_and_quadratic_growth():
 def test_ewc_accumulates_fisher_and_moves_anchor(decay):
     torch.manual_seed(0)
     bb = TinyBackbone()
-    ewc = make_method("ewc", fisher_batches=3, fisher_decay=decay)
+    ewc = method("ewc", fisher_batches=3, fisher_decay=decay)
     data0, data1 = make_task_data(bb, 0, 100), make_task_data(bb, 1, 100)
     ewc.after_task(0, bb, data0)
     f0 = {k: v.clone() for k, v in ewc.fisher.items()}
     opt = torch.optim.Adam(bb.parameters(), lr=1e-2)
     train(bb, ewc, opt, data1, 10)
-    probe = make_method("ewc", fisher_batches=3)
+    probe = method("ewc", fisher_batches=3)
     # Two fresh samplers of task 1 with the same seed -> the same Fisher batches.
     ewc.after_task(1, bb, make_task_data(bb, 1, 100))
     probe.after_task(1, bb, make_task_data(bb, 1, 100))
@@ -292,7 +304,7 @@ SHARED = ["encoder.0.bias", "encoder.1.weight", "encoder.1.bias", "dynamics.bias
 def test_packnet_state_machine_freezing_and_masks():
     torch.manual_seed(0)
     bb = TinyBackbone()
-    pn = make_method("packnet", num_tasks=3, retrain_steps=5)
+    pn = method("packnet", num_tasks=3, retrain_steps=5)
     opt = torch.optim.Adam(bb.parameters(), lr=1e-2)
     data = [make_task_data(bb, t, 256) for t in range(3)]
 
@@ -379,7 +391,7 @@ def test_packnet_state_machine_freezing_and_masks():
             assert all(torch.equal(v, snap[k]) for k, v in bb.named_parameters()), task
 
     # Checkpoint round trip gives the same masks.
-    twin = make_method("packnet", num_tasks=3, retrain_steps=5)
+    twin = method("packnet", num_tasks=3, retrain_steps=5)
     twin.load_state_dict(pn.state_dict())
     with twin.evaluating(0, bb):
         assert all(torch.equal(v, task0[k]) for k, v in bb.named_parameters())
@@ -388,7 +400,7 @@ def test_packnet_state_machine_freezing_and_masks():
 def test_packnet_without_retraining_freezes_at_once():
     torch.manual_seed(0)
     bb = TinyBackbone()
-    pn = make_method("packnet", num_tasks=2, retrain_steps=0, keep_fraction=0.5)
+    pn = method("packnet", num_tasks=2, retrain_steps=0, keep_fraction=0.5)
     opt = torch.optim.Adam(bb.parameters(), lr=1e-2)
     data = make_task_data(bb, 0, 64)
     pn.before_task(0, bb)
@@ -430,7 +442,7 @@ def test_methods_on_tdmpc2_backbone(name):
     cfg, model, buffers = _tdmpc2_setup()
     kwargs = {"er": {"fraction": 0.25, "batch_size": 8}, "ewc": {"fisher_batches": 3},
               "packnet": {"retrain_steps": 2}}.get(name, {})
-    method = make_method(name, num_tasks=2, **kwargs)
+    method_ = method(name, num_tasks=2, **kwargs)
     backbone = model.backbone
     penalties = []
     task0 = None
@@ -438,27 +450,27 @@ def test_methods_on_tdmpc2_backbone(name):
         heads = model.new_heads()
         opt = model.world_model_optimizer(heads)
         head_params = snapshot(heads)
-        method.before_task(task, backbone)
+        method_.before_task(task, backbone)
 
         def update(task=task, heads=heads, opt=opt):
             out = model.loss(buffers[task].sample(16, cfg.seq_len), heads)
-            pen = method.penalty(backbone, model.backbone_loss)
+            pen = method_.penalty(backbone, model.backbone_loss)
             penalties.append(pen.item())
             opt.zero_grad()
             (out.total + pen).backward()
             nn.utils.clip_grad_norm_(model.parameters(), 20.0)
             opt.step()
-            method.after_step(backbone)
+            method_.after_step(backbone)
 
         for _ in range(4):
             update()
-        method.after_task(task, backbone, _task_data(model, buffers[task], task))
-        for _ in range(method.wants_retrain_steps):
+        method_.after_task(task, backbone, _task_data(model, buffers[task], task))
+        for _ in range(method_.wants_retrain_steps):
             update()
         if task == 0:
             task0 = snapshot(backbone)
         assert not all(torch.equal(v, head_params[k]) for k, v in heads.named_parameters())
-        with method.evaluating(0, backbone):
+        with method_.evaluating(0, backbone):
             if name == "packnet":  # task 0's backbone exactly, during and after task 1
                 assert all(torch.equal(v, task0[k]) for k, v in backbone.named_parameters())
 
@@ -470,4 +482,4 @@ def test_methods_on_tdmpc2_backbone(name):
         assert all(p > 0 for p in later[1:])
     if name == "packnet":
         linears = [m for m in backbone.modules() if isinstance(m, nn.Linear)]
-        assert len(method.owner) == len(linears) > 0
+        assert len(method_.owner) == len(linears) > 0

@@ -4,16 +4,20 @@ reaches the buffer, the successes that ended episodes included, in pixel and in 
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 
 import ccdata
+from ccdata.dataset_format import FINAL_KEY
 from ccdata.record import GenerateConfig, generate
-from ccfit.data import FINAL_KEY, episode_to_replay, load_episodes, seed_buffer
+from ccdata.render import RenderSettings
+from ccfit.data import load_episodes
 from ccfit.obs import stack_cameras
 from ccfit.replay import ReplayBuffer
+from ccfit.seeding import episode_to_replay, seed_buffer
 
 TASK = "reach-xy"
 
@@ -32,8 +36,14 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return 99.0 if mse == 0 else float(10 * np.log10(255.0**2 / mse))
 
 
-def all_transitions(buffer: ReplayBuffer):
-    return buffer.transitions(torch.arange(buffer.num_transitions))
+def all_transitions(buffer: ReplayBuffer) -> SimpleNamespace:
+    """Every real transition of `buffer`: (obs, next_obs, terminated) of the 2-row windows
+    that lie inside one episode."""
+    pairs = buffer.gather(torch.arange(buffer.num_starts(2)), 2)
+    real = pairs.valid()[0, :, 0].bool()
+    return SimpleNamespace(obs={k: v[0, real] for k, v in pairs.obs.items()},
+                           next_obs={k: v[1, real] for k, v in pairs.obs.items()},
+                           terminated=pairs.terminated[0, real, 0])  # fmt: skip
 
 
 def test_seeded_pixel_replay_holds_one_terminal_success_per_successful_episode(reach):
@@ -41,7 +51,7 @@ def test_seeded_pixel_replay_holds_one_terminal_success_per_successful_episode(r
     successful = [ep for ep in episodes if ep["next.success"].any()]
     assert len(successful) >= 3 and len(successful) < len(episodes)  # random ones fail
     buffer = ReplayBuffer(10_000)
-    assert seed_buffer(buffer, reach, TASK, "pixels", image_size=32) == len(episodes)
+    assert seed_buffer(buffer, reach, TASK, "pixels", RenderSettings(32)) == len(episodes)
     # Every step of every episode is a transition (the final frame is an observation only).
     steps = [int((~ep[FINAL_KEY].reshape(-1).astype(bool)).sum()) for ep in episodes]
     assert buffer.num_transitions == sum(steps)

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from ccfit.obs import obs_to_tensors, stack_cameras
+from ccdata.errors import InputError
+from ccfit.obs import model_input, obs_to_arrays, stack_cameras
 from ccfit.replay import ReplayBuffer
 
 H = 3
@@ -19,18 +20,19 @@ def test_obs_path_stacks_cameras_in_order_for_live_frames():
 
     env = make_env("reach-xy", seed=0, image_size=32)
     obs, _ = env.reset(seed=0)
-    x = obs_to_tensors(obs, "pixels")
+    batch = model_input([obs_to_arrays(obs, "pixels")] * 2, torch.device("cpu"))
     env.close()
-    assert x["pixels"].shape == (9, 32, 32) and x["pixels"].dtype == torch.uint8
+    assert batch["pixels"].shape == (2, 9, 32, 32) and batch["pixels"].dtype == torch.uint8
+    x = {k: v[0] for k, v in batch.items()}
     for i, cam in enumerate(("topview", "frontview", "gripperPOV")):
         chw = torch.from_numpy(obs[cam]).permute(2, 0, 1)
         assert torch.equal(x["pixels"][3 * i : 3 * i + 3], chw)
     assert torch.equal(x["proprio"], torch.from_numpy(obs["proprio"]))
-    assert set(obs_to_tensors(obs, "state")) == {"state"}
+    assert set(obs_to_arrays(obs, "state")) == {"state"}
     seq = {c: np.stack([obs[c]] * 2) for c in ("topview", "frontview", "gripperPOV")}
     assert np.array_equal(stack_cameras(seq)[1], x["pixels"].numpy())
     with pytest.raises(ValueError, match="valid: state, pixels"):
-        obs_to_tensors(obs, "rgb")
+        obs_to_arrays(obs, "rgb")
 
 
 # ======================================================================== LeRobot reader
@@ -54,7 +56,7 @@ def tiny_dataset(tmp_path_factory):
         "ccdata/Reach", fps=40, features=features(size), root=root, use_videos=True,
         rgb_encoder=RGBEncoderConfig(**json.loads(json.dumps(VIDEO_ENCODER))),
     )  # fmt: skip
-    meta = ccdata_metadata(GenerateConfig(suite="Reach", root=root))
+    meta = ccdata_metadata(GenerateConfig(suite="Reach", root=root, image_size=size))
     written = []
     # (task id, task_id_index, policy, policy_index, episode seed, step limit)
     plan = [("reach-xy", 0, "oracle", 0, 101, 250), ("reach-xyz", 3, "random", 2, 102, 12)]
@@ -107,7 +109,8 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def test_load_episodes_matches_written_frames(tiny_dataset):
-    from ccfit.data import episode_to_replay, load_episodes
+    from ccfit.data import load_episodes
+    from ccfit.seeding import episode_to_replay
 
     root, written = tiny_dataset
     eps = load_episodes(root)
@@ -141,7 +144,8 @@ def test_load_episodes_matches_written_frames(tiny_dataset):
 
 
 def test_seed_buffer_preloads_the_tasks_episodes(tiny_dataset):
-    from ccfit.data import final_observation, load_episodes, seed_buffer
+    from ccfit.data import load_episodes
+    from ccfit.seeding import final_observation, seed_buffer
 
     root, written = tiny_dataset
     steps = len(written[0]["state"])
@@ -157,5 +161,17 @@ def test_seed_buffer_preloads_the_tasks_episodes(tiny_dataset):
     ep["observation.environment_state"][2, 0] += 0.01
     with pytest.raises(ValueError, match="departs from the recorded states at step 2"):
         final_observation(ep, "reach-xy")
-    with pytest.raises(ValueError, match="32 px but the run uses 64"):
-        seed_buffer(ReplayBuffer(1000), root, "reach-xyz", "pixels", image_size=64)
+    from ccdata.render import RenderSettings
+
+    with pytest.raises(InputError, match=r"rendered differently: image_size 32 \(run: 64\)"):
+        seed_buffer(ReplayBuffer(1000), root, "reach-xyz", "pixels", RenderSettings(64))
+    with pytest.raises(InputError, match=r"shadows True \(run: False\)"):
+        meta_path = root / "meta" / "ccdata.json"
+        meta = json.loads(meta_path.read_text())
+        try:
+            meta_path.write_text(json.dumps({**meta, "render": {**meta["render"],
+                                                                "shadows": True}}))
+            seed_buffer(ReplayBuffer(1000), root, "reach-xyz", "pixels", RenderSettings(32))
+        finally:
+            meta_path.write_text(json.dumps(meta))
+    assert seed_buffer(ReplayBuffer(1000), root, "reach-xyz", "pixels", RenderSettings(32)) == 1

@@ -13,7 +13,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from ccfit.continual.packnet import PackNet, prunable_weights
+from ccfit.config_base import ConfigError
+from ccfit.continual.packnet import PackNet, PackNetConfig, prunable_weights
 from ccfit.models.base import LATENT_KEY, Batch
 from ccfit.models.dreamerv3 import DreamerV3, DreamerV3Config
 from ccfit.models.dreamerv3.behavior import (
@@ -34,7 +35,7 @@ from ccfit.models.dreamerv3.math import (
     unimix_logits,
 )
 from ccfit.models.dreamerv3.networks import normal_entropy, normal_log_prob
-from ccfit.models.registry import ConfigError, make_model
+from ccfit.models.registry import make_model
 
 L, B, S = 12, 4, 32
 
@@ -394,15 +395,15 @@ def test_acting_step_by_step_reproduces_loss_posteriors(obs_mode):
     state = model.initial_state(heads)
     actions = []
     for t in range(8):
-        obs = {k: v[t, 0] for k, v in episode.obs.items()}
+        obs = {k: v[t, :1] for k, v in episode.obs.items()}
         if t < 3:  # seed steps with given actions, then the agent's own
-            action = episode.action[t, 0].numpy()
+            action = episode.action[t, :1].numpy()
             state = model.observe(obs, action, heads, state)
         else:
             action, state = model.act(obs, heads, state, eval_mode=True)
-            assert action.shape == (4,) and np.abs(action).max() <= 1
-            assert np.array_equal(state.action[0].numpy(), action)
-        actions.append(torch.as_tensor(action))
+            assert action.shape == (1, 4) and np.abs(action).max() <= 1
+            assert np.array_equal(state.action.numpy(), action)
+        actions.append(torch.as_tensor(action[0]))
         if t == 7:
             last_deter = state.deter
     episode.action = torch.stack(actions)[:, None]
@@ -418,7 +419,7 @@ def test_acting_step_by_step_reproduces_loss_posteriors(obs_mode):
 
 def test_act_eval_is_the_tanh_mean_and_train_samples():
     model, heads = make()
-    obs = {"state": torch.randn(39)}
+    obs = {"state": torch.randn(1, 39)}
     state = model.initial_state(heads)
     a1, s1 = model.act(obs, heads, state, eval_mode=True)
     torch.manual_seed(0)
@@ -692,7 +693,7 @@ def test_packnet_prunes_every_backbone_weight_including_the_gru():
         missing = [n for n, p in weights if id(p) not in prunable]
         assert not missing, missing
         assert id(model.rssm.gru.weight) in prunable
-    packnet = PackNet(num_tasks=2, keep_fraction=0.25, retrain_steps=0)
+    packnet = PackNet(PackNetConfig(keep_fraction=0.25, retrain_steps=0), num_tasks=2)
     packnet.before_task(0, backbone)
     packnet.after_task(0, backbone, None)
     zero = float((model.rssm.gru.weight == 0).float().mean())
@@ -728,8 +729,8 @@ def test_frozen_encoder_embeds_caches_and_is_reconstructed():
     opt.step()
     assert all(torch.equal(v, frozen.state_dict()[k]) for k, v in before.items())
     state = model.initial_state(heads)
-    action, state = model.act({"state": batch.obs["state"][0, 0]}, heads, state, eval_mode=True)
-    assert action.shape == (4,)
+    action, state = model.act({"state": batch.obs["state"][0, :1]}, heads, state, eval_mode=True)
+    assert action.shape == (1, 4)
     with pytest.raises(ConfigError):
         DreamerV3(tiny("pixels"), device="cpu", encoder=frozen)
 

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from ccfit.config import TaskRunConfig, TrainConfig, parse_cli, resolve
-from ccfit.models.registry import ConfigError
+from ccfit.config_base import ConfigError
 from ccfit.replay import ReplayBuffer
 
 try:
@@ -42,10 +42,10 @@ def _params(out: Path) -> dict[str, torch.Tensor]:
 
 def test_resume_after_interruption_matches_uninterrupted_run(tmp_path, monkeypatch):
     from ccfit.models.tdmpc2 import TDMPC2
-    from ccfit.train import train_task
+    from ccfit.train import train_single
 
     full, broken = tmp_path / "full", tmp_path / "broken"
-    train_task(_run_config(full), progress=False)
+    train_single(_run_config(full), progress=False)
 
     # Kill the second run mid-way between its checkpoint (step 60) and the end.
     original = TDMPC2.loss
@@ -59,10 +59,10 @@ def test_resume_after_interruption_matches_uninterrupted_run(tmp_path, monkeypat
 
     monkeypatch.setattr(TDMPC2, "loss", dying_loss)
     with pytest.raises(KeyboardInterrupt):
-        train_task(_run_config(broken), progress=False)
+        train_single(_run_config(broken), progress=False)
     monkeypatch.setattr(TDMPC2, "loss", original)
     assert torch.load(broken / "checkpoint.pt", weights_only=False)["task_step"] == 60
-    train_task(_run_config(broken), progress=False)
+    train_single(_run_config(broken), progress=False)
 
     a, b = _params(full), _params(broken)
     assert a.keys() == b.keys()
@@ -72,20 +72,20 @@ def test_resume_after_interruption_matches_uninterrupted_run(tmp_path, monkeypat
     assert rec_a == rec_b and [json.loads(x)["task_step"] for x in rec_a] == [0, 60, 120]
     # A different config must not silently reuse the directory.
     with pytest.raises(ConfigError, match=r"different config \(differs in train\.steps\)"):
-        train_task(_run_config(broken, steps=180), progress=False)
+        train_single(_run_config(broken, steps=180), progress=False)
 
 
 @pytest.mark.slow  # two 300-step runs (~60 s); resume equality is covered by the tests below
 def test_wall_clock_checkpoints_do_not_change_the_run(tmp_path):
     """A checkpoint written at an episode end (checkpoint_minutes) cuts nothing: the run's
     parameters equal those of a run without it."""
-    from ccfit.train import train_task
+    from ccfit.train import train_single
 
     plain = _run_config(tmp_path / "plain", steps=300, checkpoint_interval=300)
     timed = _run_config(tmp_path / "timed", steps=300, checkpoint_interval=300)
     timed.train.checkpoint_minutes = 1e-9  # due at every episode end
-    train_task(plain, progress=False)
-    train_task(timed, progress=False)
+    train_single(plain, progress=False)
+    train_single(timed, progress=False)
     a, b = _params(tmp_path / "plain"), _params(tmp_path / "timed")
     assert all(torch.equal(a[k], b[k]) for k in a)
 
@@ -166,11 +166,24 @@ def test_cli_bad_input_exits_2_with_one_line(argv, needle, capsys, tmp_path):
     assert not (tmp_path / "x").exists(), "bad input must not leave a run directory"
 
 
+def _evaluator(model):
+    from ccfit.train import Evaluator
+
+    return Evaluator(model, {0: "reach-xy"}, seed=0, obs_mode="state", image_size=64,
+                     episodes=1)  # fmt: skip
+
+
 class _CountingMethod:
     """A continual method that only counts the hooks the loop calls."""
 
+    wants_retrain_steps = 0
+
     def __init__(self) -> None:
         self.penalties = self.after_steps = 0
+        self.after_tasks: list[int] = []
+
+    def after_task(self, task_index, backbone, task_data) -> None:
+        self.after_tasks.append(task_index)
 
     def penalty(self, backbone, backbone_loss):
         self.penalties += 1
@@ -201,12 +214,13 @@ def test_trainer_calls_continual_hooks_once_per_update():
     before = [p.detach().clone() for p in model.backbone.parameters()]
     trainer = Trainer(env=env, model=model, heads=model.new_heads(), buffer=buffer, config=cfg,
                       seed=0, obs_mode="state", task_id="reach-xy", method=method,
-                      progress=False)  # fmt: skip
+                      evaluator=_evaluator(model), progress=False)  # fmt: skip
     last = trainer.run()
     env.close()
     assert last["task_step"] == 50 and [r["task_step"] for r in trainer.evals] == [0, 50]
     assert trainer.updates == (50 - 20) * 2
     assert method.penalties == method.after_steps == trainer.updates
+    assert method.after_tasks == [0]  # the trainer closes its task once
     assert buffer.num_transitions == 30 + 50  # the episode in progress is stored at the end
     after = list(model.backbone.parameters())
     assert any(not torch.equal(a, b) for a, b in zip(before, after, strict=True))
@@ -232,7 +246,8 @@ def test_pretrain_updates_run_once_on_the_runs_first_task_only(global_offset, bu
     method = _CountingMethod()
     trainer = Trainer(env=env, model=model, heads=model.new_heads(), buffer=buffer, config=cfg,
                       seed=0, obs_mode="state", task_id="reach-xy", method=method,
-                      global_offset=global_offset, progress=False)  # fmt: skip
+                      evaluator=_evaluator(model), global_offset=global_offset,
+                      progress=False)  # fmt: skip
     updates_at: dict[int, int] = {}
     real_update = trainer._update
 

@@ -14,9 +14,10 @@ import pytest
 import torch
 from torch import nn
 
+from ccfit.config_base import PRESETS, ConfigError
 from ccfit.models import ModelConfig, WorldModel, make_model, model_names
-from ccfit.models.base import LossOutput
-from ccfit.models.registry import PRESETS, ConfigError, config_class, model_class
+from ccfit.models.base import LossOutput, select_state
+from ccfit.models.registry import config_class, model_class
 
 try:
     from replay_data import random_buffer
@@ -70,7 +71,9 @@ def optimiser_params(opt: torch.optim.Optimizer) -> list[nn.Parameter]:
 
 
 def all_finite(logs: dict) -> bool:
-    return all(isinstance(v, float) and math.isfinite(v) for v in logs.values())
+    """Scalars (0-d tensors, which the loop reduces when it logs, or floats), all finite."""
+    return all((isinstance(v, float) or (isinstance(v, torch.Tensor) and v.dim() == 0))
+               and math.isfinite(float(v)) for v in logs.values())  # fmt: skip
 
 
 cases = pytest.mark.parametrize("name,mode", [(n, m) for n in NAMES for m in MODES])
@@ -104,19 +107,24 @@ def test_losses_and_head_update_are_finite(name, mode):
 
 
 @cases
-def test_act_returns_an_action_and_a_state(name, mode):
+def test_act_returns_actions_and_a_state_for_a_batch_of_episodes(name, mode):
     model, heads = build(name, mode)
-    cfg = model.cfg
-    obs = {k: v[0, 0] for k, v in batch_of(model).obs.items()}
+    cfg, n = model.cfg, 3
+    obs = {k: v[0, :n] for k, v in batch_of(model).obs.items()}
     for eval_mode in (False, True):
-        state = model.initial_state(heads)
+        state = model.initial_state(heads, n)
         for _ in range(2):  # twice in a row, with the state
             action, state = model.act(obs, heads, state, eval_mode=eval_mode)
-            assert isinstance(action, np.ndarray) and action.shape == (cfg.action_dim,)
+            assert isinstance(action, np.ndarray) and action.shape == (n, cfg.action_dim)
             assert np.isfinite(action).all() and np.abs(action).max() <= 1.0
-        state = model.observe(obs, np.zeros(cfg.action_dim, np.float32), heads, state)
-        action, _ = model.act(obs, heads, state, eval_mode=eval_mode)
-        assert action.shape == (cfg.action_dim,)
+        state = model.observe(obs, np.zeros((n, cfg.action_dim), np.float32), heads, state)
+        action, state = model.act(obs, heads, state, eval_mode=eval_mode)
+        assert action.shape == (n, cfg.action_dim)
+        # The episodes still running go on with their own state.
+        keep = torch.tensor([2, 0])
+        action, _ = model.act({k: v[keep] for k, v in obs.items()}, heads,
+                              select_state(state, keep), eval_mode=eval_mode)  # fmt: skip
+        assert action.shape == (2, cfg.action_dim)
 
 
 @cases
@@ -178,15 +186,19 @@ def test_parameters_split_into_backbone_and_heads_and_optimisers(name):
 
 
 @cases
-def test_head_update_leaves_the_backbone_bit_identical(name, mode):
+def test_loss_has_no_side_effect_and_head_update_leaves_backbone_parameters(name, mode):
     model, heads = build(name, mode)
+    model.train()
     batch = batch_of(model)
+    state = {k: v.clone() for k, v in [*model.state_dict().items(), *heads.state_dict().items()]}
     out = model.loss(batch, heads)
-    before = {k: v.clone() for k, v in model.backbone.state_dict().items()}
+    model.backbone_loss(batch)
+    now = [*model.state_dict().items(), *heads.state_dict().items()]
+    assert all(torch.equal(state[k], v) for k, v in now), "loss changed the model or heads"
+    before = {k: v.clone() for k, v in model.backbone.named_parameters()}
     heads_before = {k: v.clone() for k, v in heads.state_dict().items()}
     model.head_update(batch, heads, out, model.head_optimizers(heads))
-    after = model.backbone.state_dict()
-    assert all(torch.equal(before[k], after[k]) for k in before)
+    assert all(torch.equal(before[k], v) for k, v in model.backbone.named_parameters())
     assert any(not torch.equal(heads_before[k], v) for k, v in heads.state_dict().items())
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from ccfit.replay import ReplayBuffer, Transitions
+from ccfit.replay import ReplayBuffer
 
 A = 4
 
@@ -171,10 +171,12 @@ def test_ring_overwrite_keeps_is_first_on_the_oldest_row():
     expected[0, 0] = 1.0  # window 0 starts on the oldest row
     assert torch.equal(windows.is_first[..., 0], expected)
     assert buf.num_transitions == 20 - 4
-    # The transition view follows the ring too.
-    tr = buf.transitions(np.arange(buf.num_transitions))
-    assert torch.equal(tr.next_obs["id"][:, 2], tr.obs["id"][:, 2] + 1)
-    assert torch.equal(tr.next_obs["id"][:, 0], tr.obs["id"][:, 0])
+    # Real transitions (2-row windows inside one episode) follow the ring too.
+    pairs = buf.gather(torch.arange(buf.num_starts(2)), 2)
+    real = pairs.valid()[0, :, 0].bool()
+    assert int(real.sum()) == buf.num_transitions
+    assert torch.equal(pairs.obs["id"][1, real, 2], pairs.obs["id"][0, real, 2] + 1)
+    assert torch.equal(pairs.obs["id"][1, real, 0], pairs.obs["id"][0, real, 0])
 
 
 def test_episode_longer_than_the_ring_is_refused():
@@ -182,40 +184,31 @@ def test_episode_longer_than_the_ring_is_refused():
         ReplayBuffer(5).add_episode(**Source().episode(5))
 
 
-# ------------------------------------------------------------------------------ transitions
+# ------------------------------------------------------------------------------ windows
 
 
-def test_transitions_and_two_row_items():
+def test_windows_kept_elsewhere_replay_as_they_were():
     buf, _ = filled([3, 1, 4], successes={1})
     assert buf.num_transitions == 8
-    tr = buf.transitions(np.arange(8))
-    ids, nxt = tr.obs["id"], tr.next_obs["id"]
-    assert ids[:, :2].tolist() == [[0, 0], [0, 1], [0, 2], [1, 0], [2, 0], [2, 1], [2, 2],
-                                   [2, 3]]  # fmt: skip
-    assert torch.equal(nxt[:, 1], ids[:, 1] + 1) and torch.equal(nxt[:, 0], ids[:, 0])
-    assert tr.terminated.tolist() == [0, 0, 0, 1, 0, 0, 0, 0]
-    torch.testing.assert_close(tr.reward, -(ids[:, 1] + 1) / 100)
-    with pytest.raises(ValueError, match=r"in \[0, 8\)"):
-        buf.transitions([8])
-
+    kept = buf.gather(torch.tensor([2, 5, 0]), 3)  # rows 2-4 and 5-7 cross a boundary
     memory = ReplayBuffer(None, seed=1)
-    kept = buf.transitions(np.array([3, 6, 0]))
-    memory.add_transitions(kept, task=2)
-    assert (memory.size, memory.num_episodes, memory.num_transitions) == (6, 3, 3)
-    back = memory.transitions(np.arange(3))
-    for x, y in zip(back, kept, strict=True):
-        if isinstance(x, dict):
-            assert all(torch.equal(x[k], y[k]) for k in x)
-        else:
-            assert torch.equal(x, y)
-    batch = memory.sample_at_episode_starts(200, 5)
-    # Each window starts on an item and runs (cyclically) through whole items.
-    assert torch.equal(batch.is_first[..., 0], torch.tensor([1.0, 0, 1, 0, 1]).expand(200, 5).T)
+    memory.add_windows(kept, task=2)
+    assert (memory.size, memory.num_episodes) == (9, 3)
+    assert memory.num_transitions == 4  # 1 + 1 + 2: the boundaries inside windows stay
+    batch = memory.sample_at_episode_starts(300, 3)
     assert torch.all(batch.task == 2)
-    assert torch.equal(batch.obs["id"][1], batch.obs["id"][0] + torch.tensor([0.0, 1, 1]))
-    assert len({tuple(r) for r in batch.obs["id"][0].tolist()}) == 3  # every item drawn
-    assert batch.rollout_mask()[..., 0].tolist() == [[1.0] * 200] + [[0.0] * 200] * 3
-    assert isinstance(kept, Transitions) and kept.action.shape == (3, A)
+    ids = batch.obs["id"]
+    windows = {tuple(map(tuple, ids[:, j].tolist())) for j in range(300)}
+    assert windows == {tuple(map(tuple, kept.obs["id"][:, j].tolist())) for j in range(3)}
+    for j in range(300):  # each replayed window is one kept window, reward and flags included
+        w = next(i for i in range(3) if torch.equal(kept.obs["id"][:, i], ids[:, j]))
+        assert torch.equal(batch.reward[:, j], kept.reward[:, w])
+        assert torch.equal(batch.terminated[:, j], kept.terminated[:, w])
+        expected_first = kept.is_first[:, w].clone()
+        expected_first[0] = 1.0
+        assert torch.equal(batch.is_first[:, j], expected_first)
+    with pytest.raises(ValueError, match="exceed the capacity"):
+        ReplayBuffer(8).add_windows(kept)
 
 
 # ------------------------------------------------------------------------------ state
@@ -257,7 +250,7 @@ def test_obs_transform_applied_before_storing():
     assert set(batch.obs) == {"latent"} and batch.obs["latent"].shape == (3, 5, 2)
     assert torch.equal(batch.obs["latent"][..., 1], batch.obs["latent"][..., 1].round())
     assert set(batch.obs["latent"][..., 1].flatten().tolist()) <= {0.0, 10.0, 20.0, 30.0, 40.0}
-    assert buf.transitions([0]).obs["latent"].tolist() == [[0.0, 0.0]]
+    assert buf.gather(torch.tensor([0]), 1).obs["latent"][0].tolist() == [[0.0, 0.0]]
 
 
 def test_bad_episodes_are_refused():

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 from collections import Counter
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +23,7 @@ from ccfit.continual.packnet import prunable_weights
 from ccfit.curriculum import METRICS_JSON, Curriculum
 from ccfit.models.base import Batch, LossOutput, WorldModel
 from ccfit.models.registry import ModelConfig, model_names, register_model
-from ccfit.train import RunLogger, Trainer, build_model, make_replay
+from ccfit.train import RunLogger, Trainer, build_model, make_evaluator, make_replay
 
 CALLS: Counter = Counter()
 
@@ -93,18 +94,23 @@ class ToyModel(WorldModel):
         optimizers["pi"].step()
         return {"pi_loss": float(loss.detach())}
 
-    def initial_state(self, heads):
-        CALLS["initial_state"] += 1
-        return 0  # steps seen in this episode
+    def initial_state(self, heads, n=1):
+        CALLS["initial_state"] += n
+        return torch.zeros(n, dtype=torch.long)  # steps seen in each episode
 
     def act(self, obs, heads, state, *, eval_mode):
-        CALLS["act_eval" if eval_mode else "act_train"] += 1
+        n = obs["state"].shape[0]
+        assert state.shape == (n,)
+        CALLS["act_eval" if eval_mode else "act_train"] += n
+        CALLS["act_calls_eval" if eval_mode else "act_calls_train"] += 1
         z = self.backbone["encoder"](obs["state"])
-        return torch.tanh(heads["pi"](z)).cpu().numpy(), state + 1
+        # A deterministic policy that depends on the acting state (the step in the episode).
+        a = torch.tanh(heads["pi"](z) + 0.01 * state.unsqueeze(-1).float())
+        return a.detach().cpu().numpy(), state + 1
 
     def observe(self, obs, action, heads, state):
         CALLS["observe"] += 1
-        assert action.shape == (self.cfg.action_dim,)
+        assert action.shape == (obs["state"].shape[0], self.cfg.action_dim)
         return state + 1
 
 
@@ -117,43 +123,80 @@ def test_toy_is_registered_beside_the_builtin_models():
 
 
 def test_loop_calls_the_model_as_its_contract_says(tmp_path, monkeypatch):
-    import ccfit.train.loop
+    import ccfit.train.evaluate
     from ccdata.env import make_env
 
     eval_lengths = []
 
-    def evaluate_and_count(*args, **kwargs):
-        result = real_evaluate(*args, **kwargs)
-        eval_lengths.extend(result.lengths)
-        return result
+    def play_and_count(*args, **kwargs):
+        episodes = real_play(*args, **kwargs)
+        eval_lengths.append([len(e.rewards) for e in episodes])
+        return episodes
 
-    real_evaluate = ccfit.train.loop.evaluate
-    monkeypatch.setattr(ccfit.train.loop, "evaluate", evaluate_and_count)
+    real_play = ccfit.train.evaluate.play_episodes
+    monkeypatch.setattr(ccfit.train.evaluate, "play_episodes", play_and_count)
 
+    train = {**SMOKE_TRAIN, "eval_episodes": 3}
     cfg = resolve(TaskRunConfig, {"task": "reach-xy", "preset": "smoke", "seed_dataset": None,
-                                  "model": {"type": "toy"}, "train": dict(SMOKE_TRAIN)})
+                                  "model": {"type": "toy"}, "train": train})
     model = build_model(cfg, torch.device("cpu"))
     heads = model.new_heads()
     env = make_env("reach-xy", render=False)
     buffer = make_replay(cfg, model, "reach-xy", 0, None)
     buffer.add_episode({"state": np.zeros((6, 39), np.float32)}, np.zeros((5, 4), np.float32),
                        np.zeros(5, np.float32), np.zeros(5, np.float32))  # sampleable at once
+    evaluator = make_evaluator(cfg, model, {0: "reach-xy"})
     trainer = Trainer(env=env, model=model, heads=heads, config=cfg.train, seed=0,
-                      obs_mode="state", task_id="reach-xy", buffer=buffer,
+                      obs_mode="state", task_id="reach-xy", buffer=buffer, evaluator=evaluator,
                       logger=RunLogger(tmp_path), progress=False)  # fmt: skip
     CALLS.clear()
     trainer.run()
     env.close()
+    evaluator.close()
     steps, seed_steps = SMOKE_TRAIN["steps"], SMOKE_TRAIN["seed_steps"]
     assert CALLS["observe"] == seed_steps  # random steps are observed, never acted
-    assert CALLS["act_train"] == steps - seed_steps
+    assert CALLS["act_train"] == CALLS["act_calls_train"] == steps - seed_steps
     # train_ratio 0.5: one update every second step once replay holds a window
     assert CALLS["loss"] == CALLS["head_update"] == trainer.updates
     assert trainer.updates == (steps - seed_steps) // 2
-    # three evaluations (steps 0, 100, 200) of one episode each, one act per step
-    assert len(eval_lengths) == 3 and CALLS["act_eval"] == sum(eval_lengths)
+    # Three evaluations (steps 0, 100, 200) of three episodes each, played together: one act
+    # per step of each running episode, one act call per step of the longest.
+    assert len(eval_lengths) == 3 and all(len(lengths) == 3 for lengths in eval_lengths)
+    assert CALLS["act_eval"] == sum(map(sum, eval_lengths))
+    assert CALLS["act_calls_eval"] == sum(map(max, eval_lengths))
     # every episode, training or evaluation, starts from a fresh acting state
-    assert CALLS["initial_state"] == trainer.episode_index + 3
+    assert CALLS["initial_state"] == trainer.episode_index + 3 * 3
+
+
+def test_batched_evaluation_plays_the_episodes_of_sequential_play(tmp_path):
+    """A deterministic policy plays the same episodes, bit for bit, whether the evaluation
+    layouts play side by side (what the loop does) or one after the other."""
+    from ccfit.train import EnvPool, eval_seeds, play_episodes
+
+    cfg = resolve(TaskRunConfig, {"task": "reach-xy", "preset": "smoke", "seed_dataset": None,
+                                  "model": {"type": "toy"}})  # fmt: skip
+    torch.manual_seed(0)
+    model = build_model(cfg, torch.device("cpu"))
+    heads = model.new_heads()
+    with torch.no_grad():  # a policy that reaches: the hand moves toward the goal
+        enc, pi = model.backbone["encoder"], heads["pi"]
+        enc.weight.zero_(), enc.bias.zero_(), pi.weight.zero_(), pi.bias.zero_()
+        for i in range(3):  # z_i = goal_i - hand_i (39-D state: hand at 0:3, goal at 36:39)
+            enc.weight[i, 36 + i], enc.weight[i, i] = 1.0, -1.0
+            pi.weight[i, i] = 50.0
+    seeds = eval_seeds(0, 0, 6)
+    pool = EnvPool("state", 64)
+    together = play_episodes(pool.get("reach-xy", 6), model, heads, obs_mode="state",
+                             seeds=seeds, record=True)  # fmt: skip
+    alone = [play_episodes(pool.get("reach-xy", 1), model, heads, obs_mode="state", seeds=[s],
+                           record=True)[0] for s in seeds]  # fmt: skip
+    pool.close()
+    assert len({len(e.rewards) for e in together}) > 2, "episodes of one length test less"
+    assert any(e.success for e in together)
+    for a, b in zip(together, alone, strict=True):
+        assert a.rewards == b.rewards and a.success == b.success
+        assert np.array_equal(a.action, b.action)
+        assert all(np.array_equal(a.obs[k], b.obs[k]) for k in a.obs)
 
 
 @pytest.mark.parametrize("method", ["ft", "er", "ewc", "packnet"])
@@ -173,6 +216,19 @@ def test_toy_runs_a_curriculum_under_every_backbone_method(tmp_path, method):
     saved = json.loads((tmp_path / "run" / METRICS_JSON).read_text())
     assert saved == json.loads(json.dumps(result))
     assert result["model"] == "toy" and result["method"] == method
-    assert np.isfinite(result["fwt"]) and len(result["end_of_task"]) == 4
+    assert len(result["end_of_task"]) == 4
+    # FWT by hand from the records: the composition task's curve during its stage, rebased to
+    # 0, minus the from-scratch curve, trapezoids over the shared evaluation points, / budget.
+    records = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    steps = SMOKE_TRAIN["steps"]
+    seq = {r["task_step"]: r["normalized_return"] for r in records if r["task_index"] == 3}
+    scratch = json.loads((Path(result["scratch_dir"]) / "done.json").read_text())
+    scr = {r["task_step"]: r["normalized_return"] for r in scratch}
+    points = sorted(seq)
+    assert points == sorted(scr) == list(range(0, steps + 1, SMOKE_TRAIN["eval_interval"]))
+    diff = [seq[t] - scr[t] for t in points]
+    area = sum((diff[k] + diff[k + 1]) / 2 * (points[k + 1] - points[k])
+               for k in range(len(points) - 1))  # fmt: skip
+    assert result["fwt"] == pytest.approx(area / steps)
     config = json.loads((tmp_path / "run" / "config.json").read_text())
     assert config["model"]["type"] == "toy" and config["method"]["type"] == method

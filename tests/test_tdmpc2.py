@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
+from ccfit.config_base import ConfigError
 from ccfit.models.base import Batch
 from ccfit.models.encoders import preprocess_frames, random_shift
 from ccfit.models.layers import EnsembleMLP, SimNorm, TwoHot, mlp, symexp, symlog
-from ccfit.models.registry import ConfigError
 from ccfit.models.tdmpc2 import TDMPC2, TDMPC2_SIZES, TDMPC2Config, modules_in_eval
 
 try:
@@ -251,13 +251,13 @@ def test_plan_actions_and_warm_start_state(mode):
     model, heads = build(mode)
     cfg = model.cfg
     batch = make_batch(cfg)
-    obs = {k: v[0, 0] for k, v in batch.obs.items()}
-    assert model.initial_state(heads) is None
+    obs = {k: v[0, :2] for k, v in batch.obs.items()}  # two episodes at once
+    assert model.initial_state(heads, 2) is None
     state = None
     for ev in (False, False, True):
         a, state = model.act(obs, heads, state, eval_mode=ev)
-        assert a.shape == (4,) and np.isfinite(a).all() and np.abs(a).max() <= 1.0
-        assert state.shape == (cfg.horizon, 4) and state.abs().sum() > 0
+        assert a.shape == (2, 4) and np.isfinite(a).all() and np.abs(a).max() <= 1.0
+        assert state.shape == (2, cfg.horizon, 4) and state.abs().sum() > 0
     assert "prev_mean" not in dict(heads.named_buffers())  # the plan lives in the state only
     # Training mode is restored after acting.
     assert model.training and heads.training and not heads.target_qs.training
@@ -271,8 +271,8 @@ def test_plan_actions_and_warm_start_state(mode):
     assert np.array_equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
     assert not np.array_equal(runs[0][0], runs[2][0])
     assert torch.equal(state, kept)
-    with pytest.raises(ValueError, match="plan mean of shape"):
-        model.act(obs, heads, torch.zeros(cfg.horizon + 1, 4), eval_mode=True)
+    with pytest.raises(ValueError, match="plan means of shape"):
+        model.act(obs, heads, torch.zeros(2, cfg.horizon + 1, 4), eval_mode=True)
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -388,16 +388,17 @@ def test_td_target_stops_at_termination():
 @pytest.mark.parametrize("mode", MODES)
 def test_acts_in_real_env(mode):
     import ccdata
-    from ccfit.obs import obs_to_tensors
+    from ccfit.obs import model_input, obs_to_arrays
 
     env = ccdata.make_env("reach-xy", seed=0, image_size=SIZE, render=mode == "pixels")
     obs, _ = env.reset(seed=0)
     model, heads = build(mode)
     state = model.initial_state(heads)
     for _ in range(3):
-        action, state = model.act(obs_to_tensors(obs, mode), heads, state, eval_mode=False)
-        assert action.shape == (4,) and np.abs(action).max() <= 1.0
-        obs, reward, *_ = env.step(action.astype(np.float32))
+        x = model_input([obs_to_arrays(obs, mode)], model.device)
+        action, state = model.act(x, heads, state, eval_mode=False)
+        assert action.shape == (1, 4) and np.abs(action).max() <= 1.0
+        obs, reward, *_ = env.step(action[0].astype(np.float32))
         assert -1.0 <= reward <= 0.0
     env.close()
 

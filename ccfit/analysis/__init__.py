@@ -1,4 +1,5 @@
-"""Routing analysis and expert ablation of a continual PWM run (the paper's Sec. V-B).
+"""Routing analysis and expert ablation of a continual run of a routed model (the paper's
+Sec. V-B: PWM; any model offering the 'routing' capability gets them).
 
 Routing record (`routing.jsonl` in the run directory, one line per curriculum stage): after
 task t is learnt and its heads are stored, every task i <= t replays its evaluation episodes
@@ -36,16 +37,14 @@ Replaying episodes draws MPPI noise; it runs under a forked torch RNG seeded fro
 seed, so recording does not change the training that follows and results are reproducible.
 """
 
-from ccfit.analysis.ablation import ablate, load_pwm_run, plot_ablation
+from ccfit.analysis.ablation import ablate, load_routed_run, plot_ablation
 from ccfit.analysis.episodes import (
     ABLATION_JSON,
     ABLATION_MODES,
     ABLATION_PNG,
     ROUTING,
-    Episode,
     latent_error,
     mean_routing,
-    play_episodes,
 )
 from ccfit.analysis.routing import (
     append_routing,
@@ -59,13 +58,16 @@ from ccfit.analysis.routing import (
 )
 
 __all__ = [
-    "ABLATION_JSON", "ABLATION_MODES", "ABLATION_PNG", "ROUTING", "Episode", "ablate",
-    "append_routing", "figure_data", "latent_error", "load_pwm_run", "mean_routing",
-    "play_episodes", "plot_ablation", "plot_routing", "read_routing", "report_routing",
+    "ABLATION_JSON", "ABLATION_MODES", "ABLATION_PNG", "ROUTING", "ablate",
+    "append_routing", "figure_data", "latent_error", "load_routed_run", "mean_routing",
+    "plot_ablation", "plot_routing", "read_routing", "report_routing",
     "routing_callback", "routing_record", "stage_callbacks", "top_statement",
 ]  # fmt: skip
 
 
 def stage_callbacks(cfg) -> list:
-    """The analyses a curriculum of `cfg` records after each task: PWM's routing."""
-    return [routing_callback] if cfg.model.type == "pwm" else []
+    """The analyses a curriculum of `cfg` records after each task: the routing record of a
+    model offering 'routing'."""
+    from ccfit.models.registry import model_class
+
+    return [routing_callback] if "routing" in model_class(cfg.model.type).capabilities else []

@@ -1,4 +1,5 @@
-"""The paper's Fig. 6: expert ablation of a finished PWM run on its composition task."""
+"""The paper's Fig. 6: expert ablation of a finished run of a routed model (capability
+'routing', e.g. PWM) on its composition task."""
 
 from __future__ import annotations
 
@@ -8,35 +9,31 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ccdata.env import make_env
 from ccdata.errors import InputError
-from ccdata.scoring import GAMMA, discounted_return
 from ccfit.analysis.episodes import (
     _ABLATION_TAG,
     ABLATION_JSON,
     ABLATION_MODES,
     ABLATION_PNG,
-    Episode,
     _seeded,
     latent_error,
     mean_routing,
-    play_episodes,
 )
 from ccfit.io import atomic_write_text, derived_seed
-from ccfit.models.pwm import PWM
-from ccfit.train import eval_seeds, normalized_or_none
+from ccfit.models.base import Routing
+from ccfit.train import EnvPool, Episode, eval_seeds, normalized_or_none, play_episodes
 
 # ====================================================================== Fig. 6: ablation
 
 
-def load_pwm_run(run_dir: str | Path, device: torch.device | str | None = None):
-    """A finished PWM curriculum run: (config, model, stored heads, method)."""
+def load_routed_run(run_dir: str | Path, device: torch.device | str | None = None):
+    """A finished curriculum run of a routed model: (config, model, stored heads, method)."""
     from ccfit.curriculum import load_run
 
     run = load_run(run_dir, device)
-    if not isinstance(run.model, PWM):
-        raise InputError(f"{run_dir}: expert ablation needs a PWM run, this is a "
-                         f"{run.cfg.model.type} run")  # fmt: skip
+    if not isinstance(run.model, Routing):
+        raise InputError(f"{run_dir}: expert ablation needs a model offering 'routing', this "
+                         f"is a {run.cfg.model.type} run")  # fmt: skip
     if run.completed < len(run.cfg.tasks):
         raise InputError(f"{run_dir}: run not finished ({run.completed} of "
                          f"{len(run.cfg.tasks)} tasks done)")  # fmt: skip
@@ -46,18 +43,19 @@ def load_pwm_run(run_dir: str | Path, device: torch.device | str | None = None):
 
 def ablate(run_dir: str | Path, episodes: int | None = None, horizon: int | None = None,
            device: torch.device | str | None = None) -> dict:  # fmt: skip
-    """Fig. 6 for one finished PWM run: writes `ablation.json` and `ablation.png` in it.
+    """Fig. 6 for one finished run of a routed model: writes `ablation.json` and
+    `ablation.png` in it.
 
     episodes: evaluation layouts of the composition task (default: the run's eval_episodes);
     horizon: open-loop steps H (default: the model's planning horizon)."""
     run_dir = Path(run_dir)
-    cfg, model, stored, method = load_pwm_run(run_dir, device)
+    cfg, model, stored, method = load_routed_run(run_dir, device)
     train = cfg.train
     if train.torch_threads > 0:
         torch.set_num_threads(train.torch_threads)
     device = model.device
-    mixture = model.dynamics
-    if int(mixture.num_groups) < 2:
+    layout = model.expert_layout()
+    if layout.num_groups < 2:
         raise InputError(
             f"{run_dir}: one expert group only (method {cfg.method.type!r}); the ablation compares "
             "prior and new experts of a run with method 'experts'"
@@ -68,9 +66,9 @@ def ablate(run_dir: str | Path, episodes: int | None = None, horizon: int | None
         raise InputError(f"episodes and horizon must be >= 1, got {episodes} and {horizon}")
     comp = len(cfg.tasks) - 1
     task_id, heads = cfg.tasks[comp], stored[comp]
-    routed = int(heads.task_index)
+    routed = model.routed_task(heads)
     seeds = eval_seeds(cfg.seed, comp, episodes)
-    env = make_env(task_id, render=cfg.obs == "pixels", image_size=cfg.image_size)
+    pool = EnvPool(cfg.obs, cfg.image_size)
     modes: dict[str, dict] = {}
     recorded: list[Episode] = []
     try:
@@ -78,13 +76,13 @@ def ablate(run_dir: str | Path, episodes: int | None = None, horizon: int | None
             # The same MPPI noise stream for every mode: differences come from the routing.
             with method.evaluating(comp, model.backbone), model.routing_override(override), \
                     _seeded(derived_seed(cfg.seed, _ABLATION_TAG, 0, comp), device):  # fmt: skip
-                eps = play_episodes(env, model, heads, obs_mode=cfg.obs, seeds=seeds,
-                                    device=device)  # fmt: skip
+                eps = play_episodes(pool.get(task_id, len(seeds)), model, heads,
+                                    obs_mode=cfg.obs, seeds=seeds, record=True)  # fmt: skip
                 recorded = recorded or eps  # the full mixture's trajectories (first mode)
                 weights = mean_routing(model, eps, routed, device)
                 error = latent_error(model, recorded, routed, horizon, device)
-            ret = float(np.mean([discounted_return(e.rewards, GAMMA) for e in eps]))
-            k, n = mixture.k, mixture.num_active
+            ret = float(np.mean([e.discounted_return for e in eps]))
+            k, n = layout.experts_per_task, layout.num_active
             modes[name] = {
                 "override": override,
                 "discounted_return": ret,
@@ -96,7 +94,7 @@ def ablate(run_dir: str | Path, episodes: int | None = None, horizon: int | None
                 "new_weight": float(weights[n - k : n].sum()),
             }
     finally:
-        env.close()
+        pool.close()
     full = modes["full"]
     for m in modes.values():
         nr, base = m["normalized_return"], full["normalized_return"]
@@ -107,7 +105,8 @@ def ablate(run_dir: str | Path, episodes: int | None = None, horizon: int | None
     result = {
         "run": str(run_dir), "suite": cfg.suite, "method": cfg.method.type, "seed": cfg.seed,
         "task": task_id, "task_index": comp, "episodes": episodes, "horizon": horizon,
-        "num_active": mixture.num_active, "experts_per_task": mixture.k, "modes": modes,
+        "num_active": layout.num_active, "experts_per_task": layout.experts_per_task,
+        "modes": modes,
     }  # fmt: skip
     atomic_write_text(run_dir / ABLATION_JSON, json.dumps(result, indent=2) + "\n")
     plot_ablation(result, run_dir / ABLATION_PNG)

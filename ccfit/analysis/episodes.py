@@ -1,17 +1,16 @@
-"""Evaluation episodes of a PWM run replayed and recorded, and what is measured on them:
-mean routing weights and the open-loop latent error."""
+"""What is measured on recorded evaluation episodes of a routed model (capability 'routing',
+e.g. PWM): mean routing weights and the open-loop latent error."""
 
 from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from ccfit.models.pwm import PWM
-from ccfit.obs import obs_to_arrays
+from ccfit.models.base import Routing
+from ccfit.train.evaluate import Episode
 
 ROUTING = "routing.jsonl"
 ABLATION_JSON = "ablation.json"
@@ -19,50 +18,8 @@ ABLATION_PNG = "ablation.png"
 ABLATION_MODES: dict[str, str | None] = {
     "full": None, "prior": "prior", "new": "new", "uniform": "uniform",
 }  # fmt: skip
-"""Ablation name -> `PWM.routing_override` mode."""
+"""Ablation name -> `Routing.routing_override` mode."""
 _ROUTING_TAG, _ABLATION_TAG = 10, 11  # seed streams beside ccfit.train's 0..3
-
-
-
-# ====================================================================== playing episodes
-
-
-@dataclass
-class Episode:
-    """One evaluation episode as played."""
-
-    obs: dict[str, np.ndarray]
-    """Observation arrays (T + 1, ...), as stored in replay."""
-    action: np.ndarray
-    """Actions (T, action_dim)."""
-    rewards: list[float]
-    """Rewards of the T steps."""
-    success: bool
-    """Whether the task was solved at some step."""
-
-
-def play_episodes(env, model, heads, *, obs_mode: str, seeds: list[int],
-                  device: torch.device) -> list[Episode]:  # fmt: skip
-    """`ccfit.train.evaluate`'s episodes (eval-mode planning, one per layout seed), recorded."""
-    episodes = []
-    for seed in seeds:
-        obs, _ = env.reset(seed=int(seed))
-        state = model.initial_state(heads)
-        frames = [obs_to_arrays(obs, obs_mode)]
-        actions, rewards, success, done = [], [], False, False
-        while not done:
-            x = {k: torch.from_numpy(v).to(device) for k, v in frames[-1].items()}
-            action, state = model.act(x, heads, state, eval_mode=True)
-            action = np.asarray(action, np.float32)
-            obs, reward, terminated, truncated, info = env.step(action)
-            frames.append(obs_to_arrays(obs, obs_mode))
-            actions.append(action)
-            rewards.append(float(reward))
-            success = success or bool(info["success"])
-            done = terminated or truncated
-        stacked = {k: np.stack([f[k] for f in frames]) for k in frames[0]}
-        episodes.append(Episode(stacked, np.stack(actions), rewards, success))
-    return episodes
 
 
 @contextlib.contextmanager
@@ -85,13 +42,13 @@ def _seeded(seed: int, device: torch.device) -> Iterator[None]:
 
 
 @torch.no_grad()
-def _encode(model: PWM, ep: Episode, device: torch.device) -> torch.Tensor:
+def _encode(model: Routing, ep: Episode, device: torch.device) -> torch.Tensor:
     with _eval_mode(model):
         return model.encode({k: torch.from_numpy(v).to(device) for k, v in ep.obs.items()})
 
 
 @torch.no_grad()
-def mean_routing(model: PWM, episodes: list[Episode], task: int,
+def mean_routing(model: Routing, episodes: list[Episode], task: int,
                  device: torch.device) -> np.ndarray:  # fmt: skip
     """Mean routing weights (K * max_tasks,) over every visited (z_t, a_t) of `episodes`."""
     z = torch.cat([_encode(model, ep, device)[:-1] for ep in episodes])
@@ -101,7 +58,7 @@ def mean_routing(model: PWM, episodes: list[Episode], task: int,
 
 
 @torch.no_grad()
-def latent_error(model: PWM, episodes: list[Episode], task: int, horizon: int,
+def latent_error(model: Routing, episodes: list[Episode], task: int, horizon: int,
                  device: torch.device) -> float:  # fmt: skip
     """Open-loop latent prediction error: from encode(o_t), `horizon` dynamics steps with the
     recorded actions; squared error to encode(o_{t+k}) averaged over latent dims, k and t."""

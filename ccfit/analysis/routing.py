@@ -1,4 +1,5 @@
-"""PWM routing records per curriculum stage and the paper's Fig. 5 from them."""
+"""Routing records per curriculum stage and the paper's Fig. 5 from them (models offering
+'routing', e.g. PWM)."""
 
 from __future__ import annotations
 
@@ -11,24 +12,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from ccdata.env import make_env
-from ccdata.scoring import GAMMA, discounted_return
-from ccfit.analysis.episodes import (
-    _ROUTING_TAG,
-    ROUTING,
-    _eval_mode,
-    _seeded,
-    mean_routing,
-    play_episodes,
-)
+from ccfit.analysis.episodes import _ROUTING_TAG, ROUTING, _eval_mode, _seeded, mean_routing
 from ccfit.io import atomic_write_text, derived_seed
-from ccfit.models.pwm import PWM
-from ccfit.train import CONFIG, eval_seeds, normalized_or_none
+from ccfit.models.base import Routing
+from ccfit.train import CONFIG, EnvPool, eval_seeds, normalized_or_none, play_episodes
 
 # ===================================================================== routing record
 
 
-def routing_record(model: PWM, stored_heads: list, task_ids: list[str], *, stage: int, seed: int,
+def routing_record(model: Routing, stored_heads: list, task_ids: list[str], *, stage: int,
+                   seed: int,
                    episodes: int, obs_mode: str, image_size: int = 64,
                    device: torch.device | str = "cpu",
                    view: Callable[[int], contextlib.AbstractContextManager] | None = None,
@@ -37,27 +30,29 @@ def routing_record(model: PWM, stored_heads: list, task_ids: list[str], *, stage
     with `stored_heads[i]` and the mean weight of every expert over the visited (z, a).
 
     `view(i)`: the continual method's evaluation context of task i (PackNet's masks)."""
-    if not isinstance(model, PWM):
-        raise ValueError(f"routing records need a PWM model, got {type(model).__name__}")
+    if not isinstance(model, Routing):
+        raise ValueError(f"routing records need a model offering 'routing', got "
+                         f"{type(model).__name__}")  # fmt: skip
     if len(stored_heads) <= stage or len(task_ids) <= stage:
         raise ValueError(f"stage {stage}: need heads and task ids of tasks 0..{stage}")
     device = torch.device(device)
-    mixture = model.dynamics
+    layout = model.expert_layout()
     tasks = []
+    pool = EnvPool(obs_mode, image_size)
     with _eval_mode(model):
         for i in range(stage + 1):
             heads = stored_heads[i]
-            routed = int(heads.task_index)
-            env = make_env(task_ids[i], render=obs_mode == "pixels", image_size=image_size)
+            routed = model.routed_task(heads)
+            seeds = eval_seeds(seed, i, episodes)
             try:
                 ctx = view(i) if view is not None else contextlib.nullcontext()
                 with ctx, _seeded(derived_seed(seed, _ROUTING_TAG, stage, i), device):
-                    eps = play_episodes(env, model, heads, obs_mode=obs_mode, device=device,
-                                        seeds=eval_seeds(seed, i, episodes))  # fmt: skip
+                    eps = play_episodes(pool.get(task_ids[i], len(seeds)), model, heads,
+                                        obs_mode=obs_mode, seeds=seeds, record=True)  # fmt: skip
                     weights = mean_routing(model, eps, routed, device)
             finally:
-                env.close()
-            ret = float(np.mean([discounted_return(e.rewards, GAMMA) for e in eps]))
+                pool.close()
+            ret = float(np.mean([e.discounted_return for e in eps]))
             tasks.append({
                 "task_index": i, "task": task_ids[i], "routed_as": routed,
                 "samples": int(sum(len(e.action) for e in eps)),
@@ -66,8 +61,8 @@ def routing_record(model: PWM, stored_heads: list, task_ids: list[str], *, stage
             })  # fmt: skip
     return {
         "stage": stage, "task": task_ids[stage], "episodes": episodes,
-        "num_active": mixture.num_active, "experts_per_task": mixture.k,
-        "max_experts": mixture.max_experts, "tasks": tasks,
+        "num_active": layout.num_active, "experts_per_task": layout.experts_per_task,
+        "max_experts": layout.max_experts, "tasks": tasks,
     }  # fmt: skip
 
 
@@ -75,7 +70,8 @@ def read_routing(run_dir: str | Path) -> list[dict]:
     """The records of `routing.jsonl`, by stage (they must be stages 0, 1, ...)."""
     path = Path(run_dir) / ROUTING
     if not path.is_file():
-        raise ValueError(f"no {ROUTING} in {run_dir} (only PWM curriculum runs write one)")
+        raise ValueError(f"no {ROUTING} in {run_dir} (only curricula of a model offering "
+                         "'routing' write one)")  # fmt: skip
     records = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
     records.sort(key=lambda r: r["stage"])
     if [r["stage"] for r in records] != list(range(len(records))):
@@ -94,7 +90,7 @@ def append_routing(run_dir: str | Path, record: dict) -> None:
 
 
 def routing_callback(stage) -> None:
-    """The curriculum's `StageCallback` for PWM runs: after a task's heads are stored,
+    """The curriculum's `StageCallback` for routed models: after a task's heads are stored,
     appends the routing of stage len(stored_heads) - 1 to `routing.jsonl`."""
     cfg, model, method = stage.cfg, stage.model, stage.method
     record = routing_record(
@@ -254,8 +250,7 @@ def report_routing(runs, out: Path) -> tuple[list[Path], dict[tuple, dict]]:
         if not (run.path / ROUTING).is_file():
             continue
         backbone, suite, method = run.key
-        prefix = "routing" if backbone == "pwm" else f"routing_{backbone}"
-        path = out / f"{prefix}_{suite}_{method}_s{run.seed}.png"
+        path = out / f"routing_{backbone}_{suite}_{method}_s{run.seed}.png"
         data = plot_routing(run.path, path)
         top = data["top_expert"]
         summary.setdefault(run.key, {})[f"s{run.seed}"] = {

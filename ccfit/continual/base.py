@@ -19,18 +19,17 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import inspect
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import draccus
-import numpy as np
 import torch
 from torch import nn
 
+from ccfit.config_base import ChoiceConfig, ConfigError, check, check_types
 from ccfit.models.base import Batch
-from ccfit.replay import ReplayBuffer, Transitions
+from ccfit.replay import ReplayBuffer
 
 
 @dataclass
@@ -42,12 +41,13 @@ class TaskData:
     sample: Callable[[], Batch]
     """Draws a fresh training batch from this task's replay buffer (EWC's Fisher batches)."""
     num_transitions: int
-    """n, the number of real transitions of this task in replay (ER's reservoir runs over
-    them)."""
-    transitions: Callable[[np.ndarray], Transitions]
-    """The real transitions numbered by the given indices in [0, n), on the CPU: (o_t,
-    o_{t+1}, a_t, r_t, terminated_t). Lets ER keep a subset of transitions after the trainer's
-    buffer for this task is gone."""
+    """n, the number of real transitions of this task in replay (ER keeps a share of them)."""
+    num_rows: int
+    """Rows of this task's replay (an episode of T transitions is T + 1 rows)."""
+    windows: Callable[[torch.Tensor], Batch]
+    """The windows of `seq_len` consecutive rows starting at the given rows (counted from the
+    oldest, in [0, num_rows - seq_len]), on the CPU: lets ER keep a subset of this task's
+    windows after the trainer's buffer for it is gone."""
     seq_len: int
     """Rows per training window of the model (ER cuts its replay windows to this length)."""
     batch_size: int
@@ -66,13 +66,14 @@ class TaskData:
         backbone_loss: Callable[[Batch], torch.Tensor],
         device: torch.device | str = "cpu",
     ) -> TaskData:
-        """The view of a task's replay buffer: windows of `batch_size` x `seq_len` rows on
-        `device`, and its real transitions."""
+        """The view of a task's replay buffer: training batches of `batch_size` x `seq_len`
+        rows on `device`, and windows of it on the CPU."""
         return cls(
             task_index=task_index,
             sample=lambda: buffer.sample(batch_size, seq_len).to(device),
             num_transitions=buffer.num_transitions,
-            transitions=buffer.transitions,
+            num_rows=buffer.size,
+            windows=lambda starts: buffer.gather(starts, seq_len),
             seq_len=seq_len,
             batch_size=batch_size,
             backbone_loss=backbone_loss,
@@ -99,12 +100,17 @@ class ContinualMethod:
 
     name: str = "base"
     """Registry name, set by `register_method`."""
+    config_class: type[MethodConfig]
+    """Its options, set by `register_method`."""
 
-    def __init__(self, num_tasks: int | None = None) -> None:
-        if num_tasks is not None and num_tasks < 1:
+    def __init__(self, cfg: MethodConfig, num_tasks: int, seed: int = 0) -> None:
+        if num_tasks < 1:
             raise ValueError(f"num_tasks must be >= 1, got {num_tasks}")
-        # The trainer passes the curriculum length to every method; PackNet needs it.
+        self.cfg = cfg
         self.num_tasks = num_tasks
+        """Tasks in the curriculum (PackNet does not prune the last one)."""
+        self.seed = seed
+        """The run's seed (methods that draw random numbers derive their streams from it)."""
 
     # ---- the five hooks
     def before_task(self, task_index: int, backbone: nn.Module) -> None:
@@ -153,72 +159,44 @@ def trainable_parameters(backbone: nn.Module) -> Iterator[tuple[str, nn.Paramete
             yield name, param
 
 
-# ----------------------------------------------------------------------------- configs
+# ----------------------------------------------------------------------------- registry
 
 
 @dataclass
-class MethodConfig(draccus.ChoiceRegistry):
+class MethodConfig(ChoiceConfig, draccus.ChoiceRegistry):
     """A method's options (`--method.type=NAME --method.OPTION=...`): one dataclass per
-    method, beside it, registered with `MethodConfig.register_subclass(NAME)`. Its fields are
-    the method's keyword arguments; the run adds `num_tasks` and `seed`."""
+    method, beside it, registered with the method by `register_method(NAME, ConfigClass)` and
+    validated in `__post_init__` (bad values: `ConfigError`)."""
 
-    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {}
-    """Option defaults per size preset (e.g. shorter PackNet retraining at `smoke`)."""
-    MODELS: ClassVar[tuple[str, ...] | None] = None
-    """World models the method works with (None: any)."""
+    REQUIRES: ClassVar[frozenset[str]] = frozenset()
+    """Capabilities the world model must declare (`WorldModel.capabilities`), e.g. 'experts'."""
 
-    @property
-    def type(self) -> str:
-        return self.get_choice_name(type(self))
+    def __post_init__(self) -> None:
+        check_types(self)
 
-    def options(self) -> dict[str, Any]:
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+    def check_curriculum(self, num_tasks: int) -> None:
+        """ConfigError if the method cannot run a curriculum of `num_tasks` tasks."""
 
-    def check_model(self, model_type: str) -> None:
-        from ccfit.models.registry import check
-
-        check(self.MODELS is None or model_type in self.MODELS,
-              f"method {self.type!r} needs --model.type in {self.MODELS}, got {model_type!r}")
-
-
-def method_config_class(name: str) -> type[MethodConfig]:
-    """The config class of registered method `name` (ValueError listing valid names)."""
-    from ccfit.models.registry import check
-
-    check(name in METHODS, f"unknown continual method {name!r}; valid: {', '.join(method_names())}")
-    return MethodConfig.get_choice_class(name)
-
-
-def build_method(cfg: MethodConfig, num_tasks: int, seed: int) -> ContinualMethod:
-    """The method of `cfg` for a curriculum of `num_tasks` tasks; `seed` reaches methods that
-    draw random numbers (ER's reservoir and sampler)."""
-    kwargs = {**cfg.options(), "num_tasks": num_tasks}
-    if "seed" in inspect.signature(METHODS[cfg.type]).parameters:
-        kwargs["seed"] = seed
-    try:
-        return METHODS[cfg.type](**kwargs)
-    except ValueError as e:
-        from ccfit.models.registry import ConfigError
-
-        raise ConfigError(f"method {cfg.type!r}: {e}") from None
-
-
-# ----------------------------------------------------------------------------- registry
 
 METHODS: dict[str, type[ContinualMethod]] = {}
 """Registered continual methods by name."""
 
 
-def register_method(name: str) -> Callable[[type[ContinualMethod]], type[ContinualMethod]]:
-    """Class decorator: `@register_method("ewc")`."""
+def register_method(
+    name: str, config_class: type[MethodConfig]
+) -> Callable[[type[ContinualMethod]], type[ContinualMethod]]:
+    """Class decorator: registers the method under `name` and its config as the `name` choice
+    of `--method.type`. The method's constructor is `(cfg, num_tasks, seed)`."""
 
     def decorate(cls: type[ContinualMethod]) -> type[ContinualMethod]:
         if name in METHODS:
             raise ValueError(f"continual method {name!r} is already registered")
         if not (isinstance(cls, type) and issubclass(cls, ContinualMethod)):
             raise TypeError(f"{cls!r} is not a ContinualMethod subclass")
-        cls.name = name
+        MethodConfig.register_subclass(name)(config_class)
         METHODS[name] = cls
+        cls.name = name
+        cls.config_class = config_class
         return cls
 
     return decorate
@@ -228,17 +206,25 @@ def method_names() -> list[str]:
     return sorted(METHODS)
 
 
-def make_method(name: str, **kwargs: Any) -> ContinualMethod:
-    """Build a registered method; unknown names or parameters -> ValueError."""
-    if name not in METHODS:
-        raise ValueError(
-            f"unknown continual method {name!r}; valid: {', '.join(method_names())}"
-        )
-    cls = METHODS[name]
-    signature = inspect.signature(cls)
+def method_config_class(name: str) -> type[MethodConfig]:
+    """The config class of registered method `name` (ConfigError listing valid names)."""
+    check(name in METHODS, f"unknown continual method {name!r}; valid: {', '.join(method_names())}")
+    return METHODS[name].config_class
+
+
+def method_config(name: str, **options: Any) -> MethodConfig:
+    """The validated config of method `name` with `options` (what `--method.type=NAME
+    --method.OPTION=...` gives); unknown names and options are a ConfigError."""
+    cls = method_config_class(name)
     try:
-        signature.bind(**kwargs)
-    except TypeError as err:
-        valid = ", ".join(signature.parameters)
-        raise ValueError(f"bad parameters for {name!r} ({err}); valid: {valid}") from None
-    return cls(**kwargs)
+        return cls(**options)
+    except TypeError as e:  # an unknown option
+        valid = ", ".join(f.name for f in dataclasses.fields(cls)) or "none"
+        raise ConfigError(f"method {name!r}: {e}; its options: {valid}") from None
+
+
+def make_method(cfg: MethodConfig, num_tasks: int, seed: int = 0) -> ContinualMethod:
+    """The method of `cfg` for a curriculum of `num_tasks` tasks; `seed` reaches methods that
+    draw random numbers (ER's reservoir and sampler)."""
+    cfg.check_curriculum(num_tasks)
+    return METHODS[cfg.type](cfg, num_tasks=num_tasks, seed=seed)

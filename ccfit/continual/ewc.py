@@ -28,6 +28,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from ccfit.config_base import check
 from ccfit.continual.base import (
     ContinualMethod,
     MethodConfig,
@@ -38,30 +39,35 @@ from ccfit.continual.base import (
 )
 
 
-@register_method("ewc")
+@dataclass
+class EWCConfig(MethodConfig):
+    """Options of EWC (`--method.type=ewc`)."""
+
+    lam: float = 5000.0
+    """Penalty strength lambda: the penalty is lambda * sum F (theta - theta*)^2 (no 1/2; the
+    paper's 5000)."""
+    fisher_batches: int = 50
+    """Batches of squared gradients averaged per task."""
+    fisher_decay: float = 1.0
+    """Factor on the previous tasks' Fisher before adding the new one (1 = sum)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(self.lam >= 0, f"ewc: lam must be >= 0, got {self.lam}")
+        check(self.fisher_batches >= 1,
+              f"ewc: fisher_batches must be >= 1, got {self.fisher_batches}")  # fmt: skip
+        check(0.0 <= self.fisher_decay <= 1.0,
+              f"ewc: fisher_decay must be in [0, 1], got {self.fisher_decay}")  # fmt: skip
+
+
+@register_method("ewc", EWCConfig)
 class EWC(ContinualMethod):
     """Quadratic penalty anchoring important backbone parameters."""
 
-    def __init__(
-        self,
-        num_tasks: int | None = None,
-        lam: float = 5000.0,
-        fisher_batches: int = 50,
-        fisher_decay: float = 1.0,
-    ) -> None:
-        super().__init__(num_tasks)
-        if lam < 0:
-            raise ValueError(f"lam must be >= 0, got {lam}")
-        if fisher_batches < 1:
-            raise ValueError(f"fisher_batches must be >= 1, got {fisher_batches}")
-        if not 0.0 <= fisher_decay <= 1.0:
-            raise ValueError(f"fisher_decay must be in [0, 1], got {fisher_decay}")
-        self.lam = lam
-        """Penalty strength lambda: the penalty is lambda * sum F (theta - theta*)^2 (no 1/2)."""
-        self.fisher_batches = fisher_batches
-        """Batches of squared gradients averaged per task."""
-        self.fisher_decay = fisher_decay
-        """Factor on the previous tasks' Fisher before adding the new one (1 = sum)."""
+    cfg: EWCConfig
+
+    def __init__(self, cfg: EWCConfig, num_tasks: int, seed: int = 0) -> None:
+        super().__init__(cfg, num_tasks, seed)
         self.fisher: dict[str, torch.Tensor] = {}
         """Accumulated diagonal Fisher per parameter name."""
         self.anchor: dict[str, torch.Tensor] = {}
@@ -73,7 +79,7 @@ class EWC(ContinualMethod):
         names = list(params)
         fisher = {name: torch.zeros_like(p) for name, p in params.items()}
         with torch.enable_grad():
-            for _ in range(self.fisher_batches):
+            for _ in range(self.cfg.fisher_batches):
                 loss = task_data.backbone_loss(task_data.sample())
                 grads = torch.autograd.grad(
                     loss, [params[n] for n in names], allow_unused=True
@@ -81,19 +87,28 @@ class EWC(ContinualMethod):
                 for name, grad in zip(names, grads, strict=True):
                     if grad is not None:
                         fisher[name] += grad.detach() ** 2
-        return {name: f / self.fisher_batches for name, f in fisher.items()}
+        return {name: f / self.cfg.fisher_batches for name, f in fisher.items()}
+
+    def _align(self, backbone: nn.Module) -> None:
+        """Fisher and anchor on the backbone's device (a resumed run loads them on the CPU)."""
+        device = zero_like_backbone(backbone).device
+        if any(f.device != device for f in self.fisher.values()):
+            self.fisher = {k: v.to(device) for k, v in self.fisher.items()}
+            self.anchor = {k: v.to(device) for k, v in self.anchor.items()}
 
     def after_task(self, task_index: int, backbone: nn.Module, task_data: TaskData) -> None:
+        self._align(backbone)
         new = self.estimate_fisher(backbone, task_data)
         for name, f in new.items():
             old = self.fisher.get(name)
-            self.fisher[name] = f if old is None else self.fisher_decay * old + f
+            self.fisher[name] = f if old is None else self.cfg.fisher_decay * old + f
         self.anchor = {name: p.detach().clone() for name, p in trainable_parameters(backbone)}
 
     def penalty(self, backbone: nn.Module, backbone_loss) -> torch.Tensor:
         total = zero_like_backbone(backbone)
-        if not self.fisher or self.lam == 0:
+        if not self.fisher or self.cfg.lam == 0:
             return total
+        self._align(backbone)
         for name, p in trainable_parameters(backbone):
             f = self.fisher.get(name)
             if f is None:
@@ -101,7 +116,7 @@ class EWC(ContinualMethod):
             if f.shape != p.shape:
                 raise ValueError(f"EWC: {name} changed shape {tuple(f.shape)} -> {tuple(p.shape)}")
             total = total + (f * (p - self.anchor[name]) ** 2).sum()
-        return self.lam * total
+        return self.cfg.lam * total
 
     def state_dict(self) -> dict[str, Any]:
         return {"fisher": dict(self.fisher), "anchor": dict(self.anchor)}
@@ -109,16 +124,3 @@ class EWC(ContinualMethod):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.fisher = dict(state["fisher"])
         self.anchor = dict(state["anchor"])
-
-
-@MethodConfig.register_subclass("ewc")
-@dataclass
-class EWCConfig(MethodConfig):
-    """Options of EWC (`--method.type=ewc`)."""
-
-    lam: float = 5000.0
-    """Penalty strength lambda (the paper's 5000)."""
-    fisher_batches: int = 50
-    """Batches of squared gradients averaged per task."""
-    fisher_decay: float = 1.0
-    """Factor on the previous tasks' Fisher before adding the new one (1 = sum)."""

@@ -1,4 +1,4 @@
-"""Progressive experts (the paper's continual PWM, after Wang et al. 2024) on a PWM backbone.
+"""Progressive experts (the paper's continual PWM, after Wang et al. 2024).
 
 At `before_task(t)` the mixture gets K new trainable experts (group t; group 0 is active from
 the start) and the experts of groups 0..t-1 are frozen: requires_grad False, and, since Adam's
@@ -11,7 +11,8 @@ shared output head, and the encoder. The paper freezes previous experts only, so
 head is not frozen; finished tasks' dynamics can therefore still drift through the head, the
 router and the encoder (the frozen-encoder diagnostic removes the last one).
 
-The method sees only the backbone; it finds the `MixtureDynamics` inside it.
+The method sees only the backbone; it finds the `ExpertGroups` inside it (a model offering the
+'experts' capability, PWM), so it names no model.
 """
 
 from __future__ import annotations
@@ -23,56 +24,70 @@ import torch
 from torch import nn
 
 from ccfit.continual.base import ContinualMethod, MethodConfig, TaskData, register_method
-from ccfit.models.pwm import MixtureDynamics, find_mixture
+from ccfit.models.base import ExpertGroups, find_expert_groups
 
 
-def _mixture(backbone: nn.Module) -> MixtureDynamics:
-    mixture = find_mixture(backbone)
-    if mixture is None:
+def _groups(backbone: nn.Module) -> tuple[str, ExpertGroups]:
+    found = find_expert_groups(backbone)
+    if found is None:
         raise ValueError(
-            f"method 'experts' needs a PWM model (a backbone with MixtureDynamics); got a "
-            f"{type(backbone).__name__} backbone. Use model 'pwm', or ft / er / ewc / packnet"
+            f"method 'experts' needs a backbone with expert groups (a model offering "
+            f"'experts'); got a {type(backbone).__name__} backbone"
         )
-    return mixture
+    return found
 
 
-@register_method("experts")
+@dataclass
+class ProgressiveExpertsConfig(MethodConfig):
+    """Progressive experts has no options; the expert count per task is the model's (PWM:
+    `--model.experts_per_task`)."""
+
+    REQUIRES = frozenset({"experts"})
+
+
+@register_method("experts", ProgressiveExpertsConfig)
 class ProgressiveExperts(ContinualMethod):
     """K new experts per task; earlier experts frozen but routable."""
 
-    def __init__(self, num_tasks: int | None = None) -> None:
-        super().__init__(num_tasks)
+    def __init__(self, cfg: ProgressiveExpertsConfig, num_tasks: int, seed: int = 0) -> None:
+        super().__init__(cfg, num_tasks, seed)
         self.task = -1
         """Index of the current (or last finished) task."""
         self.stored: dict[str, torch.Tensor] = {}
-        """Frozen experts' parameters (by name inside the mixture) at the time of freezing."""
+        """Frozen experts' parameters (by name inside the expert module) when frozen."""
+        self._frozen: list[nn.Parameter] = []
+        self._values: list[torch.Tensor] = []
 
     def before_task(self, task_index: int, backbone: nn.Module) -> None:
-        mixture = _mixture(backbone)
+        _, groups = _groups(backbone)
         if task_index != self.task + 1:
             raise RuntimeError(f"experts: expected task {self.task + 1}, got {task_index}")
-        if self.num_tasks is not None and task_index >= self.num_tasks:
+        if task_index >= self.num_tasks:
             raise RuntimeError(f"experts: task {task_index} but num_tasks={self.num_tasks}")
-        groups = int(mixture.num_groups)
-        if groups == task_index:
-            mixture.add_group()
-        elif groups != task_index + 1:
+        active = groups.active_groups
+        if active == task_index:
+            groups.add_group()
+        elif active != task_index + 1:
             raise RuntimeError(
                 f"experts: task {task_index} needs {task_index + 1} expert groups, the model "
-                f"has {groups}"
+                f"has {active}"
             )
-        mixture.freeze_groups(task_index)
-        frozen = mixture.named_expert_parameters(range(task_index))
+        groups.freeze_groups(task_index)
+        frozen = groups.named_expert_parameters(range(task_index))
         self.stored = {name: p.detach().clone() for name, p in frozen}
+        self._frozen, self._values = [], []
         self.task = task_index
 
     @torch.no_grad()
     def after_step(self, backbone: nn.Module) -> None:
         if not self.stored:
             return
-        params = dict(_mixture(backbone).named_parameters())
-        for name, value in self.stored.items():
-            params[name].copy_(value)
+        if not self._frozen:  # first step after a resume: match names to parameters once
+            params = dict(_groups(backbone)[1].named_parameters())
+            self._frozen = [params[name] for name in self.stored]
+            self._values = [v.to(p.device) for v, p in zip(self.stored.values(), self._frozen,
+                                                           strict=True)]  # fmt: skip
+        torch._foreach_copy_(self._frozen, self._values)
 
     def after_task(self, task_index: int, backbone: nn.Module, task_data: TaskData) -> None:
         if task_index != self.task:
@@ -84,11 +99,4 @@ class ProgressiveExperts(ContinualMethod):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.task = int(state["task"])
         self.stored = {k: v.clone() for k, v in state["stored"].items()}
-
-
-@MethodConfig.register_subclass("experts")
-@dataclass
-class ProgressiveExpertsConfig(MethodConfig):
-    """Progressive experts has no options; the expert count per task is PWM's
-    `--model.experts_per_task`."""
-    MODELS = ("pwm",)
+        self._frozen, self._values = [], []

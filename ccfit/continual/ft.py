@@ -7,12 +7,11 @@ from dataclasses import dataclass
 from ccfit.continual.base import ContinualMethod, MethodConfig, register_method
 
 
-@register_method("ft")
-class FineTune(ContinualMethod):
-    """No hook does anything; forgetting is whatever plain training causes."""
-
-
-@MethodConfig.register_subclass("ft")
 @dataclass
 class FineTuneConfig(MethodConfig):
     """Fine-tuning has no options."""
+
+
+@register_method("ft", FineTuneConfig)
+class FineTune(ContinualMethod):
+    """No hook does anything; forgetting is whatever plain training causes."""

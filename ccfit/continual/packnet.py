@@ -37,6 +37,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from ccfit.config_base import check
 from ccfit.continual.base import (
     ContinualMethod,
     MethodConfig,
@@ -63,29 +64,38 @@ def prunable_weights(backbone: nn.Module) -> set[int]:
     return {id(m.weight) for m in backbone.modules() if isinstance(m, layers)}
 
 
-@register_method("packnet")
+@dataclass
+class PackNetConfig(MethodConfig):
+    """Options of PackNet (`--method.type=packnet`)."""
+
+    PRESETS = {"smoke": {"retrain_steps": 20}}
+
+    keep_fraction: float = 0.25
+    """Share of each layer's still-free weights kept for a task (by magnitude)."""
+    retrain_steps: int = 1000
+    """Updates after pruning, before freezing (the trainer runs them after the task's steps,
+    through `wants_retrain_steps`)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(0.0 < self.keep_fraction < 1.0,
+              f"packnet: keep_fraction must be in (0, 1), got {self.keep_fraction}")  # fmt: skip
+        check(self.retrain_steps >= 0,
+              f"packnet: retrain_steps must be >= 0, got {self.retrain_steps}")  # fmt: skip
+
+    def check_curriculum(self, num_tasks: int) -> None:
+        check(num_tasks <= 127,
+              f"packnet stores owners as int8: at most 127 tasks, got {num_tasks}")  # fmt: skip
+
+
+@register_method("packnet", PackNetConfig)
 class PackNet(ContinualMethod):
     """Parameter isolation by magnitude pruning, per-task masks and frozen copies."""
 
-    def __init__(
-        self,
-        num_tasks: int | None = None,
-        keep_fraction: float = 0.25,
-        retrain_steps: int = 1000,
-    ) -> None:
-        if num_tasks is None:
-            raise ValueError("packnet needs num_tasks (the last task is not pruned)")
-        super().__init__(num_tasks)
-        if not 0.0 < keep_fraction < 1.0:
-            raise ValueError(f"keep_fraction must be in (0, 1), got {keep_fraction}")
-        if num_tasks > 127:
-            raise ValueError(f"packnet stores owners as int8: at most 127 tasks, got {num_tasks}")
-        if retrain_steps < 0:
-            raise ValueError(f"retrain_steps must be >= 0, got {retrain_steps}")
-        self.keep_fraction = keep_fraction
-        """Share of each layer's still-free weights kept for a task (by magnitude)."""
-        self.retrain_steps = retrain_steps
-        """Updates after pruning, before freezing (requested via `wants_retrain_steps`)."""
+    cfg: PackNetConfig
+
+    def __init__(self, cfg: PackNetConfig, num_tasks: int, seed: int = 0) -> None:
+        super().__init__(cfg, num_tasks, seed)
         self.phase = Phase.IDLE
         """Where the current task is in the state machine."""
         self.task = -1
@@ -98,10 +108,12 @@ class PackNet(ContinualMethod):
         """Values at the last freeze: owned weight entries and (after task 0) shared params."""
         self.shared_frozen = False
         """Whether biases / norms / other non-prunable parameters are frozen (after task 0)."""
-        # Per parameter name: entries written back from `stored`, entries held at 0, and the
-        # gradient mask (entries allowed to move); rebuilt on every phase change.
-        self._fixed: dict[str, torch.Tensor] = {}
-        self._zeroed: dict[str, torch.Tensor] = {}
+        # Derived on every phase change, so an update only applies them (see `_update_masks`):
+        # the parameters held, and per parameter the entries allowed to move (float 0/1) and
+        # the values the held entries are written back to.
+        self._held: list[nn.Parameter] = []
+        self._moving: list[torch.Tensor] = []
+        self._held_values: list[torch.Tensor] = []
         self._grad_keep: dict[str, torch.Tensor] = {}
         self._hooked: dict[int, Any] = {}
 
@@ -112,11 +124,20 @@ class PackNet(ContinualMethod):
         for name, p in trainable_parameters(backbone):
             yield name, p, id(p) in weights
 
-    def _attach(self, backbone: nn.Module) -> None:
-        """Register owners for new weights and gradient hooks (idempotent)."""
+    def _align(self, backbone: nn.Module) -> None:
+        """Owners for new weights; owners and stored values on their parameter's device (a
+        resumed run loads them on the CPU, the backbone may be on a GPU)."""
         for name, p, prunable in self._params(backbone):
             if prunable and name not in self.owner:
                 self.owner[name] = torch.full(p.shape, FREE, dtype=torch.int8, device=p.device)
+            for table in (self.owner, self.stored):
+                if name in table and table[name].device != p.device:
+                    table[name] = table[name].to(p.device)
+
+    def _attach(self, backbone: nn.Module) -> None:
+        """Register owners for new weights and gradient hooks (idempotent)."""
+        self._align(backbone)
+        for name, p, _ in self._params(backbone):
             if id(p) not in self._hooked:
                 self._hooked[id(p)] = p.register_hook(self._grad_hook(name))
         self._update_masks(backbone)
@@ -129,37 +150,42 @@ class PackNet(ContinualMethod):
         return hook
 
     def _update_masks(self, backbone: nn.Module) -> None:
-        """Masks of entries restored from `stored` (fixed) or held at 0 (zeroed) per phase."""
-        self._fixed, self._zeroed = {}, {}
+        """Per phase: which entries are held and at which value. A held entry is either fixed
+        (owned by an earlier task, or a shared parameter after task 0: back to `stored`) or
+        zeroed (free while retraining: back to 0)."""
+        self._held, self._moving, self._held_values, self._grad_keep = [], [], [], {}
         retraining = self.phase in (Phase.PRUNED, Phase.RETRAINING)
         for name, p, prunable in self._params(backbone):
+            zeroed = None
             if prunable:
                 owner = self.owner[name]
                 if retraining:
-                    self._fixed[name] = (owner != FREE) & (owner != self.task)
-                    self._zeroed[name] = owner == FREE
+                    fixed = (owner != FREE) & (owner != self.task)
+                    zeroed = owner == FREE
                 else:
-                    self._fixed[name] = owner != FREE
+                    fixed = owner != FREE
             elif self.shared_frozen and name in self.stored:
                 # A parameter that became trainable after the last freeze (e.g. experts a
                 # mixture activated later) trains until the next freeze stores it.
-                self._fixed[name] = torch.ones(p.shape, dtype=torch.bool, device=p.device)
-        self._grad_keep = {}
-        for name, fixed in self._fixed.items():
-            moving = ~fixed
-            if name in self._zeroed:
-                moving &= ~self._zeroed[name]
+                fixed = torch.ones(p.shape, dtype=torch.bool, device=p.device)
+            else:
+                continue
+            moving = (~fixed if zeroed is None else ~(fixed | zeroed)).to(p.dtype)
             self._grad_keep[name] = moving
+            if not bool(moving.all()):
+                self._held.append(p)
+                self._moving.append(moving)
+                stored = self.stored.get(name)  # none yet while task 0 retrains
+                self._held_values.append(torch.zeros_like(p) if stored is None
+                                         else torch.where(fixed, stored, 0.0).to(p.dtype))
 
     @torch.no_grad()
-    def _enforce(self, backbone: nn.Module) -> None:
-        for name, p, _ in self._params(backbone):
-            fixed = self._fixed.get(name)
-            if fixed is not None and fixed.any():
-                p.copy_(torch.where(fixed, self.stored[name], p))
-            zeroed = self._zeroed.get(name)
-            if zeroed is not None:
-                p.masked_fill_(zeroed, 0.0)
+    def _enforce(self) -> None:
+        """Held entries back to their values (Adam's momentum moves entries whose gradient
+        the hook zeroed): p <- p * moving + held value, fused over all parameters."""
+        if self._held:
+            torch._foreach_mul_(self._held, self._moving)
+            torch._foreach_add_(self._held, self._held_values)
 
     @torch.no_grad()
     def _prune(self, backbone: nn.Module) -> None:
@@ -169,7 +195,7 @@ class PackNet(ContinualMethod):
             owner = self.owner[name]
             free = (owner == FREE).reshape(-1)
             n_free = int(free.sum())
-            n_keep = int(round(self.keep_fraction * n_free))
+            n_keep = int(round(self.cfg.keep_fraction * n_free))
             free_idx = free.nonzero().squeeze(1)
             magnitude = p.detach().reshape(-1)[free_idx].abs()
             keep_idx = free_idx[torch.topk(magnitude, n_keep, sorted=False).indices]
@@ -223,10 +249,10 @@ class PackNet(ContinualMethod):
             self._attach(backbone)
         if self.phase is Phase.PRUNED:
             self.phase = Phase.RETRAINING
-        self._enforce(backbone)
+        self._enforce()
         if self.phase is Phase.RETRAINING:
             self.retrain_done += 1
-            if self.retrain_done >= self.retrain_steps:
+            if self.retrain_done >= self.cfg.retrain_steps:
                 self._freeze(backbone)
 
     def after_task(self, task_index: int, backbone: nn.Module, task_data: TaskData) -> None:
@@ -244,19 +270,20 @@ class PackNet(ContinualMethod):
         self._prune(backbone)
         self.phase = Phase.PRUNED
         self._update_masks(backbone)
-        if self.retrain_steps == 0:
+        if self.cfg.retrain_steps == 0:
             self._freeze(backbone)
 
     @property
     def wants_retrain_steps(self) -> int:
         if self.phase in (Phase.PRUNED, Phase.RETRAINING):
-            return self.retrain_steps - self.retrain_done
+            return self.cfg.retrain_steps - self.retrain_done
         return 0
 
     @contextlib.contextmanager
     def evaluating(self, task_index: int, backbone: nn.Module) -> Iterator[None]:
         if not 0 <= task_index <= self.task:
             raise ValueError(f"packnet: cannot evaluate task {task_index}; tasks 0..{self.task}")
+        self._align(backbone)
         saved: dict[str, torch.Tensor] = {}
         params = {name: p for name, p, prunable in self._params(backbone) if prunable}
         with torch.no_grad():
@@ -298,18 +325,5 @@ class PackNet(ContinualMethod):
         self.stored = {k: v.clone() for k, v in state["stored"].items()}
         self.shared_frozen = bool(state["shared_frozen"])
         # Masks and hooks are rebuilt on the next hook call, which sees the backbone.
-        self._fixed, self._zeroed, self._grad_keep = {}, {}, {}
+        self._held, self._moving, self._held_values, self._grad_keep = [], [], [], {}
         self._detach_hooks()
-
-
-@MethodConfig.register_subclass("packnet")
-@dataclass
-class PackNetConfig(MethodConfig):
-    """Options of PackNet (`--method.type=packnet`)."""
-
-    PRESETS = {"smoke": {"retrain_steps": 20}}
-
-    keep_fraction: float = 0.25
-    """Share of each layer's still-free weights kept for a task (by magnitude)."""
-    retrain_steps: int = 1000
-    """Updates after pruning, before freezing."""

@@ -7,13 +7,14 @@ A world model splits into
   their statistics), made fresh per task by `new_heads()`, frozen and stored after the task,
   and usable on any later backbone to evaluate that task.
 
-The shared training loop (ccfit.train) drives a model only through this interface:
+The contract. The shared training loop (ccfit.train) drives a model only through this
+interface, in this order, and reads nothing else from it:
 
     model.begin_task(i, steps)                  # a task starts (PWM: routing, temperature)
     heads = model.new_heads()
     opt = model.world_model_optimizer(heads)    # backbone + heads trained by `loss`
     head_opts = model.head_optimizers(heads)    # what `head_update` steps (policy, critic)
-    batch = replay.sample(model.cfg.batch_size, model.cfg.seq_len)
+    batch = replay.sample(model.cfg.batch_size, model.cfg.seq_len)   # on model.device
     out = model.loss(batch, heads)
     total = out.total + method.penalty(backbone, losses)
     total.backward(); clip to model.cfg.grad_clip; opt.step(); method.after_step(backbone)
@@ -21,19 +22,37 @@ The shared training loop (ccfit.train) drives a model only through this interfac
     # `model.cfg.train_ratio` updates per env step (fractional ratios accumulate), after a
     # one-off burst of `model.cfg.pretrain_updates` on a fresh model (the run's first task)
 
-    state = model.initial_state(heads)          # per episode, per set of heads
-    action, state = model.act(obs, heads, state, eval_mode=...)
+    state = model.initial_state(heads, n)       # acting state of n episodes played together
+    action, state = model.act(obs, heads, state, eval_mode=...)      # obs batched (n, ...)
     state = model.observe(obs, action, heads, state)  # a step the model did not choose
 
-Acting state is an explicit value owned by whoever plays the episode, so stored heads of
+- Devices: the model lives on `model.device` (resolved by the caller); every `Batch` and
+  observation reaches it already on that device; `act` returns actions as a NumPy array.
+- `loss` and `backbone_loss` have no side effects: they may be called on other tasks' data or
+  with earlier tasks' stored heads (ER replays through them, EWC takes its Fisher from them,
+  analyses probe with them). Anything that must change once per update (target networks,
+  temperatures, running statistics) changes in `head_update`, which the loop calls exactly
+  once per update with the current task's heads.
+- Optimisers are made fresh at every task (`world_model_optimizer(heads)` gets the new heads),
+  so Adam's moments restart with each task; what carries over between tasks is the backbone's
+  parameters and the continual method's state. A resumed task restores its optimisers.
+- `capabilities` names what a model offers beyond the interface, so that a method or an
+  analysis that needs it finds it without naming models: 'experts' (its backbone holds an
+  `ExpertGroups`, what progressive experts grows) and 'routing' (it is a `Routing` model,
+  what the routing analysis and expert ablation read).
+
+Acting state is an explicit value owned by whoever plays the episodes, so stored heads of
 earlier tasks evaluated mid-episode of the current task never disturb each other.
 """
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -112,8 +131,10 @@ class LossOutput:
 
     total: torch.Tensor
     """Scalar to backpropagate through the world-model optimiser's parameters."""
-    logs: dict[str, float] = field(default_factory=dict)
-    """Detached scalars for logging (e.g. consistency, reward, value, termination)."""
+    logs: dict[str, torch.Tensor | float] = field(default_factory=dict)
+    """Detached scalars for logging (e.g. consistency, reward, value, termination), as 0-d
+    tensors: the loop averages them when it writes a log point, so no update waits for a
+    device-to-host copy."""
     aux: Any = None
     """Model-specific values reused by `head_update` (e.g. detached latents)."""
 
@@ -125,6 +146,8 @@ class WorldModel(nn.Module, ABC):
     cfg: Any
     device: torch.device
     backbone: nn.Module
+    capabilities: ClassVar[frozenset[str]] = frozenset()
+    """What the model offers beyond the interface ('experts', 'routing'; see the module doc)."""
 
     # ------------------------------------------------------------------ structure
     @abstractmethod
@@ -172,20 +195,134 @@ class WorldModel(nn.Module, ABC):
         return obs
 
     # ------------------------------------------------------------------ acting
-    def initial_state(self, heads: nn.Module) -> Any:
-        """Acting state at the start of an episode (None for a stateless model)."""
+    def initial_state(self, heads: nn.Module, n: int = 1) -> Any:
+        """Acting state of `n` episodes at their start: None for a stateless model, else a
+        pytree (tensors, or dataclasses / dicts / tuples of them) whose tensors have a leading
+        dimension of n, so that whoever plays the episodes can keep some of them
+        (`select_state`)."""
         return None
 
     @abstractmethod
     def act(
         self, obs: dict[str, torch.Tensor], heads: nn.Module, state: Any, *, eval_mode: bool
     ) -> tuple[np.ndarray, Any]:
-        """One action (A,) in [-1, 1] for an unbatched observation on the model's device, and
-        the acting state after it (which remembers the action)."""
+        """Actions (n, A) in [-1, 1] for a batch of n observations (each tensor (n, ...), on
+        the model's device), and the acting state after them (which remembers the actions)."""
 
     def observe(
         self, obs: dict[str, torch.Tensor], action: np.ndarray, heads: nn.Module, state: Any
     ) -> Any:
-        """The acting state after a step the model did not choose (random seed steps): o_t
-        was seen and `action` taken. Stateless models return `state` unchanged."""
+        """The acting state after steps the model did not choose (random seed steps): the n
+        observations o_t were seen and `action` (n, A) taken. Stateless models return `state`
+        unchanged."""
         return state
+
+
+def check_on_device(ok: torch.Tensor, message: str) -> None:
+    """ValueError(message) unless the boolean tensor `ok` is true. On a GPU the check is
+    queued on the device (`torch._assert_async`) instead of read back, so an update never
+    waits for the host; a failure then surfaces as a device-side assertion."""
+    if ok.is_cuda:
+        torch._assert_async(ok, message)
+    elif not bool(ok):
+        raise ValueError(message)
+
+
+def select_state(state: Any, keep: torch.Tensor) -> Any:
+    """The acting state of the episodes `keep` (indices into the leading dimension of every
+    tensor in it; dataclasses, dicts, lists and tuples are walked)."""
+    if isinstance(state, torch.Tensor):
+        return state[keep.to(state.device)]
+    if dataclasses.is_dataclass(state) and not isinstance(state, type):
+        return dataclasses.replace(state, **{f.name: select_state(getattr(state, f.name), keep)
+                                             for f in dataclasses.fields(state)})  # fmt: skip
+    if isinstance(state, dict):
+        return {k: select_state(v, keep) for k, v in state.items()}
+    if isinstance(state, list | tuple):
+        return type(state)(select_state(v, keep) for v in state)
+    return state
+
+
+# ------------------------------------------------------------------------------ capabilities
+
+
+@dataclass(frozen=True)
+class ExpertLayout:
+    """How a routed model's experts are laid out (what routing records state)."""
+
+    experts_per_task: int
+    """K: experts per group (one group per task under progressive experts)."""
+    num_groups: int
+    """Groups active now (computed and routable)."""
+    max_experts: int
+    """Experts allocated in all (active or not)."""
+
+    @property
+    def num_active(self) -> int:
+        return self.num_groups * self.experts_per_task
+
+
+class ExpertGroups(ABC):
+    """Capability 'experts': a backbone module whose experts come in groups of K, allocated up
+    front and activated one group at a time (PWM's mixture). Progressive experts finds it in
+    the backbone (`find_expert_groups`), adds a group per task and freezes earlier ones."""
+
+    @property
+    @abstractmethod
+    def active_groups(self) -> int:
+        """Groups active now."""
+
+    @abstractmethod
+    def add_group(self) -> None:
+        """Activate the next K experts (fresh, trainable)."""
+
+    @abstractmethod
+    def freeze_groups(self, n: int) -> None:
+        """Freeze the experts of groups 0..n-1 (they stay routable)."""
+
+    @abstractmethod
+    def named_expert_parameters(self, groups: range) -> Iterator[tuple[str, nn.Parameter]]:
+        """(name within this module, parameter) of the experts of `groups`."""
+
+
+def find_expert_groups(backbone: nn.Module) -> tuple[str, ExpertGroups] | None:
+    """(its name in the backbone, the module) of the backbone's `ExpertGroups`, or None."""
+    found = [(n, m) for n, m in backbone.named_modules() if isinstance(m, ExpertGroups)]
+    if len(found) > 1:
+        raise ValueError(f"backbone has {len(found)} ExpertGroups modules, expected one")
+    return found[0] if found else None
+
+
+class Routing(ABC):
+    """Capability 'routing': a world model whose dynamics routes each (z, a) over experts
+    with weights that can be read and ablated (PWM). The routing analysis (the paper's Fig. 5)
+    and the expert ablation (Fig. 6) need only this, `encode`, `next` and the interface."""
+
+    @abstractmethod
+    def encode(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Observations (..., obs) -> latents (..., L)."""
+
+    @abstractmethod
+    def next(self, z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """Latent dynamics, routed as the current `routing_task`."""
+
+    @abstractmethod
+    def expert_layout(self) -> ExpertLayout:
+        """The experts as they are now."""
+
+    @abstractmethod
+    def routed_task(self, heads: nn.Module) -> int:
+        """The task a set of heads routes its planning as."""
+
+    @abstractmethod
+    def routing_task(self, task: int | torch.Tensor) -> contextlib.AbstractContextManager:
+        """Within the block, `next` routes as `task`."""
+
+    @abstractmethod
+    def routing_override(self, mode: str | None) -> contextlib.AbstractContextManager:
+        """Within the block, routing is replaced: 'prior' (earlier groups only), 'new' (the
+        newest group only), 'uniform', or None (learnt)."""
+
+    @abstractmethod
+    def routing_weights(self, z: torch.Tensor, a: torch.Tensor, task=None) -> torch.Tensor:
+        """Weights (..., max_experts) of routing (z, a) as `task`; inactive experts get 0."""

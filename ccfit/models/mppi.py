@@ -3,6 +3,8 @@
 The model provides `next(z, a)`, `reward(z, a, heads)` (two-hot logits), `termination(z,
 heads)` (logit), `pi(z, heads)` and `Q(z, a, heads, 'avg')`; its config the MPPI settings
 (horizon, iterations, num_samples, num_elites, num_pi_trajs, min_std, max_std, temperature).
+Plans for n observations run as one batch: every model call sees the n x num_samples
+candidate sequences at once.
 """
 
 from __future__ import annotations
@@ -31,43 +33,48 @@ def estimate_value(model, z: torch.Tensor, actions: torch.Tensor, heads) -> torc
 def mppi_plan(
     model, z: torch.Tensor, heads, prev_mean: torch.Tensor | None, *, eval_mode: bool
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """MPPI from latent z (1, L) -> (action (A,) in [-1, 1], final mean (horizon, A)).
+    """MPPI from latents z (n, L) -> (actions (n, A) in [-1, 1], final means (n, horizon, A)).
 
-    `prev_mean`: the previous step's final mean; shifted by one step it warm-starts this plan
-    (None: start from zero, as at an episode's first step). Eval returns the first step of the
-    final mean; training samples an elite by score and adds the final std's noise.
+    `prev_mean`: the previous step's final means; shifted by one step they warm-start this
+    plan (None: start from zero, as at an episode's first step). Eval returns the first step of
+    the final mean; training samples an elite by score and adds the final std's noise.
     """
     cfg = model.cfg
-    hor, n, npi, d = cfg.horizon, cfg.num_samples, cfg.num_pi_trajs, cfg.action_dim
-    actions = z.new_empty(hor, n, d)
+    hor, num, npi, d = cfg.horizon, cfg.num_samples, cfg.num_pi_trajs, cfg.action_dim
+    n, latent = z.shape
+    actions = z.new_empty(hor, n, num, d)
     if npi > 0:
-        zp = z.expand(npi, -1)
+        zp = z.unsqueeze(1).expand(n, npi, latent).reshape(n * npi, latent)
         for t in range(hor):
-            actions[t, :npi] = model.pi(zp, heads)[0]
+            pi_actions = model.pi(zp, heads)[0]
+            actions[t, :, :npi] = pi_actions.view(n, npi, d)
             if t < hor - 1:
-                zp = model.next(zp, actions[t, :npi])
-    z = z.expand(n, -1)
-    mean = z.new_zeros(hor, d)
-    std = z.new_full((hor, d), cfg.max_std)
+                zp = model.next(zp, pi_actions)
+    zs = z.unsqueeze(1).expand(n, num, latent).reshape(n * num, latent)
+    mean = z.new_zeros(hor, n, d)
+    std = z.new_full((hor, n, d), cfg.max_std)
     if prev_mean is not None:
-        if tuple(prev_mean.shape) != (hor, d):
+        if tuple(prev_mean.shape) != (n, hor, d):
             shape = tuple(prev_mean.shape)
-            raise ValueError(f"acting state must be a plan mean of shape {(hor, d)}, got {shape}")
-        mean[:-1] = prev_mean[1:].to(mean.device)
+            raise ValueError(f"acting state must be plan means of shape {(n, hor, d)}, got {shape}")
+        mean[:-1] = prev_mean.to(mean.device).transpose(0, 1)[1:]
+    rows = torch.arange(n, device=z.device)
     for _ in range(cfg.iterations):
-        noise = torch.randn(hor, n - npi, d, device=z.device)
-        actions[:, npi:] = (mean.unsqueeze(1) + std.unsqueeze(1) * noise).clamp(-1, 1)
-        value = estimate_value(model, z, actions, heads).nan_to_num(0).squeeze(1)
-        elite = torch.topk(value, cfg.num_elites).indices
-        elite_value, elite_actions = value[elite], actions[:, elite]
-        score = torch.exp(cfg.temperature * (elite_value - elite_value.max()))
-        score = score / score.sum()
-        mean = (score[None, :, None] * elite_actions).sum(1)
-        var = (score[None, :, None] * (elite_actions - mean.unsqueeze(1)).pow(2)).sum(1)
+        noise = torch.randn(hor, n, num - npi, d, device=z.device)
+        actions[:, :, npi:] = (mean.unsqueeze(2) + std.unsqueeze(2) * noise).clamp(-1, 1)
+        value = estimate_value(model, zs, actions.view(hor, n * num, d), heads)
+        value = value.nan_to_num(0).view(n, num)
+        elite_value, elite = torch.topk(value, cfg.num_elites, dim=1)  # (n, E)
+        elite_actions = actions[:, rows.unsqueeze(1), elite]  # (hor, n, E, d)
+        score = torch.exp(cfg.temperature * (elite_value - elite_value.amax(1, keepdim=True)))
+        score = score / score.sum(1, keepdim=True)
+        weight = score.unsqueeze(0).unsqueeze(-1)  # (1, n, E, 1)
+        mean = (weight * elite_actions).sum(2)
+        var = (weight * (elite_actions - mean.unsqueeze(2)).pow(2)).sum(2)
         std = var.sqrt().clamp(cfg.min_std, cfg.max_std)
     if eval_mode:
         a = mean[0]
     else:
-        pick = torch.multinomial(score, 1)[0]
-        a = elite_actions[0, pick] + std[0] * torch.randn(d, device=z.device)
-    return a.clamp(-1, 1), mean
+        pick = torch.multinomial(score, 1).squeeze(1)
+        a = elite_actions[0, rows, pick] + std[0] * torch.randn(n, d, device=z.device)
+    return a.clamp(-1, 1), mean.transpose(0, 1)

@@ -9,39 +9,22 @@
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, ClassVar
 
 import draccus
 import torch
 
-from ccdata.errors import InputError
+from ccfit.config_base import PRESETS, ChoiceConfig, check, check_types
 from ccfit.models.base import WorldModel
 from ccfit.obs import OBS_MODES
 
-PRESETS: tuple[str, ...] = ("smoke", "cpu", "paper")
-"""Preset names every model config defines (more, such as sizes, may be added per model)."""
-
-
-class ConfigError(InputError):
-    """Bad user input in a config (unknown name, out-of-range value, contradiction): the CLI
-    prints it on one line and exits 2. Anything else raised while building is a bug."""
-
-
-def check(ok: bool, message: str) -> None:
-    """Raise ConfigError(message) unless `ok`: the one-liner configs validate with."""
-    if not ok:
-        raise ConfigError(message)
-
 
 @dataclass
-class ModelConfig(draccus.ChoiceRegistry):
+class ModelConfig(ChoiceConfig, draccus.ChoiceRegistry):
     """Fields every world model has; a model's config subclasses this and is registered with
-    its model by `register_model`. Subclasses list presets in `PRESETS` (name -> fields)."""
-
-    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {}
+    its model by `register_model`. Subclasses list presets in `PRESETS` (name -> fields): every
+    name of `ccfit.config_base.PRESETS`, and more if they like (e.g. sizes)."""
 
     obs_mode: str = "state"
     """'state' (39-D privileged state) or 'pixels' (9-channel images + 7-D proprio). Set from
@@ -82,47 +65,9 @@ class ModelConfig(draccus.ChoiceRegistry):
         check(self.pretrain_updates >= 0,
               f"{name}.pretrain_updates must be >= 0, got {self.pretrain_updates}")  # fmt: skip
 
-    @property
-    def type(self) -> str:
-        """The registered model name (what `--model.type` selects)."""
-        return self.get_choice_name(type(self))
-
-    @classmethod
-    def preset(cls, name: str, **overrides: Any) -> ModelConfig:
-        """This config at preset `name` (a key of `PRESETS`), then `overrides`."""
-        valid = ", ".join(cls.PRESETS)
-        check(name in cls.PRESETS, f"unknown preset {name!r} for {cls.__name__}; valid: {valid}")
-        return cls(**{**cls.PRESETS[name], **overrides})
-
-
-_SIMPLE = {int: (int,), float: (int, float), bool: (bool,), str: (str,), type(None): (type(None),)}
-
-
-def check_types(config: Any) -> None:
-    """ConfigError naming the field when a value does not have its annotated simple type
-    (int, float, bool, str, or unions of them with None); other annotations are skipped."""
-    hints = _resolved_hints(type(config))
-    for f in dataclasses.fields(config):
-        parts = getattr(hints.get(f.name), "__args__", None) or (hints.get(f.name),)
-        if not all(p in _SIMPLE for p in parts):
-            continue
-        allowed = tuple(t for p in parts for t in _SIMPLE[p])
-        value = getattr(config, f.name)
-        if isinstance(value, bool) and bool not in allowed:
-            allowed = ()  # True is an int to Python, not to a config
-        check(isinstance(value, allowed),
-              f"{type(config).__name__}.{f.name} must be {f.type}, got {value!r}")  # fmt: skip
-
-
-_HINTS: dict[type, dict[str, Any]] = {}
-
-
-def _resolved_hints(cls: type) -> dict[str, Any]:
-    if cls not in _HINTS:
-        import typing
-
-        _HINTS[cls] = typing.get_type_hints(cls)
-    return _HINTS[cls]
+    def check_curriculum(self, num_tasks: int) -> None:
+        """ConfigError if this model cannot learn a curriculum of `num_tasks` tasks (checked
+        before a run starts, not when the task that does not fit comes)."""
 
 
 # ------------------------------------------------------------------------------- registry

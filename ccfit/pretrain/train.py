@@ -104,7 +104,7 @@ def _pretrain(
 ) -> dict:
     from tqdm.auto import tqdm
 
-    from ccfit.train import resolve_device
+    from ccfit.config_base import resolve_device
 
     weights, _, ckpt_path = _paths(out)
     identity = json.loads(json.dumps(config.identity()))

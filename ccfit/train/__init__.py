@@ -1,12 +1,28 @@
 """The shared online loop (`Trainer`), evaluation, run records and single-task training."""
 
-from ccfit.train.evaluate import EvalResult, eval_seeds, evaluate, normalized_or_none
+from ccfit.train.evaluate import (
+    EnvPool,
+    Episode,
+    EvalResult,
+    Evaluator,
+    eval_seeds,
+    normalized_or_none,
+    play_episodes,
+)
 from ccfit.train.loop import CHECKPOINT, Trainer
 from ccfit.train.records import METRICS, RunLogger
-from ccfit.train.run import CONFIG, build_model, make_replay, resolve_device, train_task
+from ccfit.train.run import (
+    CONFIG,
+    build_model,
+    make_evaluator,
+    make_replay,
+    resolved_config,
+    train_single,
+    train_task,
+)
 
 __all__ = [
-    "CHECKPOINT", "CONFIG", "METRICS", "EvalResult", "RunLogger", "Trainer", "build_model",
-    "eval_seeds", "evaluate", "make_replay", "normalized_or_none", "resolve_device",
-    "train_task",
+    "CHECKPOINT", "CONFIG", "METRICS", "EnvPool", "Episode", "EvalResult", "Evaluator",
+    "RunLogger", "Trainer", "build_model", "eval_seeds", "make_evaluator", "make_replay",
+    "normalized_or_none", "play_episodes", "resolved_config", "train_single", "train_task",
 ]  # fmt: skip

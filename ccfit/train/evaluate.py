@@ -1,7 +1,19 @@
-"""Evaluation: fixed layouts, one acting state per episode, the benchmark's discounted return."""
+"""Evaluation: fixed layouts, the benchmark's discounted return, the due episodes in one batch.
+
+Every evaluation point plays, for each task due, one episode per fixed layout seed; a task's
+episodes play together, one batched `model.act` per step for those still running, each from a
+fresh acting state (`play_episodes`). Batching changes no episode: a deterministic policy
+plays the same episodes batched as one by one (tested); MPPI's sampling noise is drawn per
+batch, so a stochastic planner's episodes are reproducible for a given seed and batch, not
+equal to one-by-one play. `Evaluator` is the one place evaluation happens: the loop asks it
+for the task being trained and, in a curriculum, every task seen so far (with its stored
+heads, inside the continual method's `evaluating` view).
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping, Sequence
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -10,11 +22,28 @@ from torch import nn
 
 from ccdata.scoring import GAMMA, discounted_return, normalize
 from ccfit.io import derived_seed
-from ccfit.models.base import WorldModel
-from ccfit.obs import obs_to_arrays
+from ccfit.models.base import WorldModel, select_state
+from ccfit.obs import model_input, obs_to_arrays
 
 TRAIN_TAG, EVAL_TAG, ACTION_TAG, REPLAY_TAG = 0, 1, 2, 3
 """Independent seed streams of a run (see `ccfit.io.derived_seed`)."""
+
+
+@dataclass
+class Episode:
+    """One episode as played; `obs` and `action` only when recorded."""
+
+    rewards: list[float]
+    success: bool
+    """Whether the task was solved at some step."""
+    obs: dict[str, np.ndarray] | None = None
+    """Observation arrays (T + 1, ...), as stored in replay."""
+    action: np.ndarray | None = None
+    """Actions (T, action_dim)."""
+
+    @property
+    def discounted_return(self) -> float:
+        return discounted_return(self.rewards, GAMMA)
 
 
 @dataclass
@@ -23,6 +52,11 @@ class EvalResult:
     """Discounted return (gamma = ccdata.scoring.GAMMA) of each episode."""
     successes: list[bool]
     lengths: list[int]
+
+    @classmethod
+    def of(cls, episodes: Sequence[Episode]) -> EvalResult:
+        return cls([e.discounted_return for e in episodes], [e.success for e in episodes],
+                   [len(e.rewards) for e in episodes])  # fmt: skip
 
     @property
     def discounted_return(self) -> float:
@@ -46,31 +80,68 @@ def normalized_or_none(task_id: str, ret: float) -> float | None:
         return None
 
 
-def obs_tensors(obs: dict, obs_mode: str, device: torch.device) -> dict[str, torch.Tensor]:
-    """An env observation as the model's unbatched input tensors on `device`."""
-    return {k: torch.from_numpy(v).to(device) for k, v in obs_to_arrays(obs, obs_mode).items()}
-
-
 @torch.no_grad()
-def evaluate(env, model: WorldModel, heads: nn.Module, *, obs_mode: str, seeds: list[int],
-             device: torch.device) -> EvalResult:  # fmt: skip
-    """Play one episode per layout seed with `eval_mode=True`, each from a fresh acting state."""
-    returns, successes, lengths = [], [], []
-    for seed in seeds:
-        obs, _ = env.reset(seed=int(seed))
-        state = model.initial_state(heads)
-        rewards, success, done = [], False, False
-        while not done:
-            action, state = model.act(obs_tensors(obs, obs_mode, device), heads, state,
-                                      eval_mode=True)  # fmt: skip
-            obs, reward, terminated, truncated, info = env.step(np.asarray(action, np.float32))
-            rewards.append(reward)
-            success = success or bool(info["success"])
-            done = terminated or truncated
-        returns.append(discounted_return(rewards, GAMMA))
-        successes.append(success)
-        lengths.append(len(rewards))
-    return EvalResult(returns, successes, lengths)
+def play_episodes(envs: Sequence, model: WorldModel, heads: nn.Module, *, obs_mode: str,
+                  seeds: Sequence[int], record: bool = False) -> list[Episode]:  # fmt: skip
+    """One eval-mode episode per layout: `envs[i]` plays `seeds[i]`. All episodes step
+    together; each step is one `model.act` on the batch of episodes still running."""
+    if len(envs) != len(seeds):
+        raise ValueError(f"{len(envs)} envs for {len(seeds)} seeds")
+    frames = [[obs_to_arrays(env.reset(seed=int(s))[0], obs_mode)] for env, s in zip(
+        envs, seeds, strict=True)]  # fmt: skip
+    actions: list[list[np.ndarray]] = [[] for _ in envs]
+    rewards: list[list[float]] = [[] for _ in envs]
+    success = [False] * len(envs)
+    running = list(range(len(envs)))
+    state = model.initial_state(heads, len(envs))
+    while running:
+        x = model_input([frames[i][-1] for i in running], model.device)
+        batch_actions, state = model.act(x, heads, state, eval_mode=True)
+        still = []
+        for row, i in enumerate(running):
+            a = np.asarray(batch_actions[row], np.float32)
+            obs, reward, terminated, truncated, info = envs[i].step(a)
+            frames[i].append(obs_to_arrays(obs, obs_mode))
+            actions[i].append(a)
+            rewards[i].append(float(reward))
+            success[i] = success[i] or bool(info["success"])
+            if not (terminated or truncated):
+                still.append(row)
+        if len(still) < len(running):
+            state = select_state(state, torch.tensor(still, dtype=torch.long))
+            running = [running[row] for row in still]
+    episodes = []
+    for i in range(len(envs)):
+        ep = Episode(rewards[i], success[i])
+        if record:
+            ep.obs = {k: np.stack([f[k] for f in frames[i]]) for k in frames[i][0]}
+            ep.action = np.stack(actions[i])
+        episodes.append(ep)
+    return episodes
+
+
+class EnvPool:
+    """Environments per task, made when first needed and kept (episodes of one task play
+    side by side, each needs its own)."""
+
+    def __init__(self, obs_mode: str, image_size: int) -> None:
+        self.obs_mode, self.image_size = obs_mode, image_size
+        self._envs: dict[str, list] = {}
+
+    def get(self, task_id: str, n: int) -> list:
+        from ccdata.env import make_env
+
+        envs = self._envs.setdefault(task_id, [])
+        while len(envs) < n:
+            envs.append(make_env(task_id, render=self.obs_mode == "pixels",
+                                 image_size=self.image_size))  # fmt: skip
+        return envs[:n]
+
+    def close(self) -> None:
+        for envs in self._envs.values():
+            for env in envs:
+                env.close()
+        self._envs.clear()
 
 
 def eval_record(task_id: str, task_index: int, stage: int, global_step: int,
@@ -83,3 +154,49 @@ def eval_record(task_id: str, task_index: int, stage: int, global_step: int,
         "normalized_return": normalized_or_none(task_id, ret),
         "success_rate": res.success_rate, "episodes": len(res.returns),
     }  # fmt: skip
+
+
+class Evaluator:
+    """Evaluation of a run: the tasks that can be evaluated (their heads), their fixed
+    layouts, and the environments they play on.
+
+    model: the world model; task_ids: curriculum index -> task id of the tasks it may
+    evaluate; seed, obs_mode, image_size, episodes: the run's. view: task index -> the
+    context a task is evaluated in (the continual method's `evaluating`, e.g. PackNet's
+    masks); None: no view.
+    """
+
+    def __init__(self, model: WorldModel, task_ids: Mapping[int, str], *, seed: int,
+                 obs_mode: str, image_size: int, episodes: int,
+                 view: Callable[[int], AbstractContextManager] | None = None) -> None:  # fmt: skip
+        self.model, self.task_ids = model, dict(task_ids)
+        self.seed, self.obs_mode, self.episodes = seed, obs_mode, episodes
+        self.view = view
+        self.heads: dict[int, nn.Module] = {}
+        """Heads each evaluable task is evaluated with (stored heads, and the current ones)."""
+        self.envs = EnvPool(obs_mode, image_size)
+
+    def evaluate(self, tasks: Sequence[int], *, stage: int, global_step: int,
+                 task_step: int | None) -> list[dict]:  # fmt: skip
+        """Records (metrics.jsonl lines) of `tasks` at this point; `task_step` is the step of
+        the task being trained, set on its own record only."""
+        model = self.model
+        was_training = model.training
+        model.eval()
+        records = []
+        try:
+            for i in tasks:
+                seeds = eval_seeds(self.seed, i, self.episodes)
+                envs = self.envs.get(self.task_ids[i], len(seeds))
+                with self.view(i) if self.view is not None else nullcontext():
+                    eps = play_episodes(envs, model, self.heads[i], obs_mode=self.obs_mode,
+                                        seeds=seeds)  # fmt: skip
+                records.append(eval_record(self.task_ids[i], i, stage, global_step,
+                                           task_step if i == stage else None,
+                                           EvalResult.of(eps)))  # fmt: skip
+        finally:
+            model.train(was_training)
+        return records
+
+    def close(self) -> None:
+        self.envs.close()

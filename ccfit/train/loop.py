@@ -1,17 +1,19 @@
-"""The one online training loop, for every world model and continual method.
+"""The shared online training loop (Algorithm 1's inner loop), one loop for every world model.
 
-`Trainer` is handed its collaborators (env, model, heads, replay, config, logger, optional
-continual method) and runs Algorithm 1's inner loop on one task: random actions for the seed
-steps (the model observes them), then `model.cfg.pretrain_updates` updates at once if the
-model is fresh (the run's first task), then `model.cfg.train_ratio` updates per env step
-(fractions accumulate), evaluation at a fixed interval, atomic checkpoints, and resume.
+`Trainer` is handed its collaborators (env, model, heads, replay, continual method, evaluator,
+logger) and runs Algorithm 1's inner loop on one task: random actions for the seed steps (the
+model observes them), then `model.cfg.pretrain_updates` updates at once if the model is fresh
+(the run's first task), then `model.cfg.train_ratio` updates per env step (fractions
+accumulate), evaluation at a fixed interval, atomic checkpoints, and resume. When the task's
+steps are done the continual method closes the task (`after_task`, then the updates it asks
+for, e.g. PackNet's retraining), and the task is evaluated once more: its end-of-task score
+C_i is that of the backbone the later tasks start from.
 
 Determinism: every episode's layout seed is derived from (seed, episode index), evaluation uses
 a fixed set of layouts, and the checkpoint stores every RNG state. The training episode in
 progress is cut (stored as truncated) at every evaluation and step-interval checkpoint, so a
 checkpoint never holds a half-played episode; wall-clock checkpoints wait for an episode end.
-A resumed run therefore continues exactly as an uninterrupted one. Evaluation plays on the
-training env itself (after that cut), so one process renders with one MuJoCo context.
+A resumed run therefore continues exactly as an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -20,7 +22,6 @@ import dataclasses
 import time
 from collections import defaultdict
 from collections.abc import Callable
-from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -28,26 +29,22 @@ import numpy as np
 import torch
 from torch import nn
 
+from ccdata.errors import InputError
 from ccdata.scoring import discounted_return
 from ccfit.config import TrainConfig
-from ccfit.continual.base import ContinualMethod, ReplayLosses
-from ccfit.io import atomic_torch_save, derived_seed, rng_state, set_rng_state
+from ccfit.continual.base import ContinualMethod, ReplayLosses, TaskData
+from ccfit.io import atomic_torch_save, derived_seed, load_checkpoint, rng_state, set_rng_state
 from ccfit.models.base import Batch, WorldModel
-from ccfit.obs import obs_to_arrays
+from ccfit.obs import model_input, obs_to_arrays
 from ccfit.replay import ReplayBuffer
-from ccfit.train.evaluate import (
-    ACTION_TAG,
-    TRAIN_TAG,
-    eval_record,
-    eval_seeds,
-    evaluate,
-)
+from ccfit.train.evaluate import ACTION_TAG, TRAIN_TAG, Evaluator
 from ccfit.train.records import RunLogger
 
 CHECKPOINT = "checkpoint.pt"
+CHECKPOINT_KIND = "ccfit-task"
+CHECKPOINT_VERSION = 3
 TRAIN_LOG_EVERY = 250
 """Env steps between TensorBoard points of the averaged training losses."""
-CHECKPOINT_VERSION = 2
 
 
 class Trainer:
@@ -56,29 +53,31 @@ class Trainer:
     env: the task's env (its obs must carry what `obs_mode` needs; pixels need rendering).
     model, heads: a `WorldModel` and this task's heads.
     buffer: replay, possibly preloaded; episodes are added as `task_index`.
+    evaluator: evaluates this task (its heads are registered there) and, in a curriculum,
+        the earlier tasks it holds heads for.
     config: the loop's settings; seed and obs_mode: the run's.
     logger: evaluation records and scalars (None: keep them in `self.evals` only).
-    method: optional continual method (penalty, after_step, evaluating).
+    method: the continual method (None: plain training).
     run_dir: where `checkpoint.pt` goes (None: no checkpoints, no resume).
     global_offset: global step at which this task starts in a curriculum.
-    extra_eval: called at every evaluation point with the global step; returns more records
-        to log beside this task's (a curriculum evaluates the earlier tasks there).
     stored_heads_loss: the loss of a batch through an earlier task's stored heads, offered to
         the method's penalty (`ReplayLosses`); a curriculum provides it.
     """
 
     def __init__(
         self, *, env, model: WorldModel, heads: nn.Module, buffer: ReplayBuffer,
-        config: TrainConfig, seed: int, obs_mode: str, task_id: str, task_index: int = 0,
-        logger: RunLogger | None = None, method: ContinualMethod | None = None,
-        run_dir: str | Path | None = None, global_offset: int = 0, progress: bool = True,
-        extra_eval: Callable[[int], list[dict]] | None = None,
+        evaluator: Evaluator, config: TrainConfig, seed: int, obs_mode: str, task_id: str,
+        task_index: int = 0, logger: RunLogger | None = None,
+        method: ContinualMethod | None = None, run_dir: str | Path | None = None,
+        global_offset: int = 0, progress: bool = True,
         stored_heads_loss: Callable[[Batch, int], torch.Tensor] | None = None,
     ) -> None:  # fmt: skip
         self.env, self.model, self.heads, self.buffer = env, model, heads, buffer
+        self.evaluator = evaluator
+        evaluator.heads[task_index] = heads
         self.cfg, self.seed, self.obs_mode = config, seed, obs_mode
         self.task_id, self.task_index = task_id, task_index
-        self.logger, self.method, self.extra_eval = logger, method, extra_eval
+        self.logger, self.method = logger, method
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.global_offset, self.progress = global_offset, progress
         self.device = model.device
@@ -94,11 +93,13 @@ class Trainer:
         self.episode_index = 0
         self.last_eval = -1
         self.last_checkpoint = -1
+        self.finished = False
+        """Whether the task was closed (the method's `after_task` and retraining done)."""
         self.evals: list[dict] = []
         self._episode: dict | None = None
         self._act_state: Any = None
         self._last_save = time.monotonic()
-        self._train_logs: dict[str, list[float]] = defaultdict(list)
+        self._train_logs: dict[str, list] = defaultdict(list)
 
     @property
     def global_step(self) -> int:
@@ -107,7 +108,8 @@ class Trainer:
     # -------------------------------------------------------------------------- main loop
 
     def run(self) -> dict:
-        """Train to `config.steps` task steps; returns the last evaluation record."""
+        """Train to `config.steps` task steps and close the task; returns this task's last
+        evaluation record."""
         from tqdm.auto import tqdm
 
         cfg = self.cfg
@@ -118,22 +120,16 @@ class Trainer:
         bar = tqdm(total=cfg.steps, initial=self.task_step, desc=self.task_id, unit="step",
                    disable=not self.progress, dynamic_ncols=True, mininterval=1.0)  # fmt: skip
         try:
-            while True:
-                at_end = self.task_step >= cfg.steps
-                if (self.task_step % cfg.eval_interval == 0 or at_end) and (
-                    self.last_eval != self.task_step
-                ):
+            while self.task_step < cfg.steps:
+                if self.task_step % cfg.eval_interval == 0 and self.last_eval != self.task_step:
                     self._cut_episode()
                     rec = self._evaluate()
                     bar.set_postfix(ret=f"{rec['discounted_return']:.1f}",
                                     succ=f"{rec['success_rate']:.2f}")  # fmt: skip
-                if (
-                    (self.task_step % cfg.checkpoint_interval == 0 and self.task_step > 0) or at_end
-                ) and self.last_checkpoint != self.task_step:
+                if (self.task_step % cfg.checkpoint_interval == 0 and self.task_step > 0
+                        and self.last_checkpoint != self.task_step):  # fmt: skip
                     self._cut_episode()
                     self._checkpoint()
-                if at_end:
-                    break
                 self._env_step()
                 if self.task_step >= cfg.seed_steps and self.buffer.can_sample(
                     self.model.cfg.seq_len
@@ -151,9 +147,31 @@ class Trainer:
                     self._flush_train_logs()
                 if self._episode is None and self._wall_clock_due():
                     self._checkpoint()  # at an episode end: nothing is cut
+            if not self.finished:
+                self._cut_episode()
+                self._finish_task()
+                self._evaluate()
+                self.finished = True
+                self._checkpoint()
         finally:
             bar.close()
-        return self.evals[-1]
+        return self.own_record()
+
+    def own_record(self) -> dict:
+        """This task's last evaluation record."""
+        return next(r for r in reversed(self.evals) if r["task_index"] == self.task_index)
+
+    def _finish_task(self) -> None:
+        """The method closes the task: `after_task` on this task's replay, then the extra
+        updates it asks for (PackNet's retraining), each a normal update."""
+        if self.method is None:
+            return
+        mcfg = self.model.cfg
+        data = TaskData.from_buffer(self.task_index, self.buffer, batch_size=mcfg.batch_size,
+                                    seq_len=mcfg.seq_len, backbone_loss=self.model.backbone_loss,
+                                    device=self.device)  # fmt: skip
+        self.method.after_task(self.task_index, self.model.backbone, data)
+        self.extra_updates(self.method.wants_retrain_steps)
 
     def _wall_clock_due(self) -> bool:
         minutes = self.cfg.checkpoint_minutes
@@ -163,7 +181,7 @@ class Trainer:
         self.last_checkpoint = self.task_step
         self._last_save = time.monotonic()
         if self.run_dir is not None:
-            self.save_checkpoint(self.run_dir / CHECKPOINT)
+            atomic_torch_save(self.state_dict(), self.run_dir / CHECKPOINT)
 
     def _env_step(self) -> None:
         model, heads = self.model, self.heads
@@ -172,17 +190,18 @@ class Trainer:
             obs, _ = self.env.reset(seed=seed)
             self._episode = {"obs": [obs_to_arrays(obs, self.obs_mode)], "action": [],
                              "reward": [], "terminated": []}  # fmt: skip
-            self._act_state = model.initial_state(heads)
+            self._act_state = model.initial_state(heads, 1)
         ep = self._episode
-        last = {k: torch.from_numpy(v).to(self.device) for k, v in ep["obs"][-1].items()}
+        last = model_input(ep["obs"][-1:], self.device)
         with torch.no_grad():
             if self.task_step < self.cfg.seed_steps:
-                action = self.action_rng.uniform(-1.0, 1.0, 4).astype(np.float32)
-                self._act_state = model.observe(last, action, heads, self._act_state)
+                action = self.action_rng.uniform(-1.0, 1.0, model.cfg.action_dim)
+                action = action.astype(np.float32)
+                self._act_state = model.observe(last, action[None], heads, self._act_state)
             else:
-                action, self._act_state = model.act(last, heads, self._act_state,
-                                                    eval_mode=False)  # fmt: skip
-                action = np.asarray(action, dtype=np.float32)
+                actions, self._act_state = model.act(last, heads, self._act_state,
+                                                     eval_mode=False)  # fmt: skip
+                action = np.asarray(actions[0], dtype=np.float32)
         obs, reward, terminated, truncated, _ = self.env.step(action)
         ep["obs"].append(obs_to_arrays(obs, self.obs_mode))
         ep["action"].append(action)
@@ -206,7 +225,7 @@ class Trainer:
         self._train_logs["train/episode_success"].append(float(ep["terminated"][-1]))
 
     def extra_updates(self, n: int) -> None:
-        """`n` updates from replay with no environment steps (e.g. PackNet's retraining)."""
+        """`n` updates from replay with no environment steps."""
         for _ in range(n):
             self._update()
 
@@ -226,53 +245,57 @@ class Trainer:
             self.method.after_step(self.model.backbone)
         head_logs = self.model.head_update(batch, self.heads, out, self.head_optims)
         self.updates += 1
-        logs = {**out.logs, **head_logs, "total": float(total.detach()),
-                "grad_norm": float(grad_norm)}  # fmt: skip
+        # Logged values stay tensors until a flush: no host sync inside an update.
+        logs = {**out.logs, **head_logs, "total": total.detach(), "grad_norm": grad_norm}
         for k, v in logs.items():
-            self._train_logs[f"train/{k}"].append(float(v))
+            self._train_logs[f"train/{k}"].append(v)
 
     def _flush_train_logs(self) -> None:
-        if self.logger is not None and self._train_logs:
-            means = {k: float(np.mean(v)) for k, v in self._train_logs.items() if v}
-            self.logger.log_scalars(means, self.global_step)
+        keys = [k for k, v in self._train_logs.items() if v]
+        if self.logger is not None and keys:
+            means = torch.stack([
+                torch.stack([torch.as_tensor(x, dtype=torch.float32, device=self.device)
+                             .reshape(()) for x in self._train_logs[k]]).mean()
+                for k in keys
+            ]).tolist()  # fmt: skip
+            self.logger.log_scalars(dict(zip(keys, means, strict=True)), self.global_step)
         self._train_logs.clear()
 
     def _evaluate(self) -> dict:
-        self.model.eval()
-        seeds = eval_seeds(self.seed, self.task_index, self.cfg.eval_episodes)
-        evaluating = getattr(self.method, "evaluating", None)
-        view = evaluating(self.task_index, self.model.backbone) if evaluating else nullcontext()
-        with view:
-            res = evaluate(self.env, self.model, self.heads, obs_mode=self.obs_mode, seeds=seeds,
-                           device=self.device)  # fmt: skip
-        record = eval_record(self.task_id, self.task_index, self.task_index, self.global_step,
-                             self.task_step, res)  # fmt: skip
+        """Evaluate at this step: at a task's first step only the task itself (every earlier
+        task was evaluated at this global step when the previous task ended), else every task
+        the evaluator holds heads for."""
+        tasks = [self.task_index] if self.task_step == 0 else sorted(self.evaluator.heads)
+        records = self.evaluator.evaluate(tasks, stage=self.task_index,
+                                          global_step=self.global_step,
+                                          task_step=self.task_step)  # fmt: skip
         self.last_eval = self.task_step
-        others = self.extra_eval(self.global_step) if self.extra_eval is not None else []
-        for rec in [record, *others]:
+        for rec in records:
             self.evals.append(rec)
             if self.logger is not None:
                 self.logger.log_eval(rec)
-        self.model.train()
-        return record
+        return self.own_record()
 
     # ------------------------------------------------------------------------- checkpoints
+
+    def _identity(self) -> dict:
+        return {"train_config": dataclasses.asdict(self.cfg), "seed": self.seed,
+                "task_id": self.task_id, "global_offset": self.global_offset}  # fmt: skip
 
     def state_dict(self) -> dict:
         if self._episode is not None:
             raise RuntimeError("checkpoint with an episode in progress (cut it first)")
         state = {
+            "kind": CHECKPOINT_KIND,
             "version": CHECKPOINT_VERSION,
-            "train_config": dataclasses.asdict(self.cfg),
-            "seed": self.seed,
-            "task_id": self.task_id,
-            "global_offset": self.global_offset,
+            **self._identity(),
             "task_step": self.task_step,
             "updates": self.updates,
             "update_credit": self.update_credit,
             "episode_index": self.episode_index,
             "last_eval": self.last_eval,
             "last_checkpoint": self.last_checkpoint,
+            "finished": self.finished,
             "evals": self.evals,
             "model": self.model.state_dict(),
             "heads": self.heads.state_dict(),
@@ -285,18 +308,11 @@ class Trainer:
             state["method"] = self.method.state_dict()
         return state
 
-    def save_checkpoint(self, path: str | Path) -> None:
-        atomic_torch_save(self.state_dict(), Path(path))
-
     def load_checkpoint(self, path: str | Path) -> None:
-        # Our own file: it holds numpy RNG tuples and Python objects, so not weights_only.
-        state = torch.load(path, map_location="cpu", weights_only=False)
-        if state.get("version") != CHECKPOINT_VERSION:
-            raise ValueError(f"{path}: unsupported checkpoint version {state.get('version')}")
-        mine = (dataclasses.asdict(self.cfg), self.seed, self.task_id, self.global_offset)
-        theirs = (state["train_config"], state["seed"], state["task_id"], state["global_offset"])
-        if mine != theirs:
-            raise ValueError(f"{path} was written by another run (config, seed or task differ)")
+        state = load_checkpoint(path, CHECKPOINT_KIND, CHECKPOINT_VERSION)
+        if {k: state[k] for k in self._identity()} != self._identity():
+            raise InputError(f"{path} was written by another run (config, seed or task "
+                             "differ); use another run directory or delete it")  # fmt: skip
         self.model.load_state_dict(state["model"])
         self.heads.load_state_dict(state["heads"])
         self.optim.load_state_dict(state["optim"])
@@ -308,6 +324,7 @@ class Trainer:
         for key in ("task_step", "updates", "episode_index", "last_eval", "last_checkpoint"):
             setattr(self, key, int(state[key]))
         self.update_credit = float(state["update_credit"])
+        self.finished = bool(state["finished"])
         self.evals = list(state["evals"])
         self._episode = None
         set_rng_state(state["rng"], actions=self.action_rng)

@@ -1,7 +1,8 @@
 """Building a run's collaborators from its config, and one task trained from scratch.
 
-The curriculum (Algorithm 1) and `ccfit train` build model, replay and env the same way:
-`build_model`, `make_replay` and `dataset_source` are that one way.
+The curriculum (Algorithm 1), `ccfit train` and a curriculum's from-scratch reference build
+model, replay, env and evaluator the same way: `build_model`, `make_replay`,
+`resolved_config` and `train_task` are that one way.
 """
 
 from __future__ import annotations
@@ -11,25 +12,35 @@ from pathlib import Path
 
 import torch
 
+from ccdata.render import RenderSettings
 from ccfit.config import RunConfig, TaskRunConfig, flatten
-from ccfit.data import seed_buffer
-from ccfit.io import derived_seed, seed_everything
+from ccfit.config_base import ConfigError, resolve_device
+from ccfit.seeding import seed_buffer
+from ccfit.io import atomic_write_json, derived_seed, seed_everything
 from ccfit.models.base import WorldModel
-from ccfit.models.registry import ConfigError, make_model
+from ccfit.models.registry import make_model
 from ccfit.replay import ReplayBuffer
-from ccfit.train.evaluate import REPLAY_TAG
+from ccfit.train.evaluate import REPLAY_TAG, Evaluator
 from ccfit.train.loop import CHECKPOINT, Trainer
 from ccfit.train.records import RunLogger
 
 CONFIG = "config.json"
 
 
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device 'cuda' requested but CUDA is not available; use 'cpu' or 'auto'")
-    return torch.device(name)
+def render_settings(cfg: RunConfig) -> RenderSettings:
+    """How the run's camera images are rendered (ccdata's defaults at the run's size)."""
+    return RenderSettings(image_size=cfg.image_size)
+
+
+def resolved_config(cfg: RunConfig, suite: str | None) -> dict:
+    """config.json of a run: the config, plus what it resolved to where it runs: the seed
+    dataset ('auto'), the device ('auto') and the render settings."""
+    return {
+        **cfg.to_dict(),
+        "resolved_seed_dataset": dataset_source(cfg, suite),
+        "resolved_device": str(resolve_device(cfg.train.device)),
+        "render": render_settings(cfg).to_dict(),
+    }
 
 
 def build_model(cfg: RunConfig, device: torch.device) -> WorldModel:
@@ -69,15 +80,20 @@ def make_replay(cfg: RunConfig, model: WorldModel, task_id: str, task_index: int
                           seed=derived_seed(cfg.seed, REPLAY_TAG, 0, task_index),
                           obs_transform=model.replay_obs)  # fmt: skip
     if source is not None:
-        seed_buffer(buffer, source, task_id, cfg.obs, cfg.image_size, task_index=task_index,
+        seed_buffer(buffer, source, task_id, cfg.obs, render_settings(cfg), task_index=task_index,
                     endpoint=cfg.dataset_endpoint)  # fmt: skip
     return buffer
 
 
+def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
+                   view=None) -> Evaluator:  # fmt: skip
+    return Evaluator(model, task_ids, seed=cfg.seed, obs_mode=cfg.obs,
+                     image_size=cfg.image_size, episodes=cfg.train.eval_episodes,
+                     view=view)  # fmt: skip
+
+
 def check_saved_config(out: Path, resolved: dict) -> None:
     """A run directory belongs to one config: refuse another one, write it if new."""
-    from ccfit.io import atomic_write_json
-
     saved = out / CONFIG
     if saved.exists():
         old, new = json.loads(saved.read_text()), json.loads(json.dumps(resolved))
@@ -95,35 +111,52 @@ def default_out(cfg: TaskRunConfig) -> Path:
     return Path("runs") / f"{cfg.task}-{cfg.model.type}-{cfg.obs}-{cfg.preset}-s{cfg.seed}"
 
 
-def train_task(cfg: TaskRunConfig, *, progress: bool = True) -> dict:
-    """Train `cfg.model` on `cfg.task` from scratch into `cfg.out`, resuming if it holds a
-    checkpoint of the same config. Returns the last evaluation record."""
+def train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, saved: dict,
+               progress: bool = True) -> list[dict]:  # fmt: skip
+    """`task_id` learnt online from scratch into `out`, resuming from its checkpoint when it
+    holds one of the same config (`saved`, what config.json holds). The task has index
+    `task_index` in its curriculum (a curriculum's from-scratch reference of its composition
+    task keeps that task's index: the same seeds, routing and evaluation layouts). Returns
+    every evaluation record."""
     from ccdata.env import make_env
 
-    out = Path(cfg.out) if cfg.out else default_out(cfg)
-    source = dataset_source(cfg, suite_of(cfg.task))
-    resolved = {**cfg.to_dict(), "resolved_seed_dataset": source}
+    out = Path(out)
     if (out / CONFIG).exists():
-        check_saved_config(out, resolved)
+        check_saved_config(out, saved)
     if cfg.train.torch_threads > 0:
         torch.set_num_threads(cfg.train.torch_threads)
     device = resolve_device(cfg.train.device)
+    resumed = (out / CHECKPOINT).exists()
     seed_everything(cfg.seed)
     model = build_model(cfg, device)
-    resumed = (out / CHECKPOINT).exists()
+    model.begin_task(task_index, cfg.train.steps)
     # Seed data is read before anything is written: a bad dataset leaves no run directory.
-    buffer = make_replay(cfg, model, cfg.task, 0, None if resumed else source)
-    check_saved_config(out, resolved)
-    env = make_env(cfg.task, render=cfg.obs == "pixels", image_size=cfg.image_size)
-    model.begin_task(0, cfg.train.steps)
-    heads = model.new_heads()
+    source = None if resumed else saved["resolved_seed_dataset"]
+    buffer = make_replay(cfg, model, task_id, task_index, source)
+    check_saved_config(out, saved)
     logger = RunLogger(out)
+    if not resumed:  # records of a run killed before its first checkpoint
+        logger.keep(lambda r: False)
+    env = make_env(task_id, render=cfg.obs == "pixels", image_size=cfg.image_size)
+    evaluator = make_evaluator(cfg, model, {task_index: task_id})
     trainer = Trainer(
-        env=env, model=model, heads=heads, buffer=buffer, config=cfg.train, seed=cfg.seed,
-        obs_mode=cfg.obs, task_id=cfg.task, logger=logger, run_dir=out, progress=progress,
+        env=env, model=model, heads=model.new_heads(), buffer=buffer, evaluator=evaluator,
+        config=cfg.train, seed=cfg.seed, obs_mode=cfg.obs, task_id=task_id,
+        task_index=task_index, logger=logger, run_dir=out, progress=progress,
     )  # fmt: skip
     try:
-        return trainer.run()
+        trainer.run()
     finally:
-        logger.close()
+        evaluator.close()
         env.close()
+        logger.close()
+    return trainer.evals
+
+
+def train_single(cfg: TaskRunConfig, *, progress: bool = True) -> dict:
+    """`ccfit train`: `cfg.task` learnt from scratch into `cfg.out`; its last record."""
+    out = Path(cfg.out) if cfg.out else default_out(cfg)
+    evals = train_task(cfg, out, task_id=cfg.task, task_index=0,
+                       saved=resolved_config(cfg, suite_of(cfg.task)),
+                       progress=progress)  # fmt: skip
+    return evals[-1]

@@ -11,7 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from ccfit.models.registry import ModelConfig, check
+from ccfit.config_base import check
+from ccfit.models.registry import ModelConfig
 
 ACTOR_GRADS: tuple[str, ...] = ("dynamics", "reinforce")
 

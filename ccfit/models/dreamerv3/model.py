@@ -20,6 +20,7 @@ import torch
 from torch import nn
 from torch.func import functional_call
 
+from ccfit.config_base import check, resolve_device
 from ccfit.models.base import LATENT_KEY, Batch, LossOutput, WorldModel
 from ccfit.models.dreamerv3.behavior import (
     behavior_losses,
@@ -33,7 +34,7 @@ from ccfit.models.dreamerv3.heads import DreamerV3Heads
 from ccfit.models.dreamerv3.math import kl_loss
 from ccfit.models.dreamerv3.networks import Decoder, Encoder, bernoulli_nll, init_weights
 from ccfit.models.dreamerv3.rssm import RSSM
-from ccfit.models.registry import check, register_model
+from ccfit.models.registry import register_model
 
 
 class DreamerV3Backbone(nn.Module):
@@ -72,14 +73,14 @@ class DreamerV3Aux:
 class ActingState:
     """Per-episode recurrent state: the last posterior and the action taken after it."""
 
-    deter: torch.Tensor  # (1, D)
-    stoch: torch.Tensor  # (1, S, C)
-    action: torch.Tensor  # (1, A)
+    deter: torch.Tensor  # (n, D)
+    stoch: torch.Tensor  # (n, S, C)
+    action: torch.Tensor  # (n, A)
 
 
-def _floats(logs: dict[str, torch.Tensor]) -> dict[str, float]:
-    values = torch.stack([v.detach().float().reshape(()) for v in logs.values()]).tolist()
-    return dict(zip(logs, values, strict=True))  # one device sync instead of one per value
+def _detached(logs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    # Kept as tensors: the loop reduces them when it logs, so an update never syncs.
+    return {k: v.detach() for k, v in logs.items()}
 
 
 @register_model("dreamerv3", DreamerV3Config)
@@ -90,14 +91,12 @@ class DreamerV3(WorldModel):
         self, cfg: DreamerV3Config, device: torch.device | str | None = None, encoder=None
     ) -> None:
         super().__init__()
-        if device is None:
-            device = "cuda" if torch.cuda.is_available() else "cpu"
         if encoder is not None:
             check(
                 encoder.obs_mode == cfg.obs_mode,
                 f"frozen encoder is for obs_mode {encoder.obs_mode!r}, model has {cfg.obs_mode!r}",
             )
-        self.cfg, self.device = cfg, torch.device(device)
+        self.cfg, self.device = cfg, resolve_device(device if device is not None else "auto")
         self.backbone = DreamerV3Backbone(cfg, encoder).to(self.device)
 
     @property
@@ -171,7 +170,7 @@ class DreamerV3(WorldModel):
             total = total + cfg.critic_replay_scale * repval
             logs["replay_value_loss"] = repval
         logs["total"] = total
-        return LossOutput(total, _floats(logs), aux)
+        return LossOutput(total, _detached(logs), aux)
 
     def _starts(self, aux: DreamerV3Aux) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Imagination starts (N, ...) from the last `imag_last` rows (all if 0)."""
@@ -227,7 +226,7 @@ class DreamerV3(WorldModel):
         logs["actor_grad_norm"] = self._step(actor_loss, heads.actor, optimizers["actor"], True)
         logs["critic_grad_norm"] = self._step(critic_loss, heads.critic, optimizers["critic"])
         heads.update_slow_critic(cfg.slow_critic_fraction)
-        return _floats(logs)
+        return _detached(logs)
 
     def _step(self, loss: torch.Tensor, module: nn.Module, opt: torch.optim.Optimizer,
               retain_graph: bool = False):  # fmt: skip
@@ -254,15 +253,14 @@ class DreamerV3(WorldModel):
         return {LATENT_KEY: z.float().cpu()}
 
     @torch.no_grad()
-    def initial_state(self, heads: DreamerV3Heads) -> ActingState:
-        deter, stoch = self.rssm.initial_state(1)
-        action = torch.zeros(1, self.cfg.action_dim, device=self.device)
+    def initial_state(self, heads: DreamerV3Heads, n: int = 1) -> ActingState:
+        deter, stoch = self.rssm.initial_state(n)
+        action = torch.zeros(n, self.cfg.action_dim, device=self.device)
         return ActingState(deter.clone(), stoch, action)
 
     def _posterior(self, obs: dict[str, torch.Tensor], state: ActingState) -> ActingState:
-        obs = {k: torch.as_tensor(v, device=self.device)[None] for k, v in obs.items()}
         embed = self.backbone.encoder(obs)
-        not_first = torch.zeros(1, 1, device=self.device)
+        not_first = torch.zeros(embed.shape[0], 1, device=self.device)
         deter, stoch, _ = self.rssm.obs_step(
             state.deter, state.stoch, state.action, embed, not_first
         )
@@ -277,12 +275,12 @@ class DreamerV3(WorldModel):
         *,
         eval_mode: bool,
     ) -> tuple[np.ndarray, ActingState]:
-        """Posterior update with o_t and the previous action, then the actor's mode (eval) or
-        a sample clipped to [-1, 1] (what the dynamics would see in imagination)."""
+        """Posterior update with o_t and the previous actions, then the actor's mode (eval) or
+        a sample clipped to [-1, 1] (what the dynamics would see in imagination); n at once."""
         state = self._posterior(obs, state)
         mean, std = heads.actor(self.rssm.feat(state.deter, state.stoch))
         action = mean if eval_mode else (mean + std * torch.randn_like(std)).clamp(-1.0, 1.0)
-        return action[0].cpu().numpy(), replace(state, action=action)
+        return action.cpu().numpy(), replace(state, action=action)
 
     @torch.no_grad()
     def observe(
@@ -294,4 +292,4 @@ class DreamerV3(WorldModel):
     ) -> ActingState:
         state = self._posterior(obs, state)
         a = torch.as_tensor(np.asarray(action), dtype=torch.float32, device=self.device)
-        return replace(state, action=a.reshape(1, -1))
+        return replace(state, action=a.reshape(state.action.shape))

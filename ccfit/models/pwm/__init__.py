@@ -46,9 +46,9 @@ routing for analysis, `model.routing_weights(z, a, task)` reads it.
 
 from ccfit.models.pwm.config import PWM_ROUTERS, PWMConfig
 from ccfit.models.pwm.mixture import OVERRIDES, MixtureDynamics, gram_schmidt
-from ccfit.models.pwm.model import PWM, PWMHeads, find_mixture
+from ccfit.models.pwm.model import PWM, PWMHeads
 
 __all__ = [
     "OVERRIDES", "PWM", "PWMConfig", "PWMHeads", "PWM_ROUTERS", "MixtureDynamics",
-    "find_mixture", "gram_schmidt",
+    "gram_schmidt",
 ]  # fmt: skip

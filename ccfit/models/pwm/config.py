@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ccfit.models.registry import check
+from ccfit.config_base import check
 from ccfit.models.tdmpc2 import TDMPC2Config
 
 PWM_ROUTERS: tuple[str, ...] = ("task", "state")
@@ -80,6 +80,11 @@ class PWMConfig(TDMPC2Config):
         ]  # fmt: skip
         for ok, msg in checks:
             check(ok, f"{name}: {msg}")
+
+    def check_curriculum(self, num_tasks: int) -> None:
+        check(num_tasks <= self.max_tasks,
+              f"{type(self).__name__}.max_tasks is {self.max_tasks} but the curriculum has "
+              f"{num_tasks} tasks: set --model.max_tasks={num_tasks} or more")  # fmt: skip
 
     def hold_steps(self, task_steps: int | None = None) -> int:
         """Updates during which the temperature is held for a task of `task_steps` steps."""

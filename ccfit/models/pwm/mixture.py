@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ccfit.models.base import ExpertGroups, ExpertLayout
 from ccfit.models.layers import NormedLinear, SimNorm, init_weights
 from ccfit.models.pwm.config import PWMConfig
 
@@ -31,7 +32,7 @@ def gram_schmidt(features: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
     return torch.stack(basis, dim=-2)
 
 
-class MixtureDynamics(nn.Module):
+class MixtureDynamics(nn.Module, ExpertGroups):
     """Mixture-of-experts latent dynamics with progressive expert groups and a soft router."""
 
     tau: torch.Tensor
@@ -66,14 +67,24 @@ class MixtureDynamics(nn.Module):
         self.register_buffer("current_task", torch.tensor(0))
         self.override: str | None = None
         self._entropy: list[torch.Tensor] | None = None
+        # Python copies of the group counters (the buffers are what checkpoints hold): shapes
+        # and loops depend on them, and reading a buffer would sync with the GPU every forward.
+        self._groups, self._frozen = 1, 0
         self.apply_trainability()
         # Loading a checkpoint restores the group counters; the flags follow them.
         self.register_load_state_dict_post_hook(lambda module, _: module.apply_trainability())
 
     # ------------------------------------------------------------------ groups
     @property
+    def active_groups(self) -> int:
+        return self._groups
+
+    @property
     def num_active(self) -> int:
-        return int(self.num_groups) * self.k
+        return self._groups * self.k
+
+    def layout(self) -> ExpertLayout:
+        return ExpertLayout(self.k, self._groups, self.max_experts)
 
     def group_of(self, expert: int) -> int:
         return expert // self.k
@@ -86,21 +97,22 @@ class MixtureDynamics(nn.Module):
 
     def apply_trainability(self) -> None:
         """requires_grad: True for active, unfrozen experts; False for frozen and inactive."""
+        self._groups, self._frozen = int(self.num_groups), int(self.num_frozen)
         for e, expert in enumerate(self.experts):
             g = self.group_of(e)
-            expert.requires_grad_(int(self.num_frozen) <= g < int(self.num_groups))
+            expert.requires_grad_(self._frozen <= g < self._groups)
 
     def add_group(self) -> None:
         """Activate the next K experts (fresh, trainable)."""
-        if int(self.num_groups) >= self.max_tasks:
+        if self._groups >= self.max_tasks:
             raise ValueError(f"PWM: all {self.max_tasks} expert groups are active; raise max_tasks")
         self.num_groups += 1
         self.apply_trainability()
 
     def freeze_groups(self, n: int) -> None:
         """Freeze the experts of groups 0..n-1 (they stay routable)."""
-        if not 0 <= n <= int(self.num_groups):
-            raise ValueError(f"PWM: cannot freeze {n} groups, {int(self.num_groups)} active")
+        if not 0 <= n <= self._groups:
+            raise ValueError(f"PWM: cannot freeze {n} groups, {self._groups} active")
         self.num_frozen.fill_(n)
         self.apply_trainability()
 
@@ -108,7 +120,7 @@ class MixtureDynamics(nn.Module):
         """Router, head and every expert not frozen (inactive ones included, so experts
         activated after the optimiser was built are in it; Adam skips them until they get
         gradients)."""
-        unfrozen = self.named_expert_parameters(range(int(self.num_frozen), self.max_tasks))
+        unfrozen = self.named_expert_parameters(range(self._frozen, self.max_tasks))
         return [*self.router.parameters(), *self.head.parameters(), *(p for _, p in unfrozen)]
 
     # ------------------------------------------------------------------ tasks, temperature
@@ -127,12 +139,14 @@ class MixtureDynamics(nn.Module):
         return self.cfg.tau_target_frac * math.log(self.num_active)
 
     @torch.no_grad()
-    def step_temperature(self, entropy: float, task: int) -> None:
-        """One training update of task `task` with mean routing entropy `entropy`."""
+    def step_temperature(self, entropy: torch.Tensor | float, task: int) -> None:
+        """One training update of task `task` with mean routing entropy `entropy`. Tensor
+        arithmetic on the buffers, so a GPU update never waits for the host."""
         cfg, task = self.cfg, self.check_task(task)
-        if self.tau_updates[task] >= self.tau_hold[task]:
-            tau = float(self.tau[task]) + cfg.tau_rate * math.tanh(self.target_entropy() - entropy)
-            self.tau[task] = min(max(tau, cfg.tau_min), cfg.tau_max)
+        entropy = torch.as_tensor(entropy, dtype=self.tau.dtype, device=self.tau.device)
+        moved = self.tau[task] + cfg.tau_rate * torch.tanh(self.target_entropy() - entropy)
+        held = self.tau_updates[task] < self.tau_hold[task]
+        self.tau[task] = torch.where(held, self.tau[task], moved.clamp(cfg.tau_min, cfg.tau_max))
         self.tau_updates[task] += 1
 
     @contextlib.contextmanager
@@ -148,7 +162,7 @@ class MixtureDynamics(nn.Module):
     def routing_override(self, mode: str | None) -> Iterator[None]:
         if mode not in OVERRIDES:
             raise ValueError(f"unknown routing override {mode!r}; valid: {OVERRIDES}")
-        if mode == "prior" and int(self.num_groups) < 2:
+        if mode == "prior" and self._groups < 2:
             raise ValueError("routing override 'prior': only one expert group is active")
         previous, self.override = self.override, mode
         try:

@@ -8,7 +8,7 @@ from collections.abc import Iterator
 import torch
 from torch import nn
 
-from ccfit.models.base import Batch, LossOutput
+from ccfit.models.base import Batch, ExpertLayout, LossOutput, Routing, check_on_device
 from ccfit.models.encoders import FrozenEncoder
 from ccfit.models.pwm.config import PWMConfig
 from ccfit.models.pwm.mixture import MixtureDynamics
@@ -24,21 +24,21 @@ class PWMHeads(TDMPC2Heads):
     def __init__(self, cfg: PWMConfig, task: int) -> None:
         super().__init__(cfg)
         self.register_buffer("task_index", torch.tensor(int(task)))
+        self.task = int(task)
+        """The task as a Python int (routing without reading the buffer back)."""
+        self.register_load_state_dict_post_hook(_task_from_buffer)
 
 
-def find_mixture(backbone: nn.Module) -> MixtureDynamics | None:
-    """The backbone's MixtureDynamics, or None."""
-    found = [m for m in backbone.modules() if isinstance(m, MixtureDynamics)]
-    if len(found) > 1:
-        raise ValueError(f"backbone has {len(found)} MixtureDynamics modules, expected one")
-    return found[0] if found else None
+def _task_from_buffer(heads: PWMHeads, _) -> None:
+    heads.task = int(heads.task_index)
 
 
 @register_model("pwm", PWMConfig)
-class PWM(TDMPC2):
+class PWM(TDMPC2, Routing):
     """TD-MPC2 with `MixtureDynamics` as its latent dynamics (see the module docstring)."""
 
     cfg: PWMConfig
+    capabilities = frozenset({"experts", "routing"})
 
     def __init__(
         self,
@@ -83,6 +83,12 @@ class PWM(TDMPC2):
         """`with model.routing_override(mode)`: 'prior', 'new', 'uniform' or None (learnt)."""
         return self.dynamics.routing_override(mode)
 
+    def expert_layout(self) -> ExpertLayout:
+        return self.dynamics.layout()
+
+    def routed_task(self, heads: nn.Module) -> int:
+        return _pwm_heads(heads).task
+
     def routing_weights(self, z: torch.Tensor, a: torch.Tensor, task=None) -> torch.Tensor:
         """Routing weights (..., K * max_tasks) for latents z and actions a of `task`."""
         return self.dynamics.routing_weights(z, a, task)
@@ -108,27 +114,28 @@ class PWM(TDMPC2):
         """(B,): each window's routing task, the task of its row 0 (where the rollout starts;
         rows of another episode after a boundary are masked out of every loss)."""
         task = batch.task[0]
-        self.dynamics.check_task(int(task.min()))
-        self.dynamics.check_task(int(task.max()))
+        limit = self.dynamics.max_tasks
+        check_on_device(((task >= 0) & (task < limit)).all(),
+                        f"PWM: batch tasks outside 0..{limit - 1} (max_tasks)")  # fmt: skip
         return task
 
     def loss(self, batch: Batch, heads: nn.Module) -> LossOutput:
         h = _pwm_heads(heads)
         task = self._batch_task(batch)
-        own = int(h.task_index)
-        if self.cfg.router == "task" and not bool((task == own).all()):
-            raise ValueError(
-                f"PWM: heads of task {own} trained on a batch of tasks "
-                f"{sorted(set(task.tolist()))}; call model.begin_task(i) before new_heads() "
-                "and label the replay with the task index"
+        own = h.task
+        if self.cfg.router == "task":
+            check_on_device(
+                (task == own).all(),
+                f"PWM: heads of task {own} trained on a batch of other tasks; call "
+                "model.begin_task(i) before new_heads() and label the replay with the task index",
             )
         with self.routing_task(task), self.dynamics.recording_entropy() as record:
             out = super().loss(batch, h)
-        entropy = float(torch.stack(record).mean())
-        if self.training and torch.is_grad_enabled():
-            self.dynamics.step_temperature(entropy, own)
-        out.logs["routing_entropy"] = entropy
-        out.logs["tau"] = float(self.dynamics.tau[own])
+        # No side effect here (the contract): the temperature steps in `head_update`, once
+        # per update of the task being trained, never when ER replays stored heads.
+        out.aux["routing_entropy"] = torch.stack(record).mean()
+        out.logs["routing_entropy"] = out.aux["routing_entropy"]
+        out.logs["tau"] = self.dynamics.tau[own].detach().clone()
         return out
 
     def backbone_loss(self, batch: Batch) -> torch.Tensor:
@@ -142,6 +149,8 @@ class PWM(TDMPC2):
         out: LossOutput,
         optimizers: dict[str, torch.optim.Optimizer],
     ) -> dict[str, float]:
+        h = _pwm_heads(heads)
+        self.dynamics.step_temperature(out.aux["routing_entropy"], h.task)
         with self.routing_task(self._batch_task(batch)):
             return super().head_update(batch, heads, out, optimizers)
 
@@ -152,7 +161,7 @@ class PWM(TDMPC2):
     ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
         """TD-MPC2's MPPI, routed with the task the heads belong to."""
         h = _pwm_heads(heads)
-        with self.routing_task(h.task_index):
+        with self.routing_task(h.task):
             return super().plan(z, h, prev_mean, eval_mode=eval_mode)
 
 

@@ -21,11 +21,10 @@ from ccfit.models.tdmpc2.model import (
     TDMPC2,
     TDMPC2Backbone,
     TDMPC2Heads,
-    default_device,
     modules_in_eval,
 )
 
 __all__ = [
     "Q_RETURN_TYPES", "TDMPC2", "TDMPC2Backbone", "TDMPC2Config", "TDMPC2Heads", "TDMPC2_SIZES",
-    "default_device", "modules_in_eval",
+    "modules_in_eval",
 ]  # fmt: skip

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from ccfit.models.registry import ModelConfig, check
+import ccdata.env
+from ccfit.config_base import check
+from ccfit.models.registry import ModelConfig
 
 Q_RETURN_TYPES = ("all", "min", "avg")
 
@@ -111,8 +113,9 @@ class TDMPC2Config(ModelConfig):
     tau: float = 0.01
     """Polyak rate of the target Q ensemble and of the running Q scale."""
 
-    episode_length: int = 250
-    """Agent steps per episode; sets the discount heuristic."""
+    episode_length: int = field(default_factory=lambda: ccdata.env.EPISODE_STEPS)
+    """Agent steps per episode (the benchmark's, `ccdata.env.EPISODE_STEPS`); sets the
+    discount heuristic."""
     discount_denom: float = 5.0
     """Discount = (L/denom - 1) / (L/denom), clipped to [discount_min, discount_max]."""
     discount_min: float = 0.95

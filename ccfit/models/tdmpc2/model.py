@@ -12,6 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ccfit.config_base import resolve_device
 from ccfit.models.base import LATENT_KEY, Batch, LossOutput, WorldModel
 from ccfit.models.encoders import FrozenEncoder, build_encoder
 from ccfit.models.layers import EnsembleMLP, SimNorm, TwoHot, init_weights, mlp
@@ -20,11 +21,6 @@ from ccfit.models.registry import register_model
 from ccfit.models.tdmpc2.config import Q_RETURN_TYPES, TDMPC2Config
 
 # =================================================================================== model
-
-
-def default_device() -> torch.device:
-    """CUDA when available, else CPU."""
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
 
 class TDMPC2Backbone(nn.Module):
@@ -112,7 +108,7 @@ class TDMPC2(WorldModel):
             raise ValueError(f"{type(self).__name__} needs a TDMPC2Config, got {type(cfg)}")
         super().__init__()
         self.cfg = cfg
-        self.device = torch.device(device) if device is not None else default_device()
+        self.device = resolve_device(device if device is not None else "auto")
         self.backbone = TDMPC2Backbone(cfg, encoder)
         self.two_hot = TwoHot(cfg.num_bins, cfg.vmin, cfg.vmax)
         self.discount = cfg.discount
@@ -291,8 +287,9 @@ class TDMPC2(WorldModel):
             + cfg.termination_coef * term_loss
         )
         logs = {
-            "consistency": consistency.item(), "reward": reward_loss.item(),
-            "value": value_loss.item(), "termination": term_loss.item(), "total": total.item(),
+            "consistency": consistency.detach(), "reward": reward_loss.detach(),
+            "value": value_loss.detach(), "termination": term_loss.detach(),
+            "total": total.detach(),
         }
         # Latent t is meaningful when the rollout reached it inside row 0's episode.
         latent_mask = torch.cat([torch.ones_like(mask[:1]), mask], dim=0)
@@ -332,8 +329,9 @@ class TDMPC2(WorldModel):
             for p, tp in zip(h.qs.parameters(), h.target_qs.parameters(), strict=True):
                 tp.lerp_(p, cfg.tau)
         return {
-            "pi_loss": pi_loss.item(), "pi_grad_norm": grad_norm.item(),
-            "pi_entropy": info["entropy"].mean().item(), "q_scale": h.q_scale.item(),
+            "pi_loss": pi_loss.detach(), "pi_grad_norm": grad_norm.detach(),
+            "pi_entropy": info["entropy"].mean().detach(),
+            "q_scale": h.q_scale.detach().clone().reshape(()),
         }
 
     # ---------------------------------------------------------------- acting
@@ -342,12 +340,12 @@ class TDMPC2(WorldModel):
     def act(
         self, obs: Mapping[str, torch.Tensor], heads: nn.Module, state, *, eval_mode: bool
     ) -> tuple[np.ndarray, torch.Tensor]:
-        """MPPI action; `state` is the previous plan's mean (horizon, A) for the warm start, or
-        None at the start of an episode; the new mean is returned as the next state."""
+        """MPPI actions (n, A) for n observations; `state` is the previous plans' means
+        (n, horizon, A) for the warm start, or None at the start of the episodes; the new
+        means are returned as the next state."""
         h = _heads(heads)
-        batched = {k: torch.as_tensor(v, device=self.device).unsqueeze(0) for k, v in obs.items()}
         with modules_in_eval(self.backbone, h):
-            z = self.encode(batched)
+            z = self.encode(obs)
             action, mean = self.plan(z, h, state, eval_mode=eval_mode)
         return action.cpu().numpy(), mean
 
@@ -356,9 +354,8 @@ class TDMPC2(WorldModel):
         self, z: torch.Tensor, heads: TDMPC2Heads, prev_mean: torch.Tensor | None, *,
         eval_mode: bool,
     ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
-        """MPPI from latent z (1, L): (action (A,) in [-1, 1], plan mean (horizon, A))."""
+        """MPPI from latents z (n, L): (actions (n, A) in [-1, 1], plan means (n, horizon, A))."""
         return mppi_plan(self, z, heads, prev_mean, eval_mode=eval_mode)
-
 
 
 def _heads(heads: nn.Module) -> TDMPC2Heads:

@@ -1,0 +1,115 @@
+"""The base of every ccfit config: validation, preset names, the run defaults, the device.
+
+A leaf module (it imports nothing from ccfit), so the run config tree (`ccfit.config`), the
+world-model configs (`ccfit.models`) and the continual-method configs (`ccfit.continual`) all
+build on it without importing each other:
+
+    ConfigError, check, check_types   bad input -> one line, exit 2 (the CLIs print it)
+    ChoiceConfig                      a config chosen by registered type (`--model.type=...`),
+                                      with option defaults per size preset
+    PRESETS, DEFAULTS                 preset names; what a run uses when nothing is said
+    resolve_device                    'auto' | 'cpu' | 'cuda' -> the torch device used
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from typing import Any, ClassVar
+
+import torch
+
+from ccdata.errors import InputError
+
+PRESETS: tuple[str, ...] = ("smoke", "cpu", "paper")
+"""Preset names every model config defines (a model may add more, e.g. its sizes)."""
+
+DEFAULTS: dict[str, Any] = {
+    "model": "tdmpc2",
+    "method": "ft",
+    "preset": "cpu",
+    "obs": "state",
+    "image_size": 64,
+}
+"""What a run uses when the command line (or a dict given to `resolve`) does not say: the one
+source of these defaults for `parse_cli`, `resolve` and the config classes' field defaults."""
+
+DEVICES: tuple[str, ...] = ("auto", "cpu", "cuda")
+
+
+class ConfigError(InputError):
+    """Bad user input in a config (unknown name, out-of-range value, contradiction): the CLI
+    prints it on one line and exits 2. Anything else raised while building is a bug."""
+
+
+def check(ok: bool, message: str) -> None:
+    """Raise ConfigError(message) unless `ok`: the one-liner configs validate with."""
+    if not ok:
+        raise ConfigError(message)
+
+
+_SIMPLE = {int: (int,), float: (int, float), bool: (bool,), str: (str,), type(None): (type(None),)}
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def check_types(config: Any) -> None:
+    """ConfigError naming the field when a value does not have its annotated simple type
+    (int, float, bool, str, or unions of them with None); other annotations are skipped."""
+    cls = type(config)
+    if cls not in _HINTS:
+        _HINTS[cls] = typing.get_type_hints(cls)
+    hints = _HINTS[cls]
+    for f in dataclasses.fields(config):
+        parts = getattr(hints.get(f.name), "__args__", None) or (hints.get(f.name),)
+        if not all(p in _SIMPLE for p in parts):
+            continue
+        allowed = tuple(t for p in parts for t in _SIMPLE[p])
+        value = getattr(config, f.name)
+        if isinstance(value, bool) and bool not in allowed:
+            allowed = ()  # True is an int to Python, not to a config
+        check(isinstance(value, allowed),
+              f"{cls.__name__}.{f.name} must be {f.type}, got {value!r}")  # fmt: skip
+
+
+class ChoiceConfig:
+    """A config picked by its registered name (`--model.type=pwm`, `--method.type=ewc`):
+    the base of each kind's config, listed with `draccus.ChoiceRegistry` (draccus needs that
+    one as a direct base, and it gives each kind its own registry):
+
+        @dataclass
+        class ModelConfig(ChoiceConfig, draccus.ChoiceRegistry): ...
+
+    Subclasses are dataclasses; `PRESETS` maps a preset name to the fields it sets."""
+
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {}
+
+    @property
+    def type(self) -> str:
+        """The registered name (what `--<group>.type` selects)."""
+        return self.get_choice_name(type(self))  # from draccus.ChoiceRegistry
+
+    @classmethod
+    def preset_fields(cls, name: str) -> dict[str, Any]:
+        """The fields preset `name` sets ({} for a preset this config does not tune)."""
+        return dict(cls.PRESETS.get(name, {}))
+
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> ChoiceConfig:
+        """This config at preset `name`, then `overrides`."""
+        check(name in cls.PRESETS or name in PRESETS,
+              f"unknown preset {name!r} for {cls.__name__}; valid: "
+              f"{', '.join(dict.fromkeys([*PRESETS, *cls.PRESETS]))}")  # fmt: skip
+        return cls(**{**cls.preset_fields(name), **overrides})
+
+
+def resolve_device(name: str | torch.device) -> torch.device:
+    """The device a run uses: 'auto' = CUDA when available, else the CPU; any other name is
+    torch's ('cpu', 'cuda', 'cuda:1', 'meta'). The one place a device name is resolved; what
+    it returns is what a run records."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    check(device.type != "cuda" or torch.cuda.is_available(),
+          f"device {str(device)!r} requested but CUDA is not available; use 'cpu' or "
+          "'auto'")  # fmt: skip
+    return device
