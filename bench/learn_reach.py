@@ -18,7 +18,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from ccfit.config import TaskRunConfig, parse_cli
+from ccfit.config import TaskRunConfig
+from ccfit.config_parse import parse_cli
 from ccfit.train import train_task
 
 

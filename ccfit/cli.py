@@ -9,12 +9,12 @@ Commands:
     sweep    a grid of runs (suites x models x methods x seeds), locally or on SLURM, and the
              report over them; again: submits only unfinished work; --status RUNS
     report   tables and plots over run directories (BWT / FWT per backbone, suite, method)
-    ablate   a finished PWM run's expert ablation on the composition task (the paper's Fig. 6)
+    ablate   a finished routed-model run's expert ablation on the composition task (Fig. 6)
     pretrain-encoder   the frozen-encoder diagnostic: an autoencoder on every task's oracle
              episodes, saved for `ccfit run --obs pixels --encoder frozen:PATH`
 
-    ccfit run --suite Reach --preset cpu --seed 0 --model.type=pwm --model.router=state \
-        --method.type=ewc --method.lam=5000 --train.steps=6000
+    ccfit run --suite Reach --preset cpu --seed 0 --method.type=ewc --method.lam=5000 \
+        --train.steps=6000 [--model.type=NAME --model.FIELD=VALUE ...]
     ccfit run --config_path runs/X/config.json      # a saved config, run (or resumed) again
     ccfit report runs/ --out report/
 
@@ -68,7 +68,8 @@ def _fmt(x) -> str:
 
 def cmd_train(argv: list[str]) -> None:
     """ccfit train --task reach-xy --preset smoke --out runs/smoke  (see --help)"""
-    from ccfit.config import TaskRunConfig, parse_cli
+    from ccfit.config import TaskRunConfig
+    from ccfit.config_parse import parse_cli
     from ccfit.train.run import default_out, train_single
 
     extra, argv = _split_flags(argv, {"quiet": False})
@@ -91,7 +92,8 @@ def run_dir(cfg) -> Path:
 def cmd_run(argv: list[str]) -> None:
     """ccfit run --suite Reach --preset cpu --method.type=packnet  (see --help)"""
     from ccfit.analysis import stage_callbacks
-    from ccfit.config import CurriculumConfig, parse_cli
+    from ccfit.config import CurriculumConfig
+    from ccfit.config_parse import parse_cli
     from ccfit.curriculum import Curriculum
 
     extra, argv = _split_flags(argv, {"quiet": False, "scratch_root": True})
@@ -143,9 +145,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=_cmd_report)
 
-    p = sub.add_parser("ablate", help="expert ablation of a finished PWM run (prior / new / "
+    p = sub.add_parser("ablate", help="expert ablation of a finished run of a model offering "
+                       "'routing' (prior / new / "
                        "uniform routing on the composition task)")  # fmt: skip
-    p.add_argument("run", help="run directory of a finished `ccfit run --model pwm` curriculum")
+    p.add_argument("run", help="run directory of a finished curriculum of a routed model")
     p.add_argument("--episodes", type=int, default=None,
                    help="evaluation layouts (default: the run's eval_episodes)")  # fmt: skip
     p.add_argument("--horizon", type=int, default=None,

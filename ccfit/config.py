@@ -1,23 +1,19 @@
 """The typed config tree of a run, on draccus (LeRobot's config library).
 
-    ccfit run --suite Reach --preset cpu --model.type=pwm --model.router=state \
-        --method.type=ewc --method.lam=5000 --train.steps=6000
+    ccfit run --suite Reach --preset cpu --method.type=ewc --method.lam=5000 \
+        --train.steps=6000 [--model.type=NAME --model.FIELD=VALUE ...]
 
 A run config has top-level fields (suite or task, obs, seed, preset, out, ...) and three
 sub-configs chosen by registered type: `model` (`ccfit.models.registry.ModelConfig`),
 `method` (`ccfit.continual.base.MethodConfig`) and `train` (`TrainConfig`). A preset fills the
 defaults of all three, flags override them, `__post_init__` validates, and the resolved config
-is saved as `config.json` beside every output; `--config_path config.json` reads one back.
+is saved as `config.json` beside every output; `--config_path config.json` reads one back
+(`ccfit.config_parse`: from the command line, from plain data, from a saved config).
 """
 
 from __future__ import annotations
 
-import argparse
-import copy
 import dataclasses
-import json
-import tempfile
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -33,6 +29,7 @@ from ccfit.config_base import (
     check_types,
 )
 from ccfit.continual.base import MethodConfig, method_config_class
+from ccfit.models import DEFAULT_MODEL
 from ccfit.models.registry import ModelConfig, config_class, model_class
 from ccfit.obs import OBS_MODES
 
@@ -98,8 +95,41 @@ class TrainConfig:
         return cls(**{**cls.PRESETS[name], **overrides})
 
 
+WANDB_MODES: tuple[str, ...] = ("online", "offline")
+
+
+@dataclass
+class LogConfig:
+    """Where a run's scalars go besides metrics.jsonl (which always holds every evaluation).
+    Not part of a run's identity: a run may be resumed with other logging settings."""
+
+    tensorboard: bool = True
+    """TensorBoard event files in the run directory (`tb/`)."""
+    wandb: bool = False
+    """Also log to Weights & Biases (needs the `wandb` package: `pip install wandb`)."""
+    wandb_project: str = "ccbench"
+    """W&B project."""
+    wandb_entity: str | None = None
+    """W&B entity (team or user); None: your default entity."""
+    wandb_group: str | None = None
+    """W&B group, e.g. a sweep's name (None: none)."""
+    wandb_mode: str = "online"
+    """'online', or 'offline' (written under the run directory's `wandb/`, for `wandb sync`
+    later; what a cluster node without network needs)."""
+
+    def __post_init__(self) -> None:
+        check_types(self)
+        check(self.wandb_mode in WANDB_MODES,
+              f"log.wandb_mode must be one of {WANDB_MODES}, got {self.wandb_mode!r}")  # fmt: skip
+        if self.wandb:
+            import importlib.util
+
+            check(importlib.util.find_spec("wandb") is not None,
+                  "log.wandb needs the wandb package: pip install wandb")  # fmt: skip
+
+
 def _default_model() -> ModelConfig:
-    return config_class(DEFAULTS["model"])()
+    return config_class(DEFAULT_MODEL)()
 
 
 def _default_method() -> MethodConfig:
@@ -135,6 +165,8 @@ class RunConfig:
     """The world model (`--model.type`: a registered model) and its hyperparameters."""
     train: TrainConfig = field(default_factory=TrainConfig)
     """The online training loop."""
+    log: LogConfig = field(default_factory=LogConfig)
+    """Where scalars are logged (TensorBoard, Weights & Biases)."""
 
     def __post_init__(self) -> None:
         check_types(self)
@@ -255,162 +287,3 @@ def check_references(tasks: list[str]) -> None:
             oracle_reference(task)
         except ValueError as e:
             raise ConfigError(str(e)) from None
-
-
-# ============================================================================== resolving
-
-
-def preset_defaults(cls: type[RunConfig], choices: dict[str, Any]) -> dict:
-    """The nested plain-data defaults of `cls` for `choices`: preset, obs, image_size,
-    model (its type) and method (its type), each `DEFAULTS[...]` unless given."""
-    c = {**DEFAULTS, **{k: v for k, v in choices.items() if v is not None}}
-    preset, model, method = c["preset"], c["model"], c["method"]
-    check(preset in PRESETS, f"unknown preset {preset!r}; valid: {', '.join(PRESETS)}")
-    mcls = config_class(model)
-    check(preset in mcls.PRESETS, f"model {model!r} has no preset {preset!r}")
-    out: dict[str, Any] = {
-        "preset": preset, "obs": c["obs"], "image_size": c["image_size"],
-        "model": {"type": model, **mcls.preset_fields(preset), "obs_mode": c["obs"],
-                  "image_size": c["image_size"]},
-        "train": dict(TrainConfig.PRESETS[preset]),
-    }  # fmt: skip
-    if _has_method(cls):
-        out["method"] = {"type": method, **method_config_class(method).preset_fields(preset)}
-    return out
-
-
-def resolve[C: RunConfig](cls: type[C], overrides: dict[str, Any]) -> C:
-    """`cls` from nested plain data (`{"suite": ..., "model": {"type": "pwm", ...}}`): the
-    preset's defaults (preset, model and method types, obs and image size taken from
-    `overrides`), then `overrides` on top. The programmatic twin of `parse_cli`."""
-    choices = {k: overrides.get(k) for k in ("preset", "obs", "image_size")}
-    choices.update(model=overrides.get("model", {}).get("type"),
-                   method=overrides.get("method", {}).get("type"))  # fmt: skip
-    return _decode(cls, _deep_merge(preset_defaults(cls, choices), overrides))
-
-
-def _has_method(cls: type) -> bool:
-    return any(f.name == "method" for f in dataclasses.fields(cls))
-
-
-def _deep_merge(base: dict, top: dict) -> dict:
-    out = copy.deepcopy(base)
-    for k, v in top.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            if "type" in v and v["type"] != out[k].get("type"):
-                out[k] = {}  # another registered type: the old defaults do not apply
-            out[k] = _deep_merge(out[k], v)
-        else:
-            out[k] = v
-    return out
-
-
-def flatten(config: Any, prefix: str = "") -> dict[str, Any]:
-    """Nested dicts -> {'a.b.c': value}; lists and other unhashable leaves as JSON text. An
-    empty dict adds no key (no options = options absent)."""
-    if isinstance(config, dict):
-        out: dict[str, Any] = {}
-        for k, v in config.items():
-            out.update(flatten(v, f"{prefix}.{k}" if prefix else str(k)))
-        return out
-    try:
-        hash(config)
-    except TypeError:
-        return {prefix: json.dumps(config, sort_keys=True, default=str)}
-    return {prefix: config}
-
-
-def _decode[C: RunConfig](cls: type[C], data: dict) -> C:
-    try:
-        return draccus.decode(cls, data)
-    except draccus.utils.ParsingError as e:
-        raise _as_config_error(e) from None
-
-
-def _as_config_error(e: Exception) -> Exception:
-    """draccus wraps what __post_init__ raised: surface a ConfigError's own message; other
-    parsing problems (wrong type, unknown field) are bad input too; anything else is a bug."""
-    cause = e
-    while cause is not None:
-        if isinstance(cause, ConfigError):
-            return ConfigError(str(cause))
-        cause = cause.__cause__
-    root = e
-    while root.__cause__ is not None:
-        root = root.__cause__
-    if isinstance(root, draccus.utils.ParsingError | TypeError | ValueError):
-        return ConfigError(str(e) if root is e else f"{e} ({root})")
-    return root
-
-
-def parse_cli[C: RunConfig](cls: type[C], argv: Sequence[str], prog: str | None = None) -> C:
-    """`cls` from command-line arguments in draccus syntax (`--model.type=pwm --train.steps=10`;
-    top-level options may also be spelt with dashes, `--image-size 32`). Defaults come from
-    `--preset` (or from `--config_path FILE`, a saved config.json), flags override them."""
-    args = [_underscored(a) for a in argv]
-    pre = _preparse(args)
-    if pre.get("config_path"):
-        path = Path(pre["config_path"])
-        check(path.is_file(), f"config file not found: {path}")
-        try:
-            defaults = json.loads(path.read_text())
-        except json.JSONDecodeError as e:
-            raise ConfigError(f"{path} is not a JSON config: {e}") from None
-        # A saved config.json also records what was derived (e.g. the resolved seed dataset),
-        # and a curriculum's config may seed a single-task run: keep this class's fields.
-        names = {f.name for f in dataclasses.fields(cls)}
-        defaults = {k: v for k, v in defaults.items() if k in names}
-        args = _without(args, "config_path")
-    else:
-        size = pre.get("image_size")  # a bad value is reported by draccus below
-        defaults = preset_defaults(cls, {
-            "preset": pre.get("preset"), "obs": pre.get("obs"),
-            "image_size": int(size) if size is not None and size.isdigit() else None,
-            "model": pre.get("model.type"), "method": pre.get("method.type"),
-        })  # fmt: skip
-    for nested, top in (("model.obs_mode", "obs"), ("model.image_size", "image_size")):
-        check(nested not in pre, f"--{nested} follows the run's --{top}; set that instead")
-    with tempfile.NamedTemporaryFile("w", suffix=".json") as f:
-        json.dump(defaults, f)
-        f.flush()
-        try:
-            return draccus.parse(cls, config_path=f.name, args=args, prog=prog,
-                                 exit_on_error=False)  # fmt: skip
-        except draccus.utils.ParsingError as e:
-            raise _as_config_error(e) from None
-        except (draccus.utils.DraccusException, argparse.ArgumentError) as e:
-            raise ConfigError(f"{e}; see --help") from None
-
-
-def _underscored(arg: str) -> str:
-    if not arg.startswith("--"):
-        return arg
-    name, sep, value = arg[2:].partition("=")
-    return "--" + name.replace("-", "_") + sep + value
-
-
-def _preparse(args: list[str]) -> dict[str, str]:
-    """Values of `--key=value` / `--key value` options, last one winning."""
-    out: dict[str, str] = {}
-    for i, a in enumerate(args):
-        if not a.startswith("--"):
-            continue
-        name, sep, value = a[2:].partition("=")
-        if not sep:
-            nxt = args[i + 1] if i + 1 < len(args) else ""
-            value = "" if nxt.startswith("--") else nxt
-        out[name] = value
-    return out
-
-
-def _without(args: list[str], name: str) -> list[str]:
-    """`args` without `--name=value` / `--name value`."""
-    out, skip = [], False
-    for a in args:
-        if skip:
-            skip = False
-        elif a == f"--{name}":
-            skip = True
-        elif not a.startswith(f"--{name}="):
-            out.append(a)
-    return out

@@ -25,14 +25,14 @@ PRESETS: tuple[str, ...] = ("smoke", "cpu", "paper")
 """Preset names every model config defines (a model may add more, e.g. its sizes)."""
 
 DEFAULTS: dict[str, Any] = {
-    "model": "tdmpc2",
     "method": "ft",
     "preset": "cpu",
     "obs": "state",
     "image_size": 64,
 }
 """What a run uses when the command line (or a dict given to `resolve`) does not say: the one
-source of these defaults for `parse_cli`, `resolve` and the config classes' field defaults."""
+source of these defaults for `parse_cli`, `resolve` and the config classes' field defaults.
+The default world model is `ccfit.models.DEFAULT_MODEL` (models are named only there)."""
 
 DEVICES: tuple[str, ...] = ("auto", "cpu", "cuda")
 
@@ -72,7 +72,7 @@ def check_types(config: Any) -> None:
 
 
 class ChoiceConfig:
-    """A config picked by its registered name (`--model.type=pwm`, `--method.type=ewc`):
+    """A config picked by its registered name (`--model.type=NAME`, `--method.type=ewc`):
     the base of each kind's config, listed with `draccus.ChoiceRegistry` (draccus needs that
     one as a direct base, and it gives each kind its own registry):
 

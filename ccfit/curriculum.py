@@ -54,6 +54,7 @@ from ccfit.train.loop import Trainer
 from ccfit.train.records import RunLogger
 from ccfit.train.run import (
     CONFIG,
+    NOT_IDENTITY,
     build_model,
     check_saved_config,
     make_evaluator,
@@ -81,14 +82,14 @@ class Stage:
 
 
 StageCallback = Callable[[Stage], None]
-"""Called after each finished task (before its state is saved), e.g. PWM's routing record."""
+"""Called after each finished task (before its state is saved), e.g. the routing record."""
 
 
 def scratch_config(cfg: CurriculumConfig) -> dict:
     """config.json of the from-scratch reference: the run's, less what it does not depend
-    on (the method, the output directory)."""
+    on (the method, the output directory, where the run logs)."""
     resolved = resolved_config(cfg, cfg.suite)
-    return {k: v for k, v in resolved.items() if k not in ("method", "out")}
+    return {k: v for k, v in resolved.items() if k not in ("method", "out", *NOT_IDENTITY)}
 
 
 def scratch_key(cfg: CurriculumConfig) -> str:
@@ -140,16 +141,17 @@ class Curriculum:
     def run(self) -> dict:
         cfg, train = self.cfg, self.cfg.train
         self.out.mkdir(parents=True, exist_ok=True)
-        check_saved_config(self.out, resolved_config(cfg, cfg.suite))
+        resolved = resolved_config(cfg, cfg.suite)
+        check_saved_config(self.out, resolved)
         if train.torch_threads > 0:
             torch.set_num_threads(train.torch_threads)
         tasks = cfg.tasks
         model, method, stored, completed = restore(cfg, self.out, self.device)
-        logger = RunLogger(self.out)
+        logger = RunLogger(self.out, cfg.log, resolved)
         evaluator = make_evaluator(cfg, model, dict(enumerate(tasks)),
                                    view=lambda j: method.evaluating(j, model.backbone))
         evaluator.heads.update(enumerate(stored))
-        source = resolved_config(cfg, cfg.suite)["resolved_seed_dataset"]
+        source = resolved["resolved_seed_dataset"]
         try:
             for i in range(completed, len(tasks)):
                 task_dir = self.out / "tasks" / f"{i}-{tasks[i]}"
@@ -219,7 +221,7 @@ def restore(cfg: CurriculumConfig, run_dir: Path, device: torch.device
     if not path.exists():
         return model, method, stored, 0
     state = load_checkpoint(path, STATE_KIND, STATE_VERSION)
-    # Model structure never changes shape (PWM allocates its experts up front), so the
+    # Model structure never changes shape (expert groups are allocated up front), so the
     # states load directly; the next task's before_task continues from them.
     model.load_state_dict(state["model"])
     method.load_state_dict(state["method"])
@@ -247,8 +249,8 @@ class LoadedRun:
 
 def load_run(run_dir: str | Path, device: torch.device | str | None = None) -> LoadedRun:
     """Read a run directory (config.json + curriculum.pt) back: the public run loader that
-    analyses (PWM routing, ablations) use."""
-    from ccfit.config import resolve
+    analyses (routing, ablations) use."""
+    from ccfit.config_parse import resolve
 
     run_dir = Path(run_dir)
     if not (run_dir / CONFIG).is_file():

@@ -31,6 +31,7 @@ __all__ = [
     "derived_seed",
     "load_checkpoint",
     "rng_state",
+    "save_figure",
     "seed_everything",
     "set_rng_state",
 ]
@@ -58,6 +59,11 @@ def load_checkpoint(path: str | Path, kind: str, version: int) -> dict:
         raise InputError(f"{path}: {kind} checkpoint version {state.get('version')!r}, this "
                          f"ccfit reads version {version}; delete it to start over")  # fmt: skip
     return state
+
+
+def save_figure(fig, path: str | Path, dpi: int = 120) -> None:
+    """A matplotlib figure saved as PNG to `path` atomically."""
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=dpi))
 
 
 def atomic_write_json(path: str | Path, obj: Any) -> None:

@@ -13,7 +13,7 @@ variant label naming those settings ("obs=pixels, preset=cpu"). Outputs:
 - `curves_<backbone>_<suite>_<method>[_<variant>].png`: every task's normalised return over the
   curriculum, the forgetting (BWT) region shaded after each task's end and the forward
   transfer (FWT) region between the composition curve and its from-scratch reference.
-- `routing_<suite>_<method>_s<seed>.png`: the paper's Fig. 5 for every PWM run with a
+- `routing_<backbone>_<suite>_<method>_s<seed>.png`: the paper's Fig. 5 for every run with a
   `routing.jsonl` (`ccfit.analysis`); summary.json gets the top-expert statement per seed.
 """
 
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import csv
 import fnmatch
+import io
 import json
 from collections import defaultdict
 from dataclasses import dataclass
@@ -31,8 +32,9 @@ import numpy as np
 
 from ccfit import metrics as M
 from ccfit.analysis import report_routing
-from ccfit.config import flatten
+from ccfit.config_parse import flatten
 from ccfit.curriculum import METRICS_JSON
+from ccfit.io import atomic_write_text
 from ccfit.metrics import metrics_from_curves, task_curves
 from ccfit.report_plots import (
     METHOD_ORDER,
@@ -259,17 +261,18 @@ def write_tables(groups: dict, out: Path) -> list[Path]:
         lines += ["", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         lines += ["| " + " | ".join(r) + " |" for r in rows]
         md = out / f"table_{backbone}.md"
-        md.write_text("\n".join(lines) + "\n")
+        atomic_write_text(md, "\n".join(lines) + "\n")
         path = out / f"table_{backbone}.csv"
-        with path.open("w", newline="") as f:
-            writer = csv.writer(f)
-            writer.writerow(["backbone", "suite", "method", "variant", "seeds", "bwt", "bwt_min",
-                             "bwt_max", "fwt", "fwt_min", "fwt_max"])  # fmt: skip
-            for (b, suite, m, variant), g in sorted(groups.items()):
-                if b == backbone:
-                    writer.writerow([b, suite, m, variant, len(g["seeds"])] + [
-                        g[k] for k in ("bwt", "bwt_min", "bwt_max", "fwt", "fwt_min", "fwt_max")
-                    ])  # fmt: skip
+        text = io.StringIO(newline="")
+        writer = csv.writer(text)
+        writer.writerow(["backbone", "suite", "method", "variant", "seeds", "bwt", "bwt_min",
+                         "bwt_max", "fwt", "fwt_min", "fwt_max"])  # fmt: skip
+        for (b, suite, m, variant), g in sorted(groups.items()):
+            if b == backbone:
+                writer.writerow([b, suite, m, variant, len(g["seeds"])] + [
+                    g[k] for k in ("bwt", "bwt_min", "bwt_max", "fwt", "fwt_min", "fwt_max")
+                ])  # fmt: skip
+        atomic_write_text(path, text.getvalue())
         written += [md, path]
     return written
 
@@ -321,7 +324,7 @@ def write_report(paths: list[Path], out: Path) -> list[Path]:
             **{n: g[n] for n in ("seeds", "bwt", "bwt_min", "bwt_max", "fwt", "fwt_min",
                                  "fwt_max", "runs")},
         }  # fmt: skip
-        # Fig. 5 of the group's PWM runs; a variant's figures in a folder of their own, since
+        # Fig. 5 of the group's routed runs; a variant's figures in a folder of their own, since
         # their file names only say suite, method and seed.
         where = out / f"routing_{slug(k[3])}" if k[3] else out
         where.mkdir(exist_ok=True)
@@ -332,7 +335,7 @@ def write_report(paths: list[Path], out: Path) -> list[Path]:
         if where != out and not any(where.iterdir()):
             where.rmdir()
     path = out / "summary.json"
-    path.write_text(json.dumps(summary, indent=2) + "\n")
+    atomic_write_text(path, json.dumps(summary, indent=2) + "\n")
     return written + [path]
 
 

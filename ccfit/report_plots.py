@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ccfit import metrics as M
+from ccfit.io import save_figure
 
 
 def row_label(suite: str, variant: str) -> str:
@@ -68,7 +69,7 @@ def plot_bars(groups: dict, out: Path) -> list[Path]:
         fig.suptitle(backbone)
         fig.tight_layout()
         path = out / f"bars_{backbone}.png"
-        fig.savefig(path, dpi=120)
+        save_figure(fig, path)
         plt.close(fig)
         written.append(path)
     return written
@@ -121,6 +122,6 @@ def plot_curves(key: tuple, g: dict, task_ids: list[str], out: Path) -> Path:
     fig.tight_layout()
     name = f"curves_{backbone}_{suite}_{method}" + (f"_{slug(variant)}" if variant else "")
     path = out / f"{name}.png"
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path)
     plt.close(fig)
     return path

@@ -20,7 +20,8 @@ from ccfit.analysis import (
     routing_record,
 )
 from ccfit.cli import main
-from ccfit.config import CurriculumConfig, resolve
+from ccfit.config import CurriculumConfig
+from ccfit.config_parse import resolve
 from ccfit.curriculum import Curriculum
 from ccfit.train import CONFIG
 

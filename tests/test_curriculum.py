@@ -27,7 +27,8 @@ import torch
 import ccfit.curriculum as C
 import ccfit.train.evaluate as E
 import ccfit.train.run as R
-from ccfit.config import CurriculumConfig, parse_cli, resolve
+from ccfit.config import CurriculumConfig
+from ccfit.config_parse import parse_cli, resolve
 from ccfit.curriculum import Curriculum
 from ccfit.io import derived_seed
 from ccfit.train import CONFIG, METRICS, build_model, resolved_config
@@ -107,6 +108,10 @@ def runs(tmp_path_factory):
         def __init__(self, **kwargs) -> None:
             super().__init__(**kwargs)
             current[-1].trainers.append(self)
+
+        def run(self) -> dict:
+            self.returned = super().run()
+            return self.returned
 
     real_play, real_save = E.play_episodes, Curriculum._save
 
@@ -237,7 +242,13 @@ def test_earlier_tasks_are_evaluated_with_their_stored_heads(runs, method):
     seen = run.seen
     trainers = [t for t in seen.trainers if t.run_dir.parent == run.dir / "tasks"]
     assert [t.task_id for t in trainers] == list(TASKS)
-    records = _records(run.dir)  # the curriculum's evaluations come before the scratch run's
+    # Each trainer returns its own task's last record (not an earlier task's, evaluated at the
+    # same point).
+    records = _records(run.dir)
+    for t in trainers:
+        own = [r for r in records if r["task_index"] == r["stage"] == t.task_index]
+        assert t.returned == own[-1] and t.returned["task_step"] == STEPS
+    # The curriculum's evaluations come before the scratch run's.
     scratch = 2 if method == METHODS[0] else 0
     assert len(seen.evals) == len(records) + scratch
     earlier = [(e, r) for e, r in zip(seen.evals, records, strict=False)
@@ -430,6 +441,9 @@ def test_killed_run_resumes_to_the_uninterrupted_result(runs, tmp_path):
         (["--suite", SUITE, "--train.steps=150"], "multiple of eval_interval"),
         (["--suite", SUITE, "--train.steps=abc"], "train.steps"),
         (["--suite", SUITE, "--model.lr=fast"], "model.lr"),
+        (["--suite", "BinPnP", "--model.type=pwm", "--model.max_tasks=3"], "max_tasks=4"),
+        (["--suite", SUITE, "--method.type=packnet", "--method.keep_fraction=1.5"],
+         "keep_fraction"),
     ],
 )
 def test_cli_run_bad_input_exits_2_with_one_line(argv, needle, capsys, tmp_path):
@@ -444,6 +458,59 @@ def test_cli_run_bad_input_exits_2_with_one_line(argv, needle, capsys, tmp_path)
     assert len(err.strip().splitlines()) == 1 and needle in err, err
     assert "Traceback" not in err
     assert not (tmp_path / "x").exists(), "bad input must not leave a run directory"
+
+
+def test_a_suite_without_oracle_references_fails_before_the_run(capsys, tmp_path,
+                                                                monkeypatch):  # fmt: skip
+    """BWT and FWT need normalised returns: a missing reference stops the run at once, not
+    after hours of training."""
+    import ccdata.scoring
+    from ccfit.cli import main
+
+    monkeypatch.setattr(ccdata.scoring, "references", lambda: {"tasks": {}})
+    code = main(["run", "--suite", SUITE, "--preset", "smoke", "--out", str(tmp_path / "x")])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "no oracle reference for 'pick-cube'" in err and not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("content", ["garbage", "old", "code"])
+def test_a_foreign_or_old_run_state_is_one_line(runs, tmp_path, capsys, content):
+    """curriculum.pt that this ccfit did not write (another program's file, an older format,
+    a pickle that would run code) ends `ccfit run` with one line and exit 2, and nothing in
+    the file is executed."""
+    import shutil
+
+    from ccfit.cli import main
+
+    out = tmp_path / "run"
+    shutil.copytree(runs.runs["ft"].dir, out)
+    marker = tmp_path / "executed"
+    if content == "garbage":
+        (out / C.STATE).write_bytes(b"not a checkpoint at all")
+    elif content == "old":
+        torch.save({"version": 2, "completed": 1}, out / C.STATE)
+    else:
+        torch.save(_Exploit(str(marker)), out / C.STATE)
+    (out / C.METRICS_JSON).unlink()
+    saved = json.loads((out / CONFIG).read_text())
+    saved["out"] = str(out)
+    (out / CONFIG).write_text(json.dumps(saved))
+    argv = _cli_argv("ft", out, runs.scratch_root)
+    with shorter_episodes():
+        code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert str(out / C.STATE) in err and "Traceback" not in err
+    assert not marker.exists(), "the checkpoint's pickle ran code"
+
+
+class _Exploit:
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.path}",))
 
 
 def test_cli_run_model_and_method_options_reach_the_config():

@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 import torch
 
-from ccfit.config import CurriculumConfig, TaskRunConfig, resolve
+from ccfit.config import CurriculumConfig, TaskRunConfig
+from ccfit.config_parse import resolve
 from ccfit.continual.packnet import prunable_weights
 from ccfit.curriculum import METRICS_JSON, Curriculum, Stage
 from ccfit.models.dreamerv3 import DreamerV3

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from ccdata import make_env
-from ccfit.config import CurriculumConfig, TrainConfig, resolve
+from ccfit.config import CurriculumConfig, TrainConfig
+from ccfit.config_parse import resolve
 from ccfit.continual.base import ReplayLosses, TaskData, make_method, method_config
 from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
 from ccfit.replay import ReplayBuffer

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from ccfit.config import TaskRunConfig, TrainConfig, parse_cli, resolve
+from ccfit.config import TaskRunConfig, TrainConfig
 from ccfit.config_base import ConfigError
+from ccfit.config_parse import parse_cli, resolve
 from ccfit.replay import ReplayBuffer
 
 try:
@@ -263,3 +264,43 @@ def test_pretrain_updates_run_once_on_the_runs_first_task_only(global_offset, bu
     assert trainer.updates == burst + 15 == method.after_steps == sum(updates_at.values())
     assert updates_at.get(20, 0) == burst and updates_at[21] == 1
     assert min(updates_at) == (20 if burst else 21)
+
+
+def test_wandb_offline_logs_the_evaluations_and_resumes_the_same_run(tmp_path):
+    """`--log.wandb=true --log.wandb_mode=offline`: every evaluation reaches W&B at its global
+    step, the resolved config is the W&B run's config, and running the command again (the
+    finished run is resumed) continues the same W&B run; logging settings are not part of the
+    run's identity."""
+    pytest.importorskip("wandb")
+    try:
+        from wandb_records import config, history
+    except ImportError:  # tests/ imported as a package
+        from tests.wandb_records import config, history
+
+    out = tmp_path / "run"
+    argv = ["train", "--task", "reach-xy", "--preset", "smoke", "--seed_dataset", "null",
+            "--out", str(out), "--quiet", "--train.steps=100", "--train.seed_steps=50",
+            "--train.eval_interval=50", "--train.checkpoint_interval=50",
+            "--log.wandb=true", "--log.wandb_mode=offline", "--log.tensorboard=false"]
+    env = {**__import__("os").environ, "WANDB_SILENT": "true"}
+    proc = subprocess.run(ccfit_command(argv), capture_output=True, text=True, timeout=300,
+                          env=env)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert not (out / "tb").exists()
+    (log,) = (out / "wandb").glob("offline-run-*/run-*.wandb")
+    run_id = (out / "wandb_id").read_text().strip()
+    assert log.name == f"run-{run_id}.wandb"
+    records = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+    rows = [r for r in history(log) if "eval/reach-xy/discounted_return" in r]
+    assert [r["_step"] for r in rows] == [r["global_step"] for r in records] == [0, 50, 100]
+    assert [r["eval/reach-xy/discounted_return"] for r in rows] == pytest.approx(
+        [r["discounted_return"] for r in records])
+    logged = config(log)
+    assert logged["task"] == "reach-xy" and logged["train"]["steps"] == 100
+    # Again, with W&B on or off: the same run (nothing left to train), no config error.
+    again = subprocess.run(ccfit_command(argv), capture_output=True, text=True, timeout=300,
+                           env=env)  # fmt: skip
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert (out / "wandb_id").read_text().strip() == run_id
+    plain = [a for a in argv if not a.startswith("--log.")]
+    assert subprocess.run(ccfit_command(plain), capture_output=True, timeout=300).returncode == 0

@@ -290,7 +290,8 @@ def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeyp
     import ccdata.env
     import ccfit.curriculum as C
     import ccfit.train.run as R
-    from ccfit.config import CurriculumConfig, resolve
+    from ccfit.config import CurriculumConfig
+    from ccfit.config_parse import resolve
     from ccfit.models.base import LATENT_KEY
     from ccfit.models.encoders import build_encoder, load_frozen_encoder, save_encoder
     from ccfit.models.tdmpc2 import TDMPC2Config

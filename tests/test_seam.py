@@ -18,7 +18,8 @@ import pytest
 import torch
 from torch import nn
 
-from ccfit.config import CurriculumConfig, TaskRunConfig, resolve
+from ccfit.config import CurriculumConfig, TaskRunConfig
+from ccfit.config_parse import resolve
 from ccfit.continual.packnet import prunable_weights
 from ccfit.curriculum import METRICS_JSON, Curriculum
 from ccfit.models.base import Batch, LossOutput, WorldModel

@@ -1,5 +1,5 @@
 """Routing analysis and expert ablation of a continual run of a routed model (the paper's
-Sec. V-B: PWM; any model offering the 'routing' capability gets them).
+Sec. V-B; any model offering the 'routing' capability gets them).
 
 Routing record (`routing.jsonl` in the run directory, one line per curriculum stage): after
 task t is learnt and its heads are stored, every task i <= t replays its evaluation episodes
@@ -21,7 +21,8 @@ Fig. 5 (`figure_data`, `plot_routing`), all panels read the routing of the task 
   task j after stage j, against the argmax over the same K experts when routing the
   composition task after the last stage ("k of n", the paper's 13 of 14).
 A group of experts belongs to task j only when it was activated for it (K_active = (j+1) K at
-stage j, the 'experts' method); under other methods a PWM keeps one group, owned by task 0.
+stage j, the 'experts' method); under other methods a routed model keeps one group, owned
+by task 0.
 
 Fig. 6 (`ablate`): on the composition task with its stored heads, the closed-loop normalised
 return over the evaluation layouts and the open-loop latent prediction error, under routing

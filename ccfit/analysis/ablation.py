@@ -1,5 +1,5 @@
 """The paper's Fig. 6: expert ablation of a finished run of a routed model (capability
-'routing', e.g. PWM) on its composition task."""
+'routing') on its composition task."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from ccfit.analysis.episodes import (
     latent_error,
     mean_routing,
 )
-from ccfit.io import atomic_write_text, derived_seed
+from ccfit.io import atomic_write_text, derived_seed, save_figure
 from ccfit.models.base import Routing
 from ccfit.train import EnvPool, Episode, eval_seeds, normalized_or_none, play_episodes
 
@@ -140,6 +140,6 @@ def plot_ablation(result: dict, out: str | Path) -> Path:
                  fontsize=9)  # fmt: skip
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(out, dpi=120)
+    save_figure(fig, out)
     plt.close(fig)
     return Path(out)

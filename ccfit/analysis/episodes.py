@@ -1,5 +1,5 @@
 """What is measured on recorded evaluation episodes of a routed model (capability 'routing',
-e.g. PWM): mean routing weights and the open-loop latent error."""
+e.g. the prismatic world model): mean routing weights and the open-loop latent error."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Routing records per curriculum stage and the paper's Fig. 5 from them (models offering
-'routing', e.g. PWM)."""
+'routing')."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from ccfit.analysis.episodes import _ROUTING_TAG, ROUTING, _eval_mode, _seeded, mean_routing
-from ccfit.io import atomic_write_text, derived_seed
+from ccfit.io import atomic_write_text, derived_seed, save_figure
 from ccfit.models.base import Routing
 from ccfit.train import CONFIG, EnvPool, eval_seeds, normalized_or_none, play_episodes
 
@@ -236,7 +236,7 @@ def plot_routing(run_dir: str | Path, out: str | Path) -> dict:
     model, method = (config[k]["type"] for k in ("model", "method"))
     fig.suptitle(f"{config['suite']} / {model} / {method} / seed {config['seed']}: {statement}",
                  fontsize=10)  # fmt: skip
-    fig.savefig(out, dpi=120)
+    save_figure(fig, out)
     plt.close(fig)
     return {**data, "statement": statement}
 

@@ -12,9 +12,10 @@ L_current with weight 1, so adding r / (1 - r) * L_replay gives the same mixture
 replayed transitions carry another task's rewards, so they never reach the current heads.
 The replay batch has its own size (`batch_size`); its gradient is unbiased for L_replay.
 
-What is kept are whole training windows, not single transitions: a sequence model (DreamerV3's
-RSSM at seq_len 32 or 64) needs the rows before a transition as context, and a window replayed
-from 2-row items would start every transition from the RSSM's initial state. The task's replay
+What is kept are whole training windows, not single transitions: a sequence model (a recurrent
+state-space model trained on windows of 32 or 64 rows) needs the rows before a transition as
+context, and a window replayed from 2-row items would start every transition from the
+recurrent model's initial state. The task's replay
 rows are cut into consecutive chunks of the model's `seq_len` rows (each a window as training
 samples it: it may cross an episode boundary, which `is_first` marks); the reservoir runs over
 those chunks and keeps round(fraction * n / (seq_len - 1)) of them, n being the task's real

@@ -1,4 +1,4 @@
-"""Progressive experts (the paper's continual PWM, after Wang et al. 2024).
+"""Progressive experts (the paper's continual mixture of experts, after Wang et al. 2024).
 
 At `before_task(t)` the mixture gets K new trainable experts (group t; group 0 is active from
 the start) and the experts of groups 0..t-1 are frozen: requires_grad False, and, since Adam's
@@ -12,7 +12,7 @@ head is not frozen; finished tasks' dynamics can therefore still drift through t
 router and the encoder (the frozen-encoder diagnostic removes the last one).
 
 The method sees only the backbone; it finds the `ExpertGroups` inside it (a model offering the
-'experts' capability, PWM), so it names no model.
+'experts' capability), so it names no model.
 """
 
 from __future__ import annotations
@@ -39,8 +39,7 @@ def _groups(backbone: nn.Module) -> tuple[str, ExpertGroups]:
 
 @dataclass
 class ProgressiveExpertsConfig(MethodConfig):
-    """Progressive experts has no options; the expert count per task is the model's (PWM:
-    `--model.experts_per_task`)."""
+    """Progressive experts has no options; the expert count per task is the model's."""
 
     REQUIRES = frozenset({"experts"})
 

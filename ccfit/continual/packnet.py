@@ -302,11 +302,7 @@ class PackNet(ContinualMethod):
                 for name, value in saved.items():
                     params[name].copy_(value)
 
-    # ------------------------------------------------------------------ inspection, checkpoints
-    def owned_fraction(self, name: str, task_index: int) -> float:
-        """Share of weight `name`'s entries owned by `task_index`."""
-        return float((self.owner[name] == task_index).float().mean())
-
+    # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:
         return {
             "phase": self.phase.value,

@@ -8,4 +8,10 @@ from ccfit.models import dreamerv3, pwm, tdmpc2  # noqa: F401  (registers the mo
 from ccfit.models.base import Batch, WorldModel
 from ccfit.models.registry import ModelConfig, make_model, model_names, register_model
 
-__all__ = ["Batch", "ModelConfig", "WorldModel", "make_model", "model_names", "register_model"]
+DEFAULT_MODEL = "tdmpc2"
+"""The world model a run uses when none is named (`--model.type`)."""
+
+__all__ = [
+    "DEFAULT_MODEL", "Batch", "ModelConfig", "WorldModel", "make_model", "model_names",
+    "register_model",
+]  # fmt: skip

@@ -1,7 +1,7 @@
 """Sweeps: a grid of continual runs (suites x models x methods x seeds) through one command.
 
-    ccfit sweep --suites Reach,Grasp --models tdmpc2,pwm --methods ft,er,ewc,packnet \
-        --seeds 0,1,2 --preset cpu --out RUNS [--launcher local|slurm]
+    ccfit sweep --suites Reach,Grasp --methods ft,er,ewc,packnet --seeds 0,1,2 --preset cpu \
+        --out RUNS [--models M1,M2] [--launcher local|slurm]
 
 Layout of RUNS:
     sweep.json          the grid, every run's config, code version, submissions (job ids)

@@ -1,8 +1,8 @@
 """`ccfit sweep`: a grid of continual runs, here or on SLURM, and the report over them.
 
-    ccfit sweep --suites Reach,Grasp --models tdmpc2,pwm --methods ft,er,ewc,packnet \
-        --seeds 0,1,2 --preset cpu --out runs/sweep1 [--launcher slurm] [--max-parallel 4] \
-        [--obs pixels --train.steps=2000 --model.router=state ...]
+    ccfit sweep --suites Reach,Grasp --methods ft,er,ewc,packnet --seeds 0,1,2 --preset cpu \
+        --out runs/sweep1 [--models M1,M2] [--launcher slurm] [--max-parallel 4] \
+        [--obs pixels --train.steps=2000 --model.FIELD=VALUE ...]
     ccfit sweep --status runs/sweep1
 
 Options the sweep does not know are run options (`ccfit run --help`), set for every run.
@@ -19,6 +19,9 @@ import sys
 from ccdata.errors import InputError
 from ccdata.slurm import REQUEUE_SAFE_MIN, LaunchError, check_slurm, settings_from_options
 from ccdata.slurm import add_options as add_slurm_options
+from ccfit.config_base import DEFAULTS, PRESETS
+from ccfit.continual import method_names
+from ccfit.models import DEFAULT_MODEL, model_names
 from ccfit.sweep.grid import (
     SWEEP_JSON,
     Grid,
@@ -55,10 +58,13 @@ def build_parser() -> argparse.ArgumentParser:
                 epilog="Any other option is a run option (`ccfit run --help`), set for every "
                        "run.")  # fmt: skip
     p.add_argument("--suites", type=_csv, help="suites, comma-separated (Reach,Grasp)")
-    p.add_argument("--models", type=_csv, default=("tdmpc2",), help="world models (tdmpc2,pwm)")
-    p.add_argument("--methods", type=_csv, default=("ft",), help="methods (ft,er,ewc,packnet)")
+    p.add_argument("--models", type=_csv, default=(DEFAULT_MODEL,),
+                   help=f"world models, comma-separated ({','.join(model_names())})")
+    p.add_argument("--methods", type=_csv, default=(DEFAULTS["method"],),
+                   help=f"continual methods, comma-separated ({','.join(method_names())})")
     p.add_argument("--seeds", type=_seeds, default=(0,), help="seeds (0,1,2)")
-    p.add_argument("--preset", default="cpu", help="size preset of every run (smoke, cpu, paper)")
+    p.add_argument("--preset", default=DEFAULTS["preset"],
+                   help=f"size preset of every run ({', '.join(PRESETS)})")
     p.add_argument("--out", help="sweep folder RUNS: runs, scratch/, report/, sweep.json")
     p.add_argument("--launcher", choices=("local", "slurm"), default="local")
     p.add_argument("--max-parallel", type=int, default=None,

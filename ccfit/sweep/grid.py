@@ -160,7 +160,8 @@ def run_name(cfg) -> str:
 
 def expand(grid: Grid, root: str | Path) -> Sweep:
     """Every grid point's config, resolved and validated as `ccfit run` does it."""
-    from ccfit.config import CurriculumConfig, parse_cli
+    from ccfit.config import CurriculumConfig
+    from ccfit.config_parse import parse_cli
     from ccfit.curriculum import scratch_key
 
     import_plugins(grid.plugins)

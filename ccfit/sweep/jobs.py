@@ -40,7 +40,8 @@ class ScratchMissing(RuntimeError):
 def config_from_dict(d: dict):
     """A `CurriculumConfig` from its plain data (config.json or sweep.json), ignoring keys that
     are not config fields (`resolved_seed_dataset`)."""
-    from ccfit.config import CurriculumConfig, resolve
+    from ccfit.config import CurriculumConfig
+    from ccfit.config_parse import resolve
 
     names = {f.name for f in dataclasses.fields(CurriculumConfig)}
     return resolve(CurriculumConfig, {k: v for k, v in d.items() if k in names})

@@ -1,32 +1,63 @@
-"""Run records: evaluation records to JSONL (one line per evaluation), scalars to TensorBoard."""
+"""Run records: evaluation records to JSONL (one line per evaluation, always), and scalars to
+TensorBoard and, when asked for, Weights & Biases (`LogConfig`)."""
 
 from __future__ import annotations
 
 import json
+import secrets
 from pathlib import Path
 
+from ccfit.config import LogConfig
 from ccfit.io import atomic_write_text
 
 METRICS = "metrics.jsonl"
 TENSORBOARD = "tb"
+WANDB_ID = "wandb_id"
+"""File in the run directory holding its W&B run id, so a resumed run continues the same W&B
+run."""
 
 
 class RunLogger:
-    """Evaluation records in `run_dir/metrics.jsonl` and scalars in `run_dir/tb`."""
+    """Evaluation records in `run_dir/metrics.jsonl`; scalars in `run_dir/tb` and on W&B.
 
-    def __init__(self, run_dir: str | Path, tensorboard: bool = True) -> None:
+    log: where scalars go (None: TensorBoard only); config: what W&B records as the run's
+    config (the resolved config.json). A resumed run rewinds TensorBoard to its checkpoint;
+    W&B keeps the steps it has already received, so it holds the first values of steps that a
+    resumed run does again.
+    """
+
+    def __init__(self, run_dir: str | Path, log: LogConfig | None = None,
+                 config: dict | None = None) -> None:  # fmt: skip
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.jsonl = self.run_dir / METRICS
-        self._tb_enabled = tensorboard
+        self.log = log if log is not None else LogConfig()
+        self.config = config
         self._tb = None
+        self._wandb = None
 
     def _writer(self, purge_step: int | None = None):
-        if self._tb is None and self._tb_enabled:
+        if self._tb is None and self.log.tensorboard:
             from torch.utils.tensorboard import SummaryWriter
 
             self._tb = SummaryWriter(str(self.run_dir / TENSORBOARD), purge_step=purge_step)
         return self._tb
+
+    def _wandb_run(self):
+        if self._wandb is None and self.log.wandb:
+            import wandb
+
+            id_file = self.run_dir / WANDB_ID
+            if not id_file.is_file():
+                atomic_write_text(id_file, secrets.token_hex(8) + "\n")
+            log = self.log
+            self._wandb = wandb.init(
+                project=log.wandb_project, entity=log.wandb_entity, group=log.wandb_group,
+                mode=log.wandb_mode, dir=str(self.run_dir), name=self.run_dir.name,
+                id=id_file.read_text().strip(), resume="allow", config=self.config,
+                settings=wandb.Settings(silent=True, console="off"),
+            )  # fmt: skip
+        return self._wandb
 
     def keep(self, predicate) -> None:
         """Drop the records for which `predicate(record)` is false (atomically)."""
@@ -61,6 +92,9 @@ class RunLogger:
         if writer is not None:
             for k, v in scalars.items():
                 writer.add_scalar(k, v, step)
+        run = self._wandb_run()
+        if run is not None:
+            run.log({**scalars, "global_step": step}, step=step)
 
     def read_evals(self) -> list[dict]:
         if not self.jsonl.exists():
@@ -71,3 +105,6 @@ class RunLogger:
         if self._tb is not None:
             self._tb.close()
             self._tb = None
+        if self._wandb is not None:
+            self._wandb.finish()
+            self._wandb = None

@@ -13,13 +13,14 @@ from pathlib import Path
 import torch
 
 from ccdata.render import RenderSettings
-from ccfit.config import RunConfig, TaskRunConfig, flatten
+from ccfit.config import RunConfig, TaskRunConfig
 from ccfit.config_base import ConfigError, resolve_device
-from ccfit.seeding import seed_buffer
+from ccfit.config_parse import flatten
 from ccfit.io import atomic_write_json, derived_seed, seed_everything
 from ccfit.models.base import WorldModel
 from ccfit.models.registry import make_model
 from ccfit.replay import ReplayBuffer
+from ccfit.seeding import seed_buffer
 from ccfit.train.evaluate import REPLAY_TAG, Evaluator
 from ccfit.train.loop import CHECKPOINT, Trainer
 from ccfit.train.records import RunLogger
@@ -92,19 +93,27 @@ def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
                      view=view)  # fmt: skip
 
 
+NOT_IDENTITY = ("log",)
+"""config.json keys a run may change when it is resumed (where it logs, not what it learns)."""
+
+
 def check_saved_config(out: Path, resolved: dict) -> None:
-    """A run directory belongs to one config: refuse another one, write it if new."""
+    """A run directory belongs to one config: refuse another one (settings outside
+    `NOT_IDENTITY`), write it if new or if only those settings changed."""
     saved = out / CONFIG
+    new = json.loads(json.dumps(resolved))
     if saved.exists():
-        old, new = json.loads(saved.read_text()), json.loads(json.dumps(resolved))
-        if old != new:
-            a, b = flatten(old), flatten(new)
+        old = json.loads(saved.read_text())
+        a, b = ({k: v for k, v in flatten(c).items() if k.split(".")[0] not in NOT_IDENTITY}
+                for c in (old, new))  # fmt: skip
+        if a != b:
             differ = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
             raise ConfigError(f"{out} holds a run with a different config (differs in "
                               f"{', '.join(differ) or 'empty option groups'}); use another "
                               "--out or delete it")  # fmt: skip
-        return
-    atomic_write_json(saved, resolved)
+        if old == new:
+            return
+    atomic_write_json(saved, new)
 
 
 def default_out(cfg: TaskRunConfig) -> Path:
@@ -134,7 +143,7 @@ def train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, save
     source = None if resumed else saved["resolved_seed_dataset"]
     buffer = make_replay(cfg, model, task_id, task_index, source)
     check_saved_config(out, saved)
-    logger = RunLogger(out)
+    logger = RunLogger(out, cfg.log, saved)
     if not resumed:  # records of a run killed before its first checkpoint
         logger.keep(lambda r: False)
     env = make_env(task_id, render=cfg.obs == "pixels", image_size=cfg.image_size)
