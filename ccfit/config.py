@@ -41,7 +41,8 @@ class TrainConfig:
 
     PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
         "smoke": dict(steps=600, seed_steps=300, eval_interval=300, eval_episodes=1,
-                      checkpoint_interval=300, buffer_capacity=5_000),
+                      checkpoint_interval=300, buffer_capacity=5_000, compile="off",
+                      parallel="off"),
         "cpu": dict(steps=6_000, seed_steps=1_000, eval_interval=1_000, eval_episodes=5,
                     checkpoint_interval=1_000, buffer_capacity=50_000),
         "paper": dict(steps=1_000_000, seed_steps=5_000, eval_interval=10_000, eval_episodes=10,
@@ -70,8 +71,24 @@ class TrainConfig:
     torch_threads: int = 1
     """CPU threads for torch (0: torch's default). One is fastest for small models on a shared
     CPU and fixes the reduction order, which keeps runs reproducible."""
+    parallel: str = "auto"
+    """'on': evaluation runs in a worker process beside training (and a curriculum's
+    from-scratch reference in another), on cores training does not use; 'off': all in the
+    training process; 'auto': on when this process may use 2 or more cores. The records are
+    the same either way (evaluating is a function of the weights); not part of a run's
+    identity."""
+    compile: str = "auto"
+    """'off' (eager), 'on' (every hot path of the model through torch.compile) or 'auto' (the
+    hot paths measured faster compiled on this device type); see `ccfit.train.compiled`. The
+    paths compiled are recorded in config.json."""
 
     def __post_init__(self) -> None:
+        for name in ("parallel", "compile"):
+            # draccus reads `--train.parallel=on` as YAML, where on/off are booleans, and
+            # hands a str field their str(): the switch's own words again.
+            value = getattr(self, name)
+            if value in (True, False, "True", "False"):
+                setattr(self, name, "on" if value in (True, "True") else "off")
         check_types(self)
         for name in ("steps", "eval_interval", "eval_episodes", "checkpoint_interval"):
             value = getattr(self, name)
@@ -82,6 +99,10 @@ class TrainConfig:
         check(self.checkpoint_minutes >= 0, "train.checkpoint_minutes must be >= 0")
         check(self.device in DEVICES, f"train.device must be one of {DEVICES}, got "
                                       f"{self.device!r}")  # fmt: skip
+        check(self.parallel in ("auto", "on", "off"),
+              f"train.parallel must be auto, on or off, got {self.parallel!r}")  # fmt: skip
+        check(self.compile in COMPILE_SETTINGS,
+              f"train.compile must be one of {COMPILE_SETTINGS}, got {self.compile!r}")  # fmt: skip
         from ccdata.env import EPISODE_STEPS
 
         # One full episode (T+1 rows) must fit, or the buffer could never store it.
@@ -95,6 +116,8 @@ class TrainConfig:
         return cls(**{**cls.PRESETS[name], **overrides})
 
 
+COMPILE_SETTINGS: tuple[str, ...] = ("auto", "on", "off")
+"""`--train.compile` values (`ccfit.train.compiled`)."""
 WANDB_MODES: tuple[str, ...] = ("online", "offline")
 
 

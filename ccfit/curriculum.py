@@ -28,8 +28,10 @@ import dataclasses
 import fcntl
 import hashlib
 import json
+import multiprocessing as mp
 import shutil
 from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -50,13 +52,14 @@ from ccfit.io import (
     set_rng_state,
 )
 from ccfit.models.base import WorldModel
+from ccfit.train.eval_worker import parallel_on
 from ccfit.train.loop import Trainer
 from ccfit.train.records import RunLogger
 from ccfit.train.run import (
     CONFIG,
-    NOT_IDENTITY,
     build_model,
     check_saved_config,
+    identity,
     make_evaluator,
     make_replay,
     resolved_config,
@@ -88,8 +91,8 @@ StageCallback = Callable[[Stage], None]
 def scratch_config(cfg: CurriculumConfig) -> dict:
     """config.json of the from-scratch reference: the run's, less what it does not depend
     on (the method, the output directory, where the run logs)."""
-    resolved = resolved_config(cfg, cfg.suite)
-    return {k: v for k, v in resolved.items() if k not in ("method", "out", *NOT_IDENTITY)}
+    resolved = identity(resolved_config(cfg, cfg.suite))
+    return {k: v for k, v in resolved.items() if k not in ("method", "out")}
 
 
 def scratch_key(cfg: CurriculumConfig) -> str:
@@ -126,6 +129,28 @@ def run_scratch(cfg: CurriculumConfig, out: Path, progress: bool = True) -> list
             fcntl.flock(lock, fcntl.LOCK_UN)
 
 
+def _scratch_worker(cfg: CurriculumConfig, out: Path, episode_steps: int) -> None:
+    """`run_scratch` in a worker process (it sees the parent's episode length)."""
+    import ccdata.env
+
+    ccdata.env.EPISODE_STEPS = episode_steps
+    run_scratch(cfg, out, progress=False)
+
+
+def start_scratch(cfg: CurriculumConfig, out: Path) -> Future | None:
+    """The from-scratch reference trained in a worker process beside the curriculum
+    (`--train.parallel`), unless it is done already; its evaluation stays in that worker."""
+    if (out / "done.json").is_file() or not parallel_on(cfg.train.parallel):
+        return None
+    import ccdata.env
+
+    alone = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, parallel="off"))
+    pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"))
+    future = pool.submit(_scratch_worker, alone, out, ccdata.env.EPISODE_STEPS)
+    pool.shutdown(wait=False)  # the worker ends with its one job
+    return future
+
+
 class Curriculum:
     """Runs (or resumes) one continual run into `out`."""
 
@@ -146,10 +171,11 @@ class Curriculum:
         if train.torch_threads > 0:
             torch.set_num_threads(train.torch_threads)
         tasks = cfg.tasks
+        scratch_dir = (self.scratch_root / scratch_key(cfg)).resolve()
+        scratch_job = start_scratch(cfg, scratch_dir)
         model, method, stored, completed = restore(cfg, self.out, self.device)
         logger = RunLogger(self.out, cfg.log, resolved)
-        evaluator = make_evaluator(cfg, model, dict(enumerate(tasks)),
-                                   view=lambda j: method.evaluating(j, model.backbone))
+        evaluator = make_evaluator(cfg, model, dict(enumerate(tasks)), method)
         evaluator.heads.update(enumerate(stored))
         source = resolved["resolved_seed_dataset"]
         try:
@@ -184,7 +210,8 @@ class Curriculum:
         finally:
             evaluator.close()
             logger.close()
-        scratch_dir = (self.scratch_root / scratch_key(cfg)).resolve()
+        if scratch_job is not None:
+            scratch_job.result()  # raises what the worker raised
         scratch = run_scratch(cfg, scratch_dir, self.progress)
         result = M.compute_metrics(logger.read_evals(), scratch, len(tasks), train.steps)
         # Absolute: `ccfit report` may run from another working directory.

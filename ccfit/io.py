@@ -12,8 +12,10 @@ a pickle that would run code, is refused with one line instead of being executed
 
 from __future__ import annotations
 
+import contextlib
 import json
 import random
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +34,7 @@ __all__ = [
     "load_checkpoint",
     "rng_state",
     "save_figure",
+    "seeded",
     "seed_everything",
     "set_rng_state",
 ]
@@ -82,6 +85,18 @@ def derived_seed(seed: int, tag: int, index: int, task_index: int = 0) -> int:
     """A 31-bit seed for item `index` of stream `tag` (train episodes, eval layouts, ...) of a
     curriculum's task `task_index`, independent of every other (seed, tag, task, index)."""
     return int(np.random.SeedSequence([seed, tag, task_index, index]).generate_state(1)[0] >> 1)
+
+
+@contextlib.contextmanager
+def seeded(seed: int, device: torch.device | str = "cpu") -> Iterator[None]:
+    """A private torch RNG stream seeded with `seed` (the CPU's, and `device`'s when it is a
+    GPU): the caller's RNG state is as it was afterwards, so what runs inside neither depends
+    on nor changes the random numbers drawn outside."""
+    device = torch.device(device)
+    devices = [device.index or 0] if device.type == "cuda" else []
+    with torch.random.fork_rng(devices=devices):
+        torch.manual_seed(seed)
+        yield
 
 
 def rng_state(**generators: np.random.Generator | torch.Generator) -> dict:

@@ -15,11 +15,10 @@ from ccfit.analysis.episodes import (
     ABLATION_JSON,
     ABLATION_MODES,
     ABLATION_PNG,
-    _seeded,
     latent_error,
     mean_routing,
 )
-from ccfit.io import atomic_write_text, derived_seed, save_figure
+from ccfit.io import atomic_write_text, derived_seed, save_figure, seeded
 from ccfit.models.base import Routing
 from ccfit.train import EnvPool, Episode, eval_seeds, normalized_or_none, play_episodes
 
@@ -75,7 +74,7 @@ def ablate(run_dir: str | Path, episodes: int | None = None, horizon: int | None
         for name, override in ABLATION_MODES.items():
             # The same MPPI noise stream for every mode: differences come from the routing.
             with method.evaluating(comp, model.backbone), model.routing_override(override), \
-                    _seeded(derived_seed(cfg.seed, _ABLATION_TAG, 0, comp), device):  # fmt: skip
+                    seeded(derived_seed(cfg.seed, _ABLATION_TAG, 0, comp), device):  # fmt: skip
                 eps = play_episodes(pool.get(task_id, len(seeds)), model, heads,
                                     obs_mode=cfg.obs, seeds=seeds, record=True)  # fmt: skip
                 recorded = recorded or eps  # the full mixture's trajectories (first mode)

@@ -32,15 +32,6 @@ def _eval_mode(model: torch.nn.Module) -> Iterator[None]:
         model.train(was)
 
 
-@contextlib.contextmanager
-def _seeded(seed: int, device: torch.device) -> Iterator[None]:
-    """A private torch RNG stream: the caller's RNG state is untouched afterwards."""
-    devices = [device.index or 0] if device.type == "cuda" else []
-    with torch.random.fork_rng(devices=devices):
-        torch.manual_seed(seed)
-        yield
-
-
 @torch.no_grad()
 def _encode(model: Routing, ep: Episode, device: torch.device) -> torch.Tensor:
     with _eval_mode(model):

@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from ccfit.analysis.episodes import _ROUTING_TAG, ROUTING, _eval_mode, _seeded, mean_routing
-from ccfit.io import atomic_write_text, derived_seed, save_figure
+from ccfit.analysis.episodes import _ROUTING_TAG, ROUTING, _eval_mode, mean_routing
+from ccfit.io import atomic_write_text, derived_seed, save_figure, seeded
 from ccfit.models.base import Routing
 from ccfit.train import CONFIG, EnvPool, eval_seeds, normalized_or_none, play_episodes
 
@@ -46,7 +46,7 @@ def routing_record(model: Routing, stored_heads: list, task_ids: list[str], *, s
             seeds = eval_seeds(seed, i, episodes)
             try:
                 ctx = view(i) if view is not None else contextlib.nullcontext()
-                with ctx, _seeded(derived_seed(seed, _ROUTING_TAG, stage, i), device):
+                with ctx, seeded(derived_seed(seed, _ROUTING_TAG, stage, i), device):
                     eps = play_episodes(pool.get(task_ids[i], len(seeds)), model, heads,
                                         obs_mode=obs_mode, seeds=seeds, record=True)  # fmt: skip
                     weights = mean_routing(model, eps, routed, device)

@@ -148,6 +148,12 @@ class WorldModel(nn.Module, ABC):
     backbone: nn.Module
     capabilities: ClassVar[frozenset[str]] = frozenset()
     """What the model offers beyond the interface ('experts', 'routing'; see the module doc)."""
+    hot_paths: ClassVar[tuple[str, ...]] = ()
+    """Methods that dominate a run's time: what `--train.compile=on` compiles (the eager
+    methods stay the reference the tests compare the compiled ones with)."""
+    compile_pays: ClassVar[dict[str, tuple[str, ...]]] = {}
+    """Per device type, the hot paths measured faster compiled (`bench/update_rate.py`):
+    what `--train.compile=auto` compiles. A device type not listed was never measured."""
 
     # ------------------------------------------------------------------ structure
     @abstractmethod

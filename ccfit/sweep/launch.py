@@ -94,12 +94,20 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
     submissions.append(entry)
     jobs: dict[str, dict] = entry["jobs"]
     plugins, code = list(sweep.grid.plugins), sweep.code
+
+    def alone(config: dict) -> dict:
+        # Jobs side by side already fill the cores: none spawns workers of its own
+        # (`train.parallel` changes how a run spreads over processes, not what it computes).
+        if max_parallel < 2:
+            return config
+        return {**config, "train": {**config.get("train", {}), "parallel": "off"}}
+
     calls: dict[str, tuple] = {}
     for key in work.scratch:
-        calls[f"scratch:{key}"] = (ScratchJob(), sweep.scratch_configs()[key],
+        calls[f"scratch:{key}"] = (ScratchJob(), alone(sweep.scratch_configs()[key]),
                                    str(sweep.scratch_dir(key)), plugins, code, threads)
     for run in work.runs:
-        calls[f"run:{run.name}"] = (RunJob(), run.config, str(sweep.run_dir(run)),
+        calls[f"run:{run.name}"] = (RunJob(), alone(run.config), str(sweep.run_dir(run)),
                                     str(sweep.root / SCRATCH), run.scratch_key, plugins, code,
                                     threads)  # fmt: skip
     for name in calls:

@@ -7,7 +7,10 @@ plays the same episodes batched as one by one (tested); MPPI's sampling noise is
 batch, so a stochastic planner's episodes are reproducible for a given seed and batch, not
 equal to one-by-one play. `Evaluator` is the one place evaluation happens: the loop asks it
 for the task being trained and, in a curriculum, every task seen so far (with its stored
-heads, inside the continual method's `evaluating` view).
+heads, inside the continual method's `evaluating` view). Each task's evaluation at a global
+step draws its random numbers from a stream of its own (`EVAL_NOISE_TAG`), so evaluating
+is a function of the weights alone: it never shifts the random numbers training draws, and
+the same weights evaluate the same anywhere.
 """
 
 from __future__ import annotations
@@ -21,11 +24,11 @@ import torch
 from torch import nn
 
 from ccdata.scoring import GAMMA, discounted_return, normalize
-from ccfit.io import derived_seed
+from ccfit.io import derived_seed, seeded
 from ccfit.models.base import WorldModel, select_state
 from ccfit.obs import model_input, obs_to_arrays
 
-TRAIN_TAG, EVAL_TAG, ACTION_TAG, REPLAY_TAG = 0, 1, 2, 3
+TRAIN_TAG, EVAL_TAG, ACTION_TAG, REPLAY_TAG, EVAL_NOISE_TAG = 0, 1, 2, 3, 4
 """Independent seed streams of a run (see `ccfit.io.derived_seed`)."""
 
 
@@ -158,7 +161,9 @@ def eval_record(task_id: str, task_index: int, stage: int, global_step: int,
 
 class Evaluator:
     """Evaluation of a run: the tasks that can be evaluated (their heads), their fixed
-    layouts, and the environments they play on.
+    layouts, and the environments they play on. Requests are `submit`ted and their records
+    collected with `results`, in submission order; here they are computed at once, in the
+    calling process (`ccfit.train.eval_worker.AsyncEvaluator` computes them beside training).
 
     model: the world model; task_ids: curriculum index -> task id of the tasks it may
     evaluate; seed, obs_mode, image_size, episodes: the run's. view: task index -> the
@@ -175,6 +180,24 @@ class Evaluator:
         self.heads: dict[int, nn.Module] = {}
         """Heads each evaluable task is evaluated with (stored heads, and the current ones)."""
         self.envs = EnvPool(obs_mode, image_size)
+        self._done: list[dict] = []
+
+    def submit(self, tasks: Sequence[int], *, stage: int, global_step: int,
+               task_step: int | None) -> None:  # fmt: skip
+        """Evaluate `tasks` with the weights as they are now; see `evaluate`."""
+        self._done += self.evaluate(tasks, stage=stage, global_step=global_step,
+                                    task_step=task_step)  # fmt: skip
+
+    def results(self, until: int | None = -1) -> list[dict]:
+        """Records of submitted requests not returned yet, in submission order, after waiting
+        for the requests submitted before global step `until` (None: all; -1: none)."""
+        done, self._done = self._done, []
+        return done
+
+    @property
+    def pending(self) -> list[dict]:
+        """Submitted requests whose records are not computed yet (none here)."""
+        return []
 
     def evaluate(self, tasks: Sequence[int], *, stage: int, global_step: int,
                  task_step: int | None) -> list[dict]:  # fmt: skip
@@ -188,7 +211,9 @@ class Evaluator:
             for i in tasks:
                 seeds = eval_seeds(self.seed, i, self.episodes)
                 envs = self.envs.get(self.task_ids[i], len(seeds))
-                with self.view(i) if self.view is not None else nullcontext():
+                noise = derived_seed(self.seed, EVAL_NOISE_TAG, global_step, i)
+                with self.view(i) if self.view is not None else nullcontext(), \
+                        seeded(noise, model.device):  # fmt: skip
                     eps = play_episodes(envs, model, self.heads[i], obs_mode=self.obs_mode,
                                         seeds=seeds)  # fmt: skip
                 records.append(eval_record(self.task_ids[i], i, stage, global_step,

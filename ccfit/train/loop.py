@@ -123,7 +123,9 @@ class Trainer:
             while self.task_step < cfg.steps:
                 if self.task_step % cfg.eval_interval == 0 and self.last_eval != self.task_step:
                     self._cut_episode()
-                    rec = self._evaluate()
+                    self._evaluate()
+                if self._collect() and self._own_records():
+                    rec = self._own_records()[-1]
                     bar.set_postfix(ret=f"{rec['discounted_return']:.1f}",
                                     succ=f"{rec['success_rate']:.2f}")  # fmt: skip
                 if (self.task_step % cfg.checkpoint_interval == 0 and self.task_step > 0
@@ -153,13 +155,13 @@ class Trainer:
                 self._evaluate()
                 self.finished = True
                 self._checkpoint()
+            self._collect(until=None)
         finally:
             bar.close()
-        return self.own_record()
+        return self._own_records()[-1]
 
-    def own_record(self) -> dict:
-        """This task's last evaluation record."""
-        return next(r for r in reversed(self.evals) if r["task_index"] == self.task_index)
+    def _own_records(self) -> list[dict]:
+        return [r for r in self.evals if r["task_index"] == self.task_index]
 
     def _finish_task(self) -> None:
         """The method closes the task: `after_task` on this task's replay, then the extra
@@ -180,6 +182,9 @@ class Trainer:
     def _checkpoint(self) -> None:
         self.last_checkpoint = self.task_step
         self._last_save = time.monotonic()
+        # Evaluations submitted at this step may still be running (their weights are the
+        # checkpoint's, so a resumed run submits them again); earlier ones are waited for.
+        self._collect(until=self.global_step)
         if self.run_dir is not None:
             atomic_torch_save(self.state_dict(), self.run_dir / CHECKPOINT)
 
@@ -261,20 +266,29 @@ class Trainer:
             self.logger.log_scalars(dict(zip(keys, means, strict=True)), self.global_step)
         self._train_logs.clear()
 
-    def _evaluate(self) -> dict:
+    def _evaluate(self) -> None:
         """Evaluate at this step: at a task's first step only the task itself (every earlier
         task was evaluated at this global step when the previous task ended), else every task
         the evaluator holds heads for."""
         tasks = [self.task_index] if self.task_step == 0 else sorted(self.evaluator.heads)
-        records = self.evaluator.evaluate(tasks, stage=self.task_index,
-                                          global_step=self.global_step,
-                                          task_step=self.task_step)  # fmt: skip
+        self._submit({"tasks": tasks, "stage": self.task_index, "global_step": self.global_step,
+                      "task_step": self.task_step})  # fmt: skip
         self.last_eval = self.task_step
+
+    def _submit(self, request: dict) -> None:
+        self.evaluator.submit(request["tasks"], stage=request["stage"],
+                              global_step=request["global_step"],
+                              task_step=request["task_step"])  # fmt: skip
+
+    def _collect(self, until: int | None = -1) -> int:
+        """Log the evaluation records that are ready, in order; `until`: first wait for every
+        request submitted before that global step (None: for all). Returns how many."""
+        records = self.evaluator.results(until=until)
         for rec in records:
             self.evals.append(rec)
             if self.logger is not None:
                 self.logger.log_eval(rec)
-        return self.own_record()
+        return len(records)
 
     # ------------------------------------------------------------------------- checkpoints
 
@@ -297,6 +311,7 @@ class Trainer:
             "last_checkpoint": self.last_checkpoint,
             "finished": self.finished,
             "evals": self.evals,
+            "pending_evals": self.evaluator.pending,
             "model": self.model.state_dict(),
             "heads": self.heads.state_dict(),
             "optim": self.optim.state_dict(),
@@ -328,3 +343,5 @@ class Trainer:
         self.evals = list(state["evals"])
         self._episode = None
         set_rng_state(state["rng"], actions=self.action_rng)
+        for request in state["pending_evals"]:  # with the weights they were submitted with
+            self._submit(request)

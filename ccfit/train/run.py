@@ -18,9 +18,11 @@ from ccfit.config_base import ConfigError, resolve_device
 from ccfit.config_parse import flatten
 from ccfit.io import atomic_write_json, derived_seed, seed_everything
 from ccfit.models.base import WorldModel
-from ccfit.models.registry import make_model
+from ccfit.models.registry import make_model, model_class
 from ccfit.replay import ReplayBuffer
 from ccfit.seeding import seed_buffer
+from ccfit.train.compiled import compile_hot_paths, compiled_paths
+from ccfit.train.eval_worker import AsyncEvaluator, WorkerSpec, has_view, parallel_on
 from ccfit.train.evaluate import REPLAY_TAG, Evaluator
 from ccfit.train.loop import CHECKPOINT, Trainer
 from ccfit.train.records import RunLogger
@@ -35,23 +37,29 @@ def render_settings(cfg: RunConfig) -> RenderSettings:
 
 def resolved_config(cfg: RunConfig, suite: str | None) -> dict:
     """config.json of a run: the config, plus what it resolved to where it runs: the seed
-    dataset ('auto'), the device ('auto') and the render settings."""
+    dataset ('auto'), the device ('auto'), the compiled methods and the render settings."""
+    device = resolve_device(cfg.train.device)
     return {
         **cfg.to_dict(),
         "resolved_seed_dataset": dataset_source(cfg, suite),
-        "resolved_device": str(resolve_device(cfg.train.device)),
+        "resolved_device": str(device),
+        "resolved_compile": compiled_paths(model_class(cfg.model.type), cfg.train.compile,
+                                           device),
         "render": render_settings(cfg).to_dict(),
     }
 
 
 def build_model(cfg: RunConfig, device: torch.device) -> WorldModel:
-    """The run's world model, with its frozen pretrained encoder when `cfg.encoder` names one."""
+    """The run's world model, with its frozen pretrained encoder when `cfg.encoder` names one,
+    and its hot paths compiled as `cfg.train.compile` says."""
     encoder = None
     if cfg.encoder_path is not None:
         from ccfit.models.encoders import load_frozen_encoder
 
         encoder, _ = load_frozen_encoder(cfg.encoder_path, device=device)
-    return make_model(cfg.model, device, encoder=encoder)
+    model = make_model(cfg.model, device, encoder=encoder)
+    compile_hot_paths(model, cfg.train.compile)
+    return model
 
 
 def suite_of(task_id: str) -> str | None:
@@ -87,14 +95,41 @@ def make_replay(cfg: RunConfig, model: WorldModel, task_id: str, task_index: int
 
 
 def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
-                   view=None) -> Evaluator:  # fmt: skip
+                   method=None) -> Evaluator | AsyncEvaluator:  # fmt: skip
+    """The run's evaluator: in this process, or in a worker beside training
+    (`--train.parallel`); `method`: the continual method, whose view tasks are evaluated in."""
+    if parallel_on(cfg.train.parallel):
+        import ccdata.env
+
+        spec = WorkerSpec(
+            model=cfg.model, encoder_path=cfg.encoder_path, compile=cfg.train.compile,
+            device=str(model.device), method=cfg.method if has_view(method) else None,
+            num_tasks=len(getattr(cfg, "tasks", task_ids)), task_ids=task_ids, seed=cfg.seed,
+            obs_mode=cfg.obs, image_size=cfg.image_size, episodes=cfg.train.eval_episodes,
+            torch_threads=cfg.train.torch_threads, episode_steps=ccdata.env.EPISODE_STEPS,
+        )  # fmt: skip
+        return AsyncEvaluator(spec, model, method)
+    view = (lambda i: method.evaluating(i, model.backbone)) if method is not None else None
     return Evaluator(model, task_ids, seed=cfg.seed, obs_mode=cfg.obs,
                      image_size=cfg.image_size, episodes=cfg.train.eval_episodes,
                      view=view)  # fmt: skip
 
 
-NOT_IDENTITY = ("log",)
-"""config.json keys a run may change when it is resumed (where it logs, not what it learns)."""
+NOT_IDENTITY = ("log", "train.parallel")
+"""config.json settings a run may change when it is resumed (where it logs, how it spreads
+over processes: not what it computes)."""
+
+
+def identity(resolved: dict) -> dict:
+    """`resolved` (config.json) without the `NOT_IDENTITY` settings."""
+    out = json.loads(json.dumps(resolved))
+    for path in NOT_IDENTITY:
+        *parents, leaf = path.split(".")
+        node = out
+        for key in parents:
+            node = node.get(key, {})
+        node.pop(leaf, None)
+    return out
 
 
 def check_saved_config(out: Path, resolved: dict) -> None:
@@ -104,8 +139,7 @@ def check_saved_config(out: Path, resolved: dict) -> None:
     new = json.loads(json.dumps(resolved))
     if saved.exists():
         old = json.loads(saved.read_text())
-        a, b = ({k: v for k, v in flatten(c).items() if k.split(".")[0] not in NOT_IDENTITY}
-                for c in (old, new))  # fmt: skip
+        a, b = flatten(identity(old)), flatten(identity(new))
         if a != b:
             differ = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
             raise ConfigError(f"{out} holds a run with a different config (differs in "

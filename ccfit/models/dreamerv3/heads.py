@@ -10,6 +10,7 @@ from torch import nn
 from ccfit.models.dreamerv3.config import DreamerV3Config
 from ccfit.models.dreamerv3.math import ReturnNormalizer, TwoHot
 from ccfit.models.dreamerv3.networks import Actor, Head
+from ccfit.models.layers import polyak
 
 
 class DreamerV3Heads(nn.Module):
@@ -39,8 +40,6 @@ class DreamerV3Heads(nn.Module):
         with torch.no_grad():
             return self.twohot.logits_to_scalar(self.slow_critic(feat))
 
-    @torch.no_grad()
     def update_slow_critic(self, fraction: float) -> None:
         """slow <- (1 - fraction) slow + fraction critic."""
-        for slow, fast in zip(self.slow_critic.parameters(), self.critic.parameters(), strict=True):
-            slow.lerp_(fast, fraction)
+        polyak(list(self.slow_critic.parameters()), list(self.critic.parameters()), fraction)

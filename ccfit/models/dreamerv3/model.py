@@ -34,6 +34,7 @@ from ccfit.models.dreamerv3.heads import DreamerV3Heads
 from ccfit.models.dreamerv3.math import kl_loss
 from ccfit.models.dreamerv3.networks import Decoder, Encoder, bernoulli_nll, init_weights
 from ccfit.models.dreamerv3.rssm import RSSM
+from ccfit.models.layers import adam
 from ccfit.models.registry import register_model
 
 
@@ -87,6 +88,11 @@ def _detached(logs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 class DreamerV3(WorldModel):
     """DreamerV3, the authors' 2023 recipe (2025 changes as config options)."""
 
+    hot_paths = ("loss", "head_update", "act")
+    # bench/update_rate.py, cpu preset, 1 thread: update 86.5 -> 72.3 ms with loss and
+    # head_update compiled; acting costs ~0.3 ms either way.
+    compile_pays = {"cpu": ("loss", "head_update")}
+
     def __init__(
         self, cfg: DreamerV3Config, device: torch.device | str | None = None, encoder=None
     ) -> None:
@@ -110,13 +116,13 @@ class DreamerV3(WorldModel):
     def world_model_optimizer(self, heads: DreamerV3Heads) -> torch.optim.Optimizer:
         params = [p for p in self.backbone.parameters() if p.requires_grad]
         params += [*heads.reward.parameters(), *heads.cont.parameters()]
-        return torch.optim.Adam(params, lr=self.cfg.model_lr, eps=self.cfg.model_eps)
+        return adam(params, lr=self.cfg.model_lr, eps=self.cfg.model_eps)
 
     def head_optimizers(self, heads: DreamerV3Heads) -> dict[str, torch.optim.Optimizer]:
         cfg = self.cfg
         return {
-            "actor": torch.optim.Adam(heads.actor.parameters(), lr=cfg.actor_lr, eps=cfg.ac_eps),
-            "critic": torch.optim.Adam(heads.critic.parameters(), lr=cfg.critic_lr, eps=cfg.ac_eps),
+            "actor": adam(heads.actor.parameters(), lr=cfg.actor_lr, eps=cfg.ac_eps),
+            "critic": adam(heads.critic.parameters(), lr=cfg.critic_lr, eps=cfg.ac_eps),
         }
 
     # ------------------------------------------------------------------ world model

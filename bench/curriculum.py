@@ -1,0 +1,92 @@
+"""Wall and CPU time of whole curricula, this checkout against another version of the code,
+back to back on the same machine. Prints JSON.
+
+    python bench/curriculum.py --baseline ../baseline --models tdmpc2,dreamerv3 \\
+        --out ../runs/bench-curriculum
+
+Each (model, version) runs `ccfit run --suite SUITE --preset PRESET --obs state --seed SEED
+--method.type=METHOD` in a fresh interpreter whose `ccfit` package is the version's (its source
+tree first on PYTHONPATH), from an empty run directory (so the from-scratch reference is
+trained too), versions alternating per model. Wall time is the command's; CPU time is what it
+and its child processes (evaluation, from-scratch workers) used. Beside the times, each run's
+end-of-task scores, BWT and FWT (the learning must not change beyond seed noise).
+
+`--baseline` is a source tree of another commit, e.g. `git worktree add ../baseline 4e65a89`.
+Run nothing else meanwhile (`../shared/tools/anchors/wait_quiet.sh` waits for that).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parents[1]
+
+
+def run_one(src: Path, out: Path, args, model: str) -> dict:
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    cmd = [sys.executable, "-m", "ccfit.cli", "run", "--suite", args.suite, "--preset",
+           args.preset, "--obs", "state", "--seed", str(args.seed),
+           f"--model.type={model}", f"--method.type={args.method}", "--out", str(out / "run"),
+           "--scratch-root", str(out / "scratch"), "--quiet", *args.extra]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(src), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    start = time.perf_counter()
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{src}: {' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
+    metrics = json.loads((out / "run" / "metrics.json").read_text())
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return {
+        "wall_s": wall, "cpu_s": cpu, "cores_busy": cpu / wall,
+        "end_of_task": metrics["end_of_task"], "bwt": metrics["bwt"], "fwt": metrics["fwt"],
+    }  # fmt: skip
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--baseline", default=None,
+                        help="source tree of the other version (none: time this one only)")
+    parser.add_argument("--models", default="tdmpc2,dreamerv3")
+    parser.add_argument("--suite", default="Reach")
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--method", default="ft")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default="/tmp/ccfit-bench-curriculum",
+                        help="scratch folder for the runs")
+    parser.add_argument("--extra", nargs=argparse.REMAINDER, default=[],
+                        help="more `ccfit run` options for both versions (last)")
+    args = parser.parse_args()
+    versions = {"current": HERE}
+    if args.baseline:
+        versions = {"baseline": Path(args.baseline).resolve(), **versions}
+    results: dict[str, dict] = {}
+    for model in args.models.split(","):
+        row = {}
+        for name, src in versions.items():
+            row[name] = run_one(src, Path(args.out) / f"{model}-{name}", args, model)
+            print(json.dumps({model: {name: row[name]}}), file=sys.stderr, flush=True)
+        if "baseline" in row:
+            base, cur = row["baseline"], row["current"]
+            row["wall_ratio_baseline_over_current"] = base["wall_s"] / cur["wall_s"]
+            row["cpu_ratio_baseline_over_current"] = base["cpu_s"] / cur["cpu_s"]
+        results[model] = row
+    print(json.dumps({
+        "suite": args.suite, "preset": args.preset, "method": args.method, "seed": args.seed,
+        "obs": "state", "cpu_count": os.cpu_count(), "baseline": args.baseline,
+        "extra": args.extra, "results": results,
+    }, indent=2))  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

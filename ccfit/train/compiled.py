@@ -1,0 +1,39 @@
+"""`--train.compile`: a model's hot paths (`WorldModel.hot_paths`) through `torch.compile`.
+
+    off   eager everywhere (the reference)
+    on    every hot path compiled
+    auto  the hot paths measured to pay on this device type (`WorldModel.compile_pays`);
+          nothing on a device type never measured
+
+The compiled functions are the model's own methods, traced by Dynamo and fused by Inductor;
+nothing is rewritten by hand. Random numbers inside compiled code come from torch's eager
+generators (`fallback_random`), so compiled and eager draw the same numbers for a seed and
+compute the same losses up to floating-point reassociation (tested).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ccfit.models.base import WorldModel
+
+
+def compiled_paths(model_class: type[WorldModel], setting: str, device: torch.device) -> list[str]:
+    """The methods `setting` compiles for `model_class` on `device` (what a run records)."""
+    if setting == "off":
+        return []
+    if setting == "on":
+        return list(model_class.hot_paths)
+    return list(model_class.compile_pays.get(torch.device(device).type, ()))
+
+
+def compile_hot_paths(model: WorldModel, setting: str) -> list[str]:
+    """Replace `model`'s hot methods by compiled ones (on the instance); returns their names."""
+    names = compiled_paths(type(model), setting, model.device)
+    if names:
+        import torch._inductor.config
+
+        torch._inductor.config.fallback_random = True
+    for name in names:
+        setattr(model, name, torch.compile(getattr(model, name)))
+    return names

@@ -1,0 +1,74 @@
+"""`--train.compile`: a model's hot paths compiled compute what the eager methods compute.
+
+For every registered model at its smoke size: the same seed gives the same loss, the same
+parameters after an update (loss, backward, optimiser step, `head_update`) and the same
+actions, compiled or eager, within floating-point tolerance (Inductor reassociates sums).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from ccfit.models import make_model, model_names
+from ccfit.models.registry import config_class, model_class
+from ccfit.train.compiled import compile_hot_paths, compiled_paths
+
+try:
+    from replay_data import random_buffer
+except ImportError:  # tests/ imported as a package
+    from tests.replay_data import random_buffer
+
+
+def _run(name: str, setting: str) -> dict:
+    cfg = config_class(name).preset("smoke")
+    if hasattr(cfg, "num_elites"):
+        # Every sample an elite: the plan is then a continuous function of the values, not a
+        # top-k choice that float reassociation can flip.
+        cfg = config_class(name).preset("smoke", num_elites=cfg.num_samples)
+    torch.manual_seed(0)
+    model = make_model(cfg, "cpu")
+    model.begin_task(0, 100)
+    heads = model.new_heads()
+    assert compile_hot_paths(model, setting) == compiled_paths(type(model), setting,
+                                                               torch.device("cpu"))
+    opt, head_opts = model.world_model_optimizer(heads), model.head_optimizers(heads)
+    batch = random_buffer(cfg, seed=1, steps=(10, 20)).sample(cfg.batch_size, cfg.seq_len)
+    torch.manual_seed(1)
+    losses = []
+    for _ in range(2):
+        out = model.loss(batch, heads)
+        losses.append(float(out.total.detach()))
+        opt.zero_grad(set_to_none=True)
+        out.total.backward()
+        opt.step()
+        model.head_update(batch, heads, out, head_opts)
+    obs = {k: v[0, :3] for k, v in batch.obs.items()}
+    torch.manual_seed(2)
+    with torch.no_grad():
+        action, _ = model.act(obs, heads, model.initial_state(heads, 3), eval_mode=True)
+    params = {k: v.detach().clone() for k, v in [*model.state_dict().items(),
+                                                 *heads.state_dict().items()]}  # fmt: skip
+    return {"losses": losses, "action": action, "params": params}
+
+
+@pytest.mark.parametrize("name", model_names())
+def test_compiled_hot_paths_compute_what_the_eager_ones_do(name):
+    if not model_class(name).hot_paths:
+        pytest.skip(f"{name} declares no hot path")
+    eager, compiled = _run(name, "off"), _run(name, "on")
+    assert compiled["losses"] == pytest.approx(eager["losses"], rel=1e-4, abs=1e-5)
+    np.testing.assert_allclose(compiled["action"], eager["action"], rtol=1e-3, atol=1e-4)
+    for k, v in eager["params"].items():
+        torch.testing.assert_close(compiled["params"][k], v, rtol=1e-3, atol=1e-4, msg=k)
+
+
+def test_auto_compiles_only_what_was_measured_to_pay():
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    for name in model_names():
+        cls = model_class(name)
+        assert compiled_paths(cls, "off", cpu) == []
+        assert compiled_paths(cls, "on", cpu) == list(cls.hot_paths)
+        assert set(compiled_paths(cls, "auto", cpu)) <= set(cls.hot_paths)
+        assert compiled_paths(cls, "auto", cuda) == list(cls.compile_pays.get("cuda", ()))

@@ -1,0 +1,86 @@
+"""`--train.parallel=on`: evaluation in a worker process beside training and the from-scratch
+reference in another give a run the same records and metrics as doing everything in the
+training process, and a run killed with evaluations in flight resumes to the same result."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from ccfit.config import CurriculumConfig
+from ccfit.config_parse import resolve
+from ccfit.curriculum import Curriculum
+
+try:
+    from short_episodes import ccfit_command, shorter_episodes
+except ImportError:  # tests/ imported as a package
+    from tests.short_episodes import ccfit_command, shorter_episodes
+
+TRAIN = {"steps": 100, "seed_steps": 50, "eval_interval": 50, "checkpoint_interval": 50,
+         "eval_episodes": 2}  # fmt: skip
+
+
+def _config(parallel: str, method: str = "packnet") -> CurriculumConfig:
+    options = {"packnet": {"retrain_steps": 10}}.get(method, {})
+    return resolve(CurriculumConfig, {
+        "suite": "Grasp", "preset": "smoke", "seed_dataset": None,
+        "train": {**TRAIN, "parallel": parallel}, "method": {"type": method, **options},
+    })  # fmt: skip
+
+
+def _outputs(run: Path) -> tuple[str, dict]:
+    metrics = json.loads((run / "metrics.json").read_text())
+    metrics.pop("scratch_dir")
+    return (run / "metrics.jsonl").read_text(), metrics
+
+
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory):
+    root = tmp_path_factory.mktemp("serial")
+    torch.set_num_threads(1)
+    with shorter_episodes():
+        Curriculum(_config("off"), root / "run", root / "scratch", progress=False).run()
+    return root
+
+
+def test_parallel_run_equals_the_serial_one(serial, tmp_path):
+    torch.set_num_threads(1)
+    with shorter_episodes():
+        Curriculum(_config("on"), tmp_path / "run", tmp_path / "scratch", progress=False).run()
+    assert _outputs(tmp_path / "run") == _outputs(serial / "run")
+    (ours,), (theirs,) = (list((r / "scratch").glob("*/done.json")) for r in (tmp_path, serial))
+    assert ours.read_text() == theirs.read_text()
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert saved["train"]["parallel"] == "on"
+
+
+def test_killed_parallel_run_resumes_to_the_serial_result(serial, tmp_path):
+    out = tmp_path / "run"
+    argv = ["run", "--suite", "Grasp", "--preset", "smoke", "--seed_dataset", "null",
+            "--method.type=packnet", "--method.retrain_steps=10", "--out", str(out),
+            "--scratch-root", str(tmp_path / "scratch"), "--quiet", "--train.parallel=on"]
+    argv += [f"--train.{k}={v}" for k, v in TRAIN.items()]
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    ckpt = out / "tasks" / "1-place-cube" / "checkpoint.pt"
+    proc = subprocess.Popen(ccfit_command(argv), env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 300
+        while not ckpt.exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert proc.poll() is None, proc.stderr.read()[-2000:]
+        assert ckpt.exists(), "no checkpoint in 300 s"
+        proc.kill()  # SIGKILL: the evaluation worker of the run ends with it
+    finally:
+        proc.kill()
+        proc.communicate()
+    done = subprocess.run(ccfit_command(argv), env=env, capture_output=True, text=True,
+                          timeout=600)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert _outputs(out) == _outputs(serial / "run")
