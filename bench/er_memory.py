@@ -54,7 +54,8 @@ def measure(mode: str, window: int, image_size: int, episodes: int) -> dict:
     kept = er.memory.num_transitions
     chunks = nbytes(er.memory.state_dict()) / kept
     state = er.memory.state_dict()
-    obs_row = sum(v.numel() // v.shape[0] * v.element_size() for v in state["obs"].values())
+    obs_row = sum(v.numel() // v.shape[0] * v.element_size() for k, v in state["rows"].items()
+                  if k.startswith("obs."))  # fmt: skip
     # action (4), reward, terminated: float32; is_first: bool; task: int64
     row = obs_row + (4 + 1 + 1) * 4 + 1 + 8
     return {

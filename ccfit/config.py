@@ -77,13 +77,18 @@ class TrainConfig:
     training process; 'auto': on when this process may use 2 or more cores. The records are
     the same either way (evaluating is a function of the weights); not part of a run's
     identity."""
+    autocast: str = "off"
+    """'bf16': the model's updates and acting run under bfloat16 autocast (matmuls in bf16,
+    parameters, optimiser state and reductions in float32); 'off': float32. fp16 is not
+    offered: `head_update` steps its own optimisers inside the model, where a loss scaler
+    cannot reach, and bf16 needs none. Changes the numbers (recorded in config.json)."""
     compile: str = "auto"
     """'off' (eager), 'on' (every hot path of the model through torch.compile) or 'auto' (the
     hot paths measured faster compiled on this device type); see `ccfit.train.compiled`. The
     paths compiled are recorded in config.json."""
 
     def __post_init__(self) -> None:
-        for name in ("parallel", "compile"):
+        for name in ("parallel", "compile", "autocast"):
             # draccus reads `--train.parallel=on` as YAML, where on/off are booleans, and
             # hands a str field their str(): the switch's own words again.
             value = getattr(self, name)
@@ -101,6 +106,8 @@ class TrainConfig:
                                       f"{self.device!r}")  # fmt: skip
         check(self.parallel in ("auto", "on", "off"),
               f"train.parallel must be auto, on or off, got {self.parallel!r}")  # fmt: skip
+        check(self.autocast in ("off", "bf16"),
+              f"train.autocast must be 'off' or 'bf16', got {self.autocast!r}")  # fmt: skip
         check(self.compile in COMPILE_SETTINGS,
               f"train.compile must be one of {COMPILE_SETTINGS}, got {self.compile!r}")  # fmt: skip
         from ccdata.env import EPISODE_STEPS

@@ -52,9 +52,11 @@ from ccfit.io import (
     set_rng_state,
 )
 from ccfit.models.base import WorldModel
+from ccfit.replay_store import ROWS_DIR
 from ccfit.train.eval_worker import parallel_on
 from ccfit.train.loop import Trainer
 from ccfit.train.records import RunLogger
+from ccfit.train.resources import check_disk, plan_replay
 from ccfit.train.run import (
     CONFIG,
     build_model,
@@ -124,6 +126,7 @@ def run_scratch(cfg: CurriculumConfig, out: Path, progress: bool = True) -> list
                                saved=scratch_config(cfg), progress=progress)  # fmt: skip
             atomic_write_json(done, evals)
             (out / "checkpoint.pt").unlink(missing_ok=True)
+            shutil.rmtree(out / ROWS_DIR, ignore_errors=True)
             return evals
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
@@ -165,15 +168,17 @@ class Curriculum:
 
     def run(self) -> dict:
         cfg, train = self.cfg, self.cfg.train
-        self.out.mkdir(parents=True, exist_ok=True)
         resolved = resolved_config(cfg, cfg.suite)
-        check_saved_config(self.out, resolved)
         if train.torch_threads > 0:
             torch.set_num_threads(train.torch_threads)
         tasks = cfg.tasks
+        model, method, stored, completed = restore(cfg, self.out, self.device)
+        plan = plan_replay(cfg, model)  # what does not fit fails here, before anything runs
+        check_disk(plan, self.out)
+        self.out.mkdir(parents=True, exist_ok=True)
+        check_saved_config(self.out, resolved)
         scratch_dir = (self.scratch_root / scratch_key(cfg)).resolve()
         scratch_job = start_scratch(cfg, scratch_dir)
-        model, method, stored, completed = restore(cfg, self.out, self.device)
         logger = RunLogger(self.out, cfg.log, resolved)
         evaluator = make_evaluator(cfg, model, dict(enumerate(tasks)), method)
         evaluator.heads.update(enumerate(stored))
@@ -187,7 +192,7 @@ class Curriculum:
                 model.begin_task(i, train.steps)
                 method.before_task(i, model.backbone)
                 heads = model.new_heads()
-                buffer = make_replay(cfg, model, tasks[i], i, None if resumed else source)
+                buffer = make_replay(cfg, model, tasks[i], i, None if resumed else source, plan)
                 env = make_env(tasks[i], render=cfg.obs == "pixels", image_size=cfg.image_size)
                 trainer = Trainer(
                     env=env, model=model, heads=heads, buffer=buffer, evaluator=evaluator,

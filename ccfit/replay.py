@@ -43,6 +43,12 @@ class ReplayBuffer:
     obs_transform: applied to each episode's observations (tensors (T+1, ...)) in
         `add_episode` before they are stored, e.g. `WorldModel.replay_obs`, which swaps a
         frozen encoder's inputs for its latents.
+    storage: where the rows live and batches are drawn (a GPU when replay fits in its memory:
+        batches then never cross the bus); pin: page-locked host memory, for batches copied to
+        a GPU without blocking.
+
+    A bounded buffer allocates its whole capacity at its first episode (`torch.empty`: on the
+    CPU the pages are only committed when rows are written), so it never grows by copying.
     """
 
     def __init__(
@@ -50,11 +56,14 @@ class ReplayBuffer:
         capacity: int | None,
         seed: int = 0,
         obs_transform: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]] | None = None,
+        storage: torch.device | str = "cpu",
+        pin: bool = False,
     ) -> None:
         if capacity is not None and capacity < 2:
             raise ValueError(f"capacity must be >= 2 rows or None, got {capacity}")
         self.capacity = None if capacity is None else int(capacity)
         self.obs_transform = obs_transform
+        self.storage, self.pin = torch.device(storage), bool(pin)
         self.generator = torch.Generator().manual_seed(int(seed))
         self._obs: dict[str, torch.Tensor] = {}
         self._action = torch.empty(0, 0)
@@ -151,13 +160,13 @@ class ReplayBuffer:
         start = self._written
         cap = self.capacity
         self._grow(start + n if cap is None else min(start + n, cap))
-        idx = self._physical(torch.arange(start, start + n))
+        idx = self._physical(torch.arange(start, start + n)).to(self.storage)
         for k, v in obs.items():
-            self._obs[k][idx] = v
-        self._action[idx] = action
-        self._reward[idx] = reward
-        self._term[idx] = term
-        self._first[idx] = first
+            self._obs[k][idx] = v.to(self.storage)
+        self._action[idx] = action.to(self.storage)
+        self._reward[idx] = reward.to(self.storage)
+        self._term[idx] = term.to(self.storage)
+        self._first[idx] = first.to(self.storage)
         self._task[idx] = task
         self._written += n
         for rows in episode_rows:
@@ -167,14 +176,17 @@ class ReplayBuffer:
         while self._episodes and sum(self._episodes[0][:2]) <= oldest:
             self._episodes.popleft()
         if oldest > 0:  # the remainder of a partly overwritten episode starts here
-            self._first[self._physical(torch.tensor([oldest]))] = True
+            self._first[self._physical(torch.tensor([oldest])).to(self.storage)] = True
         self._cache.clear()
 
     def _check_layout(self, obs: dict[str, torch.Tensor], action: torch.Tensor) -> None:
         if not self._obs:
             for k, v in obs.items():
-                self._obs[k] = torch.empty((0, *v.shape[1:]), dtype=v.dtype)
-            self._action = torch.empty(0, action.shape[1])
+                self._obs[k] = torch.empty((0, *v.shape[1:]), dtype=v.dtype, device=self.storage)
+            self._action = torch.empty(0, action.shape[1], device=self.storage)
+            self._reward, self._term = (torch.empty(0, device=self.storage) for _ in range(2))
+            self._first = torch.empty(0, dtype=torch.bool, device=self.storage)
+            self._task = torch.empty(0, dtype=torch.long, device=self.storage)
             return
         if set(obs) != set(self._obs):
             raise ValueError(f"obs keys {sorted(obs)} differ from stored {sorted(self._obs)}")
@@ -189,24 +201,33 @@ class ReplayBuffer:
             raise ValueError(f"action size {action.shape[1]} != stored {self._action.shape[1]}")
 
     def _grow(self, rows: int) -> None:
-        """Allocate lazily (doubling, up to capacity) so small runs stay small. Storage only
-        grows before the ring first wraps, so row n sits at index n until then."""
+        """Storage for `rows` rows: a bounded buffer's whole capacity at once, an unbounded
+        one doubling (its rows are few: experience replay's kept windows). Storage only grows
+        before the ring first wraps, so row n sits at index n until then."""
         size = self._action.shape[0]
         if rows <= size:
             return
-        new = max(rows, 2 * size, 1024)
-        if self.capacity is not None:
-            new = min(self.capacity, new)
+        new = self.capacity if self.capacity is not None else max(rows, 2 * size, 1024)
 
         def grown(t: torch.Tensor) -> torch.Tensor:
-            out = torch.zeros((new, *t.shape[1:]), dtype=t.dtype)
+            out = torch.empty((new, *t.shape[1:]), dtype=t.dtype, device=self.storage,
+                              pin_memory=self.pin)  # fmt: skip
             out[:size] = t
             return out
 
-        self._obs = {k: grown(v) for k, v in self._obs.items()}
-        self._action, self._reward, self._term = map(grown, (self._action, self._reward,
-                                                             self._term))  # fmt: skip
-        self._first, self._task = grown(self._first), grown(self._task)
+        self._set_columns({k: grown(v) for k, v in self._columns().items()})
+
+    def _columns(self) -> dict[str, torch.Tensor]:
+        """Every stored column by name ('obs.<key>', action, reward, terminated, is_first,
+        task), storage rows first."""
+        return {**{f"obs.{k}": v for k, v in self._obs.items()}, "action": self._action,
+                "reward": self._reward, "terminated": self._term, "is_first": self._first,
+                "task": self._task}  # fmt: skip
+
+    def _set_columns(self, cols: dict[str, torch.Tensor]) -> None:
+        self._obs = {k[4:]: v for k, v in cols.items() if k.startswith("obs.")}
+        self._action, self._reward, self._term = cols["action"], cols["reward"], cols["terminated"]
+        self._first, self._task = cols["is_first"], cols["task"]
 
     # --------------------------------------------------------------------------- geometry
 
@@ -236,7 +257,7 @@ class ReplayBuffer:
     def num_transitions(self) -> int:
         """Real transitions stored: rows followed by a stored row of the same episode."""
         if "transitions" not in self._cache:
-            first = self._first[self._rows(torch.arange(1, self.size))]
+            first = self._first[self._rows(torch.arange(1, self.size)).to(self.storage)]
             self._cache["transitions"] = int((~first).sum())
         return self._cache["transitions"]
 
@@ -295,47 +316,81 @@ class ReplayBuffer:
         return self._cache["starts"]
 
     def _window(self, logical: torch.Tensor) -> Batch:
-        rows = self._rows(logical)  # (L, B)
+        rows = self._rows(logical).to(self.storage)  # (L, B)
+
+        def take(col: torch.Tensor) -> torch.Tensor:
+            out = col[rows]
+            return out.pin_memory() if self.pin else out  # so `Batch.to(gpu)` won't block
+
         return Batch(
-            obs={k: v[rows] for k, v in self._obs.items()},
-            action=self._action[rows],
-            reward=self._reward[rows].unsqueeze(-1),
-            terminated=self._term[rows].unsqueeze(-1),
-            is_first=self._first[rows].float().unsqueeze(-1),
-            task=self._task[rows],
+            obs={k: take(v) for k, v in self._obs.items()},
+            action=take(self._action),
+            reward=take(self._reward).unsqueeze(-1),
+            terminated=take(self._term).unsqueeze(-1),
+            is_first=take(self._first).float().unsqueeze(-1),
+            task=take(self._task),
         )
 
     # ------------------------------------------------------------------------- checkpoints
 
-    def state_dict(self) -> dict:
-        """Everything needed to continue identically, storing only rows ever written."""
-        used = self.size  # storage rows 0 .. used - 1 hold data
+    @property
+    def written(self) -> int:
+        """Rows ever written (row number n of the write order is stored while n >= oldest)."""
+        return self._written
+
+    @property
+    def oldest(self) -> int:
+        """Write number of the oldest row still stored."""
+        return self._oldest
+
+    def rows(self, start: int, end: int) -> dict[str, torch.Tensor]:
+        """Columns of the rows written as numbers start .. end - 1 (all still stored), copied
+        to the CPU: what `ccfit.replay_store` writes to disk."""
+        if not self._oldest <= start <= end <= self._written:
+            raise ValueError(f"rows {start}..{end} not stored ({self._oldest}..{self._written})")
+        idx = self._physical(torch.arange(start, end)).to(self.storage)
+        return {k: v[idx].cpu() for k, v in self._columns().items()}
+
+    def meta_state(self) -> dict:
+        """The state besides the rows (see `rows`): with the rows it restores the buffer."""
         return {
             "capacity": self.capacity,
             "written": self._written,
             "episodes": torch.tensor(list(self._episodes), dtype=torch.long).reshape(-1, 3),
-            # clone: saving a view would write the whole preallocated storage
-            "obs": {k: v[:used].clone() for k, v in self._obs.items()},
-            "action": self._action[:used].clone(),
-            "reward": self._reward[:used].clone(),
-            "terminated": self._term[:used].clone(),
-            "is_first": self._first[:used].clone(),
-            "task": self._task[:used].clone(),
             "generator": self.generator.get_state(),
         }
 
-    def load_state_dict(self, state: dict) -> None:
-        if state["capacity"] != self.capacity:
+    def load_state(self, meta: dict, chunks: list[tuple[int, dict[str, torch.Tensor]]]) -> None:
+        """Restore from `meta_state` and (first write number, `rows`) chunks covering every
+        stored row, oldest first."""
+        if meta["capacity"] != self.capacity:
             raise ValueError(
-                f"checkpoint buffer capacity {state['capacity']} != configured {self.capacity}"
+                f"checkpoint buffer capacity {meta['capacity']} != configured {self.capacity}"
             )
-        self._obs = {k: v.clone() for k, v in state["obs"].items()}
-        self._action = state["action"].clone()
-        self._reward = state["reward"].clone()
-        self._term = state["terminated"].clone()
-        self._first = state["is_first"].clone()
-        self._task = state["task"].clone()
-        self._written = int(state["written"])
-        self._episodes = deque(tuple(int(x) for x in row) for row in state["episodes"].tolist())
-        self.generator.set_state(state["generator"])
-        self._cache.clear()
+        self._obs, self._written, self._cache = {}, int(meta["written"]), {}
+        oldest = self._oldest
+        for start, cols in chunks:
+            keep = max(oldest, start) - start
+            cols = {k: v[keep:] for k, v in cols.items()}
+            n = cols["action"].shape[0]
+            if not self._obs:
+                obs = {k[4:]: v for k, v in cols.items() if k.startswith("obs.")}
+                self._check_layout(obs, cols["action"])
+                self._grow(self._written if self.capacity is None
+                           else min(self._written, self.capacity))  # fmt: skip
+            idx = self._physical(torch.arange(start + keep, start + keep + n)).to(self.storage)
+            for k, v in self._columns().items():
+                v[idx] = cols[k].to(self.storage)
+        if oldest > 0 and self._obs:  # as `_append` marks it (after its row was saved)
+            self._first[self._physical(torch.tensor([oldest])).to(self.storage)] = True
+        self._episodes = deque(tuple(int(x) for x in row) for row in meta["episodes"].tolist())
+        self.generator.set_state(meta["generator"])
+
+    def state_dict(self) -> dict:
+        """Everything needed to continue identically, in one dict (the rows stored, not the
+        storage allocated); `ccfit.replay_store` writes large buffers incrementally instead."""
+        return {**self.meta_state(), "rows": self.rows(self._oldest, self._written)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.load_state(state, [(int(state["written"]) - state["rows"]["action"].shape[0],
+                                 state["rows"])])  # fmt: skip

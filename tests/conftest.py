@@ -77,8 +77,14 @@ def one_slurm_test_at_a_time(request):
 
 
 def pytest_runtest_setup(item):
-    """Skip a `slurm` test when no SLURM answers, with the reason; fail it instead when
-    CCBENCH_REQUIRE_SLURM is set (CI sets it once its SLURM is up)."""
+    """Skip a `gpu` test without CUDA. Skip a `slurm` test when no SLURM answers, with the
+    reason; fail it instead when CCBENCH_REQUIRE_SLURM is set (CI sets it once its SLURM is
+    up)."""
+    if item.get_closest_marker("gpu") is not None:
+        import torch
+
+        if not torch.cuda.is_available():
+            pytest.skip("no CUDA device")
     if item.get_closest_marker("slurm") is None:
         return
     reason = slurm_unavailable()
@@ -93,7 +99,8 @@ def pytest_runtest_setup(item):
 
 SLURM_FILES = ("test_slurm_generate.py", "test_sweep_slurm.py")
 LONGEST_FIRST = (
-    *SLURM_FILES, "test_record.py", "test_curriculum.py", "test_tasks_contract.py",
+    *SLURM_FILES, "test_record.py", "test_curriculum.py", "test_compile.py",
+    "test_parallel.py", "test_tasks_contract.py",
     "test_analysis.py", "test_pretrain.py", "test_data.py", "test_dreamerv3_loop.py",
     "test_seam.py", "test_loop.py", "test_policies.py", "test_tasks_grasp_blocks.py",
     "test_cards.py", "test_dataset_cli.py",

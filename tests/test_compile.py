@@ -21,20 +21,21 @@ except ImportError:  # tests/ imported as a package
     from tests.replay_data import random_buffer
 
 
-def _run(name: str, setting: str) -> dict:
+def _run(name: str, setting: str, device: str = "cpu") -> dict:
     cfg = config_class(name).preset("smoke")
     if hasattr(cfg, "num_elites"):
         # Every sample an elite: the plan is then a continuous function of the values, not a
         # top-k choice that float reassociation can flip.
         cfg = config_class(name).preset("smoke", num_elites=cfg.num_samples)
     torch.manual_seed(0)
-    model = make_model(cfg, "cpu")
+    model = make_model(cfg, device)
     model.begin_task(0, 100)
     heads = model.new_heads()
     assert compile_hot_paths(model, setting) == compiled_paths(type(model), setting,
-                                                               torch.device("cpu"))
+                                                               torch.device(device))
     opt, head_opts = model.world_model_optimizer(heads), model.head_optimizers(heads)
     batch = random_buffer(cfg, seed=1, steps=(10, 20)).sample(cfg.batch_size, cfg.seq_len)
+    batch = batch.to(device)
     torch.manual_seed(1)
     losses = []
     for _ in range(2):
@@ -48,16 +49,16 @@ def _run(name: str, setting: str) -> dict:
     torch.manual_seed(2)
     with torch.no_grad():
         action, _ = model.act(obs, heads, model.initial_state(heads, 3), eval_mode=True)
-    params = {k: v.detach().clone() for k, v in [*model.state_dict().items(),
-                                                 *heads.state_dict().items()]}  # fmt: skip
+    params = {k: v.detach().cpu().clone() for k, v in [*model.state_dict().items(),
+                                                       *heads.state_dict().items()]}  # fmt: skip
     return {"losses": losses, "action": action, "params": params}
 
 
 @pytest.mark.parametrize("name", model_names())
-def test_compiled_hot_paths_compute_what_the_eager_ones_do(name):
+def test_compiled_hot_paths_compute_what_the_eager_ones_do(name, device="cpu"):
     if not model_class(name).hot_paths:
         pytest.skip(f"{name} declares no hot path")
-    eager, compiled = _run(name, "off"), _run(name, "on")
+    eager, compiled = _run(name, "off", device), _run(name, "on", device)
     assert compiled["losses"] == pytest.approx(eager["losses"], rel=1e-4, abs=1e-5)
     np.testing.assert_allclose(compiled["action"], eager["action"], rtol=1e-3, atol=1e-4)
     for k, v in eager["params"].items():

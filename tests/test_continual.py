@@ -483,3 +483,28 @@ def test_methods_on_tdmpc2_backbone(name):
     if name == "packnet":
         linears = [m for m in backbone.modules() if isinstance(m, nn.Linear)]
         assert len(method_.owner) == len(linears) > 0
+
+
+@pytest.mark.parametrize("name", ["ewc", "packnet"])
+def test_method_state_saved_on_the_cpu_works_on_the_backbones_device(name):
+    """A resumed run loads method state on the CPU (`map_location='cpu'`) while the backbone
+    may be on a GPU: the method moves its tensors to the backbone's device. Checked with
+    PyTorch's 'meta' device, which, like a GPU, refuses to mix with CPU tensors."""
+    torch.manual_seed(0)
+    bb = TinyBackbone()
+    data = make_task_data(bb, 0, 64)
+    first = method(name, num_tasks=2, **({"retrain_steps": 0} if name == "packnet" else {}))
+    first.before_task(0, bb)
+    first.after_task(0, bb, data)
+    state = copy.deepcopy(first.state_dict())
+    moved = TinyBackbone().to("meta")
+    resumed = method(name, num_tasks=2, **({"retrain_steps": 0} if name == "packnet" else {}))
+    resumed.load_state_dict(state)
+    resumed.before_task(1, moved)
+    pen = resumed.penalty(moved, moved.backbone_loss)
+    assert pen.device.type == "meta"
+    resumed.after_step(moved)
+    with resumed.evaluating(0, moved):
+        pass
+    tensors = [*getattr(resumed, "fisher", {}).values(), *getattr(resumed, "owner", {}).values()]
+    assert tensors and all(t.device.type == "meta" for t in tensors)

@@ -326,11 +326,11 @@ def test_er_keeps_the_stated_fraction_of_each_task(runs):
         n = trainer.buffer.num_transitions
         assert n > 0 and len(state["kept"][i]) == round(fraction * n / (seq_len - 1))
         assert len(set(state["kept"][i].tolist())) == len(state["kept"][i])
-    tasks = state["memory"]["task"]  # one per row; a kept window is seq_len rows
+    tasks = state["memory"]["rows"]["task"]  # one per row; a kept window is seq_len rows
     counts = {i: int((tasks == i).sum()) // seq_len for i in range(3)}
     assert counts == {i: len(state["kept"][i]) for i in range(3)} and counts[0] > 0
     # After task 0 only task 0 was in memory (a later task never enters an earlier replay).
-    after_0 = run.seen.saves[0]["method"]["memory"]["task"]
+    after_0 = run.seen.saves[0]["method"]["memory"]["rows"]["task"]
     assert set(after_0.tolist()) == {0}
 
 

@@ -304,3 +304,25 @@ def test_wandb_offline_logs_the_evaluations_and_resumes_the_same_run(tmp_path):
     assert (out / "wandb_id").read_text().strip() == run_id
     plain = [a for a in argv if not a.startswith("--log.")]
     assert subprocess.run(ccfit_command(plain), capture_output=True, timeout=300).returncode == 0
+
+
+def test_a_replay_that_fits_nowhere_is_refused_before_the_run(tmp_path, capsys):
+    """`--preset paper --obs pixels` asks for a million 64 px rows (37 GB): on a machine
+    without that memory the run stops at once, naming the setting to lower, and leaves no run
+    directory."""
+    import shutil
+
+    from ccfit.cli import main
+    from ccfit.train.resources import ReplayPlan, available_host_memory, check_disk
+
+    out = tmp_path / "x"
+    code = main(["train", "--task", "reach-xy", "--preset", "paper", "--obs", "pixels",
+                 "--seed_dataset", "null", "--train.device=cpu", "--out", str(out)])
+    err = capsys.readouterr().err
+    if 36.9e9 < 0.8 * available_host_memory():
+        pytest.skip("this machine holds a paper-scale pixel replay")
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "lower --train.buffer_capacity to at most" in err and not out.exists()
+    free = shutil.disk_usage(tmp_path).free
+    with pytest.raises(ConfigError, match="lower --train.buffer_capacity to at most"):
+        check_disk(ReplayPlan(1000, free + 10**9, torch.device("cpu"), False), tmp_path / "y")

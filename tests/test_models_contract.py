@@ -209,3 +209,22 @@ def test_backbone_loss_trains_the_backbone_only(name, mode):
     assert all(p.grad is None or not p.grad.any() for p in heads.parameters())
     grads = [p.grad for p in model.backbone.parameters() if p.requires_grad]
     assert any(g is not None and g.abs().sum() > 0 for g in grads)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_bf16_autocast_updates_and_acts(name):
+    """`--train.autocast=bf16`: an update is finite and keeps float32 parameters; actions come
+    back as float32 arrays."""
+    from ccfit.train.compiled import autocast
+
+    model, heads = build(name, "state")
+    opt, head_opts = model.world_model_optimizer(heads), model.head_optimizers(heads)
+    batch = batch_of(model)
+    with autocast(torch.device("cpu"), "bf16"):
+        out, logs = update(model, heads, opt, head_opts, batch)
+        obs = {k: v[0, :2] for k, v in batch.obs.items()}
+        with torch.no_grad():
+            action, _ = model.act(obs, heads, model.initial_state(heads, 2), eval_mode=True)
+    assert torch.isfinite(out.total) and all_finite(logs)
+    assert all(p.dtype == torch.float32 for p in [*model.parameters(), *heads.parameters()])
+    assert action.dtype == np.float32 and np.isfinite(action).all()

@@ -220,7 +220,7 @@ def test_state_dict_round_trip_continues_identically(tmp_path):
     buf.sample(8, 4)
     torch.save(buf.state_dict(), tmp_path / "replay.pt")
     state = torch.load(tmp_path / "replay.pt", weights_only=False)
-    assert state["obs"]["id"].shape[0] == 24
+    assert state["rows"]["obs.id"].shape[0] == 24
     other = ReplayBuffer(24, seed=0)
     other.load_state_dict(state)
     more = src.episode(3)
@@ -235,7 +235,7 @@ def test_state_dict_round_trip_continues_identically(tmp_path):
     assert (other.num_episodes, other.num_transitions) == (buf.num_episodes, buf.num_transitions)
     # Compact: a small buffer saves the rows it holds, not its capacity.
     small, _ = filled([3], capacity=100_000)
-    assert small.state_dict()["obs"]["id"].shape[0] == 4
+    assert small.state_dict()["rows"]["obs.id"].shape[0] == 4
     with pytest.raises(ValueError, match="capacity"):
         ReplayBuffer(25).load_state_dict(state)
 
@@ -268,3 +268,36 @@ def test_bad_episodes_are_refused():
         buf.add_episode(**dict(ep, obs={"x": ep["obs"]["id"]}))
     with pytest.raises(ValueError, match="action size"):
         buf.add_episode(**dict(ep, action=ep["action"][:, :2]))
+
+
+# ------------------------------------------------------------------- incremental on disk
+
+
+def test_checkpoints_write_only_new_rows_and_restore_the_buffer(tmp_path):
+    from ccfit.replay_store import ROWS_DIR, load_rows, save_rows
+
+    buf, src = filled([6, 2, 9], capacity=24, seed=7)
+    manifest, stale = save_rows(buf, tmp_path, [])
+    assert [(f["start"], f["end"]) for f in manifest] == [(0, 20)] and not stale
+    buf.add_episode(**src.episode(5))  # 26 rows written: the ring wrapped over rows 0, 1
+    manifest, stale = save_rows(buf, tmp_path, manifest)
+    assert [(f["start"], f["end"]) for f in manifest] == [(0, 20), (20, 26)]
+    buf.add_episode(**src.episode(15))  # 42 written: rows 0..17 are gone, file 0..20 kept
+    buf.sample(8, 4)
+    manifest, stale = save_rows(buf, tmp_path, manifest)
+    assert [(f["start"], f["end"]) for f in manifest] == [(0, 20), (20, 26), (26, 42)]
+    buf.add_episode(**src.episode(5))  # 48 written: every row of the first file is gone
+    manifest, stale = save_rows(buf, tmp_path, manifest)
+    assert [(f["start"], f["end"]) for f in manifest] == [(20, 26), (26, 42), (42, 48)]
+    assert [p.name for p in stale] == ["rows-000000000000-000000000020.pt"]
+    for path in stale:  # what the trainer does once the checkpoint listing `manifest` is saved
+        path.unlink()
+    (tmp_path / ROWS_DIR / "rows-000000000048-000000000060.pt").write_bytes(b"from a crash")
+    other = ReplayBuffer(24, seed=0)
+    load_rows(other, tmp_path, buf.meta_state(), manifest)
+    assert sorted(p.name for p in (tmp_path / ROWS_DIR).iterdir()) == [f["file"] for f in manifest]
+    assert (other.num_episodes, other.num_transitions) == (buf.num_episodes, buf.num_transitions)
+    for _ in range(3):
+        a, b = buf.sample(8, 4), other.sample(8, 4)
+        assert torch.equal(a.obs["id"], b.obs["id"]) and torch.equal(a.is_first, b.is_first)
+        assert torch.equal(a.reward, b.reward) and torch.equal(a.task, b.task)

@@ -172,12 +172,12 @@ class PackNet(ContinualMethod):
                 continue
             moving = (~fixed if zeroed is None else ~(fixed | zeroed)).to(p.dtype)
             self._grad_keep[name] = moving
-            if not bool(moving.all()):
-                self._held.append(p)
-                self._moving.append(moving)
-                stored = self.stored.get(name)  # none yet while task 0 retrains
-                self._held_values.append(torch.zeros_like(p) if stored is None
-                                         else torch.where(fixed, stored, 0.0).to(p.dtype))
+            # Every masked parameter is enforced, held entries or not: no host round trip.
+            self._held.append(p)
+            self._moving.append(moving)
+            stored = self.stored.get(name)  # none yet while task 0 retrains
+            self._held_values.append(torch.zeros_like(p) if stored is None
+                                     else torch.where(fixed, stored, 0.0).to(p.dtype))
 
     @torch.no_grad()
     def _enforce(self) -> None:
@@ -292,9 +292,8 @@ class PackNet(ContinualMethod):
                 unused = owner > task_index
                 if task_index < self.task:
                     unused |= owner == FREE  # free entries belong to the task now training
-                if unused.any():
-                    saved[name] = p.detach().clone()
-                    p.masked_fill_(unused, 0.0)
+                saved[name] = p.detach().clone()
+                p.masked_fill_(unused, 0.0)
         try:
             yield
         finally:

@@ -87,14 +87,14 @@ class Batch:
     task: torch.Tensor
 
     def to(self, device: torch.device | str) -> Batch:
-        return Batch(
-            obs={k: v.to(device, non_blocking=True) for k, v in self.obs.items()},
-            action=self.action.to(device),
-            reward=self.reward.to(device),
-            terminated=self.terminated.to(device),
-            is_first=self.is_first.to(device),
-            task=self.task.to(device),
-        )
+        """This batch on `device` (no copy if it is there; from page-locked memory the copy
+        does not block the host)."""
+        def move(x: torch.Tensor) -> torch.Tensor:
+            return x.to(device, non_blocking=True)
+
+        return Batch(obs={k: move(v) for k, v in self.obs.items()}, action=move(self.action),
+                     reward=move(self.reward), terminated=move(self.terminated),
+                     is_first=move(self.is_first), task=move(self.task))  # fmt: skip
 
     @property
     def seq_len(self) -> int:

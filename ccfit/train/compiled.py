@@ -1,4 +1,5 @@
-"""`--train.compile`: a model's hot paths (`WorldModel.hot_paths`) through `torch.compile`.
+"""How a model's hot paths run: `--train.compile` (`WorldModel.hot_paths` through
+`torch.compile`) and `--train.autocast` (`autocast`).
 
     off   eager everywhere (the reference)
     on    every hot path compiled
@@ -37,3 +38,9 @@ def compile_hot_paths(model: WorldModel, setting: str) -> list[str]:
     for name in names:
         setattr(model, name, torch.compile(getattr(model, name)))
     return names
+
+
+def autocast(device: torch.device, setting: str):
+    """The autocast context of `--train.autocast` on `device` (a no-op context for 'off')."""
+    return torch.autocast(torch.device(device).type, dtype=torch.bfloat16,
+                          enabled=setting == "bf16")

@@ -37,6 +37,8 @@ class WorkerSpec:
     """The frozen pretrained encoder's file, if the run has one."""
     compile: str
     """`--train.compile`: the worker compiles what the training process compiles."""
+    autocast: str
+    """`--train.autocast`."""
     device: str
     method: Any
     """The run's method config (`MethodConfig`) when the method has an evaluation view (its
@@ -75,7 +77,8 @@ def _start(spec: WorkerSpec) -> None:
     view = (lambda i: method.evaluating(i, model.backbone)) if method is not None else None
     _WORKER.update(model=model, method=method, heads={}, evaluator=Evaluator(
         model, spec.task_ids, seed=spec.seed, obs_mode=spec.obs_mode,
-        image_size=spec.image_size, episodes=spec.episodes, view=view))  # fmt: skip
+        image_size=spec.image_size, episodes=spec.episodes, view=view,
+        autocast=spec.autocast))  # fmt: skip
 
 
 def _heads(task: int, state: dict) -> nn.Module:

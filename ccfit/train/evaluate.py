@@ -27,6 +27,7 @@ from ccdata.scoring import GAMMA, discounted_return, normalize
 from ccfit.io import derived_seed, seeded
 from ccfit.models.base import WorldModel, select_state
 from ccfit.obs import model_input, obs_to_arrays
+from ccfit.train.compiled import autocast
 
 TRAIN_TAG, EVAL_TAG, ACTION_TAG, REPLAY_TAG, EVAL_NOISE_TAG = 0, 1, 2, 3, 4
 """Independent seed streams of a run (see `ccfit.io.derived_seed`)."""
@@ -168,14 +169,16 @@ class Evaluator:
     model: the world model; task_ids: curriculum index -> task id of the tasks it may
     evaluate; seed, obs_mode, image_size, episodes: the run's. view: task index -> the
     context a task is evaluated in (the continual method's `evaluating`, e.g. PackNet's
-    masks); None: no view.
+    masks); None: no view. autocast: `--train.autocast`.
     """
 
     def __init__(self, model: WorldModel, task_ids: Mapping[int, str], *, seed: int,
                  obs_mode: str, image_size: int, episodes: int,
-                 view: Callable[[int], AbstractContextManager] | None = None) -> None:  # fmt: skip
+                 view: Callable[[int], AbstractContextManager] | None = None,
+                 autocast: str = "off") -> None:  # fmt: skip
         self.model, self.task_ids = model, dict(task_ids)
         self.seed, self.obs_mode, self.episodes = seed, obs_mode, episodes
+        self.autocast = autocast
         self.view = view
         self.heads: dict[int, nn.Module] = {}
         """Heads each evaluable task is evaluated with (stored heads, and the current ones)."""
@@ -213,7 +216,7 @@ class Evaluator:
                 envs = self.envs.get(self.task_ids[i], len(seeds))
                 noise = derived_seed(self.seed, EVAL_NOISE_TAG, global_step, i)
                 with self.view(i) if self.view is not None else nullcontext(), \
-                        seeded(noise, model.device):  # fmt: skip
+                        seeded(noise, model.device), autocast(model.device, self.autocast):
                     eps = play_episodes(envs, model, self.heads[i], obs_mode=self.obs_mode,
                                         seeds=seeds)  # fmt: skip
                 records.append(eval_record(self.task_ids[i], i, stage, global_step,

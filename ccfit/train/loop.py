@@ -37,6 +37,8 @@ from ccfit.io import atomic_torch_save, derived_seed, load_checkpoint, rng_state
 from ccfit.models.base import Batch, WorldModel
 from ccfit.obs import model_input, obs_to_arrays
 from ccfit.replay import ReplayBuffer
+from ccfit.replay_store import load_rows, save_rows
+from ccfit.train.compiled import autocast
 from ccfit.train.evaluate import ACTION_TAG, TRAIN_TAG, Evaluator
 from ccfit.train.records import RunLogger
 
@@ -100,6 +102,7 @@ class Trainer:
         self._act_state: Any = None
         self._last_save = time.monotonic()
         self._train_logs: dict[str, list] = defaultdict(list)
+        self._replay_files: list[dict] = []
 
     @property
     def global_step(self) -> int:
@@ -175,6 +178,9 @@ class Trainer:
         self.method.after_task(self.task_index, self.model.backbone, data)
         self.extra_updates(self.method.wants_retrain_steps)
 
+    def _autocast(self):
+        return autocast(self.device, self.cfg.autocast)
+
     def _wall_clock_due(self) -> bool:
         minutes = self.cfg.checkpoint_minutes
         return minutes > 0 and time.monotonic() - self._last_save >= 60.0 * minutes
@@ -186,7 +192,12 @@ class Trainer:
         # checkpoint's, so a resumed run submits them again); earlier ones are waited for.
         self._collect(until=self.global_step)
         if self.run_dir is not None:
+            # Replay's new rows first, then the checkpoint that lists them; files it no longer
+            # lists go only once it is written.
+            self._replay_files, stale = save_rows(self.buffer, self.run_dir, self._replay_files)
             atomic_torch_save(self.state_dict(), self.run_dir / CHECKPOINT)
+            for path in stale:
+                path.unlink(missing_ok=True)
 
     def _env_step(self) -> None:
         model, heads = self.model, self.heads
@@ -198,7 +209,7 @@ class Trainer:
             self._act_state = model.initial_state(heads, 1)
         ep = self._episode
         last = model_input(ep["obs"][-1:], self.device)
-        with torch.no_grad():
+        with torch.no_grad(), self._autocast():
             if self.task_step < self.cfg.seed_steps:
                 action = self.action_rng.uniform(-1.0, 1.0, model.cfg.action_dim)
                 action = action.astype(np.float32)
@@ -238,17 +249,19 @@ class Trainer:
         mcfg = self.model.cfg
         batch = self.buffer.sample(mcfg.batch_size, mcfg.seq_len).to(self.device)
         self.model.train()
-        out = self.model.loss(batch, self.heads)
-        total = out.total
-        if self.method is not None:
-            total = total + self.method.penalty(self.model.backbone, self.losses)
+        with self._autocast():
+            out = self.model.loss(batch, self.heads)
+            total = out.total
+            if self.method is not None:
+                total = total + self.method.penalty(self.model.backbone, self.losses)
         self.optim.zero_grad(set_to_none=True)
         total.backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(self._clip_params, mcfg.grad_clip)
         self.optim.step()
         if self.method is not None:
             self.method.after_step(self.model.backbone)
-        head_logs = self.model.head_update(batch, self.heads, out, self.head_optims)
+        with self._autocast():
+            head_logs = self.model.head_update(batch, self.heads, out, self.head_optims)
         self.updates += 1
         # Logged values stay tensors until a flush: no host sync inside an update.
         logs = {**out.logs, **head_logs, "total": total.detach(), "grad_norm": grad_norm}
@@ -316,7 +329,8 @@ class Trainer:
             "heads": self.heads.state_dict(),
             "optim": self.optim.state_dict(),
             "head_optims": {k: o.state_dict() for k, o in self.head_optims.items()},
-            "buffer": self.buffer.state_dict(),
+            "buffer": self.buffer.meta_state(),
+            "replay_files": self._replay_files,
             "rng": rng_state(actions=self.action_rng),
         }
         if self.method is not None:
@@ -333,7 +347,8 @@ class Trainer:
         self.optim.load_state_dict(state["optim"])
         for k, o in self.head_optims.items():
             o.load_state_dict(state["head_optims"][k])
-        self.buffer.load_state_dict(state["buffer"])
+        load_rows(self.buffer, Path(path).parent, state["buffer"], state["replay_files"])
+        self._replay_files = list(state["replay_files"])
         if "method" in state and self.method is not None:
             self.method.load_state_dict(state["method"])
         for key in ("task_step", "updates", "episode_index", "last_eval", "last_checkpoint"):

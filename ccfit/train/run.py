@@ -26,6 +26,7 @@ from ccfit.train.eval_worker import AsyncEvaluator, WorkerSpec, has_view, parall
 from ccfit.train.evaluate import REPLAY_TAG, Evaluator
 from ccfit.train.loop import CHECKPOINT, Trainer
 from ccfit.train.records import RunLogger
+from ccfit.train.resources import ReplayPlan, check_disk, plan_replay
 
 CONFIG = "config.json"
 
@@ -82,12 +83,14 @@ def dataset_source(cfg: RunConfig, suite: str | None) -> str | None:
 
 
 def make_replay(cfg: RunConfig, model: WorldModel, task_id: str, task_index: int,
-                source: str | None) -> ReplayBuffer:  # fmt: skip
+                source: str | None, plan: ReplayPlan | None = None) -> ReplayBuffer:  # fmt: skip
     """Task `task_index`'s replay, preloaded with that task's own episodes of `source` (later
-    tasks' data never leaks into earlier ones)."""
+    tasks' data never leaks into earlier ones), stored where `plan` says (None: the CPU)."""
     buffer = ReplayBuffer(cfg.train.buffer_capacity,
                           seed=derived_seed(cfg.seed, REPLAY_TAG, 0, task_index),
-                          obs_transform=model.replay_obs)  # fmt: skip
+                          obs_transform=model.replay_obs,
+                          storage=plan.storage if plan else "cpu",
+                          pin=plan.pin if plan else False)  # fmt: skip
     if source is not None:
         seed_buffer(buffer, source, task_id, cfg.obs, render_settings(cfg), task_index=task_index,
                     endpoint=cfg.dataset_endpoint)  # fmt: skip
@@ -103,6 +106,7 @@ def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
 
         spec = WorkerSpec(
             model=cfg.model, encoder_path=cfg.encoder_path, compile=cfg.train.compile,
+            autocast=cfg.train.autocast,
             device=str(model.device), method=cfg.method if has_view(method) else None,
             num_tasks=len(getattr(cfg, "tasks", task_ids)), task_ids=task_ids, seed=cfg.seed,
             obs_mode=cfg.obs, image_size=cfg.image_size, episodes=cfg.train.eval_episodes,
@@ -112,7 +116,7 @@ def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
     view = (lambda i: method.evaluating(i, model.backbone)) if method is not None else None
     return Evaluator(model, task_ids, seed=cfg.seed, obs_mode=cfg.obs,
                      image_size=cfg.image_size, episodes=cfg.train.eval_episodes,
-                     view=view)  # fmt: skip
+                     view=view, autocast=cfg.train.autocast)  # fmt: skip
 
 
 NOT_IDENTITY = ("log", "train.parallel")
@@ -173,9 +177,11 @@ def train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, save
     seed_everything(cfg.seed)
     model = build_model(cfg, device)
     model.begin_task(task_index, cfg.train.steps)
+    plan = plan_replay(cfg, model)
+    check_disk(plan, out)
     # Seed data is read before anything is written: a bad dataset leaves no run directory.
     source = None if resumed else saved["resolved_seed_dataset"]
-    buffer = make_replay(cfg, model, task_id, task_index, source)
+    buffer = make_replay(cfg, model, task_id, task_index, source, plan)
     check_saved_config(out, saved)
     logger = RunLogger(out, cfg.log, saved)
     if not resumed:  # records of a run killed before its first checkpoint

@@ -286,7 +286,7 @@ class DreamerV3(WorldModel):
         state = self._posterior(obs, state)
         mean, std = heads.actor(self.rssm.feat(state.deter, state.stoch))
         action = mean if eval_mode else (mean + std * torch.randn_like(std)).clamp(-1.0, 1.0)
-        return action.cpu().numpy(), replace(state, action=action)
+        return action.float().cpu().numpy(), replace(state, action=action)
 
     @torch.no_grad()
     def observe(

@@ -350,7 +350,7 @@ class TDMPC2(WorldModel):
         with modules_in_eval(self.backbone, h):
             z = self.encode(obs)
             action, mean = self.plan(z, h, state, eval_mode=eval_mode)
-        return action.cpu().numpy(), mean
+        return action.float().cpu().numpy(), mean
 
     @torch.no_grad()
     def plan(

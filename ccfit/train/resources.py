@@ -1,0 +1,94 @@
+"""Memory and disk a run needs, checked before it starts; where its replay lives.
+
+`--preset paper --obs pixels` asks for a million 64 px rows of replay per task (37 GB); a run
+that cannot hold it should say so at once, naming the setting to lower, not fail hours in.
+Replay is the one large allocation: a row holds an observation as replay stores it (frames,
+or a frozen encoder's latents) and a transition. It lives on the training GPU when it fits
+there with room to spare (batches are then drawn where they are used), else in host memory,
+page-locked when a GPU reads it. Its rows are also what checkpoints write to the run
+directory (incrementally, `ccfit.replay_store`), so the disk must hold them too.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from ccfit.config import RunConfig
+from ccfit.config_base import ConfigError
+from ccfit.models.base import WorldModel
+
+GPU_SHARE = 0.5
+"""Replay goes on the GPU when it takes at most this share of the GPU's free memory."""
+HOST_SHARE = 0.8
+"""A run is refused when replay would take more than this share of the available memory."""
+TRANSITION_BYTES = 4 * 4 + 4 + 4 + 1 + 8
+"""Action (4 x float32), reward, terminated (float32), is_first (bool), task (int64)."""
+
+
+@dataclass(frozen=True)
+class ReplayPlan:
+    row_bytes: int
+    bytes: int
+    storage: torch.device
+    pin: bool
+
+
+def row_bytes(cfg: RunConfig, model: WorldModel) -> int:
+    """Bytes of one replay row of this run: an observation as the model has replay store it
+    (`WorldModel.replay_obs`), plus the transition."""
+    m = cfg.model
+    if cfg.obs == "state":
+        obs = {"state": torch.zeros(1, m.state_dim)}
+    else:
+        size = cfg.image_size
+        obs = {"pixels": torch.zeros(1, 9, size, size, dtype=torch.uint8),
+               "proprio": torch.zeros(1, m.proprio_dim)}  # fmt: skip
+    stored = model.replay_obs(obs)
+    return sum(v[0].numel() * v.element_size() for v in stored.values()) + TRANSITION_BYTES
+
+
+def available_host_memory() -> int:
+    """MemAvailable of /proc/meminfo (bytes)."""
+    for line in Path("/proc/meminfo").read_text().splitlines():
+        if line.startswith("MemAvailable:"):
+            return int(line.split()[1]) * 1024
+    raise RuntimeError("no MemAvailable in /proc/meminfo")
+
+
+def plan_replay(cfg: RunConfig, model: WorldModel) -> ReplayPlan:
+    """Where this run's replay goes, or ConfigError when it fits nowhere."""
+    row = row_bytes(cfg, model)
+    total = row * cfg.train.buffer_capacity
+    device = model.device
+    if device.type == "cuda" and total <= GPU_SHARE * torch.cuda.mem_get_info(device)[0]:
+        return ReplayPlan(row, total, device, False)
+    free = available_host_memory()
+    if total > HOST_SHARE * free:
+        raise ConfigError(
+            f"replay needs {_gb(total)} ({cfg.train.buffer_capacity} rows of {row} B) but "
+            f"{_gb(free)} of memory is available: lower --train.buffer_capacity to at most "
+            f"{int(HOST_SHARE * free // row)}"
+        )
+    return ReplayPlan(row, total, torch.device("cpu"), device.type == "cuda")
+
+
+def check_disk(plan: ReplayPlan, out: Path) -> None:
+    """ConfigError unless the run directory's filesystem can hold replay's rows (what the
+    checkpoints of one task write)."""
+    out = Path(out)
+    probe = next(p for p in [out, *out.parents] if p.exists())
+    free = shutil.disk_usage(probe).free
+    if plan.bytes > free:
+        raise ConfigError(
+            f"checkpoints of a task write up to {_gb(plan.bytes)} of replay to {out} but "
+            f"{_gb(free)} is free there: lower --train.buffer_capacity to at most "
+            f"{free // plan.row_bytes} or use another --out"
+        )
+
+
+def _gb(n: int) -> str:
+    return f"{n / 1e9:.1f} GB"

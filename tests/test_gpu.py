@@ -1,0 +1,80 @@
+"""On a CUDA device (skipped without one): every model's smoke curriculum, a run killed and
+resumed under EWC and PackNet (whose state is saved from the GPU and loaded on the CPU first),
+and compiled hot paths equal to eager ones."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import time
+
+import pytest
+
+from ccfit.config import CurriculumConfig
+from ccfit.config_parse import resolve
+from ccfit.curriculum import Curriculum
+from ccfit.models import model_names
+from ccfit.models.registry import model_class
+
+try:
+    from short_episodes import ccfit_command, shorter_episodes
+    from test_compile import test_compiled_hot_paths_compute_what_the_eager_ones_do as compiled
+except ImportError:  # tests/ imported as a package
+    from tests.short_episodes import ccfit_command, shorter_episodes
+    from tests.test_compile import (
+        test_compiled_hot_paths_compute_what_the_eager_ones_do as compiled,
+    )
+
+pytestmark = pytest.mark.gpu
+TRAIN = {"steps": 100, "seed_steps": 50, "eval_interval": 50, "checkpoint_interval": 50,
+         "device": "cuda"}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", model_names())
+def test_smoke_curriculum_on_cuda(name, tmp_path):
+    method = "experts" if "experts" in model_class(name).capabilities else "ewc"
+    cfg = resolve(CurriculumConfig, {"suite": "Reach", "preset": "smoke", "seed_dataset": None,
+                                     "model": {"type": name}, "method": {"type": method},
+                                     "train": TRAIN})  # fmt: skip
+    with shorter_episodes():
+        result = Curriculum(cfg, tmp_path / "run", tmp_path / "scratch", progress=False).run()
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert saved["resolved_device"].startswith("cuda")
+    assert result["fwt"] is not None and len(result["end_of_task"]) == 4
+
+
+@pytest.mark.parametrize("method", ["ewc", "packnet"])
+def test_killed_cuda_run_resumes_to_the_uninterrupted_result(method, tmp_path):
+    def argv(out):
+        args = ["run", "--suite", "Grasp", "--preset", "smoke", "--seed_dataset", "null",
+                f"--method.type={method}", "--out", str(out), "--scratch-root",
+                str(tmp_path / "scratch"), "--quiet"]  # fmt: skip
+        return args + [f"--train.{k}={v}" for k, v in TRAIN.items()]
+
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    full = subprocess.run(ccfit_command(argv(tmp_path / "full")), env=env, capture_output=True,
+                          text=True, timeout=900)  # fmt: skip
+    assert full.returncode == 0, full.stderr[-2000:]
+    out = tmp_path / "killed"
+    ckpt = out / "tasks" / "1-place-cube" / "checkpoint.pt"
+    proc = subprocess.Popen(ccfit_command(argv(out)), env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 600
+        while not ckpt.exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert proc.poll() is None and ckpt.exists()
+        proc.kill()
+    finally:
+        proc.kill()
+        proc.communicate()
+    done = subprocess.run(ccfit_command(argv(out)), env=env, capture_output=True, text=True,
+                          timeout=900)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert (out / "metrics.jsonl").read_text() == (tmp_path / "full" / "metrics.jsonl").read_text()
+
+
+@pytest.mark.parametrize("name", model_names())
+def test_compiled_equals_eager_on_cuda(name):
+    compiled(name, device="cuda")
