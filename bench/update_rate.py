@@ -3,14 +3,20 @@ pixel modes at their presets, with a frozen encoder and with its latents cached 
 `ccfit run --encoder frozen:PATH` does); DreamerV3 also at the sizes the dreamerv3-torch anchor
 times. Prints one JSON object.
 
-One update is what the training loop does (`Trainer._update` without replay sampling): loss,
-backward, global-norm clip, world-model step, `head_update`, on a fixed synthetic batch with
-replay's shapes. One act is `model.act` on one observation (TD-MPC2: a warm-started MPPI plan;
-DreamerV3: a posterior step and the actor). Each is the median of --repeats calls after --warmup
-calls, as wall time and as CPU time of this process (on a shared machine wall time inflates with
-other load; CPU time much less so).
+One update is what the training loop does (`ccfit.train.update.UpdateStep`, the loop's own
+object, without replay sampling): loss, backward, global-norm clip, world-model step,
+`head_update`, on a fixed synthetic batch with replay's shapes. One act is `model.act` on one
+observation (TD-MPC2: a warm-started MPPI plan; DreamerV3: a posterior step and the actor).
+Each is the median of --repeats calls after --warmup calls, as wall time and as CPU time of
+this process (on a shared machine wall time inflates with other load; CPU time much less so).
+Every row is timed per --modes: `eager` (`--train.compile=off`), `compiled` (every hot path
+compiled, `--train.compile=on`), `auto` (what `--train.compile=auto` compiles on this device)
+and `bf16` (eager under `--train.autocast=bf16`); the first compiled call (the compilation) is
+part of the warmup, not of the median.
 
     python bench/update_rate.py                          # default set, minutes on 2 cores
+    python bench/update_rate.py --models tdmpc2,pwm,dreamerv3 --presets cpu --variants state \
+        --modes eager,compiled,auto --threads 1
     python bench/update_rate.py --models dreamerv3 --presets cpu,paper --variants state,pixels
     python bench/update_rate.py --models dreamerv3 --presets none --threads 2 --repeats 5 \\
         --warmup 2 --sizes anchor-small,anchor-default,anchor-pixels --anchor-json dv3-torch.json
@@ -43,9 +49,11 @@ from ccfit.models.base import Batch
 from ccfit.models.encoders import load_frozen_encoder, save_encoder
 from ccfit.models.registry import config_class
 from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
+from ccfit.train.compiled import autocast, compile_hot_paths
+from ccfit.train.update import UpdateStep
 
-MODELS = ("tdmpc2", "dreamerv3")
-DEFAULT_PRESETS = {"tdmpc2": ("cpu", "1M", "paper"), "dreamerv3": ("cpu",)}
+MODELS = ("tdmpc2", "pwm", "dreamerv3")
+DEFAULT_PRESETS = {"tdmpc2": ("cpu", "1M", "paper"), "pwm": ("cpu",), "dreamerv3": ("cpu",)}
 """Presets timed when --presets is not given (DreamerV3 `paper`, ~128M parameters, takes
 minutes per update on a CPU: ask for it)."""
 VARIANTS = {  # name -> (obs mode, frozen encoder, latents cached in replay)
@@ -132,36 +140,41 @@ def _median_times(fn, repeats: int, warmup: int) -> dict[str, float]:
     return {"wall": statistics.median(wall), "cpu": statistics.median(cpu)}
 
 
-def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmup: int) -> dict:
-    """Times one update and one act of the model of `cfg`."""
+MODES = {  # name -> (--train.compile, --train.autocast)
+    "eager": ("off", "off"), "compiled": ("on", "off"), "auto": ("auto", "off"),
+    "bf16": ("off", "bf16"),
+}  # fmt: skip
+
+
+def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmup: int,
+               mode: str = "eager") -> dict:  # fmt: skip
+    """Times one update and one act of the model of `cfg`, run as `mode` says."""
+    compile_setting, precision = MODES[mode]
     torch.manual_seed(0)
     model = make_model(cfg, "cpu", encoder=frozen_encoder(cfg, preset) if frozen else None)
     model.begin_task(0, 1000)
     heads = model.new_heads()
-    optim, head_optims = model.world_model_optimizer(heads), model.head_optimizers(heads)
-    params = [p for g in optim.param_groups for p in g["params"]]
+    compiled = compile_hot_paths(model, compile_setting)
+    step = UpdateStep(model, heads, autocast=precision)
     batch = synthetic_batch(cfg, torch.Generator().manual_seed(0))
     if cached:  # replay then holds latents, encoded once when the episode was stored
         batch = dataclasses.replace(batch, obs=model.replay_obs(batch.obs))
     one = dataclasses.replace(cfg, batch_size=1)
-    obs = {k: v[0, 0] for k, v in synthetic_batch(one, torch.Generator()).obs.items()}
+    obs = {k: v[0, :1] for k, v in synthetic_batch(one, torch.Generator()).obs.items()}
 
     def update() -> None:
-        out = model.loss(batch, heads)
-        optim.zero_grad(set_to_none=True)
-        out.total.backward()
-        torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
-        optim.step()
-        model.head_update(batch, heads, out, head_optims)
+        step(batch)
 
-    with torch.no_grad():  # a warm-started plan / a mid-episode recurrent state is timed
+    with torch.no_grad(), autocast(model.device, precision):  # a warm-started plan / a
+        # mid-episode recurrent state is timed
         state = model.act(obs, heads, model.initial_state(heads), eval_mode=False)[1]
 
     def act() -> None:
-        with torch.no_grad():
+        with torch.no_grad(), autocast(model.device, precision):
             model.act(obs, heads, state, eval_mode=False)
 
-    result = {"parameters": count_parameters(model, heads)}
+    result = {"mode": mode, "compiled": compiled, "autocast": precision,
+              "parameters": count_parameters(model, heads)}
     for name, fn in (("update", update), ("act", act)):
         t = _median_times(fn, repeats, warmup)
         result[f"{name}_s_median"] = t["wall"]
@@ -232,6 +245,7 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=None,
                         help="replay windows per update (default: the preset's / size's)")
     parser.add_argument("--image-size", type=int, default=64)
+    parser.add_argument("--modes", default="eager,compiled", help=f"of {list(MODES)}")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--warmup", type=int, default=1)
     parser.add_argument("--threads", type=int, default=2)
@@ -246,8 +260,10 @@ def main() -> None:
         args.models = _names(args.models)
     args.sizes = _names(args.sizes)
     args.variants = _names(args.variants)
+    args.modes = _names(args.modes)
     for what, names, valid in (("model", args.models, MODELS), ("size", args.sizes, ANCHOR_SIZES),
-                               ("variant", args.variants, VARIANTS)):  # fmt: skip
+                               ("variant", args.variants, VARIANTS),
+                               ("mode", args.modes, MODES)):  # fmt: skip
         bad = [n for n in names if n not in valid]
         if bad:
             parser.error(f"unknown {what} {bad}; valid: {list(valid)}")
@@ -258,13 +274,15 @@ def main() -> None:
     results = []
     for spec in rows_to_time(args):
         cfg = spec.pop("cfg")
-        row = {**spec, "batch": [cfg.batch_size, cfg.seq_len]}
-        if spec["model"] == "dreamerv3":
-            row.update(imag_last=cfg.imag_last, horizon=cfg.horizon)
-        row.update(time_model(cfg, spec["preset"], spec["frozen_encoder"], spec["latents_cached"],
-                              args.repeats, args.warmup))  # fmt: skip
-        attach_references(row, anchor)
-        results.append(row)
+        for mode in args.modes:
+            row = {**spec, "batch": [cfg.batch_size, cfg.seq_len]}
+            if spec["model"] == "dreamerv3":
+                row.update(imag_last=cfg.imag_last, horizon=cfg.horizon)
+            row.update(time_model(cfg, spec["preset"], spec["frozen_encoder"],
+                                  spec["latents_cached"], args.repeats,
+                                  args.warmup + (mode != "eager"), mode))  # fmt: skip
+            attach_references(row, anchor)
+            results.append(row)
     print(json.dumps({
         "batch_size": args.batch_size, "threads": args.threads, "repeats": args.repeats,
         "warmup": args.warmup, "image_size": args.image_size, "cpu_count": os.cpu_count(),

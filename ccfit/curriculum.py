@@ -53,6 +53,7 @@ from ccfit.io import (
 )
 from ccfit.models.base import WorldModel
 from ccfit.replay_store import ROWS_DIR
+from ccfit.train.cost import RunCost
 from ccfit.train.eval_worker import parallel_on
 from ccfit.train.loop import Trainer
 from ccfit.train.records import RunLogger
@@ -167,6 +168,12 @@ class Curriculum:
         self.device = resolve_device(cfg.train.device)
 
     def run(self) -> dict:
+        """The curriculum to its end (resuming what `out` holds); what this call cost is
+        added to `out/cost.json` (the from-scratch reference's included when it ran here)."""
+        with RunCost(self.out):
+            return self._run()
+
+    def _run(self) -> dict:
         cfg, train = self.cfg, self.cfg.train
         resolved = resolved_config(cfg, cfg.suite)
         if train.torch_threads > 0:

@@ -32,7 +32,7 @@ from torch import nn
 from ccdata.errors import InputError
 from ccdata.scoring import discounted_return
 from ccfit.config import TrainConfig
-from ccfit.continual.base import ContinualMethod, ReplayLosses, TaskData
+from ccfit.continual.base import ContinualMethod, TaskData
 from ccfit.io import atomic_torch_save, derived_seed, load_checkpoint, rng_state, set_rng_state
 from ccfit.models.base import Batch, WorldModel
 from ccfit.obs import model_input, obs_to_arrays
@@ -41,10 +41,11 @@ from ccfit.replay_store import load_rows, save_rows
 from ccfit.train.compiled import autocast
 from ccfit.train.evaluate import ACTION_TAG, TRAIN_TAG, Evaluator
 from ccfit.train.records import RunLogger
+from ccfit.train.update import UpdateStep
 
 CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_KIND = "ccfit-task"
-CHECKPOINT_VERSION = 3
+CHECKPOINT_VERSION = 4
 TRAIN_LOG_EVERY = 250
 """Env steps between TensorBoard points of the averaged training losses."""
 
@@ -83,10 +84,7 @@ class Trainer:
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.global_offset, self.progress = global_offset, progress
         self.device = model.device
-        self.optim = model.world_model_optimizer(heads)
-        self._clip_params = [p for g in self.optim.param_groups for p in g["params"]]
-        self.head_optims = model.head_optimizers(heads)
-        self.losses = ReplayLosses(model.backbone_loss, stored_heads_loss)
+        self.step = UpdateStep(model, heads, method, stored_heads_loss, config.autocast)
         self.action_rng = np.random.default_rng(derived_seed(seed, ACTION_TAG, 0, task_index))
 
         self.task_step = 0
@@ -247,24 +245,9 @@ class Trainer:
 
     def _update(self) -> None:
         mcfg = self.model.cfg
-        batch = self.buffer.sample(mcfg.batch_size, mcfg.seq_len).to(self.device)
-        self.model.train()
-        with self._autocast():
-            out = self.model.loss(batch, self.heads)
-            total = out.total
-            if self.method is not None:
-                total = total + self.method.penalty(self.model.backbone, self.losses)
-        self.optim.zero_grad(set_to_none=True)
-        total.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(self._clip_params, mcfg.grad_clip)
-        self.optim.step()
-        if self.method is not None:
-            self.method.after_step(self.model.backbone)
-        with self._autocast():
-            head_logs = self.model.head_update(batch, self.heads, out, self.head_optims)
+        logs = self.step(self.buffer.sample(mcfg.batch_size, mcfg.seq_len).to(self.device))
         self.updates += 1
         # Logged values stay tensors until a flush: no host sync inside an update.
-        logs = {**out.logs, **head_logs, "total": total.detach(), "grad_norm": grad_norm}
         for k, v in logs.items():
             self._train_logs[f"train/{k}"].append(v)
 
@@ -327,8 +310,7 @@ class Trainer:
             "pending_evals": self.evaluator.pending,
             "model": self.model.state_dict(),
             "heads": self.heads.state_dict(),
-            "optim": self.optim.state_dict(),
-            "head_optims": {k: o.state_dict() for k, o in self.head_optims.items()},
+            "step": self.step.state_dict(),
             "buffer": self.buffer.meta_state(),
             "replay_files": self._replay_files,
             "rng": rng_state(actions=self.action_rng),
@@ -344,9 +326,7 @@ class Trainer:
                              "differ); use another run directory or delete it")  # fmt: skip
         self.model.load_state_dict(state["model"])
         self.heads.load_state_dict(state["heads"])
-        self.optim.load_state_dict(state["optim"])
-        for k, o in self.head_optims.items():
-            o.load_state_dict(state["head_optims"][k])
+        self.step.load_state_dict(state["step"])
         load_rows(self.buffer, Path(path).parent, state["buffer"], state["replay_files"])
         self._replay_files = list(state["replay_files"])
         if "method" in state and self.method is not None:

@@ -22,6 +22,7 @@ from ccfit.models.registry import make_model, model_class
 from ccfit.replay import ReplayBuffer
 from ccfit.seeding import seed_buffer
 from ccfit.train.compiled import compile_hot_paths, compiled_paths
+from ccfit.train.cost import RunCost
 from ccfit.train.eval_worker import AsyncEvaluator, WorkerSpec, has_view, parallel_on
 from ccfit.train.evaluate import REPLAY_TAG, Evaluator
 from ccfit.train.loop import CHECKPOINT, Trainer
@@ -203,9 +204,11 @@ def train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, save
 
 
 def train_single(cfg: TaskRunConfig, *, progress: bool = True) -> dict:
-    """`ccfit train`: `cfg.task` learnt from scratch into `cfg.out`; its last record."""
+    """`ccfit train`: `cfg.task` learnt from scratch into `cfg.out`; its last record. What
+    it cost goes to `cost.json`."""
     out = Path(cfg.out) if cfg.out else default_out(cfg)
-    evals = train_task(cfg, out, task_id=cfg.task, task_index=0,
-                       saved=resolved_config(cfg, suite_of(cfg.task)),
-                       progress=progress)  # fmt: skip
+    with RunCost(out):
+        evals = train_task(cfg, out, task_id=cfg.task, task_index=0,
+                           saved=resolved_config(cfg, suite_of(cfg.task)),
+                           progress=progress)  # fmt: skip
     return evals[-1]

@@ -1,0 +1,55 @@
+"""What a run cost: `cost.json` in its run directory, wall and CPU seconds, summed over every
+process that ran it (the training process and its worker processes) and over resumptions.
+
+A resumed run adds to what is recorded; the segment a killed process was in when it died is
+not recorded (its CPU time is lost with it)."""
+
+from __future__ import annotations
+
+import json
+import resource
+import time
+from pathlib import Path
+
+from ccfit.io import atomic_write_json
+
+COST = "cost.json"
+
+
+def _cpu() -> float:
+    """CPU seconds of this process and of its children that have ended."""
+    total = 0.0
+    for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN):
+        usage = resource.getrusage(who)
+        total += usage.ru_utime + usage.ru_stime
+    return total
+
+
+class RunCost:
+    """Context manager: on exit (also by an exception), adds the wall and CPU time spent in
+    the block (the block's own worker processes included, once they ended) to `cost.json`."""
+
+    def __init__(self, run_dir: str | Path) -> None:
+        self.path = Path(run_dir) / COST
+
+    def __enter__(self) -> RunCost:
+        self._wall, self._cpu = time.monotonic(), _cpu()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if not self.path.parent.is_dir():
+            return  # the run never started (bad input): nothing was spent on it
+        before = read_cost(self.path.parent)
+        atomic_write_json(self.path, {
+            "wall_s": before["wall_s"] + time.monotonic() - self._wall,
+            "cpu_s": before["cpu_s"] + _cpu() - self._cpu,
+            "segments": before["segments"] + 1,
+        })  # fmt: skip
+
+
+def read_cost(run_dir: str | Path) -> dict:
+    """{'wall_s', 'cpu_s', 'segments'} of a run directory (zeros when none is recorded)."""
+    path = Path(run_dir) / COST
+    if not path.is_file():
+        return {"wall_s": 0.0, "cpu_s": 0.0, "segments": 0}
+    return json.loads(path.read_text())
