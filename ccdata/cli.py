@@ -113,28 +113,36 @@ def _cmd_references(args: argparse.Namespace) -> None:
     print(f"wrote {path}")
 
 
-def _cmd_generate(args: argparse.Namespace) -> None:
-    from ccdata.record import GenerateConfig, generate
+def generate_config(args: argparse.Namespace):
+    """The GenerateConfig of a parsed `generate` command line, its launch options checked."""
+    from ccdata.processes import available_cores
+    from ccdata.record import GenerateConfig
 
     if args.launcher == "local":
         given = [f"--{k.replace('_', '-')}" for k in SLURM_FLAGS if getattr(args, k) is not None]
         if given:
             raise CliError(f"{', '.join(given)} need --launcher slurm (locally: --workers)")
-    elif args.workers != 1:
+    elif args.workers is not None:  # None: not given
         raise CliError("--workers is for --launcher local; with slurm use --shards")
-    config = GenerateConfig(
+    return GenerateConfig(
         suite=args.suite,
         episodes=args.episodes,
         explore_episodes=args.explore_episodes,
         image_size=args.image_size,
         seed=args.seed,
         max_steps=args.max_steps,
-        workers=args.workers,
+        workers=available_cores() if args.workers is None else args.workers,
         root=args.root,
         repo_id=args.repo_id,
         noise_std=args.noise_std,
         random_prob=args.random_prob,
     )
+
+
+def _cmd_generate(args: argparse.Namespace) -> None:
+    from ccdata.record import generate
+
+    config = generate_config(args)
     if args.launcher == "slurm":
         return _submit_slurm(args, config)
     path, summary = generate(config)
@@ -329,7 +337,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-steps", type=int,
                    help="cut episodes after this many steps (tests, previews; default: full)")
-    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--workers", type=int,
+                   help="rollout processes (default: one per core this process may use); the "
+                        "episodes are identical with any number of workers")
     p.add_argument("--root", help="dataset directory (default: LeRobot's cache for the repo id)")
     p.add_argument("--repo-id", help="default ccdata/<Suite>")
     p.add_argument("--noise-std", type=float,
