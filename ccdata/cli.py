@@ -54,6 +54,7 @@ def _cmd_render(args: argparse.Namespace) -> None:
 
     import ccdata
     from ccdata.policies import make_policy
+    from ccdata.render import write_mp4, write_png
 
     env = ccdata.make_env(args.task, seed=args.seed, image_size=args.image_size)
     obs, _ = env.reset()
@@ -73,37 +74,6 @@ def _cmd_render(args: argparse.Namespace) -> None:
         write_mp4(Path(args.video), np.stack(frames), fps=ccdata.env.FPS)
         print(f"wrote {args.video} ({len(frames)} frames, oracle, success={terminated})")
     env.close()
-
-
-def write_png(path: Path, image) -> None:
-    """An RGB uint8 (H, W, 3) image as PNG (OpenCV, which LeRobot installs), atomically."""
-    import cv2
-
-    ok, data = cv2.imencode(".png", image[..., ::-1])  # OpenCV orders channels BGR
-    if not ok:
-        raise RuntimeError(f"OpenCV could not encode a {image.shape} image as PNG")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data.tobytes())
-    tmp.replace(path)
-
-
-def write_mp4(path: Path, frames, fps: int) -> None:
-    """H.264 MP4 of (T, H, W, 3) uint8 frames, written to a temp file then renamed. PyAV, not
-    OpenCV: OpenCV's wheels cannot encode H.264 (only MPEG-4 part 2)."""
-    import av
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.mp4")
-    with av.open(str(tmp), mode="w") as container:
-        stream = container.add_stream("libx264", rate=fps)
-        stream.height, stream.width = frames.shape[1] // 2 * 2, frames.shape[2] // 2 * 2
-        stream.pix_fmt = "yuv420p"
-        for image in frames:
-            image = image[: stream.height, : stream.width]
-            container.mux(stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")))
-        container.mux(stream.encode())
-    tmp.replace(path)
 
 
 def _cmd_references(args: argparse.Namespace) -> None:
