@@ -188,13 +188,19 @@ def format_summary(summary: dict) -> str:
 
 
 def _dataset_root(args: argparse.Namespace) -> Path:
+    """The dataset directory of --root, else of --suite; CliError if it holds no dataset."""
     from ccdata.settings import suite_dataset_root
 
     if args.root:
-        return Path(args.root)
-    if args.suite is None:
+        root = Path(args.root)
+    elif args.suite is None:
         raise CliError("give --suite or --root")
-    return suite_dataset_root(args.suite)
+    else:
+        root = suite_dataset_root(args.suite)
+    if not (root / "meta/info.json").is_file():
+        fix = "" if args.root else f": run `ccdata generate --suite {args.suite}` first"
+        raise CliError(f"no dataset at {root} (no meta/info.json){fix}")
+    return root
 
 
 def _cmd_card(args: argparse.Namespace) -> None:
@@ -204,9 +210,10 @@ def _cmd_card(args: argparse.Namespace) -> None:
         from ccdata.dataset_format import read_ccdata_metadata
         from ccdata.settings import DatasetSettings
 
-        meta = read_ccdata_metadata(Path(args.root))
+        root = _dataset_root(args)
+        meta = read_ccdata_metadata(root)
         settings = DatasetSettings.from_dict({**meta["config"], "root": args.root})
-        text = render_card(settings, dataset=Path(args.root), metadata=meta)
+        text = render_card(settings, dataset=root, metadata=meta)
     elif args.suite:
         text = render_card(args.suite)
     else:
@@ -243,8 +250,6 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     from ccdata.verify import verify_dataset
 
     root = _dataset_root(args)
-    if not root.exists():
-        raise CliError(f"no dataset at {root}: run `ccdata generate --suite {args.suite}` first")
     findings = verify_dataset(root)
     if findings:
         print(f"{root}: {len(findings)} problem(s)")
@@ -340,7 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_verify)
 
     p = sub.add_parser("push", help="upload a dataset to a Hub-compatible endpoint")
-    p.add_argument("--suite", required=True)
+    p.add_argument("--suite", help="the suite's dataset in LeRobot's cache")
     p.add_argument("--repo-id", required=True)
     p.add_argument("--endpoint", help="default: HF_ENDPOINT or the public hub")
     p.add_argument("--root", help="local dataset directory (default: from the suite)")

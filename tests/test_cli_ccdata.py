@@ -66,6 +66,22 @@ def test_generate_runs_a_worker_per_available_core_by_default():
         run_cli("generate", "--help").stdout.split())
 
 
+@pytest.mark.parametrize("command", [["verify"], ["card"], ["push", "--repo-id", "org/x"]])
+def test_a_dataset_command_without_a_dataset_is_one_line(command, tmp_path, monkeypatch, capsys):
+    # An absent directory, and one that holds no dataset.
+    for root in (tmp_path / "absent", tmp_path):
+        assert main([*command, "--root", str(root)]) == 2
+        assert capsys.readouterr().err == (
+            f"ccdata {command[0]}: error: no dataset at {root} (no meta/info.json)\n")
+    if command[0] == "card":  # --suite renders the suite's default card: no dataset needed
+        return
+    monkeypatch.setattr("lerobot.utils.constants.HF_LEROBOT_HOME", tmp_path)
+    assert main([*command, "--suite", "Reach"]) == 2
+    assert capsys.readouterr().err == (
+        f"ccdata {command[0]}: error: no dataset at {tmp_path / 'ccdata/Reach'} (no "
+        "meta/info.json): run `ccdata generate --suite Reach` first\n")
+
+
 def test_render_writes_three_views_and_an_episode(tmp_path, capsys):
     png, mp4 = tmp_path / "views.png", tmp_path / "episode.mp4"
     code = main(

@@ -55,12 +55,6 @@ def test_verify_ok_then_finds_a_missing_video(tiny_reach, tmp_path, capsys):
     assert "problem" in capsys.readouterr().out
 
 
-def test_verify_missing_dataset_is_one_line(tmp_path, capsys):
-    assert main(["verify", "--root", str(tmp_path / "nothing")]) == 2
-    err = capsys.readouterr().err
-    assert "no dataset at" in err and len(err.strip().splitlines()) == 1
-
-
 def test_push_to_loopback_hub_and_errors(tiny_reach, hub_server, monkeypatch, capsys):
     monkeypatch.setenv("HF_TOKEN", hub_server.token("write"))
     args = ["push", "--suite", "Reach", "--root", str(tiny_reach), "--repo-id", "org/reach-tiny"]
