@@ -18,8 +18,10 @@ NOTEBOOK = Path(__file__).parent.parent / "notebooks" / "explore_dataset.ipynb"
 @pytest.fixture(scope="module")
 def tiny_reach(tmp_path_factory):
     root = tmp_path_factory.mktemp("ds") / "Reach"
+    # One worker: spawning rollout processes costs more than these 4 short episodes (8 s against
+    # 11 s with the default 2 on 2 cores); test_record checks that workers change nothing.
     code = main(["generate", "--suite", "Reach", "--episodes", "1", "--explore-episodes", "0",
-                 "--image-size", "32", "--root", str(root)])  # fmt: skip
+                 "--image-size", "32", "--root", str(root), "--workers", "1"])  # fmt: skip
     assert code == 0
     return root
 
