@@ -54,6 +54,7 @@ def _cmd_render(args: argparse.Namespace) -> None:
 
     import ccdata
     from ccdata.policies import make_policy
+    from ccdata.render import write_mp4, write_png
 
     env = ccdata.make_env(args.task, seed=args.seed, image_size=args.image_size)
     obs, _ = env.reset()
@@ -75,37 +76,6 @@ def _cmd_render(args: argparse.Namespace) -> None:
     env.close()
 
 
-def write_png(path: Path, image) -> None:
-    """An RGB uint8 (H, W, 3) image as PNG (OpenCV, which LeRobot installs), atomically."""
-    import cv2
-
-    ok, data = cv2.imencode(".png", image[..., ::-1])  # OpenCV orders channels BGR
-    if not ok:
-        raise RuntimeError(f"OpenCV could not encode a {image.shape} image as PNG")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data.tobytes())
-    tmp.replace(path)
-
-
-def write_mp4(path: Path, frames, fps: int) -> None:
-    """H.264 MP4 of (T, H, W, 3) uint8 frames, written to a temp file then renamed. PyAV, not
-    OpenCV: OpenCV's wheels cannot encode H.264 (only MPEG-4 part 2)."""
-    import av
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.mp4")
-    with av.open(str(tmp), mode="w") as container:
-        stream = container.add_stream("libx264", rate=fps)
-        stream.height, stream.width = frames.shape[1] // 2 * 2, frames.shape[2] // 2 * 2
-        stream.pix_fmt = "yuv420p"
-        for image in frames:
-            image = image[: stream.height, : stream.width]
-            container.mux(stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")))
-        container.mux(stream.encode())
-    tmp.replace(path)
-
-
 def _cmd_references(args: argparse.Namespace) -> None:
     from ccdata.references import write_references
 
@@ -113,28 +83,36 @@ def _cmd_references(args: argparse.Namespace) -> None:
     print(f"wrote {path}")
 
 
-def _cmd_generate(args: argparse.Namespace) -> None:
-    from ccdata.record import GenerateConfig, generate
+def generate_config(args: argparse.Namespace):
+    """The GenerateConfig of a parsed `generate` command line, its launch options checked."""
+    from ccdata.processes import available_cores
+    from ccdata.record import GenerateConfig
 
     if args.launcher == "local":
         given = [f"--{k.replace('_', '-')}" for k in SLURM_FLAGS if getattr(args, k) is not None]
         if given:
             raise CliError(f"{', '.join(given)} need --launcher slurm (locally: --workers)")
-    elif args.workers != 1:
+    elif args.workers is not None:  # None: not given
         raise CliError("--workers is for --launcher local; with slurm use --shards")
-    config = GenerateConfig(
+    return GenerateConfig(
         suite=args.suite,
         episodes=args.episodes,
         explore_episodes=args.explore_episodes,
         image_size=args.image_size,
         seed=args.seed,
         max_steps=args.max_steps,
-        workers=args.workers,
+        workers=available_cores() if args.workers is None else args.workers,
         root=args.root,
         repo_id=args.repo_id,
         noise_std=args.noise_std,
         random_prob=args.random_prob,
     )
+
+
+def _cmd_generate(args: argparse.Namespace) -> None:
+    from ccdata.record import generate
+
+    config = generate_config(args)
     if args.launcher == "slurm":
         return _submit_slurm(args, config)
     path, summary = generate(config)
@@ -210,13 +188,19 @@ def format_summary(summary: dict) -> str:
 
 
 def _dataset_root(args: argparse.Namespace) -> Path:
+    """The dataset directory of --root, else of --suite; CliError if it holds no dataset."""
     from ccdata.settings import suite_dataset_root
 
     if args.root:
-        return Path(args.root)
-    if args.suite is None:
+        root = Path(args.root)
+    elif args.suite is None:
         raise CliError("give --suite or --root")
-    return suite_dataset_root(args.suite)
+    else:
+        root = suite_dataset_root(args.suite)
+    if not (root / "meta/info.json").is_file():
+        fix = "" if args.root else f": run `ccdata generate --suite {args.suite}` first"
+        raise CliError(f"no dataset at {root} (no meta/info.json){fix}")
+    return root
 
 
 def _cmd_card(args: argparse.Namespace) -> None:
@@ -226,9 +210,10 @@ def _cmd_card(args: argparse.Namespace) -> None:
         from ccdata.dataset_format import read_ccdata_metadata
         from ccdata.settings import DatasetSettings
 
-        meta = read_ccdata_metadata(Path(args.root))
+        root = _dataset_root(args)
+        meta = read_ccdata_metadata(root)
         settings = DatasetSettings.from_dict({**meta["config"], "root": args.root})
-        text = render_card(settings, dataset=Path(args.root), metadata=meta)
+        text = render_card(settings, dataset=root, metadata=meta)
     elif args.suite:
         text = render_card(args.suite)
     else:
@@ -265,8 +250,6 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     from ccdata.verify import verify_dataset
 
     root = _dataset_root(args)
-    if not root.exists():
-        raise CliError(f"no dataset at {root}: run `ccdata generate --suite {args.suite}` first")
     findings = verify_dataset(root)
     if findings:
         print(f"{root}: {len(findings)} problem(s)")
@@ -329,7 +312,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-steps", type=int,
                    help="cut episodes after this many steps (tests, previews; default: full)")
-    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--workers", type=int,
+                   help="rollout processes (default: one per core this process may use); the "
+                        "episodes are identical with any number of workers")
     p.add_argument("--root", help="dataset directory (default: LeRobot's cache for the repo id)")
     p.add_argument("--repo-id", help="default ccdata/<Suite>")
     p.add_argument("--noise-std", type=float,
@@ -360,7 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_verify)
 
     p = sub.add_parser("push", help="upload a dataset to a Hub-compatible endpoint")
-    p.add_argument("--suite", required=True)
+    p.add_argument("--suite", help="the suite's dataset in LeRobot's cache")
     p.add_argument("--repo-id", required=True)
     p.add_argument("--endpoint", help="default: HF_ENDPOINT or the public hub")
     p.add_argument("--root", help="local dataset directory (default: from the suite)")

@@ -57,6 +57,15 @@ class _Starter(threading.Thread):
             raise self.error
 
 
+def available_cores() -> int:
+    """The CPU cores this process may run on. Its affinity mask, not `os.cpu_count()`: under
+    taskset, a cgroup cpuset or a SLURM allocation the machine's count overstates it."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # no affinity masks (macOS)
+        return os.cpu_count() or 1
+
+
 def start_soon(*processes: BaseProcess) -> threading.Thread:
     """Start `processes` from a helper thread, returned: join it before using them (the join
     raises what starting them raised).

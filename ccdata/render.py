@@ -1,4 +1,5 @@
-"""Offscreen rendering of the benchmark's three cameras with explicit, recorded settings.
+"""Offscreen rendering of the benchmark's three cameras with explicit, recorded settings, and
+writing rendered frames as PNG and MP4 (`ccdata render`).
 
 Meta-World renders with MuJoCo's defaults (4096 shadow map, 4x MSAA, reflections, skybox),
 which costs ~100 ms per 64 px frame in software GL. The benchmark turns those off by default
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -84,3 +86,34 @@ class MultiCameraRenderer:
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+
+def write_png(path: Path, image) -> None:
+    """An RGB uint8 (H, W, 3) image as PNG (OpenCV, which LeRobot installs), atomically."""
+    import cv2
+
+    ok, data = cv2.imencode(".png", image[..., ::-1])  # OpenCV orders channels BGR
+    if not ok:
+        raise RuntimeError(f"OpenCV could not encode a {image.shape} image as PNG")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data.tobytes())
+    tmp.replace(path)
+
+
+def write_mp4(path: Path, frames, fps: int) -> None:
+    """H.264 MP4 of (T, H, W, 3) uint8 frames, written to a temp file then renamed. PyAV, not
+    OpenCV: OpenCV's wheels cannot encode H.264 (only MPEG-4 part 2)."""
+    import av
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.mp4")
+    with av.open(str(tmp), mode="w") as container:
+        stream = container.add_stream("libx264", rate=fps)
+        stream.height, stream.width = frames.shape[1] // 2 * 2, frames.shape[2] // 2 * 2
+        stream.pix_fmt = "yuv420p"
+        for image in frames:
+            image = image[: stream.height, : stream.width]
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")))
+        container.mux(stream.encode())
+    tmp.replace(path)

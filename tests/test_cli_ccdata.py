@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 
 import ccdata
-from ccdata.cli import main
+from ccdata.cli import CliError, build_parser, generate_config, main
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:
@@ -43,6 +44,42 @@ def test_bad_input_is_one_line_and_exit_2(args, message):
     assert message in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
     assert "Traceback" not in result.stderr
+
+
+def test_generate_runs_a_worker_per_available_core_by_default():
+    parse = build_parser().parse_args
+    reach = ["generate", "--suite", "Reach"]
+    assert generate_config(parse(reach)).workers == len(os.sched_getaffinity(0))
+    assert generate_config(parse([*reach, "--workers", "3"])).workers == 3
+    # The cores of the process's affinity mask (taskset, cpusets, SLURM), not the machine's.
+    one_core = min(os.sched_getaffinity(0))
+    code = (f"import os; os.sched_setaffinity(0, {{{one_core}}}); "
+            "from ccdata.cli import build_parser, generate_config; "
+            f"print(generate_config(build_parser().parse_args({reach!r})).workers)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.stdout.strip() == "1", done.stderr
+    # Only a --workers the user gave is refused with slurm; the default is not.
+    generate_config(parse([*reach, "--launcher", "slurm"]))
+    with pytest.raises(CliError, match="--workers is for --launcher local"):
+        generate_config(parse([*reach, "--launcher", "slurm", "--workers", "1"]))
+    assert "identical with any number of workers" in " ".join(
+        run_cli("generate", "--help").stdout.split())
+
+
+@pytest.mark.parametrize("command", [["verify"], ["card"], ["push", "--repo-id", "org/x"]])
+def test_a_dataset_command_without_a_dataset_is_one_line(command, tmp_path, monkeypatch, capsys):
+    # An absent directory, and one that holds no dataset.
+    for root in (tmp_path / "absent", tmp_path):
+        assert main([*command, "--root", str(root)]) == 2
+        assert capsys.readouterr().err == (
+            f"ccdata {command[0]}: error: no dataset at {root} (no meta/info.json)\n")
+    if command[0] == "card":  # --suite renders the suite's default card: no dataset needed
+        return
+    monkeypatch.setattr("lerobot.utils.constants.HF_LEROBOT_HOME", tmp_path)
+    assert main([*command, "--suite", "Reach"]) == 2
+    assert capsys.readouterr().err == (
+        f"ccdata {command[0]}: error: no dataset at {tmp_path / 'ccdata/Reach'} (no "
+        "meta/info.json): run `ccdata generate --suite Reach` first\n")
 
 
 def test_render_writes_three_views_and_an_episode(tmp_path, capsys):

@@ -204,6 +204,60 @@ def test_missing_datasets_name_the_command(reach_root, tmp_path):
         load_oracle_frames(make_config(reach_root, image_size=64))
 
 
+VALID_SUITES = "Reach, Grasp, BinPnP, PnPBlock, DrawerPnP, PnPBoxClose or 'all'"
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--suites", "Reach"], "missing suite dataset(s) Reach (looked in {home}/ccdata/Reach); "
+                            "run: ccdata generate --suite Reach"),
+    (["--suites", "Nope"], f"unknown suite(s) ['Nope']; valid: {VALID_SUITES}"),
+    (["--preset", "huge"], "unknown preset 'huge'; valid: smoke, cpu, paper"),
+    (["--steps", "0"], "PretrainConfig.steps must be >= 1, got 0"),
+    (["--device", "tpu"], "PretrainConfig: device must be one of auto, cpu, cuda"),
+    (["--out", "{home}/enc.pt"], "--out must end in .safetensors, got {home}/enc.pt"),
+])  # fmt: skip
+def test_bad_input_is_one_line_and_exit_2(args, message, tmp_path, monkeypatch, capsys):
+    """With no dataset in LeRobot's cache ($HF_LEROBOT_HOME, read when LeRobot is imported)."""
+    from ccfit.cli import main
+
+    monkeypatch.setattr("lerobot.utils.constants.HF_LEROBOT_HOME", tmp_path)
+    monkeypatch.chdir(tmp_path)  # the default --out is relative
+    args = [a.format(home=tmp_path) for a in args]
+    assert main(["pretrain-encoder", "--quiet", *args]) == 2
+    assert capsys.readouterr().err == f"ccfit: error: {message.format(home=tmp_path)}\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_bad_datasets_and_outputs_are_one_line_and_exit_2(reach_root, tmp_path, monkeypatch,
+                                                          capsys):
+    """A dataset of another image size or with a corrupt meta/ccdata.json in LeRobot's cache,
+    and an --out whose sidecar is corrupt."""
+    from ccfit.cli import main
+
+    home = tmp_path / "home"
+    shutil.copytree(reach_root, home / "ccdata" / "Reach")
+    monkeypatch.setattr("lerobot.utils.constants.HF_LEROBOT_HOME", home)
+    out = str(tmp_path / "enc.safetensors")
+    command = ["pretrain-encoder", "--quiet", "--preset", "smoke", "--out", out]
+
+    def error(*args: str) -> str:
+        assert main([*command, *args]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("ccfit: error: ") and err.count("\n") == 1
+        return err
+
+    reach = str(home / "ccdata" / "Reach")
+    assert f"dataset {reach} (Reach) has 32 px images but the encoder is for 64 px" in error(
+        "--suites", "Reach")
+    (home / "ccdata" / "Grasp" / "meta").mkdir(parents=True)
+    (home / "ccdata" / "Grasp" / "meta" / "ccdata.json").write_text("{")
+    assert f"cannot read dataset {home / 'ccdata/Grasp'} (Grasp)" in error(
+        "--suites", "Grasp", "--image-size", str(SIZE))
+    (tmp_path / "enc.safetensors").write_bytes(b"")
+    (tmp_path / "enc.json").write_text("{")
+    assert f"cannot read encoder sidecar {tmp_path / 'enc.json'}" in error("--suites", "Reach")
+
+
 def test_shared_task_counted_once(reach_root, tmp_path):
     """A suite whose tasks were already read from an earlier suite adds no episodes (the
     pnp-cube case). A copy of the Reach dataset, relabelled, stands in for a later suite here;

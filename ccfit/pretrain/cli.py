@@ -14,7 +14,7 @@ from ccfit.pretrain.train import pretrain_encoder
 
 def add_pretrain_parser(subparsers) -> argparse.ArgumentParser:
     """Register `pretrain-encoder` on an argparse subparsers object; its handler is
-    `args.func(args)` and raises ValueError (one clear message) on bad input."""
+    `args.func(args)` and raises InputError (one clear message) on bad input."""
     p = subparsers.add_parser(
         "pretrain-encoder",
         help="pretrain the frozen encoder (autoencoder on every task's oracle episodes)",

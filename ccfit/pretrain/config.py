@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ccdata.errors import InputError
 from ccdata.suites import SUITES
 from ccfit.models.registry import PRESETS
 from ccfit.models.tdmpc2 import TDMPC2Config
@@ -90,19 +91,19 @@ class PretrainConfig:
         self.suites = tuple(self.suites)
         bad = [s for s in self.suites if s not in SUITES]
         if bad or not self.suites:
-            raise ValueError(
+            raise InputError(
                 f"unknown suite(s) {bad or '(none given)'}; valid: {', '.join(SUITES)} or 'all'"
             )
         if len(set(self.suites)) != len(self.suites):
-            raise ValueError(f"PretrainConfig.suites lists a suite twice: {self.suites}")
+            raise InputError(f"PretrainConfig.suites lists a suite twice: {self.suites}")
         self.dataset_roots = {str(k): str(v) for k, v in dict(self.dataset_roots).items()}
         extra = [s for s in self.dataset_roots if s not in SUITES]
         if extra:
-            raise ValueError(f"dataset_roots has unknown suite(s) {extra}; valid: {list(SUITES)}")
+            raise InputError(f"dataset_roots has unknown suite(s) {extra}; valid: {list(SUITES)}")
         for name in ("steps", "batch_size", "decoder_channels", "frame_stride",
                      "eval_batch_size", "checkpoint_interval", "log_interval"):  # fmt: skip
             if int(getattr(self, name)) < 1:
-                raise ValueError(f"PretrainConfig.{name} must be >= 1, got {getattr(self, name)}")
+                raise InputError(f"PretrainConfig.{name} must be >= 1, got {getattr(self, name)}")
         checks = [
             (self.lr > 0 and self.grad_clip_norm > 0, "lr and grad_clip_norm must be > 0"),
             (self.proprio_coef >= 0, "proprio_coef must be >= 0"),
@@ -114,8 +115,8 @@ class PretrainConfig:
         ]
         for ok, msg in checks:
             if not ok:
-                raise ValueError(f"PretrainConfig: {msg}")
-        self.encoder_config()  # unknown preset or bad image size -> ValueError
+                raise InputError(f"PretrainConfig: {msg}")
+        self.encoder_config()  # unknown preset or bad image size -> InputError
 
     def encoder_config(self) -> TDMPC2Config:
         """The TD-MPC2 pixel-mode config whose encoder this run pretrains."""
@@ -126,7 +127,7 @@ class PretrainConfig:
         """`smoke`: seconds (CI); `cpu`: minutes to an hour on 2 cores; `paper`: GPU scale.
         The encoder's sizes follow the TD-MPC2 preset of the same name."""
         if name not in PRESETS:
-            raise ValueError(f"unknown preset {name!r}; valid: {', '.join(PRESETS)}")
+            raise InputError(f"unknown preset {name!r}; valid: {', '.join(PRESETS)}")
         base = {
             "smoke": dict(steps=100, batch_size=16, lr=1e-3, decoder_channels=16,
                           checkpoint_interval=50, log_interval=10),

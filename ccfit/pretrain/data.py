@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ccdata.errors import InputError
 from ccdata.suites import SUITES
 
 if TYPE_CHECKING:
@@ -34,7 +35,7 @@ def episode_arrays(episode: dict, stride: int = 1) -> tuple[np.ndarray, np.ndarr
 
     missing = [key for key in CAMERA_KEYS.values() if key not in episode]
     if missing:
-        raise ValueError(f"episode {episode.get('episode_index')} lacks {missing}")
+        raise InputError(f"episode {episode.get('episode_index')} lacks {missing}")
     obs = {cam: episode[key][::stride] for cam, key in CAMERA_KEYS.items()}
     obs["proprio"] = np.asarray(episode[PROPRIO_KEY], dtype=np.float32)[::stride]
     arrays = obs_to_arrays(obs, "pixels")
@@ -81,11 +82,11 @@ def _generate_command(suite: str, root: Path) -> str:
 
 
 def check_datasets(config: PretrainConfig) -> None:
-    """ValueError naming every missing suite dataset and the command that makes it."""
+    """InputError naming every missing suite dataset and the command that makes it."""
     missing = missing_datasets(config)
     if missing:
         cmds = "; ".join(_generate_command(s, r) for s, r in missing.items())
-        raise ValueError(
+        raise InputError(
             f"missing suite dataset(s) {', '.join(missing)} "
             f"(looked in {', '.join(str(r) for r in missing.values())}); run: {cmds}"
         )
@@ -105,12 +106,15 @@ def load_oracle_frames(config: PretrainConfig, progress: bool = False) -> tuple[
     # Shared tasks are read from the first suite in ccdata's order, whatever order was asked.
     for suite in sorted(config.suites, key=list(SUITES).index):
         root = config.resolved_roots()[suite]
-        meta = read_ccdata_metadata(root)
+        try:
+            meta = read_ccdata_metadata(root)
+        except ValueError as err:  # check_datasets saw the file: it is corrupt
+            raise InputError(f"cannot read dataset {root} ({suite}): {err}") from None
         if meta.get("suite") != suite:
-            raise ValueError(f"dataset {root} holds suite {meta.get('suite')!r}, not {suite!r}")
+            raise InputError(f"dataset {root} holds suite {meta.get('suite')!r}, not {suite!r}")
         size = int(meta.get("identity", {}).get("image_size", -1))
         if size != config.image_size:
-            raise ValueError(
+            raise InputError(
                 f"dataset {root} ({suite}) has {size} px images but the encoder is for "
                 f"{config.image_size} px; regenerate it with `ccdata generate --suite {suite} "
                 f"--image-size {config.image_size}` or set the image size to {size}"
@@ -137,7 +141,7 @@ def load_oracle_frames(config: PretrainConfig, progress: bool = False) -> tuple[
             counts[ep["task_id"]] += 1
         absent = [t for t, n in counts.items() if n == 0]
         if absent:
-            raise ValueError(
+            raise InputError(
                 f"dataset {root} ({suite}) has no oracle episodes of {absent}; run "
                 f"`{_generate_command(suite, root)} --episodes 50`"
             )

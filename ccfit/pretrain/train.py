@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ccdata.errors import InputError
 from ccfit.io import atomic_torch_save, rng_state, set_rng_state
 from ccfit.models.encoders import (
     random_shift,
@@ -49,19 +50,22 @@ def _versions() -> dict:
 
 
 def _finished(config: PretrainConfig, out: Path) -> dict | None:
-    """The finished run's record at `out` if it was made with these settings; ValueError if
+    """The finished run's record at `out` if it was made with these settings; InputError if
     `out` holds an encoder made with other settings."""
     weights, side, ckpt = _paths(out)
     if weights.exists() and not side.is_file() and not ckpt.is_file():
         # Ours always has a sidecar, or a checkpoint while the sidecar is being written.
-        raise ValueError(f"{weights} exists and is not a pretraining output; choose another --out")
+        raise InputError(f"{weights} exists and is not a pretraining output; choose another --out")
     if not (weights.is_file() and side.is_file()):
         return None
-    record = read_encoder_sidecar(weights)
+    try:
+        record = read_encoder_sidecar(weights)
+    except ValueError as err:  # the user's --out holds a broken sidecar
+        raise InputError(f"{err}; choose another --out or delete it") from None
     if record.get("kind") != KIND or record.get("identity") != json.loads(
         json.dumps(config.identity())
     ):
-        raise ValueError(
+        raise InputError(
             f"{weights} already holds an encoder pretrained with other settings; choose "
             "another --out or delete it (and its .json sidecar)"
         )
@@ -85,7 +89,7 @@ def pretrain_encoder(
     """
     out = Path(out)
     if out.suffix != ".safetensors":
-        raise ValueError(f"--out must end in .safetensors, got {out}")
+        raise InputError(f"--out must end in .safetensors, got {out}")
     done = _finished(config, out)
     if done is not None:
         return done["metrics"]
@@ -139,7 +143,7 @@ def _pretrain(
         # Our own file; it holds the RNG states of ccfit.io.rng_state (NumPy and Python objects).
         ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
         if ck.get("version") != CHECKPOINT_VERSION or ck.get("identity") != identity:
-            raise ValueError(
+            raise InputError(
                 f"{ckpt_path} is a checkpoint of other settings; rerun with those or delete it"
             )
         model.load_state_dict(ck["model"])
