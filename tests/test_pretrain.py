@@ -215,6 +215,9 @@ VALID_SUITES = "Reach, Grasp, BinPnP, PnPBlock, DrawerPnP, PnPBoxClose or 'all'"
     (["--steps", "0"], "PretrainConfig.steps must be >= 1, got 0"),
     (["--device", "tpu"], "PretrainConfig: device must be one of auto, cpu, cuda"),
     (["--out", "{home}/enc.pt"], "--out must end in .safetensors, got {home}/enc.pt"),
+    (["--model", "dreamerv3"], "model 'dreamerv3' does not build the shared pixel encoder; "
+                               "models that do: pwm, tdmpc2"),
+    (["--model", "nope"], "unknown model 'nope'; valid: dreamerv3, pwm, tdmpc2"),
 ])  # fmt: skip
 def test_bad_input_is_one_line_and_exit_2(args, message, tmp_path, monkeypatch, capsys):
     """With no dataset in LeRobot's cache ($HF_LEROBOT_HOME, read when LeRobot is imported)."""

@@ -38,8 +38,10 @@ interface, in this order, and reads nothing else from it:
   parameters and the continual method's state. A resumed task restores its optimisers.
 - `capabilities` names what a model offers beyond the interface, so that a method or an
   analysis that needs it finds it without naming models: 'experts' (its backbone holds an
-  `ExpertGroups`, what progressive experts grows) and 'routing' (it is a `Routing` model,
-  what the routing analysis and expert ablation read).
+  `ExpertGroups`, what progressive experts grows), 'routing' (it is a `Routing` model,
+  what the routing analysis and expert ablation read) and 'pixel-encoder' (in pixel mode it
+  builds the shared `ccfit.models.encoders` encoder, the one `ccfit pretrain-encoder`
+  pretrains).
 
 Acting state is an explicit value owned by whoever plays the episodes, so stored heads of
 earlier tasks evaluated mid-episode of the current task never disturb each other.

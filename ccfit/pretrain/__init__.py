@@ -1,8 +1,9 @@
 """Autoencoder pretraining of the frozen encoder (paper Sec. III-E, frozen-encoder diagnostic).
 
-The encoder is exactly the pixel encoder TD-MPC2 (and PWM, which shares TD-MPC2's encoder)
-builds in pixel mode: `build_encoder(TDMPC2Config.preset(model_preset, obs_mode="pixels"))`,
-so the saved weights load with `load_frozen_encoder` into a model of the same preset. A decoder of
+The encoder is exactly the shared pixel encoder (`ccfit.models.encoders.build_encoder`) that a
+model offering 'pixel-encoder' builds at its preset in pixel mode (`PretrainConfig.model`,
+`model_preset`), so the saved weights load with `load_frozen_encoder` into a model of the
+same preset. A decoder of
 transposed convolutions reconstructs the 9-channel image (and the 7-D proprio) from the latent.
 
 Objective (per batch of frames):

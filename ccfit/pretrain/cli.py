@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from ccfit.models import DEFAULT_MODEL
 from ccfit.pretrain.config import PretrainConfig
 from ccfit.pretrain.train import pretrain_encoder
 
@@ -21,7 +22,10 @@ def add_pretrain_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--suites", default="all", help="'all' or a comma list, e.g. Reach,Grasp")
     p.add_argument("--preset", default="cpu", help="smoke | cpu | paper (default cpu); the "
-                   "encoder's sizes follow the TD-MPC2 preset of the same name")  # fmt: skip
+                   "encoder's sizes follow the model's preset of the same name")  # fmt: skip
+    p.add_argument("--model", default=DEFAULT_MODEL,
+                   help="the world model whose pixel encoder is pretrained (one offering "
+                        "'pixel-encoder')")  # fmt: skip
     p.add_argument("--out", default=None,
                    help="weights file (default runs/encoders/encoder-PRESET-sSEED.safetensors)")
     p.add_argument("--steps", type=int, default=None, help="override the preset's steps")
@@ -35,7 +39,7 @@ def add_pretrain_parser(subparsers) -> argparse.ArgumentParser:
 
 def config_from_args(args: argparse.Namespace) -> PretrainConfig:
     """The PretrainConfig of a parsed `pretrain-encoder` command line."""
-    overrides: dict[str, Any] = {"suites": args.suites, "seed": args.seed,
+    overrides: dict[str, Any] = {"model": args.model, "suites": args.suites, "seed": args.seed,
                                  "image_size": args.image_size, "device": args.device}
     if args.steps is not None:
         overrides["steps"] = args.steps

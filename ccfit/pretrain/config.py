@@ -9,8 +9,10 @@ from typing import Any
 
 from ccdata.errors import InputError
 from ccdata.suites import SUITES
-from ccfit.models.registry import PRESETS
-from ccfit.models.tdmpc2 import TDMPC2Config
+from ccfit.config_base import ConfigError
+from ccfit.models import DEFAULT_MODEL
+from ccfit.models.encoders import EncoderSpec
+from ccfit.models.registry import PRESETS, model_class, model_names
 
 KIND = "ccfit-pretrained-encoder"
 """The sidecar's 'kind': an encoder made by this module."""
@@ -35,15 +37,19 @@ OBJECTIVE = (
 class PretrainConfig:
     """Autoencoder pretraining of the frozen encoder. Validated on construction.
 
-    The encoder's sizes are not fields: they come from `TDMPC2Config.preset(model_preset,
-    obs_mode='pixels', image_size=image_size)`, so the encoder always fits the TD-MPC2 (or
-    PWM) preset it is meant for. Preset values for steps, batch size, learning rate and
-    decoder width are this project's choices (the paper gives none).
+    The encoder's sizes are not fields: they come from the config of `model` at
+    `model_preset` in pixel mode, so the encoder always fits the model preset it is meant for.
+    `model` must build the shared pixel encoder (`ccfit.models.encoders`, the capability
+    'pixel-encoder'). Preset values for steps, batch size, learning rate and decoder width are
+    this project's choices (the paper gives none).
     """
 
+    model: str = DEFAULT_MODEL
+    """The registered world model whose pixel encoder is pretrained (one offering
+    'pixel-encoder'); the frozen encoder fits it and models sharing its encoder layout."""
     model_preset: str = "cpu"
-    """TD-MPC2 preset ('smoke', 'cpu', 'paper' or a size such as '19M') whose pixel encoder is
-    pretrained; use the frozen encoder with a model of this preset."""
+    """That model's preset ('smoke', 'cpu', 'paper', or one of its own, e.g. a size) whose
+    pixel encoder is pretrained; use the frozen encoder with a model of this preset."""
     suites: tuple[str, ...] = tuple(SUITES)
     """Suites whose oracle episodes are used (default: all six)."""
     dataset_roots: dict[str, str] = field(default_factory=dict)
@@ -58,7 +64,7 @@ class PretrainConfig:
     lr: float = 5e-4
     """Adam learning rate (encoder and decoder)."""
     grad_clip_norm: float = 20.0
-    """Gradient-norm clip (TD-MPC2's value)."""
+    """Gradient-norm clip."""
     proprio_coef: float = 0.1
     """Weight of the standardised-proprio MSE against the [0, 1]-scale image MSE."""
     decoder_channels: int = 32
@@ -118,14 +124,25 @@ class PretrainConfig:
                 raise InputError(f"PretrainConfig: {msg}")
         self.encoder_config()  # unknown preset or bad image size -> InputError
 
-    def encoder_config(self) -> TDMPC2Config:
-        """The TD-MPC2 pixel-mode config whose encoder this run pretrains."""
-        return TDMPC2Config.preset(self.model_preset, obs_mode="pixels", image_size=self.image_size)
+    def encoder_config(self) -> EncoderSpec:
+        """The settings of the encoder this run pretrains: `model`'s, at `model_preset`, in
+        pixel mode."""
+        try:
+            cls = model_class(self.model)
+        except ConfigError as e:
+            raise InputError(str(e)) from None
+        if "pixel-encoder" not in cls.capabilities:
+            offering = [n for n in model_names() if "pixel-encoder" in model_class(n).capabilities]
+            raise InputError(f"model {self.model!r} does not build the shared pixel encoder; "
+                             f"models that do: {', '.join(offering)}")  # fmt: skip
+        cfg = cls.config_class.preset(self.model_preset, obs_mode="pixels",
+                                      image_size=self.image_size)  # fmt: skip
+        return EncoderSpec.of(cfg)
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> PretrainConfig:
         """`smoke`: seconds (CI); `cpu`: minutes to an hour on 2 cores; `paper`: GPU scale.
-        The encoder's sizes follow the TD-MPC2 preset of the same name."""
+        The encoder's sizes follow the model's preset of the same name."""
         if name not in PRESETS:
             raise InputError(f"unknown preset {name!r}; valid: {', '.join(PRESETS)}")
         base = {

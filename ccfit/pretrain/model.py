@@ -10,11 +10,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from ccdata.render import CAMERAS
-from ccfit.models.encoders import (
-    build_encoder,
-)
+from ccfit.models.encoders import EncoderSpec, build_encoder
 from ccfit.models.layers import mlp
-from ccfit.models.tdmpc2 import TDMPC2Config
 from ccfit.pretrain.data import FrameStore
 
 # =============================================================================== model
@@ -54,7 +51,7 @@ class PixelDecoder(nn.Module):
 class Autoencoder(nn.Module):
     """The model's pixel encoder (built from `enc_cfg`) and a `PixelDecoder`."""
 
-    def __init__(self, enc_cfg: TDMPC2Config, decoder_channels: int) -> None:
+    def __init__(self, enc_cfg: EncoderSpec, decoder_channels: int) -> None:
         super().__init__()
         self.encoder = build_encoder(enc_cfg)
         self.decoder = PixelDecoder(

@@ -38,7 +38,7 @@ class PWM(TDMPC2, Routing):
     """TD-MPC2 with `MixtureDynamics` as its latent dynamics (see the module docstring)."""
 
     cfg: PWMConfig
-    capabilities = frozenset({"experts", "routing"})
+    capabilities = frozenset({"experts", "routing", *TDMPC2.capabilities})
     # bench/update_rate.py, cpu preset, 1 thread: update 20.5 -> 17.1 ms and plan 7.5 ->
     # 5.1 ms compiled (the mixture's per-expert layers fuse).
     compile_pays = {"cpu": TDMPC2.hot_paths}

@@ -95,6 +95,7 @@ class TDMPC2(WorldModel):
     """TD-MPC2 world model with the benchmark's backbone/heads split."""
 
     cfg: TDMPC2Config
+    capabilities = frozenset({"pixel-encoder"})  # the shared `build_encoder` one
     hot_paths = ("loss", "head_update", "plan")
     # bench/update_rate.py, cpu preset, 1 thread: plan 4.8 -> 3.4 ms compiled; the update
     # (loss + backward + head_update) is arithmetic-bound there and gains nothing.
