@@ -245,7 +245,8 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=None,
                         help="replay windows per update (default: the preset's / size's)")
     parser.add_argument("--image-size", type=int, default=64)
-    parser.add_argument("--modes", default="eager,compiled", help=f"of {list(MODES)}")
+    parser.add_argument("--modes", default="auto",
+                        help=f"of {list(MODES)} (default: what a run does by default)")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--warmup", type=int, default=1)
     parser.add_argument("--threads", type=int, default=2)
