@@ -9,6 +9,7 @@ Commands:
     sweep    a grid of runs (suites x models x methods x seeds), locally or on SLURM, and the
              report over them; again: submits only unfinished work; --status RUNS
     report   tables and plots over run directories (BWT / FWT per backbone, suite, method)
+    learnability   steps each task needs (single-task runs) and the per-suite budgets
     ablate   a finished routed-model run's expert ablation on the composition task (Fig. 6)
     pretrain-encoder   the frozen-encoder diagnostic: an autoencoder on every task's oracle
              episodes, saved for `ccfit run --obs pixels --encoder frozen:PATH`
@@ -116,6 +117,17 @@ def _cmd_report(args: argparse.Namespace) -> None:
         print(path)
 
 
+def _cmd_learnability(args: argparse.Namespace) -> None:
+    from ccfit.analysis.learnability import write_learnability
+
+    try:
+        paths = write_learnability([Path(p) for p in args.runs], Path(args.out))
+    except ValueError as e:
+        raise CliError(str(e)) from None
+    for path in paths:
+        print(path)
+
+
 def _cmd_ablate(args: argparse.Namespace) -> None:
     from ccfit.analysis import ABLATION_JSON, ABLATION_PNG, ablate
 
@@ -144,6 +156,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("runs", nargs="+", help="run directories (or folders holding them)")
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=_cmd_report)
+
+    p = sub.add_parser("learnability", help="steps each task needs to reach 50 and 80, and the "
+                       "per-suite budgets, from single-task `ccfit train` runs")  # fmt: skip
+    p.add_argument("runs", nargs="+", help="run directories (or folders holding them)")
+    p.add_argument("--out", required=True, help="output directory")
+    p.set_defaults(func=_cmd_learnability)
 
     p = sub.add_parser("ablate", help="expert ablation of a finished run of a model offering "
                        "'routing' (prior / new / "

@@ -1,0 +1,109 @@
+"""How many steps a model needs to learn each task: the budgets of the `cpu` preset.
+
+`ccfit learnability RUNS --out DIR` reads single-task runs (`ccfit train`, one per task,
+model and seed, long budgets) and writes `learnability.md` / `.csv`: per suite, task, model
+and seed, the first evaluated step whose normalised return reached 50 and 80, the best and
+last score, the budget and what the run cost (`cost.json`), plus `budgets.json`: per suite
+and model, the steps per task every task of the suite needs to reach 50 (the largest first
+step to 50 over its tasks and seeds, rounded up to the evaluation interval), or None when a
+task never reached it within the run's budget.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+
+from ccfit.io import atomic_write_json, atomic_write_text
+from ccfit.train.cost import read_cost
+
+THRESHOLDS = (50, 80)
+
+
+def first_step_at(records: list[dict], level: float) -> int | None:
+    """Task step of the first evaluation whose normalised return is at least `level`."""
+    for r in sorted(records, key=lambda r: r["task_step"]):
+        if r["normalized_return"] is not None and r["normalized_return"] >= level:
+            return int(r["task_step"])
+    return None
+
+
+def read_run(run: Path) -> dict | None:
+    """The learnability row of one `ccfit train` directory (None: not a finished one)."""
+    config, metrics = run / "config.json", run / "metrics.jsonl"
+    if not (config.is_file() and metrics.is_file()):
+        return None
+    from ccdata import SUITES
+
+    cfg = json.loads(config.read_text())
+    if "task" not in cfg:
+        return None
+    records = [json.loads(x) for x in metrics.read_text().splitlines() if x.strip()]
+    steps = int(cfg["train"]["steps"])
+    if not records or max(r["task_step"] for r in records) < steps:
+        return None
+    scores = [r["normalized_return"] for r in records if r["normalized_return"] is not None]
+    cost = read_cost(run)
+    return {
+        "suites": [s.name for s in SUITES.values() if cfg["task"] in s.task_ids],
+        "task": cfg["task"], "model": cfg["model"]["type"], "seed": cfg["seed"],
+        "preset": cfg["preset"], "obs": cfg["obs"], "budget": steps,
+        "eval_interval": int(cfg["train"]["eval_interval"]),
+        **{f"steps_to_{t}": first_step_at(records, t) for t in THRESHOLDS},
+        "best": max(scores) if scores else None, "last": scores[-1] if scores else None,
+        "cpu_hours": cost["cpu_s"] / 3600, "run": str(run),
+    }  # fmt: skip
+
+
+def budgets(rows: list[dict]) -> dict:
+    """{suite: {model: steps per task}} from the rows (see the module doc)."""
+    from ccdata import SUITES
+
+    out: dict = {}
+    for suite in SUITES.values():
+        for model in sorted({r["model"] for r in rows}):
+            mine = [r for r in rows if r["model"] == model and suite.name in r["suites"]]
+            if {r["task"] for r in mine} != set(suite.task_ids):
+                continue  # not every task of the suite was measured
+            firsts = [r["steps_to_50"] for r in mine]
+            if any(f is None for f in firsts):
+                need = None
+            else:
+                step = max(r["eval_interval"] for r in mine)
+                need = int(math.ceil(max(max(firsts), 1) / step) * step)
+            out.setdefault(suite.name, {})[model] = need
+    return out
+
+
+def write_learnability(runs: list[Path], out: Path) -> list[Path]:
+    """The tables and budgets of every finished single-task run under `runs`."""
+    found = sorted({p.parent for r in runs for p in Path(r).rglob("config.json")})
+    rows = [row for row in (read_run(p) for p in found) if row is not None]
+    if not rows:
+        raise ValueError(f"no finished `ccfit train` run under {', '.join(map(str, runs))}")
+    rows.sort(key=lambda r: (r["suites"][0], r["task"], r["model"], r["seed"]))
+    out.mkdir(parents=True, exist_ok=True)
+    cols = ["suites", "task", "model", "seed", "budget", "steps_to_50", "steps_to_80", "best",
+            "last", "cpu_hours"]  # fmt: skip
+
+    def cell(col: str, v) -> str:
+        if v is None:
+            return "not reached" if col.startswith("steps_to") else "n/a"
+        if isinstance(v, list):
+            return ", ".join(v)
+        return f"{v:.2f}" if col == "cpu_hours" else f"{v:.1f}" if isinstance(v, float) else str(v)
+
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(cell(c, r[c]) for c in cols) + " |" for r in rows]
+    text = io.StringIO()
+    writer = csv.writer(text)
+    writer.writerow(cols)
+    writer.writerows([[";".join(r[c]) if c == "suites" else r[c] for c in cols] for r in rows])
+    paths = [out / "learnability.md", out / "learnability.csv", out / "budgets.json"]
+    atomic_write_text(paths[0], "\n".join(lines) + "\n")
+    atomic_write_text(paths[1], text.getvalue())
+    atomic_write_json(paths[2], budgets(rows))
+    return paths

@@ -1,0 +1,67 @@
+"""`ccfit learnability`: steps to 50 and 80 per task from single-task runs, and per-suite
+budgets, on a real smoke run and on records whose answers are known."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from ccfit.analysis.learnability import budgets, first_step_at, read_run
+
+
+def _fake_run(root: Path, task: str, model: str, scores: list[float], interval: int = 1000,
+              seed: int = 0) -> Path:  # fmt: skip
+    """A run directory as `ccfit train` leaves it (config.json, metrics.jsonl, cost.json)."""
+    run = root / f"{model}-{task}-s{seed}"
+    run.mkdir(parents=True)
+    steps = interval * (len(scores) - 1)
+    (run / "config.json").write_text(json.dumps({
+        "task": task, "seed": seed, "preset": "cpu", "obs": "state", "model": {"type": model},
+        "train": {"steps": steps, "eval_interval": interval},
+    }))  # fmt: skip
+    (run / "metrics.jsonl").write_text("".join(
+        json.dumps({"task_step": i * interval, "normalized_return": s}) + "\n"
+        for i, s in enumerate(scores)))  # fmt: skip
+    (run / "cost.json").write_text(json.dumps({"wall_s": 10.0, "cpu_s": 7200.0, "segments": 1}))
+    return run
+
+
+def test_first_steps_and_budgets_by_hand(tmp_path):
+    records = [{"task_step": t, "normalized_return": s} for t, s in
+               [(0, 10.0), (1000, 55.0), (2000, 40.0), (3000, 85.0)]]  # fmt: skip
+    assert first_step_at(records, 50) == 1000 and first_step_at(records, 80) == 3000
+    assert first_step_at(records, 90) is None
+    # Grasp: pick-cube reaches 50 at 2000, place-cube at 1000, pnp-cube at 4000: the suite
+    # needs 4000 steps per task. Reach lacks a task: no budget.
+    for task, scores in [("pick-cube", [0, 20, 60, 90]), ("place-cube", [0, 70, 90, 95]),
+                         ("pnp-cube", [0, 10, 20, 30, 55])]:  # fmt: skip
+        _fake_run(tmp_path, task, "m", scores)
+    _fake_run(tmp_path, "reach-xy", "m", [0, 90])
+    rows = [read_run(p) for p in sorted(tmp_path.iterdir())]
+    assert budgets(rows)["Grasp"] == {"m": 4000} and "Reach" not in budgets(rows)
+    pnp = next(r for r in rows if r["task"] == "pnp-cube")
+    assert pnp["suites"] == ["Grasp", "DrawerPnP", "PnPBoxClose"] and pnp["cpu_hours"] == 2.0
+    assert (pnp["steps_to_50"], pnp["steps_to_80"], pnp["best"]) == (4000, None, 55)
+    # a task that never reaches 50: the suite has no budget within the runs
+    _fake_run(tmp_path, "pick-cube", "m", [0, 10, 20, 30], seed=1)
+    rows = [read_run(p) for p in sorted(tmp_path.iterdir())]
+    assert budgets(rows)["Grasp"] == {"m": None}
+
+
+def test_cli_on_a_real_smoke_run(tmp_path, capsys, short_episodes):
+    from ccfit.cli import main
+
+    run = tmp_path / "runs" / "reach"
+    assert main(["train", "--task", "reach-xy", "--preset", "smoke", "--seed_dataset", "null",
+                 "--out", str(run), "--quiet", "--train.steps=100", "--train.seed_steps=50",
+                 "--train.eval_interval=50", "--train.checkpoint_interval=50"]) == 0
+    capsys.readouterr()
+    assert main(["learnability", str(tmp_path / "runs"), "--out", str(tmp_path / "out")]) == 0
+    printed = capsys.readouterr().out.split()
+    assert [Path(p).name for p in printed] == ["learnability.md", "learnability.csv",
+                                               "budgets.json"]  # fmt: skip
+    (row,) = [read_run(run)]
+    assert row["task"] == "reach-xy" and row["budget"] == 100 and row["cpu_hours"] > 0
+    md = (tmp_path / "out" / "learnability.md").read_text()
+    assert "| Reach | reach-xy | tdmpc2 | 0 | 100 |" in md
+    assert main(["learnability", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 2
