@@ -81,13 +81,13 @@ def snapshot(module: nn.Module) -> dict[str, torch.Tensor]:
 
 
 def test_registry_names_and_errors():
-    assert method_names() == ["er", "ewc", "experts", "ft", "packnet"]
-    for name in method_names():
+    builtin = ["er", "ewc", "experts", "ft", "packnet"]
+    assert set(builtin) <= set(method_names())  # tests may register more (test_seam.py)
+    for name in builtin:
         built = method(name)
         assert isinstance(built, METHODS[name]) and isinstance(built.cfg, MethodConfig)
         assert METHODS[name].name == name == built.cfg.type
-    valid = "er, ewc, experts, ft, packnet"
-    with pytest.raises(ConfigError, match=f"unknown continual method 'si'.*{valid}"):
+    with pytest.raises(ConfigError, match="unknown continual method 'si'.*er, ewc, experts, ft"):
         method_config("si")
     with pytest.raises(ConfigError, match="method 'ewc'.*lamda.*its options: lam, "):
         method_config("ewc", lamda=1.0)

@@ -217,7 +217,7 @@ VALID_SUITES = "Reach, Grasp, BinPnP, PnPBlock, DrawerPnP, PnPBoxClose or 'all'"
     (["--out", "{home}/enc.pt"], "--out must end in .safetensors, got {home}/enc.pt"),
     (["--model", "dreamerv3"], "model 'dreamerv3' does not build the shared pixel encoder; "
                                "models that do: pwm, tdmpc2"),
-    (["--model", "nope"], "unknown model 'nope'; valid: dreamerv3, pwm, tdmpc2"),
+    (["--model", "nope"], "unknown model 'nope'; valid: {models}"),
 ])  # fmt: skip
 def test_bad_input_is_one_line_and_exit_2(args, message, tmp_path, monkeypatch, capsys):
     """With no dataset in LeRobot's cache ($HF_LEROBOT_HOME, read when LeRobot is imported)."""
@@ -225,9 +225,12 @@ def test_bad_input_is_one_line_and_exit_2(args, message, tmp_path, monkeypatch, 
 
     monkeypatch.setattr("lerobot.utils.constants.HF_LEROBOT_HOME", tmp_path)
     monkeypatch.chdir(tmp_path)  # the default --out is relative
+    from ccfit.models import model_names
+
     args = [a.format(home=tmp_path) for a in args]
     assert main(["pretrain-encoder", "--quiet", *args]) == 2
-    assert capsys.readouterr().err == f"ccfit: error: {message.format(home=tmp_path)}\n"
+    message = message.format(home=tmp_path, models=", ".join(model_names()))
+    assert capsys.readouterr().err == f"ccfit: error: {message}\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 

@@ -1,5 +1,7 @@
-"""The world-model seam is one place: a toy model defined only here registers itself and runs
-the loop and a smoke curriculum under every backbone method, with nothing changed elsewhere.
+"""Each seam is one place: a toy model, a toy continual method and a toy analysis, defined only
+here, register themselves and run the loop and smoke curricula, with nothing changed
+elsewhere (the toy model under every backbone method, the toy method under the toy model, the
+toy analysis for every model offering its capability).
 
 The toy also counts what the loop calls (the DreamerV3/embodied habit: test the loop with a
 fake agent), so the loop's contract is checked exactly: seed steps are observed, not acted;
@@ -18,8 +20,11 @@ import pytest
 import torch
 from torch import nn
 
+from ccfit.analysis import register_analysis, stage_callbacks
 from ccfit.config import CurriculumConfig, TaskRunConfig
+from ccfit.config_base import check
 from ccfit.config_parse import resolve
+from ccfit.continual import ContinualMethod, MethodConfig, register_method
 from ccfit.continual.packnet import prunable_weights
 from ccfit.curriculum import METRICS_JSON, Curriculum
 from ccfit.models.base import Batch, LossOutput, WorldModel
@@ -45,6 +50,8 @@ class ToyConfig(ModelConfig):
 
 @register_model("toy", ToyConfig)
 class ToyModel(WorldModel):
+    capabilities = frozenset({"toy-probe"})
+
     def __init__(self, cfg: ToyConfig, device=None, encoder=None) -> None:
         super().__init__()
         if cfg.obs_mode != "state":
@@ -113,6 +120,49 @@ class ToyModel(WorldModel):
         CALLS["observe"] += 1
         assert action.shape == (obs["state"].shape[0], self.cfg.action_dim)
         return state + 1
+
+
+@dataclass
+class AnchorConfig(MethodConfig):
+    """A method anchoring the backbone to where it started: strength * squared distance."""
+
+    strength: float = 1.0
+    """Weight of the squared distance."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(self.strength >= 0, f"toy-anchor: strength must be >= 0, got {self.strength}")
+
+
+@register_method("toy-anchor", AnchorConfig)
+class Anchor(ContinualMethod):
+    def before_task(self, task_index, backbone) -> None:
+        CALLS["before_task"] += 1
+        if task_index == 0:
+            self.start = {k: v.detach().clone() for k, v in backbone.named_parameters()}
+
+    def penalty(self, backbone, losses) -> torch.Tensor:
+        CALLS["penalty"] += 1
+        return self.cfg.strength * sum(((p - self.start[k]) ** 2).sum()
+                                       for k, p in backbone.named_parameters())
+
+    def after_task(self, task_index, backbone, task_data) -> None:
+        CALLS["after_task"] += 1
+
+    def state_dict(self) -> dict:
+        return {"start": getattr(self, "start", {})}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.start = state["start"]
+
+
+PROBED: list[tuple[str, int]] = []
+
+
+@register_analysis("toy-probe")
+def probe(stage) -> None:
+    """Records which model and how many stored heads it saw after each task."""
+    PROBED.append((stage.cfg.model.type, len(stage.stored_heads)))
 
 
 pytestmark = pytest.mark.usefixtures("short_episodes")
@@ -233,3 +283,22 @@ def test_toy_runs_a_curriculum_under_every_backbone_method(tmp_path, method):
     assert result["fwt"] == pytest.approx(area / steps)
     config = json.loads((tmp_path / "run" / "config.json").read_text())
     assert config["model"]["type"] == "toy" and config["method"]["type"] == method
+
+
+def test_a_method_and_an_analysis_join_by_registering(tmp_path):
+    cfg = resolve(CurriculumConfig, {
+        "suite": "Reach", "preset": "smoke", "seed_dataset": None, "model": {"type": "toy"},
+        "method": {"type": "toy-anchor", "strength": 0.5}, "train": dict(SMOKE_TRAIN),
+    })  # fmt: skip
+    assert stage_callbacks(cfg) == [probe]
+    CALLS.clear()
+    PROBED.clear()
+    Curriculum(cfg, tmp_path / "run", tmp_path / "scratch", progress=False,
+               callbacks=stage_callbacks(cfg)).run()  # fmt: skip
+    assert CALLS["before_task"] == CALLS["after_task"] == 4 and CALLS["penalty"] > 0
+    assert PROBED == [("toy", 1), ("toy", 2), ("toy", 3), ("toy", 4)]
+    config = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert config["method"] == {"type": "toy-anchor", "strength": 0.5}
+    # The analysis is the toy capability's only: a built-in model does not get it.
+    other = resolve(CurriculumConfig, {"suite": "Reach", "preset": "smoke"})
+    assert probe not in stage_callbacks(other)

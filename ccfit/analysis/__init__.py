@@ -47,6 +47,7 @@ from ccfit.analysis.episodes import (
     latent_error,
     mean_routing,
 )
+from ccfit.analysis.hooks import register_analysis, stage_callbacks
 from ccfit.analysis.routing import (
     append_routing,
     figure_data,
@@ -61,14 +62,7 @@ from ccfit.analysis.routing import (
 __all__ = [
     "ABLATION_JSON", "ABLATION_MODES", "ABLATION_PNG", "ROUTING", "ablate",
     "append_routing", "figure_data", "latent_error", "load_routed_run", "mean_routing",
-    "plot_ablation", "plot_routing", "read_routing", "report_routing",
+    "plot_ablation", "plot_routing", "read_routing", "register_analysis", "report_routing",
     "routing_callback", "routing_record", "stage_callbacks", "top_statement",
 ]  # fmt: skip
 
-
-def stage_callbacks(cfg) -> list:
-    """The analyses a curriculum of `cfg` records after each task: the routing record of a
-    model offering 'routing'."""
-    from ccfit.models.registry import model_class
-
-    return [routing_callback] if "routing" in model_class(cfg.model.type).capabilities else []

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from ccfit.analysis.episodes import _ROUTING_TAG, ROUTING, _eval_mode, mean_routing
+from ccfit.analysis.hooks import register_analysis
 from ccfit.io import atomic_write_text, derived_seed, save_figure, seeded
 from ccfit.models.base import Routing
 from ccfit.train import CONFIG, EnvPool, eval_seeds, normalized_or_none, play_episodes
@@ -89,6 +90,7 @@ def append_routing(run_dir: str | Path, record: dict) -> None:
     atomic_write_text(path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in keep))
 
 
+@register_analysis("routing")
 def routing_callback(stage) -> None:
     """The curriculum's `StageCallback` for routed models: after a task's heads are stored,
     appends the routing of stage len(stored_heads) - 1 to `routing.jsonl`."""
