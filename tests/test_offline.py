@@ -331,3 +331,39 @@ def test_cli_fits_pixels_and_the_report_keeps_the_track_apart(runs, dataset, tmp
     assert {r.track for r in found.values()} == {"offline"}
     assert {r.backbone for r in found.values()} == {"dreamerv3-offline"}
 
+
+
+# ============================================================================ sweep
+
+
+def test_sweep_track_offline_expands_fit_runs_and_runs_their_jobs(dataset, tmp_path, capsys):
+    """`ccfit sweep --track offline` plans `ccfit fit` runs sharing one offline from-scratch
+    reference; its jobs (called here in-process, as the local pool and SLURM call them) train
+    them and the report job reports them on the offline track."""
+    from ccfit.cli import main
+    from ccfit.sweep import Grid, ReportJob, RunJob, ScratchJob, expand
+    from ccfit.sweep.grid import is_offline, write_record
+
+    root = tmp_path / "sweep"
+    common = ["--suites", SUITE, "--methods", "ft,ewc", "--preset", "smoke", "--out", str(root),
+              "--dataset", str(dataset)]  # fmt: skip
+    assert main(["sweep", "--track", "offline", *common, "--dry-run"]) == 0
+    printed = capsys.readouterr().out
+    assert "Reach-dreamerv3-ewc-state-smoke-s0-offline" in printed
+    assert "scratch/offline-Reach-dreamerv3-state-smoke-s0-" in printed
+    assert main(["sweep", "--track", "offline", "--models", "tdmpc2", *common]) == 2
+    assert "own latent space" in capsys.readouterr().err and not root.exists()
+
+    grid = Grid((SUITE,), ("dreamerv3",), ("ft", "ewc"), (0,), "smoke",
+                ("--dataset", str(dataset)), (), "offline")  # fmt: skip
+    sweep = expand(grid, root)
+    assert all(is_offline(r.config) and r.name.endswith("-offline") for r in sweep.runs)
+    (key,) = {r.scratch_key for r in sweep.runs}
+    write_record(sweep, [])
+    ScratchJob()(sweep.scratch_configs()[key], str(sweep.scratch_dir(key)), [], sweep.code)
+    for run in sweep.runs:
+        summary = RunJob()(run.config, str(sweep.run_dir(run)), str(root / "scratch"), key, [],
+                           sweep.code)  # fmt: skip
+        assert summary["method"] == run.config["method"]["type"]
+    status = ReportJob()(str(root), [], sweep.code)
+    assert not status["missing"] and "table_dreamerv3-offline.md" in status["report"]
