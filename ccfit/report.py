@@ -275,8 +275,9 @@ def write_tables(groups: dict, out: Path) -> list[Path]:
         if any(g["track"] == TRACK for k, g in groups.items() if k[0] == backbone):
             lines += ["", "Offline track (`ccfit fit`): the curves are the open-loop prediction "
                       "score on held-out dataset episodes (0 = persistence, 100 = perfect "
-                      "prediction), over backbone updates; BWT and FWT are read from them as "
-                      "from normalised returns online."]  # fmt: skip
+                      "prediction, -100 = infinitely worse than persistence), over backbone "
+                      "updates; BWT and FWT are read from them as from normalised returns "
+                      "online."]  # fmt: skip
         differ = differing_settings(groups, backbone)
         if differ:
             lines += ["", f"Runs differ in {', '.join(f'`{d}`' for d in differ)}: each row "

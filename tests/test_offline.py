@@ -88,9 +88,14 @@ def test_persistence_scores_0_and_the_true_next_observations_100(mix, expected):
     assert rec["mse"]["state"] == pytest.approx((1 - mix) ** 2 * rec["mse_persistence"]["state"])
 
 
-def test_a_task_whose_windows_never_change_has_no_score():
+def test_worse_than_persistence_is_bounded_and_a_still_task_has_no_score():
+    """Twice persistence's error scores -50 and no error can go below -100 (the mirror of
+    100 (1 - M/P)), so an untrained model's huge error cannot dominate an integral."""
+    assert normalised_score(2.0, 1.0) == -50.0 and normalised_score(1e12, 1.0) > -100.0
+    assert normalised_score(0.25, 1.0) == 75.0 and normalised_score(1.0, 1.0) == 0.0
+    assert score_windows(FakeModel(-1.0), _walks(), 3, 5, 4)["score"] == pytest.approx(-75.0)
     assert score_windows(FakeModel(0.5), _walks(still=True), 3, 5, 4)["score"] is None
-    assert normalised_score(1.0, 0.0) is None and normalised_score(2.0, 1.0) == -100.0
+    assert normalised_score(1.0, 0.0) is None
 
 
 # ============================================================================ the runs

@@ -3,16 +3,19 @@
 For each scored window the model filters `context` observed rows and predicts the next H rows
 from the actions alone (`Prediction.open_loop`); the persistence baseline predicts that nothing
 changes (every one of those rows equals the last observed one). With squared errors summed
-over windows, steps and dimensions, per measured quantity k (the state; or the images and the
-proprio; or a frozen encoder's latent):
+over windows, steps and dimensions, M for the model's and P for persistence's, per measured
+quantity k (the state; or the images and the proprio; or a frozen encoder's latent):
 
-    score_k = 100 * (1 - SSE_model_k / SSE_persistence_k)
+    score_k = 100 * (P_k - M_k) / max(P_k, M_k)
 
-0 is persistence, 100 perfect prediction, below 0 worse than persistence (not clipped). The
-score is the mean of score_k over the quantities (one in state mode, so exactly the formula),
-which weighs images and proprio equally rather than by their dimension counts. The same ratio
-per horizon step gives `score_by_step`. A task whose held-out windows never change (zero
-persistence error) has no score (None).
+that is 100 * (1 - M/P) wherever the model beats persistence (0 is persistence, 100 perfect
+prediction, 75 half persistence's error), and -100 * (1 - P/M) where it does worse (-50 twice
+persistence's error, -100 an infinitely worse one). Bounded in [-100, 100], as returns are
+online: a fresh model's arbitrary error, thousands of times persistence's, would otherwise
+dominate every integral FWT takes over its curve. The score is the mean of score_k over the
+quantities (one in state mode), which weighs images and proprio equally rather than by their
+dimension counts; the same per horizon step gives `score_by_step`. A task whose held-out
+windows never change (zero persistence error) has no score (None).
 
 The space never moves with training (`ccfit.offline.config.check_prediction` says why), so a
 score's changes over a curriculum are the model's, and BWT and FWT read them exactly as they
@@ -31,10 +34,12 @@ from ccfit.models.base import Batch, OpenLoop, WorldModel
 
 
 def normalised_score(model_sse: float, persistence_sse: float) -> float | None:
-    """100 * (1 - model / persistence); None when persistence makes no error."""
-    if not persistence_sse > 0:
+    """100 * (P - M) / max(P, M): 100 (1 - M/P) when the model beats persistence, else
+    -100 (1 - P/M); None when persistence makes no error."""
+    m, p = float(model_sse), float(persistence_sse)
+    if not p > 0:
         return None
-    return 100.0 * (1.0 - float(model_sse) / float(persistence_sse))
+    return 100.0 * (p - m) / max(p, m)
 
 
 class Errors:
