@@ -3,7 +3,7 @@
     ccfit sweep --suites Reach,Grasp --methods ft,er,ewc,packnet --seeds 0,1,2 --preset cpu \
         --out runs/sweep1 [--models M1,M2] [--launcher slurm] [--max-parallel 4] \
         [--obs pixels --train.steps=2000 --model.FIELD=VALUE ...]
-    ccfit sweep --track offline --suites Reach --models dreamerv3 --methods ft,ewc \
+    ccfit sweep --track offline --suites Reach --methods ft,ewc \
         --out runs/offline1                    # `ccfit fit` runs on the suite datasets
     ccfit sweep --status runs/sweep1
 
