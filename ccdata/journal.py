@@ -215,6 +215,20 @@ def merge_pieces(config: DatasetSettings, order: list[str] | None = None) -> int
         if all(k in pieces and k not in batched for k in keys):
             batches[tuple(keys)] = merge_batch(config, keys)
             batched.update(keys)
+    if order is not None:
+        # Only what continues the root without a gap: an episode after one not written yet
+        # (a run stopped with episodes done out of order) waits in the journal for it, so a
+        # dataset completed across interruptions is in plan order, as one run writes it.
+        done = set(pieces) | batched
+        prefix: set[str] = set()
+        for k in (k for k in order if k not in present):
+            if k not in done:
+                break
+            prefix.add(k)
+        batches = {keys: p for keys, p in batches.items() if set(keys) <= prefix}
+        pieces = {k: p for k, p in pieces.items() if k in prefix}
+        if not pieces and not batches:
+            return 0
     rank = {k: i for i, k in enumerate(order or [])}
     entries = [(keys[0], path, list(keys)) for keys, path in batches.items()]
     entries += [(k, p, [k]) for k, p in pieces.items() if k not in batched]
@@ -236,9 +250,10 @@ def merge_pieces(config: DatasetSettings, order: list[str] | None = None) -> int
         os.replace(paths.root, paths.old)
     os.replace(paths.new, paths.root)
     shutil.rmtree(paths.old, ignore_errors=True)
-    shutil.rmtree(paths.batches, ignore_errors=True)
-    for p in pieces.values():
+    for p in [*batches.values(), *pieces.values()]:  # merged; what waits for a gap stays
         shutil.rmtree(p, ignore_errors=True)
+    if paths.batches.is_dir() and not any(paths.batches.iterdir()):
+        paths.batches.rmdir()
     return sum(len(e[2]) for e in entries)
 
 

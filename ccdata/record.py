@@ -29,7 +29,15 @@ from ccdata.dataset_format import (
     read_ccdata_metadata,
 )
 from ccdata.episode_plan import EpisodeSpec, plan
-from ccdata.journal import JournalPaths, Merger, chunks_of, merge_pieces, prepare
+from ccdata.journal import (
+    JournalPaths,
+    Merger,
+    chunks_of,
+    finished_batches,
+    finished_pieces,
+    merge_pieces,
+    prepare,
+)
 from ccdata.processes import die_with, end_processes
 from ccdata.settings import DatasetSettings
 from ccdata.writer import GenerationError, Writers, roll_out, write_shard
@@ -73,6 +81,8 @@ def generate(
     order = [s.key for s in full_plan]
     merge_pieces(config, order)  # pieces a killed run left behind
     present = set(existing_keys(paths.root)) if paths.root.exists() else set()
+    # Episodes a stopped run finished after a gap wait in the journal: not rolled out again.
+    present |= set(finished_pieces(paths)) | {k for keys in finished_batches(paths) for k in keys}
     todo = [s for s in full_plan if s.key not in present]
     new_records: list[dict] = []
     start = time.perf_counter()
@@ -135,8 +145,11 @@ def _run_workers(config: GenerateConfig, todo: list[EpisodeSpec], paths: Journal
         stop_file.touch()  # rollouts stop after their current episode
         # A process killed while sending an episode may leave the queue locked or half-written:
         # then no one waits for a writer to finish its piece.
-        writers.abort(grace_s=0 if isinstance(err, GenerationError) else 120)
-        end_processes(rollouts, grace_s=60)
+        broken = isinstance(err, GenerationError)
+        writers.abort(grace_s=0 if broken else 120)
+        # The other rollouts may be blocked on that queue's lock for good: after a death they
+        # are ended at once (what they had not sent is redone by a rerun), not waited for.
+        end_processes(rollouts, grace_s=0 if broken else 60)
         raise
 
 

@@ -6,6 +6,8 @@ Example:
 Commands:
     train    online model-based RL on one task (resumes when --out holds its checkpoint)
     run      a suite's continual curriculum (Algorithm 1) with one method; writes metrics.json
+    fit      the offline track: the backbone fitted on the suite's dataset task after task with
+             one method, scored by open-loop prediction on held-out episodes; metrics.json
     sweep    a grid of runs (suites x models x methods x seeds), locally or on SLURM, and the
              report over them; again: submits only unfinished work; --status RUNS
     report   tables and plots over run directories (BWT / FWT per backbone, suite, method)
@@ -106,6 +108,21 @@ def cmd_run(argv: list[str]) -> None:
           f"BWT {_fmt(result['bwt'])}, FWT {_fmt(result['fwt'])}  ->  {out}")
 
 
+def cmd_fit(argv: list[str]) -> None:
+    """ccfit fit --suite Reach --preset cpu --method.type=ewc  (offline track; see --help)"""
+    from ccfit.config_parse import parse_cli
+    from ccfit.offline import OfflineConfig, OfflineCurriculum, default_out
+
+    extra, argv = _split_flags(argv, {"quiet": False, "scratch_root": True})
+    cfg = parse_cli(OfflineConfig, argv, prog="ccfit fit")
+    out = Path(cfg.out) if cfg.out else default_out(cfg)
+    result = OfflineCurriculum(cfg, out, extra.get("scratch_root") or None,
+                               progress=not extra.get("quiet")).run()  # fmt: skip
+    print(f"{cfg.suite} {cfg.model.type} {cfg.method.type} seed {cfg.seed} offline "
+          f"({result['measurement_space']}): BWT {_fmt(result['bwt'])}, "
+          f"FWT {_fmt(result['fwt'])}  ->  {out}")
+
+
 def _cmd_report(args: argparse.Namespace) -> None:
     from ccfit.report import write_report
 
@@ -182,7 +199,7 @@ def cmd_sweep(argv: list[str]) -> None:
     sweep(argv)
 
 
-CONFIG_COMMANDS = {"train": cmd_train, "run": cmd_run, "sweep": cmd_sweep}
+CONFIG_COMMANDS = {"train": cmd_train, "run": cmd_run, "fit": cmd_fit, "sweep": cmd_sweep}
 """Commands whose options are the typed config tree (draccus): `ccfit run --help` lists it."""
 
 

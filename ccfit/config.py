@@ -167,8 +167,8 @@ def _default_method() -> MethodConfig:
 
 
 @dataclass
-class RunConfig:
-    """What every run has (one task with `ccfit train`, a curriculum with `ccfit run`)."""
+class BaseRunConfig:
+    """What every run has, online (`RunConfig`) or offline (`ccfit.offline.OfflineConfig`)."""
 
     obs: str = DEFAULTS["obs"]
     """Observation mode: 'state' (39-D privileged state) or 'pixels' (the paper: three
@@ -185,16 +185,11 @@ class RunConfig:
     `ccdata.RenderSettings`, recorded in config.json)."""
     encoder: str | None = None
     """'frozen:PATH': a pretrained encoder (`ccfit pretrain-encoder`), frozen for the run."""
-    seed_dataset: str | None = "auto"
-    """Replay of each task starts with its own episodes of this LeRobot dataset: 'auto' = the
-    suite's dataset when it exists locally, None = off, or a repo id / directory."""
     dataset_endpoint: str | None = None
-    """Hub endpoint a repo-id `seed_dataset` is downloaded from when it is not in LeRobot's
-    local cache (as `ccdata push --endpoint`); None: HF_ENDPOINT or the hub."""
+    """Hub endpoint a repo-id dataset is downloaded from when it is not in LeRobot's local
+    cache (as `ccdata push --endpoint`); None: HF_ENDPOINT or the hub."""
     model: ModelConfig = field(default_factory=_default_model)
     """The world model (`--model.type`: a registered model) and its hyperparameters."""
-    train: TrainConfig = field(default_factory=TrainConfig)
-    """The online training loop."""
     log: LogConfig = field(default_factory=LogConfig)
     """Where scalars are logged (TensorBoard, Weights & Biases)."""
 
@@ -229,6 +224,17 @@ class RunConfig:
         from ccfit.io import atomic_write_json
 
         atomic_write_json(path, self.to_dict())
+
+
+@dataclass
+class RunConfig(BaseRunConfig):
+    """What every online run has (one task with `ccfit train`, a curriculum with `ccfit run`)."""
+
+    seed_dataset: str | None = "auto"
+    """Replay of each task starts with its own episodes of this LeRobot dataset: 'auto' = the
+    suite's dataset when it exists locally, None = off, or a repo id / directory."""
+    train: TrainConfig = field(default_factory=TrainConfig)
+    """The online training loop."""
 
 
 def _with_encoder(model: ModelConfig, path: str, image_size: int) -> ModelConfig:
@@ -282,12 +288,7 @@ class CurriculumConfig(RunConfig):
         except ValueError as e:
             raise ConfigError(str(e)) from None
         # Everything that would fail once the run is under way fails here, before it starts.
-        missing = self.method.REQUIRES - model_class(self.model.type).capabilities
-        offering = ", ".join(models_offering(self.method.REQUIRES)) or "none"
-        check(not missing, f"method {self.method.type!r} needs a model offering "
-                           f"{', '.join(sorted(missing))}; models that do: {offering}")  # fmt: skip
-        self.model.check_curriculum(len(self.tasks))
-        self.method.check_curriculum(len(self.tasks))
+        check_pairing(self.model, self.method, len(self.tasks))
         check_references(self.tasks)
         check(self.train.steps % self.train.eval_interval == 0,
               f"steps per task ({self.train.steps}) must be a multiple of eval_interval "
@@ -298,6 +299,17 @@ class CurriculumConfig(RunConfig):
         from ccdata.suites import get_suite
 
         return list(get_suite(self.suite).task_ids)
+
+
+def check_pairing(model: ModelConfig, method: MethodConfig, num_tasks: int) -> None:
+    """ConfigError unless the model offers what the method needs and both can learn a
+    curriculum of `num_tasks` tasks."""
+    missing = method.REQUIRES - model_class(model.type).capabilities
+    offering = ", ".join(models_offering(method.REQUIRES)) or "none"
+    check(not missing, f"method {method.type!r} needs a model offering "
+                       f"{', '.join(sorted(missing))}; models that do: {offering}")  # fmt: skip
+    model.check_curriculum(num_tasks)
+    method.check_curriculum(num_tasks)
 
 
 def models_offering(capabilities: frozenset[str]) -> list[str]:

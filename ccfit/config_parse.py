@@ -12,23 +12,26 @@ import copy
 import dataclasses
 import json
 import tempfile
+import typing
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import draccus
 
-from ccfit.config import RunConfig, TrainConfig
-from ccfit.config_base import DEFAULTS, PRESETS, ConfigError, check
+from ccfit.config import BaseRunConfig
+from ccfit.config_base import DEFAULTS, PRESETS, ChoiceConfig, ConfigError, check
 from ccfit.continual.base import method_config_class
 from ccfit.models import DEFAULT_MODEL
 from ccfit.models.registry import config_class
 
 
-def preset_defaults(cls: type[RunConfig], choices: dict[str, Any]) -> dict:
+def preset_defaults(cls: type[BaseRunConfig], choices: dict[str, Any]) -> dict:
     """The nested plain-data defaults of `cls` for `choices`: preset, obs, image_size,
-    model (its type) and method (its type), each `DEFAULTS[...]` unless given."""
-    c = {**DEFAULTS, "model": DEFAULT_MODEL, **{k: v for k, v in choices.items() if v is not None}}
+    model (its type) and method (its type), each `DEFAULTS[...]` unless given; and the
+    preset of every other section with presets (`train`, an offline run's `fit`)."""
+    model = getattr(cls, "DEFAULT_MODEL", DEFAULT_MODEL)  # a config class may choose its own
+    c = {**DEFAULTS, "model": model, **{k: v for k, v in choices.items() if v is not None}}
     preset, model, method = c["preset"], c["model"], c["method"]
     check(preset in PRESETS, f"unknown preset {preset!r}; valid: {', '.join(PRESETS)}")
     mcls = config_class(model)
@@ -37,14 +40,14 @@ def preset_defaults(cls: type[RunConfig], choices: dict[str, Any]) -> dict:
         "preset": preset, "obs": c["obs"], "image_size": c["image_size"],
         "model": {"type": model, **mcls.preset_fields(preset), "obs_mode": c["obs"],
                   "image_size": c["image_size"]},
-        "train": dict(TrainConfig.PRESETS[preset]),
     }  # fmt: skip
+    out.update(_preset_sections(cls, preset))
     if _has_method(cls):
         out["method"] = {"type": method, **method_config_class(method).preset_fields(preset)}
     return out
 
 
-def resolve[C: RunConfig](cls: type[C], overrides: dict[str, Any]) -> C:
+def resolve[C: BaseRunConfig](cls: type[C], overrides: dict[str, Any]) -> C:
     """`cls` from nested plain data (`{"suite": ..., "model": {"type": NAME, ...}}`): the
     preset's defaults (preset, model and method types, obs and image size taken from
     `overrides`), then `overrides` on top. The programmatic twin of `parse_cli`."""
@@ -52,6 +55,19 @@ def resolve[C: RunConfig](cls: type[C], overrides: dict[str, Any]) -> C:
     choices.update(model=overrides.get("model", {}).get("type"),
                    method=overrides.get("method", {}).get("type"))  # fmt: skip
     return _decode(cls, _deep_merge(preset_defaults(cls, choices), overrides))
+
+
+def _preset_sections(cls: type, preset: str) -> dict[str, dict]:
+    """Field name -> preset values of `cls`'s sections that are plain dataclasses with
+    `PRESETS` (what a registered type chooses, model and method, is handled apart)."""
+    hints = typing.get_type_hints(cls)
+    out = {}
+    for f in dataclasses.fields(cls):
+        section = hints.get(f.name)
+        if (isinstance(section, type) and dataclasses.is_dataclass(section)
+                and not issubclass(section, ChoiceConfig) and hasattr(section, "PRESETS")):
+            out[f.name] = dict(section.PRESETS[preset])
+    return out
 
 
 def _has_method(cls: type) -> bool:
@@ -85,7 +101,7 @@ def flatten(config: Any, prefix: str = "") -> dict[str, Any]:
     return {prefix: config}
 
 
-def _decode[C: RunConfig](cls: type[C], data: dict) -> C:
+def _decode[C: BaseRunConfig](cls: type[C], data: dict) -> C:
     try:
         return draccus.decode(cls, data)
     except draccus.utils.ParsingError as e:
@@ -108,7 +124,7 @@ def _as_config_error(e: Exception) -> Exception:
     return root
 
 
-def parse_cli[C: RunConfig](cls: type[C], argv: Sequence[str], prog: str | None = None) -> C:
+def parse_cli[C: BaseRunConfig](cls: type[C], argv: Sequence[str], prog: str | None = None) -> C:
     """`cls` from command-line arguments in draccus syntax (`--model.type=NAME --train.steps=10`;
     top-level options may also be spelt with dashes, `--image-size 32`). Defaults come from
     `--preset` (or from `--config_path FILE`, a saved config.json), flags override them."""

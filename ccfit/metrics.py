@@ -310,29 +310,33 @@ def cw_forward_transfer(
 # ================================================================ from run records
 
 
-def task_curves(records: list[dict], num_tasks: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per task (steps, normalised returns); of several records at one global step the last
-    logged wins (a task's end record is superseded by the next stage's first evaluation,
-    which sees e.g. PackNet's pruned and retrained weights)."""
+def task_curves(records: list[dict], num_tasks: int, key: str = "normalized_return"
+                ) -> list[tuple[np.ndarray, np.ndarray]]:  # fmt: skip
+    """Per task (steps, scores): the records' `key` (normalised returns online, the prediction
+    score offline); of several records at one global step the last logged wins (a task's end
+    record is superseded by the next stage's first evaluation, which sees e.g. PackNet's
+    pruned and retrained weights)."""
     curves = []
     for t in range(num_tasks):
         by_step: dict[int, float] = {}
         for r in records:
-            if r["task_index"] == t and r["normalized_return"] is not None:
-                by_step[int(r["global_step"])] = float(r["normalized_return"])
+            if r["task_index"] == t and r[key] is not None:
+                by_step[int(r["global_step"])] = float(r[key])
         steps = np.array(sorted(by_step), dtype=np.float64)
         curves.append((steps, np.array([by_step[int(s)] for s in steps])))
     return curves
 
 
 def compute_metrics(records: list[dict], scratch: list[dict], num_tasks: int,
-                    steps_per_task: int) -> dict:  # fmt: skip
-    """The paper's BWT and FWT plus Lopez-Paz BWT and Continual World metrics, one run."""
-    curves = task_curves(records, num_tasks)
+                    steps_per_task: int, key: str = "normalized_return") -> dict:  # fmt: skip
+    """The paper's BWT and FWT plus Lopez-Paz BWT and Continual World metrics, one run, of the
+    records' `key` (see `task_curves`)."""
+    curves = task_curves(records, num_tasks, key)
     if any(len(c[0]) == 0 for c in curves):
-        raise ValueError("normalised returns missing: run `ccdata references` first")
+        raise ValueError("normalised returns missing: run `ccdata references` first"
+                         if key == "normalized_return" else f"no {key!r} in some task's records")
     ends = [(i + 1) * steps_per_task for i in range(num_tasks)]
-    scratch_curve = task_curves(scratch, num_tasks)[-1]
+    scratch_curve = task_curves(scratch, num_tasks, key)[-1]
     return metrics_from_curves(curves, ends, scratch_curve, steps_per_task)
 
 

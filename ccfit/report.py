@@ -15,6 +15,10 @@ variant label naming those settings ("obs=pixels, preset=cpu"). Outputs:
   transfer (FWT) region between the composition curve and its from-scratch reference.
 - `routing_<backbone>_<suite>_<method>_s<seed>.png`: the paper's Fig. 5 for every run with a
   `routing.jsonl` (`ccfit.analysis`); summary.json gets the top-expert statement per seed.
+
+Tracks are kept apart: an offline run (`ccfit fit`, metrics.json `"track": "offline"`) is
+labelled `<backbone>-offline`, so it has tables, bars and curves of its own, and its curves are
+its prediction score (0 = persistence, 100 = perfect), not normalised returns.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from ccfit.config_parse import flatten
 from ccfit.curriculum import METRICS_JSON
 from ccfit.io import atomic_write_text
 from ccfit.metrics import metrics_from_curves, task_curves
+from ccfit.offline.fit import SCORE_KEY, TRACK
 from ccfit.report_plots import (
     METHOD_ORDER,
     method_columns,
@@ -54,7 +59,9 @@ PER_SEED = ("seed", "*.seed", "*_seed", "*.*_seed", "out", "*.out", "*_dir", "*.
             "*_path", "*.*_path")
 """Flattened config keys (fnmatch patterns) that differ between the seeds of one experiment
 and so do not split groups: the seed, seeds derived from it, where outputs went."""
-AXES = ("suite", "model", "method", "encoder")
+CURVE_KEYS = {"online": "normalized_return", TRACK: SCORE_KEY}
+"""Per track, what a record's curve value is."""
+AXES = ("suite", "model", "method", "encoder", "track")
 """Settings that are the table's own axes (backbone, suite, method), never variant labels."""
 
 
@@ -84,9 +91,17 @@ class Run:
     metrics: dict
 
     @property
+    def track(self) -> str:
+        """'online' (`ccfit run`) or 'offline' (`ccfit fit`)."""
+        return self.metrics.get("track", "online")
+
+    @property
     def backbone(self) -> str:
+        """The model (+frozen-enc), and -offline for the offline track: tracks never share a
+        table or a figure."""
         return _axis_name(self.config, "model") + (
-            "+frozen-enc" if _axis_name(self.config, "encoder") else "")
+            "+frozen-enc" if _axis_name(self.config, "encoder") else "") + (
+            f"-{TRACK}" if self.track == TRACK else "")  # fmt: skip
 
     @property
     def suite(self) -> str:
@@ -157,12 +172,15 @@ def group_metrics(runs: list[Run]) -> dict:
     num_tasks = len(runs[0].metrics["task_ends"])
     budget = runs[0].metrics["budget"]
     ends = runs[0].metrics["task_ends"]
-    per_seed = [task_curves(r.records, num_tasks) for r in runs]
+    track = runs[0].track
+    key = CURVE_KEYS[track]
+    per_seed = [task_curves(r.records, num_tasks, key) for r in runs]
     curves = [M.average_curves([c[t] for c in per_seed]) for t in range(num_tasks)]
-    scratch = M.average_curves([task_curves(r.scratch, num_tasks)[-1] for r in runs])
+    scratch = M.average_curves([task_curves(r.scratch, num_tasks, key)[-1] for r in runs])
     mean = metrics_from_curves(curves, ends, scratch, budget)
     out = {"seeds": sorted(r.seed for r in runs), "curves": curves, "scratch": scratch,
-           "ends": ends, "budget": budget, "runs": [str(r.path) for r in runs]}  # fmt: skip
+           "ends": ends, "budget": budget, "runs": [str(r.path) for r in runs],
+           "track": track}  # fmt: skip
     for name in ("bwt", "fwt"):
         values = [r.metrics[name] for r in runs if r.metrics[name] is not None]
         out[name] = mean[name]
@@ -254,6 +272,12 @@ def write_tables(groups: dict, out: Path) -> list[Path]:
             rows.append(row)
         lines = [f"# {backbone}: BWT (lower is better) and FWT (higher is better)", "",
                  "Mean over seeds of the seed-averaged curves' metric, [min, max] per seed."]
+        if any(g["track"] == TRACK for k, g in groups.items() if k[0] == backbone):
+            lines += ["", "Offline track (`ccfit fit`): the curves are the open-loop prediction "
+                      "score on held-out dataset episodes (0 = persistence, 100 = perfect "
+                      "prediction, -100 = infinitely worse than persistence), over backbone "
+                      "updates; BWT and FWT are read from them as from normalised returns "
+                      "online."]  # fmt: skip
         differ = differing_settings(groups, backbone)
         if differ:
             lines += ["", f"Runs differ in {', '.join(f'`{d}`' for d in differ)}: each row "
@@ -320,7 +344,7 @@ def write_report(paths: list[Path], out: Path) -> list[Path]:
     for k, g in groups.items():
         written.append(plot_curves(k, g, _task_ids(k[1]), out))
         summary[_summary_name(k)] = {
-            "variant": k[3],
+            "variant": k[3], "track": g["track"],
             **{n: g[n] for n in ("seeds", "bwt", "bwt_min", "bwt_max", "fwt", "fwt_min",
                                  "fwt_max", "runs")},
         }  # fmt: skip

@@ -116,8 +116,9 @@ def plot_curves(key: tuple, g: dict, task_ids: list[str], out: Path) -> Path:
     ax.set_title(f"{title}: BWT {bwt if bwt is None else round(bwt, 2)}, "
                  f"FWT {fwt if fwt is None else round(fwt, 2)} (seeds {g['seeds']})",
                  fontsize=9 if variant else None)  # fmt: skip
-    ax.set_xlabel("global step")
-    ax.set_ylabel("normalised return")
+    offline = g.get("track") == "offline"
+    ax.set_xlabel("global update (offline)" if offline else "global step")
+    ax.set_ylabel("prediction score (0 = persistence)" if offline else "normalised return")
     ax.legend(fontsize=7, ncol=2, loc="best")
     fig.tight_layout()
     name = f"curves_{backbone}_{suite}_{method}" + (f"_{slug(variant)}" if variant else "")

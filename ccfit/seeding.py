@@ -2,7 +2,7 @@
 
 `episode_to_replay` turns one episode (`ccfit.data.load_episodes`) into replay-buffer arrays
 through `ccfit.obs`, the same function live observations go through, and `seed_buffer`
-preloads a replay buffer with a task's episodes.
+preloads a replay buffer with a task's episodes (`replay_items`: each as replay arrays).
 
 The observation after an episode's last action (for a successful episode: the success state,
 which every terminal transition leads to) is recorded by ccdata datasets of format 2 as the
@@ -15,6 +15,7 @@ rendering (state mode only; in pixel mode their last transition is dropped).
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -146,17 +147,30 @@ def seed_buffer(
 ) -> int:
     """Preload `task_id`'s episodes of a LeRobot dataset into `buffer` (through
     `buffer.add_episode(obs=(T+1, ...), action=(T, 4), reward=(T,), terminated=(T,), task=)`);
-    returns how many were added. In pixel mode the dataset must have been rendered with
-    `render` (the run's settings; None: ccdata's defaults at the dataset's own size).
+    returns how many were added. See `replay_items` for what is kept."""
+    added = 0
+    for _, item in replay_items(source, task_id, obs_mode, render, endpoint):
+        buffer.add_episode(**item, task=task_index)
+        added += 1
+    return added
+
+
+def replay_items(
+    source, task_id: str, obs_mode: str, render: RenderSettings | None = None,
+    endpoint: str | None = None,
+) -> Iterator[tuple[int, dict]]:  # fmt: skip
+    """(episode index, `episode_to_replay` item) of each of `task_id`'s episodes of a LeRobot
+    dataset, in episode order. In pixel mode the dataset must have been rendered with `render`
+    (the run's settings; None: ccdata's defaults at the dataset's own size).
 
     Every transition is kept, the successes that ended episodes included: format-2 datasets
     record each episode's final observation; for format-1 datasets it is replayed for successful
-    episodes in state mode (`final_observation`), and dropped otherwise.
+    episodes in state mode (`final_observation`), and dropped otherwise (an episode left with
+    no transition is skipped).
     """
     if obs_mode == "pixels" and render is not None:
         check_render(source, render, endpoint)
     episodes = load_episodes(source, task=task_id, images=obs_mode == "pixels", endpoint=endpoint)
-    added = 0
     for ep in episodes:
         final = None
         if not has_final_observation(ep):
@@ -164,10 +178,7 @@ def seed_buffer(
                 final = final_observation(ep, task_id)
             if final is None and len(ep[ACTION_KEY]) < 2:
                 continue  # one frame: no transition once the unobserved last one is dropped
-        item = episode_to_replay(ep, obs_mode, final)
-        buffer.add_episode(**item, task=task_index)
-        added += 1
-    return added
+        yield int(ep["episode_index"]), episode_to_replay(ep, obs_mode, final)
 
 
 def _stack(values) -> np.ndarray:

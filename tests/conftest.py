@@ -99,7 +99,7 @@ def pytest_runtest_setup(item):
 
 SLURM_FILES = ("test_slurm_generate.py", "test_sweep_slurm.py")
 LONGEST_FIRST = (
-    *SLURM_FILES, "test_record.py", "test_curriculum.py", "test_compile.py",
+    *SLURM_FILES, "test_record.py", "test_curriculum.py", "test_offline.py", "test_compile.py",
     "test_parallel.py", "test_tasks_contract.py",
     "test_analysis.py", "test_pretrain.py", "test_data.py", "test_dreamerv3_loop.py",
     "test_seam.py", "test_loop.py", "test_policies.py", "test_tasks_grasp_blocks.py",

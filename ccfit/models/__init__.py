@@ -10,8 +10,11 @@ from ccfit.models.registry import ModelConfig, make_model, model_names, register
 
 DEFAULT_MODEL = "tdmpc2"
 """The world model a run uses when none is named (`--model.type`)."""
+DEFAULT_OFFLINE_MODEL = "dreamerv3"
+"""The world model an offline run (`ccfit fit`) uses when none is named: one that decodes, so
+it predicts in observation space without a frozen encoder."""
 
 __all__ = [
-    "DEFAULT_MODEL", "Batch", "ModelConfig", "WorldModel", "make_model", "model_names",
-    "register_model",
+    "DEFAULT_MODEL", "DEFAULT_OFFLINE_MODEL", "Batch", "ModelConfig", "WorldModel", "make_model",
+    "model_names", "register_model",
 ]  # fmt: skip

@@ -39,9 +39,10 @@ interface, in this order, and reads nothing else from it:
 - `capabilities` names what a model offers beyond the interface, so that a method or an
   analysis that needs it finds it without naming models: 'experts' (its backbone holds an
   `ExpertGroups`, what progressive experts grows), 'routing' (it is a `Routing` model,
-  what the routing analysis and expert ablation read) and 'pixel-encoder' (in pixel mode it
-  builds the shared `ccfit.models.encoders` encoder, the one `ccfit pretrain-encoder`
-  pretrains).
+  what the routing analysis and expert ablation read), 'prediction' (it is a `Prediction`
+  model: open-loop prediction in a space that does not move with training, what the offline
+  track scores) and 'pixel-encoder' (in pixel mode it builds the shared
+  `ccfit.models.encoders` encoder, the one `ccfit pretrain-encoder` pretrains).
 
 Acting state is an explicit value owned by whoever plays the episodes, so stored heads of
 earlier tasks evaluated mid-episode of the current task never disturb each other.
@@ -197,6 +198,12 @@ class WorldModel(nn.Module, ABC):
         """Policy/actor/critic steps and target updates after the world-model step; must not
         change the backbone. Returns scalars to log."""
 
+    def backbone_optimizer(self) -> torch.optim.Optimizer:
+        """Optimiser over the backbone's trainable parameters alone, at the model's own
+        learning rates: what fitting the backbone alone (`backbone_loss`, no heads: the offline
+        track) steps. Gradients are clipped to `cfg.grad_clip` before each step."""
+        raise NotImplementedError(f"{type(self).__name__} has no backbone_optimizer")
+
     def replay_obs(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """What replay stores for an episode's observations (T+1, ...): by default the
         observations themselves; `loss` must accept whatever this returns."""
@@ -334,3 +341,37 @@ class Routing(ABC):
     @abstractmethod
     def routing_weights(self, z: torch.Tensor, a: torch.Tensor, task=None) -> torch.Tensor:
         """Weights (..., max_experts) of routing (z, a) as `task`; inactive experts get 0."""
+
+
+@dataclass
+class OpenLoop:
+    """What `Prediction.open_loop` returns, per measured quantity (e.g. 'state'; 'pixels' and
+    'proprio'; a frozen encoder's 'latent'), each flattened to one feature dimension D."""
+
+    predicted: dict[str, torch.Tensor]
+    """(H, B, D): the model's prediction of rows context .. context + H - 1."""
+    target: dict[str, torch.Tensor]
+    """(H, B, D): those rows as observed, in the same space."""
+    last: dict[str, torch.Tensor]
+    """(B, D): the last observed row (context - 1): what the persistence baseline predicts."""
+
+
+class Prediction(ABC):
+    """Capability 'prediction': open-loop prediction, measured in a space that does not move as
+    the model trains (the offline track, `ccfit.offline`, scores it against persistence). The
+    space is the observation where the model decodes, or a frozen pretrained encoder's latent:
+    never the model's own latent space, which moves with training, so that an error measured
+    there at two times compares two different spaces."""
+
+    @classmethod
+    @abstractmethod
+    def measurement_space(cls, cfg: Any, frozen_encoder: bool) -> str | None:
+        """The space `open_loop` measures in for config `cfg` (with a frozen pretrained encoder
+        or not), in words; None when that model has none (it predicts its own latents only)."""
+
+    @abstractmethod
+    def open_loop(self, batch: Batch, context: int, horizon: int) -> OpenLoop:
+        """Windows of `context + horizon` rows, each inside one episode: filter rows
+        0 .. context - 1, then predict rows context .. context + horizon - 1 from the actions
+        alone (action t is taken at row t) without seeing them. Deterministic (modes, not
+        samples), no gradient."""

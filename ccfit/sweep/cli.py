@@ -3,9 +3,12 @@
     ccfit sweep --suites Reach,Grasp --methods ft,er,ewc,packnet --seeds 0,1,2 --preset cpu \
         --out runs/sweep1 [--models M1,M2] [--launcher slurm] [--max-parallel 4] \
         [--obs pixels --train.steps=2000 --model.FIELD=VALUE ...]
+    ccfit sweep --track offline --suites Reach --methods ft,ewc \
+        --out runs/offline1                    # `ccfit fit` runs on the suite datasets
     ccfit sweep --status runs/sweep1
 
-Options the sweep does not know are run options (`ccfit run --help`), set for every run.
+Options the sweep does not know are run options (`ccfit run --help`, or `ccfit fit --help`
+with `--track offline`), set for every run.
 Running the same command again submits only the unfinished work.
 """
 
@@ -21,9 +24,10 @@ from ccdata.slurm import REQUEUE_SAFE_MIN, LaunchError, check_slurm, settings_fr
 from ccdata.slurm import add_options as add_slurm_options
 from ccfit.config_base import DEFAULTS, PRESETS
 from ccfit.continual import method_names
-from ccfit.models import DEFAULT_MODEL, model_names
+from ccfit.models import DEFAULT_MODEL, DEFAULT_OFFLINE_MODEL, model_names
 from ccfit.sweep.grid import (
     SWEEP_JSON,
+    TRACKS,
     Grid,
     check_same_sweep,
     expand,
@@ -58,14 +62,18 @@ def build_parser() -> argparse.ArgumentParser:
                 epilog="Any other option is a run option (`ccfit run --help`), set for every "
                        "run.")  # fmt: skip
     p.add_argument("--suites", type=_csv, help="suites, comma-separated (Reach,Grasp)")
-    p.add_argument("--models", type=_csv, default=(DEFAULT_MODEL,),
-                   help=f"world models, comma-separated ({','.join(model_names())})")
+    p.add_argument("--models", type=_csv, default=None,
+                   help=f"world models, comma-separated ({','.join(model_names())}; default "
+                        f"{DEFAULT_MODEL}, offline {DEFAULT_OFFLINE_MODEL})")  # fmt: skip
     p.add_argument("--methods", type=_csv, default=(DEFAULTS["method"],),
                    help=f"continual methods, comma-separated ({','.join(method_names())})")
     p.add_argument("--seeds", type=_seeds, default=(0,), help="seeds (0,1,2)")
     p.add_argument("--preset", default=DEFAULTS["preset"],
                    help=f"size preset of every run ({', '.join(PRESETS)})")
     p.add_argument("--out", help="sweep folder RUNS: runs, scratch/, report/, sweep.json")
+    p.add_argument("--track", choices=TRACKS, default="online",
+                   help="online: `ccfit run` curricula; offline: `ccfit fit` on the suite "
+                        "datasets (models offering 'prediction')")  # fmt: skip
     p.add_argument("--launcher", choices=("local", "slurm"), default="local")
     p.add_argument("--max-parallel", type=int, default=None,
                    help="jobs at once (local default: CPU count; SLURM: array throttle)")
@@ -96,8 +104,10 @@ def cmd_sweep(argv: list[str]) -> None:
         check_slurm()
     elif args.max_parallel is not None and args.max_parallel < 1:
         raise InputError(f"--max-parallel must be >= 1, got {args.max_parallel}")
+    if args.models is None:
+        args.models = (DEFAULT_OFFLINE_MODEL if args.track == "offline" else DEFAULT_MODEL,)
     grid = Grid(args.suites, args.models, args.methods, args.seeds, args.preset,
-                tuple(run_args), args.plugins)  # fmt: skip
+                tuple(run_args), args.plugins, args.track)  # fmt: skip
     import_plugins(grid.plugins)
     sweep = expand(grid, args.out)
     record = read_record(sweep.root)

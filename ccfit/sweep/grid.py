@@ -1,10 +1,10 @@
 """A sweep's grid expanded into run configs, and its record `sweep.json`.
 
-Every grid point (suite x model x method x seed) is a `ccfit run` config: the grid's values
-and the common options go through the same `parse_cli` as `ccfit run`, so a sweep accepts
-every run option and validates it the same way. Runs go to `RUNS/<name>` (named by their
-config); runs that differ only in the method share one from-scratch reference in
-`RUNS/scratch/<scratch_key>`.
+Every grid point (suite x model x method x seed) is a `ccfit run` config, or with
+`--track offline` a `ccfit fit` config: the grid's values and the common options go through the
+same `parse_cli` as the command, so a sweep accepts every option of it and validates it the
+same way. Runs go to `RUNS/<name>` (named by their config); runs that differ only in the
+method share one from-scratch reference in `RUNS/scratch/<scratch_key>`.
 
 `sweep.json` holds the grid, each run's resolved config, its directory and scratch key, the
 code version, and one entry per submission (launcher, job ids, job states when local). It
@@ -35,6 +35,14 @@ METRICS_JSON = "metrics.json"  # ccfit.curriculum.METRICS_JSON (kept import-free
 GRID_FLAGS = ("suite", "seed", "model.type", "method.type", "preset")
 """Run options the grid sets itself: giving them as common options is an error."""
 REFUSED_FLAGS = ("out", "config_path")
+TRACKS = ("online", "offline")
+"""`ccfit run` curricula, or `ccfit fit` offline ones (`ccfit.offline`)."""
+
+
+def is_offline(config: dict) -> bool:
+    """Whether a run's config (plain data) is an offline one: it has the offline loop `fit`
+    where an online one has `train`."""
+    return "fit" in config
 
 
 @dataclass(frozen=True)
@@ -56,8 +64,12 @@ class Grid:
     plugins: tuple[str, ...] = ()
     """Modules imported before configs are built, here and in every job: they register world
     models or methods defined outside ccfit."""
+    track: str = "online"
+    """'online' (`ccfit run` curricula) or 'offline' (`ccfit fit`)."""
 
     def __post_init__(self) -> None:
+        if self.track not in TRACKS:
+            raise InputError(f"--track must be one of {', '.join(TRACKS)}, got {self.track!r}")
         for name in ("suites", "models", "methods", "seeds"):
             values = getattr(self, name)
             if not values:
@@ -153,16 +165,24 @@ def import_plugins(plugins: tuple[str, ...] | list[str]) -> None:
             raise InputError(f"plugin module {module!r} not found ({e})") from None
 
 
-def run_name(cfg) -> str:
-    """A run's directory name: the grid values plus the shared obs and preset."""
-    return f"{cfg.suite}-{cfg.model.type}-{cfg.method.type}-{cfg.obs}-{cfg.preset}-s{cfg.seed}"
+def run_name(cfg, track: str = "online") -> str:
+    """A run's directory name: the grid values plus the shared obs and preset (and the track
+    when offline)."""
+    name = f"{cfg.suite}-{cfg.model.type}-{cfg.method.type}-{cfg.obs}-{cfg.preset}-s{cfg.seed}"
+    return name if track == "online" else f"{name}-{track}"
 
 
 def expand(grid: Grid, root: str | Path) -> Sweep:
-    """Every grid point's config, resolved and validated as `ccfit run` does it."""
-    from ccfit.config import CurriculumConfig
+    """Every grid point's config, resolved and validated as `ccfit run` (or `ccfit fit`)
+    does it."""
     from ccfit.config_parse import parse_cli
-    from ccfit.curriculum import scratch_key
+
+    if grid.track == "offline":
+        from ccfit.offline import OfflineConfig as config_class
+        from ccfit.offline import scratch_key
+    else:
+        from ccfit.config import CurriculumConfig as config_class
+        from ccfit.curriculum import scratch_key
 
     import_plugins(grid.plugins)
     root = Path(root).resolve()
@@ -171,8 +191,8 @@ def expand(grid: Grid, root: str | Path) -> Sweep:
                                                         grid.seeds):  # fmt: skip
         argv = [f"--preset={grid.preset}", f"--suite={suite}", f"--seed={seed}",
                 f"--model.type={model}", f"--method.type={method}", *grid.args]  # fmt: skip
-        cfg = parse_cli(CurriculumConfig, argv, prog="ccfit sweep")
-        name = run_name(cfg)
+        cfg = parse_cli(config_class, argv, prog="ccfit sweep")
+        name = run_name(cfg, grid.track)
         cfg.out = str(root / name)
         runs.append(RunSpec(name, cfg.to_dict(), scratch_key(cfg)))
     return Sweep(root, grid, runs, code_version())

@@ -29,6 +29,7 @@ from ccfit.sweep.grid import (
     STATUS_JSON,
     Sweep,
     import_plugins,
+    is_offline,
     load_sweep,
 )
 
@@ -38,13 +39,16 @@ class ScratchMissing(RuntimeError):
 
 
 def config_from_dict(d: dict):
-    """A `CurriculumConfig` from its plain data (config.json or sweep.json), ignoring keys that
-    are not config fields (`resolved_seed_dataset`)."""
+    """A `CurriculumConfig` (or, for an offline run, an `OfflineConfig`) from its plain data
+    (config.json or sweep.json), ignoring keys that are not config fields
+    (`resolved_seed_dataset`)."""
     from ccfit.config import CurriculumConfig
     from ccfit.config_parse import resolve
+    from ccfit.offline import OfflineConfig
 
-    names = {f.name for f in dataclasses.fields(CurriculumConfig)}
-    return resolve(CurriculumConfig, {k: v for k, v in d.items() if k in names})
+    cls = OfflineConfig if is_offline(d) else CurriculumConfig
+    names = {f.name for f in dataclasses.fields(cls)}
+    return resolve(cls, {k: v for k, v in d.items() if k in names})
 
 
 def job_start(what: str, plugins: list[str], code: dict, threads: int | None) -> None:
@@ -75,7 +79,10 @@ class ScratchJob(_Job):
 
     def __call__(self, config: dict, scratch_dir: str, plugins: list[str], code: dict,
                  threads: int | None = None) -> dict:  # fmt: skip
-        from ccfit.curriculum import run_scratch
+        if is_offline(config):
+            from ccfit.offline import run_scratch
+        else:
+            from ccfit.curriculum import run_scratch
 
         job_start(f"scratch reference {scratch_dir}", plugins, code, threads)
         evals = run_scratch(config_from_dict(config), Path(scratch_dir), progress=False)
@@ -88,9 +95,10 @@ class RunJob(_Job):
 
     def __call__(self, config: dict, run_dir: str, scratch_root: str, scratch_key: str,
                  plugins: list[str], code: dict, threads: int | None = None) -> dict:  # fmt: skip
-        from ccfit.analysis import stage_callbacks
-        from ccfit.curriculum import Curriculum
-        from ccfit.curriculum import scratch_key as key_of
+        if is_offline(config):
+            from ccfit.offline import scratch_key as key_of
+        else:
+            from ccfit.curriculum import scratch_key as key_of
 
         job_start(f"run {run_dir}", plugins, code, threads)
         metrics = Path(run_dir) / METRICS_JSON
@@ -105,17 +113,27 @@ class RunJob(_Job):
             raise ScratchMissing(f"from-scratch reference {done.parent} did not finish (see its "
                                  f"job's log); run the sweep again")  # fmt: skip
         print(f"ccfit sweep: {resume_point(Path(run_dir))}", flush=True)
+        if is_offline(config):
+            from ccfit.offline import OfflineCurriculum
+
+            return _summary(OfflineCurriculum(cfg, run_dir, scratch_root, progress=False).run())
+        from ccfit.analysis import stage_callbacks
+        from ccfit.curriculum import Curriculum
+
         result = Curriculum(cfg, run_dir, scratch_root, progress=False,
                             callbacks=stage_callbacks(cfg)).run()  # fmt: skip
         return _summary(result)
 
 
 def resume_point(run_dir: Path) -> str:
-    """Where a run continues from: its saved curriculum state and task checkpoint, if any."""
+    """Where a run continues from: its saved curriculum state (online or offline) and task
+    checkpoint, if any."""
     from ccfit.curriculum import STATE
+    from ccfit.offline.run import STATE as OFFLINE_STATE
     from ccfit.train.loop import CHECKPOINT
 
-    found = [p for p in [run_dir / STATE, *sorted(run_dir.glob(f"tasks/*/{CHECKPOINT}"))]
+    states = [run_dir / STATE, run_dir / OFFLINE_STATE]
+    found = [p for p in [*states, *sorted(run_dir.glob(f"tasks/*/{CHECKPOINT}"))]
              if p.is_file()]  # fmt: skip
     if not found:
         return "starting fresh"

@@ -98,7 +98,7 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
     def alone(config: dict) -> dict:
         # Jobs side by side already fill the cores: none spawns workers of its own
         # (`train.parallel` changes how a run spreads over processes, not what it computes).
-        if max_parallel < 2:
+        if max_parallel < 2 or "train" not in config:  # an offline run spawns nothing
             return config
         return {**config, "train": {**config.get("train", {}), "parallel": "off"}}
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 
 from ccdata.render import RenderSettings
-from ccfit.config import RunConfig, TaskRunConfig
+from ccfit.config import BaseRunConfig, RunConfig, TaskRunConfig
 from ccfit.config_base import ConfigError, resolve_device
 from ccfit.config_parse import flatten
 from ccfit.io import atomic_write_json, derived_seed, seed_everything
@@ -32,7 +32,7 @@ from ccfit.train.resources import ReplayPlan, check_disk, plan_replay
 CONFIG = "config.json"
 
 
-def render_settings(cfg: RunConfig) -> RenderSettings:
+def render_settings(cfg: BaseRunConfig) -> RenderSettings:
     """How the run's camera images are rendered (ccdata's defaults at the run's size)."""
     return RenderSettings(image_size=cfg.image_size)
 
@@ -52,16 +52,22 @@ def resolved_config(cfg: RunConfig, suite: str | None) -> dict:
 
 
 def build_model(cfg: RunConfig, device: torch.device) -> WorldModel:
-    """The run's world model, with its frozen pretrained encoder when `cfg.encoder` names one,
-    and its hot paths compiled as `cfg.train.compile` says."""
+    """The run's world model (`load_model`), its hot paths compiled as `cfg.train.compile`
+    says."""
+    model = load_model(cfg, device)
+    compile_hot_paths(model, cfg.train.compile)
+    return model
+
+
+def load_model(cfg: BaseRunConfig, device: torch.device) -> WorldModel:
+    """The run's world model, eager, with its frozen pretrained encoder when `cfg.encoder`
+    names one."""
     encoder = None
     if cfg.encoder_path is not None:
         from ccfit.models.encoders import load_frozen_encoder
 
         encoder, _ = load_frozen_encoder(cfg.encoder_path, device=device)
-    model = make_model(cfg.model, device, encoder=encoder)
-    compile_hot_paths(model, cfg.train.compile)
-    return model
+    return make_model(cfg.model, device, encoder=encoder)
 
 
 def suite_of(task_id: str) -> str | None:

@@ -21,7 +21,7 @@ from torch import nn
 from torch.func import functional_call
 
 from ccfit.config_base import check, resolve_device
-from ccfit.models.base import LATENT_KEY, Batch, LossOutput, WorldModel
+from ccfit.models.base import LATENT_KEY, Batch, LossOutput, OpenLoop, Prediction, WorldModel
 from ccfit.models.dreamerv3.behavior import (
     behavior_losses,
     imagine,
@@ -85,9 +85,10 @@ def _detached(logs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 
 
 @register_model("dreamerv3", DreamerV3Config)
-class DreamerV3(WorldModel):
+class DreamerV3(WorldModel, Prediction):
     """DreamerV3, the authors' 2023 recipe (2025 changes as config options)."""
 
+    capabilities = frozenset({"prediction"})
     hot_paths = ("loss", "head_update", "act")
     # bench/update_rate.py, cpu preset, 1 thread: update 86.5 -> 72.3 ms with loss and
     # head_update compiled; acting costs ~0.3 ms either way.
@@ -116,6 +117,10 @@ class DreamerV3(WorldModel):
     def world_model_optimizer(self, heads: DreamerV3Heads) -> torch.optim.Optimizer:
         params = [p for p in self.backbone.parameters() if p.requires_grad]
         params += [*heads.reward.parameters(), *heads.cont.parameters()]
+        return adam(params, lr=self.cfg.model_lr, eps=self.cfg.model_eps)
+
+    def backbone_optimizer(self) -> torch.optim.Optimizer:
+        params = [p for p in self.backbone.parameters() if p.requires_grad]
         return adam(params, lr=self.cfg.model_lr, eps=self.cfg.model_eps)
 
     def head_optimizers(self, heads: DreamerV3Heads) -> dict[str, torch.optim.Optimizer]:
@@ -210,6 +215,43 @@ class DreamerV3(WorldModel):
         logits = functional_call(heads.critic, weights, (feat[-k:],))
         loss = replay_value_loss(cfg, heads, logits, feat[-k:], target, valid)
         return loss, ReplayValue(feat[-k:].detach(), target, valid)
+
+    # ------------------------------------------------------------------ prediction
+    @classmethod
+    def measurement_space(cls, cfg: DreamerV3Config, frozen_encoder: bool) -> str:
+        """Where the decoder decodes: the state vector, the images and proprio, or (with a
+        frozen encoder, whose latent the decoder reconstructs) that encoder's latent."""
+        if frozen_encoder:
+            return "frozen-encoder latent"
+        return "state" if cfg.obs_mode == "state" else "pixels+proprio"
+
+    @torch.no_grad()
+    def open_loop(self, batch: Batch, context: int, horizon: int) -> OpenLoop:
+        """Posteriors (modes) over the context rows, then prior modes with the given actions,
+        decoded into the observation (`Decoder.predict`)."""
+        batch = batch.to(self.device)
+        seen = {k: v[:context] for k, v in batch.obs.items()}
+        embed = self.backbone.encoder(seen)
+        deter, stoch, _, _ = self.rssm.observe(embed, batch.action[:context],
+                                               batch.is_first[:context], sample=False)
+        deter, stoch, feats = deter[-1], stoch[-1], []
+        for t in range(context - 1, context - 1 + horizon):
+            deter, stoch = self.rssm.img_step(deter, stoch, batch.action[t], sample=False)
+            feats.append(self.rssm.feat(deter, stoch))
+        predicted = self.backbone.decoder.predict(torch.stack(feats))
+        observed = self._measured({k: v[context - 1 : context + horizon]
+                                   for k, v in batch.obs.items()})  # fmt: skip
+        return OpenLoop(predicted, {k: v[1:] for k, v in observed.items()},
+                        {k: v[0] for k, v in observed.items()})  # fmt: skip
+
+    def _measured(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Observations (..., obs) as `Decoder.predict` gives them, each (..., D)."""
+        if self.backbone.encoder.frozen is not None:
+            return {LATENT_KEY: self.backbone.encoder(obs)}
+        if self.cfg.obs_mode == "state":
+            return {"state": obs["state"].float()}
+        return {"proprio": obs["proprio"].float(),
+                "pixels": obs["pixels"].flatten(-3).float() / 255.0}  # fmt: skip
 
     # ------------------------------------------------------------------ behaviour
     def head_update(

@@ -17,7 +17,7 @@ from torch import nn
 
 from ccfit.models.base import LATENT_KEY
 from ccfit.models.dreamerv3.config import DreamerV3Config
-from ccfit.models.dreamerv3.math import symlog
+from ccfit.models.dreamerv3.math import symexp, symlog
 
 NORM_EPS = 1e-3
 
@@ -154,13 +154,26 @@ class Decoder(nn.Module):
         for (key, _), p in zip(self.vectors.items(), pred, strict=True):
             parts[key] = (p - symlog(_get(obs, key).float())).pow(2).sum(-1)
         if self.image:
-            lead = feat.shape[:-1]
-            x = self.project(feat.reshape(-1, feat.shape[-1])).reshape(-1, self.top, 4, 4)
-            img = self.cnn(x) + 0.5
+            img = self._image(feat)
             target = _get(obs, "pixels").reshape(img.shape).float() / 255.0
-            parts["pixels"] = (img - target).pow(2).sum((1, 2, 3)).reshape(lead)
+            parts["pixels"] = (img - target).pow(2).sum((1, 2, 3)).reshape(feat.shape[:-1])
         total = torch.stack(list(parts.values())).sum(0)
         return total, {k: v.detach().mean() for k, v in parts.items()}
+
+    def _image(self, feat: torch.Tensor) -> torch.Tensor:
+        """Decoded images (N, 9, S, S) in [0, 1] scale for model states (..., feat)."""
+        x = self.project(feat.reshape(-1, feat.shape[-1])).reshape(-1, self.top, 4, 4)
+        return self.cnn(x) + 0.5
+
+    def predict(self, feat: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The observation decoded from model states (..., feat), in the observation's own
+        space (vectors mapped back from symlog, images in [0, 1]), each (..., D) flat: what
+        open-loop predictions are measured in."""
+        pred = self.vector(feat).split(list(self.vectors.values()), -1)
+        out = {key: symexp(p) for key, p in zip(self.vectors, pred, strict=True)}
+        if self.image:
+            out["pixels"] = self._image(feat).reshape(*feat.shape[:-1], -1)
+        return out
 
 
 class Head(nn.Module):

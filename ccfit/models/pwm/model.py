@@ -8,7 +8,14 @@ from collections.abc import Iterator
 import torch
 from torch import nn
 
-from ccfit.models.base import Batch, ExpertLayout, LossOutput, Routing, check_on_device
+from ccfit.models.base import (
+    Batch,
+    ExpertLayout,
+    LossOutput,
+    OpenLoop,
+    Routing,
+    check_on_device,
+)
 from ccfit.models.encoders import FrozenEncoder
 from ccfit.models.pwm.config import PWMConfig
 from ccfit.models.pwm.mixture import MixtureDynamics
@@ -105,8 +112,8 @@ class PWM(TDMPC2, Routing):
         task = int(self.dynamics.current_task) if task is None else task
         return PWMHeads(self.cfg, self.dynamics.check_task(task)).to(self.device)
 
-    def _param_groups(self, heads: nn.Module) -> list[dict]:
-        groups = super()._param_groups(heads)
+    def _backbone_groups(self) -> list[dict]:
+        groups = super()._backbone_groups()
         for g in groups:
             if g["name"] == "dynamics":
                 g["params"] = self.dynamics.optimizer_parameters()
@@ -144,6 +151,12 @@ class PWM(TDMPC2, Routing):
     def backbone_loss(self, batch: Batch) -> torch.Tensor:
         with self.routing_task(self._batch_task(batch)):
             return super().backbone_loss(batch)
+
+    def open_loop(self, batch: Batch, context: int, horizon: int) -> OpenLoop:
+        """TD-MPC2's, each window routed as its task."""
+        batch = batch.to(self.device)
+        with self.routing_task(self._batch_task(batch)):
+            return super().open_loop(batch, context, horizon)
 
     def head_update(
         self,

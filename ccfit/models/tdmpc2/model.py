@@ -13,7 +13,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ccfit.config_base import resolve_device
-from ccfit.models.base import LATENT_KEY, Batch, LossOutput, WorldModel
+from ccfit.models.base import LATENT_KEY, Batch, LossOutput, OpenLoop, Prediction, WorldModel
 from ccfit.models.encoders import FrozenEncoder, build_encoder
 from ccfit.models.layers import EnsembleMLP, SimNorm, TwoHot, adam, init_weights, mlp, polyak
 from ccfit.models.mppi import mppi_plan
@@ -91,11 +91,11 @@ def modules_in_eval(*modules: nn.Module) -> Iterator[None]:
 
 
 @register_model("tdmpc2", TDMPC2Config)
-class TDMPC2(WorldModel):
+class TDMPC2(WorldModel, Prediction):
     """TD-MPC2 world model with the benchmark's backbone/heads split."""
 
     cfg: TDMPC2Config
-    capabilities = frozenset({"pixel-encoder"})  # the shared `build_encoder` one
+    capabilities = frozenset({"pixel-encoder", "prediction"})  # the shared `build_encoder`
     hot_paths = ("loss", "head_update", "plan")
     # bench/update_rate.py, cpu preset, 1 thread: plan 4.8 -> 3.4 ms compiled; the update
     # (loss + backward + head_update) is arithmetic-bound there and gains nothing.
@@ -124,24 +124,28 @@ class TDMPC2(WorldModel):
     def new_heads(self) -> TDMPC2Heads:
         return TDMPC2Heads(self.cfg).to(self.device)
 
-    def _param_groups(self, heads: nn.Module) -> list[dict]:
-        """Named Adam groups of `world_model_optimizer` (the encoder at lr * enc_lr_scale)."""
+    def _backbone_groups(self) -> list[dict]:
+        """Named Adam groups of the backbone (the encoder at lr * enc_lr_scale)."""
         cfg = self.cfg
-        h = _heads(heads)
-        value_params = [*h.reward.parameters(), *h.termination.parameters(), *h.qs.parameters()]
-        groups = [
+        return [
             {"name": "encoder", "params": list(self.backbone.encoder.parameters()),
              "lr": cfg.lr * cfg.enc_lr_scale},
             {"name": "dynamics", "params": list(self.backbone.dynamics.parameters()),
              "lr": cfg.lr},
-            {"name": "heads", "params": value_params, "lr": cfg.lr},
         ]  # fmt: skip
-        for g in groups:  # a frozen encoder contributes nothing
-            g["params"] = [p for p in g["params"] if p.requires_grad]
-        return [g for g in groups if g["params"]]
+
+    def _param_groups(self, heads: nn.Module) -> list[dict]:
+        """Named Adam groups of `world_model_optimizer`: the backbone's, then the heads'."""
+        h = _heads(heads)
+        value_params = [*h.reward.parameters(), *h.termination.parameters(), *h.qs.parameters()]
+        heads_group = {"name": "heads", "params": value_params, "lr": self.cfg.lr}
+        return _trainable([*self._backbone_groups(), heads_group])
 
     def world_model_optimizer(self, heads: nn.Module) -> torch.optim.Optimizer:
         return adam(self._param_groups(heads), lr=self.cfg.lr)
+
+    def backbone_optimizer(self) -> torch.optim.Optimizer:
+        return adam(_trainable(self._backbone_groups()), lr=self.cfg.lr)
 
     def head_optimizers(self, heads: nn.Module) -> dict[str, torch.optim.Optimizer]:
         """{'pi': the policy's Adam} (the official recipe: lr, eps `policy_adam_eps`)."""
@@ -338,6 +342,28 @@ class TDMPC2(WorldModel):
             "q_scale": h.q_scale.detach().clone().reshape(()),
         }
 
+    # ---------------------------------------------------------------- prediction
+
+    @classmethod
+    def measurement_space(cls, cfg: TDMPC2Config, frozen_encoder: bool) -> str | None:
+        """Only a frozen encoder's latent: TD-MPC2 decodes nothing, and its own latent space is
+        its encoder's, which moves as it trains."""
+        return "frozen-encoder latent" if frozen_encoder else None
+
+    @torch.no_grad()
+    def open_loop(self, batch: Batch, context: int, horizon: int) -> OpenLoop:
+        """The last context row's latent rolled through `next` with the given actions, against
+        the frozen encoder's latents of the rows that follow (the dynamics has no memory)."""
+        if not isinstance(self.backbone.encoder, FrozenEncoder):
+            raise ValueError("open-loop prediction needs a frozen encoder")
+        batch, end = batch.to(self.device), context + horizon
+        zs = self.encode({k: v[context - 1 : end] for k, v in batch.obs.items()}).float()
+        z, predicted = zs[0], []
+        for t in range(context - 1, end - 1):
+            predicted.append(z := self.next(z, batch.action[t]))
+        return OpenLoop({LATENT_KEY: torch.stack(predicted)}, {LATENT_KEY: zs[1:]},
+                        {LATENT_KEY: zs[0]})  # fmt: skip
+
     # ---------------------------------------------------------------- acting
 
     @torch.no_grad()
@@ -360,6 +386,12 @@ class TDMPC2(WorldModel):
     ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
         """MPPI from latents z (n, L): (actions (n, A) in [-1, 1], plan means (n, horizon, A))."""
         return mppi_plan(self, z, heads, prev_mean, eval_mode=eval_mode)
+
+
+def _trainable(groups: list[dict]) -> list[dict]:
+    """`groups` without frozen parameters (a frozen encoder contributes nothing)."""
+    groups = [{**g, "params": [p for p in g["params"] if p.requires_grad]} for g in groups]
+    return [g for g in groups if g["params"]]
 
 
 def _heads(heads: nn.Module) -> TDMPC2Heads:
