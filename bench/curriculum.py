@@ -35,12 +35,14 @@ def run_one(src: Path, out: Path, args, model: str) -> dict:
     out.mkdir(parents=True)
     cmd = [sys.executable, "-m", "ccfit.cli", "run", "--suite", args.suite, "--preset",
            args.preset, "--obs", "state", "--seed", str(args.seed),
-           f"--model.type={model}", f"--method.type={args.method}", "--out", str(out / "run"),
+           f"--model.type={model}", f"--method.type={args.method}",
+           f"--train.steps={args.steps}", "--out", str(out / "run"),
            "--scratch-root", str(out / "scratch"), "--quiet", *args.extra]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(src), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    # cwd=src: `python -m` puts the working directory first on sys.path, ahead of PYTHONPATH
+    proc = subprocess.run(cmd, env=env, cwd=src, capture_output=True, text=True)
     wall = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
@@ -62,6 +64,9 @@ def main() -> None:
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--method", default="ft")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--steps", type=int, default=6000,
+                        help="steps per task, given to both versions: a model's per-suite "
+                        "budget may differ between them")  # fmt: skip
     parser.add_argument("--out", default="/tmp/ccfit-bench-curriculum",
                         help="scratch folder for the runs")
     parser.add_argument("--extra", nargs=argparse.REMAINDER, default=[],
@@ -83,7 +88,7 @@ def main() -> None:
         results[model] = row
     print(json.dumps({
         "suite": args.suite, "preset": args.preset, "method": args.method, "seed": args.seed,
-        "obs": "state", "cpu_count": os.cpu_count(), "baseline": args.baseline,
+        "obs": "state", "steps": args.steps, "cpu_count": os.cpu_count(), "baseline": args.baseline,
         "extra": args.extra, "results": results,
     }, indent=2))  # fmt: skip
 

@@ -11,6 +11,8 @@ Commands:
     sweep    a grid of runs (suites x models x methods x seeds), locally or on SLURM, and the
              report over them; again: submits only unfinished work; --status RUNS
     report   tables and plots over run directories (BWT / FWT per backbone, suite, method)
+    publish  finished runs' small files (config, metrics, cost) and the report over them, for
+             a results folder under version control
     learnability   steps each task needs (single-task runs) and the per-suite budgets
     ablate   a finished routed-model run's expert ablation on the composition task (Fig. 6)
     pretrain-encoder   the frozen-encoder diagnostic: an autoencoder on every task's oracle
@@ -134,6 +136,16 @@ def _cmd_report(args: argparse.Namespace) -> None:
         print(path)
 
 
+def _cmd_publish(args: argparse.Namespace) -> None:
+    from ccfit.publish import publish
+
+    try:
+        paths = publish(Path(args.runs), Path(args.out))
+    except ValueError as e:
+        raise CliError(str(e)) from None
+    print(f"{len(paths)} files -> {args.out}")
+
+
 def _cmd_learnability(args: argparse.Namespace) -> None:
     from ccfit.analysis.learnability import write_learnability
 
@@ -173,6 +185,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("runs", nargs="+", help="run directories (or folders holding them)")
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=_cmd_report)
+
+    p = sub.add_parser("publish", help="copy finished runs' small files (config, metrics, "
+                       "cost) and write the report over them, for a results folder")  # fmt: skip
+    p.add_argument("runs", help="folder holding finished runs (e.g. a sweep's)")
+    p.add_argument("--out", required=True, help="results folder (its report/ is rewritten)")
+    p.set_defaults(func=_cmd_publish)
 
     p = sub.add_parser("learnability", help="steps each task needs to reach 50 and 80, and the "
                        "per-suite budgets, from single-task `ccfit train` runs")  # fmt: skip

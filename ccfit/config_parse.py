@@ -29,7 +29,9 @@ from ccfit.models.registry import config_class
 def preset_defaults(cls: type[BaseRunConfig], choices: dict[str, Any]) -> dict:
     """The nested plain-data defaults of `cls` for `choices`: preset, obs, image_size,
     model (its type) and method (its type), each `DEFAULTS[...]` unless given; and the
-    preset of every other section with presets (`train`, an offline run's `fit`)."""
+    preset of every other section with presets (`train`, an offline run's `fit`). A
+    curriculum's steps per task from state are the model's measured budget for its suite at
+    this preset (`ModelConfig.SUITE_STEPS`) when it has one."""
     model = getattr(cls, "DEFAULT_MODEL", DEFAULT_MODEL)  # a config class may choose its own
     c = {**DEFAULTS, "model": model, **{k: v for k, v in choices.items() if v is not None}}
     preset, model, method = c["preset"], c["model"], c["method"]
@@ -42,6 +44,9 @@ def preset_defaults(cls: type[BaseRunConfig], choices: dict[str, Any]) -> dict:
                   "image_size": c["image_size"]},
     }  # fmt: skip
     out.update(_preset_sections(cls, preset))
+    steps = vars(mcls).get("SUITE_STEPS", {}).get(preset, {}).get(c.get("suite"))
+    if steps is not None and "train" in out and c["obs"] == "state":  # measured on state
+        out["train"]["steps"] = steps
     if _has_method(cls):
         out["method"] = {"type": method, **method_config_class(method).preset_fields(preset)}
     return out
@@ -51,7 +56,7 @@ def resolve[C: BaseRunConfig](cls: type[C], overrides: dict[str, Any]) -> C:
     """`cls` from nested plain data (`{"suite": ..., "model": {"type": NAME, ...}}`): the
     preset's defaults (preset, model and method types, obs and image size taken from
     `overrides`), then `overrides` on top. The programmatic twin of `parse_cli`."""
-    choices = {k: overrides.get(k) for k in ("preset", "obs", "image_size")}
+    choices = {k: overrides.get(k) for k in ("preset", "obs", "image_size", "suite")}
     choices.update(model=overrides.get("model", {}).get("type"),
                    method=overrides.get("method", {}).get("type"))  # fmt: skip
     return _decode(cls, _deep_merge(preset_defaults(cls, choices), overrides))
@@ -148,6 +153,7 @@ def parse_cli[C: BaseRunConfig](cls: type[C], argv: Sequence[str], prog: str | N
             "preset": pre.get("preset"), "obs": pre.get("obs"),
             "image_size": int(size) if size is not None and size.isdigit() else None,
             "model": pre.get("model.type"), "method": pre.get("method.type"),
+            "suite": pre.get("suite"),
         })  # fmt: skip
     for nested, top in (("model.obs_mode", "obs"), ("model.image_size", "image_size")):
         check(nested not in pre, f"--{nested} follows the run's --{top}; set that instead")

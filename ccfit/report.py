@@ -142,12 +142,12 @@ def find_runs(paths: list[Path]) -> list[Run]:
     for d in dict.fromkeys(dirs):
         metrics = json.loads((d / METRICS_JSON).read_text())
         records = [json.loads(x) for x in (d / METRICS).read_text().splitlines() if x.strip()]
-        scratch = json.loads((_scratch_dir(d, metrics) / "done.json").read_text())
+        scratch = json.loads((scratch_dir_of(d, metrics) / "done.json").read_text())
         runs.append(Run(d, json.loads((d / CONFIG).read_text()), records, scratch, metrics))
     return runs
 
 
-def _scratch_dir(run_dir: Path, metrics: dict) -> Path:
+def scratch_dir_of(run_dir: Path, metrics: dict) -> Path:
     """The run's from-scratch reference: where the run wrote it or, when that path does not
     resolve from here (a relative path from another working directory, a moved tree), the
     default location beside the run (`<run>/../scratch/<key>`)."""

@@ -524,6 +524,30 @@ def test_cli_run_model_and_method_options_reach_the_config():
     assert config("--method.type=ewc", "--method.lam=7").method.lam == 7.0
 
 
+def test_a_models_suite_budget_sets_the_steps_per_task_unless_given(monkeypatch):
+    from ccfit.models.tdmpc2.config import TDMPC2Config
+
+    monkeypatch.setattr(TDMPC2Config, "SUITE_STEPS", {"cpu": {"Grasp": 9_000}})
+
+    def steps(*argv, **over):
+        cli = parse_cli(CurriculumConfig, ["--model.type=tdmpc2", *argv]).train.steps
+        nested = resolve(CurriculumConfig, {"model": {"type": "tdmpc2"}, **over}).train.steps
+        assert cli == nested
+        return cli
+
+    assert steps("--suite", "Grasp", "--preset", "cpu", suite="Grasp", preset="cpu") == 9_000
+    assert steps("--suite", "Reach", "--preset", "cpu", suite="Reach", preset="cpu") == 6_000
+    assert steps("--suite", "Grasp", "--preset", "smoke", suite="Grasp", preset="smoke") == 600
+    assert steps("--suite", "Grasp", "--preset", "cpu", "--train.steps=3000", suite="Grasp",
+                 preset="cpu", train={"steps": 3_000}) == 3_000  # fmt: skip
+    # measured from state: pixel runs keep the preset's steps
+    assert steps("--suite", "Grasp", "--preset", "cpu", "--obs", "pixels", suite="Grasp",
+                 preset="cpu", obs="pixels") == 6_000  # fmt: skip
+    # a subclass (PWM's config extends TD-MPC2's) measures its own budgets
+    pwm = parse_cli(CurriculumConfig, ["--model.type=pwm", "--suite", "Grasp", "--preset", "cpu"])
+    assert pwm.train.steps == 6_000
+
+
 def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
     from ccfit.cli import main
 
@@ -555,6 +579,28 @@ def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
         if name.endswith(".png"):
             data = (out / name).read_bytes()
             assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000, name
+
+
+def test_publish_keeps_small_files_and_its_report_rebuilds_from_them(runs, tmp_path, capsys):
+    from ccfit.cli import main
+    from ccfit.publish import MAX_FILE_BYTES
+    from ccfit.report import write_report
+
+    published = tmp_path / "results" / "smoke"
+    assert main(["publish", str(runs.root), "--out", str(published)]) == 0
+    files = [p for p in published.rglob("*") if p.is_file()]
+    assert not [p for p in files if p.suffix in (".pt", ".parquet", ".npz", ".mp4")]
+    assert all(p.stat().st_size <= MAX_FILE_BYTES for p in files)
+    assert {p.parent.name for p in published.glob("*/metrics.json")} == set(METHODS)
+    # moved elsewhere, the copy alone rebuilds the same tables (scratch found beside the runs)
+    moved = tmp_path / "moved"
+    published.rename(moved)
+    again = tmp_path / "again"
+    write_report([moved], again)
+    tables = sorted(p.name for p in (moved / "report").glob("table_*"))
+    assert tables == ["table_tdmpc2.csv", "table_tdmpc2.md"]
+    for name in tables:
+        assert (again / name).read_bytes() == (moved / "report" / name).read_bytes()
 
 
 def test_report_table_frame_matches_runs(runs):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import ClassVar
 
 import draccus
 import torch
@@ -25,6 +26,13 @@ class ModelConfig(ChoiceConfig, draccus.ChoiceRegistry):
     """Fields every world model has; a model's config subclasses this and is registered with
     its model by `register_model`. Subclasses list presets in `PRESETS` (name -> fields): every
     name of `ccfit.config_base.PRESETS`, and more if they like (e.g. sizes)."""
+
+    SUITE_STEPS: ClassVar[dict[str, dict[str, int]]] = {}
+    """Preset -> suite -> env steps per task: what this model needs at that preset for every
+    task of the suite to be learnt from state (measured with `ccfit learnability`). A state
+    curriculum of the suite at the preset trains that long per task unless `--train.steps`
+    says otherwise; pixel runs keep the preset's steps (nothing measured there yet). A
+    subclass does not inherit its parent's budgets unless it says so."""
 
     obs_mode: str = "state"
     """'state' (39-D privileged state) or 'pixels' (9-channel images + 7-D proprio). Set from
