@@ -9,7 +9,7 @@ import torch
 from ccfit.config_base import ConfigError
 from ccfit.models.base import Batch
 from ccfit.models.encoders import preprocess_frames, random_shift
-from ccfit.models.layers import EnsembleMLP, SimNorm, TwoHot, mlp, symexp, symlog
+from ccfit.models.layers import EnsembleMLP, SimNorm, TwoHot, mish, mlp, symexp, symlog
 from ccfit.models.tdmpc2 import TDMPC2, TDMPC2_SIZES, TDMPC2Config, modules_in_eval
 
 try:
@@ -71,6 +71,24 @@ def test_two_hot_round_trip_and_symlog():
     assert th.cross_entropy(good, target).item() < th.cross_entropy(bad, target).item() - 1.0
     with pytest.raises(ValueError, match="num_bins"):
         TwoHot(1, -1.0, 1.0)
+
+
+def test_closed_form_mish_equals_torch_mish_in_value_and_gradient():
+    # the range covers both sides of the clamp and the tail where x n / (n + 2) is tiny
+    x = torch.linspace(-60, 60, 24_001, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(mish, (x[::997].detach().clone().requires_grad_(),))
+    for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 1e-5)):
+        xd = x.detach().to(dtype).requires_grad_()
+        ours, ref = mish(xd), torch.nn.functional.mish(xd)
+        torch.testing.assert_close(ours, ref, rtol=tol, atol=tol)
+        g_ours, g_ref = (torch.autograd.grad(y.sum(), xd)[0] for y in (ours, ref))
+        torch.testing.assert_close(g_ours, g_ref, rtol=tol, atol=tol)
+    tail = torch.tensor([-30.0, -15.0, -8.0])  # relative accuracy where the value is ~x e^x
+    torch.testing.assert_close(mish(tail), torch.nn.functional.mish(tail), rtol=1e-5, atol=0)
+    half = torch.linspace(-8, 30, 500, dtype=torch.float16)
+    assert torch.isfinite(mish(half)).all()
+    torch.testing.assert_close(mish(half).float(), torch.nn.functional.mish(half.float()),
+                               rtol=2e-3, atol=2e-3)  # fmt: skip
 
 
 def test_simnorm_and_ensemble():

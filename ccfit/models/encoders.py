@@ -27,7 +27,7 @@ import torch
 from torch import nn
 
 from ccdata.atomic import atomic_write
-from ccfit.models.layers import NormedLinear, SimNorm, mlp
+from ccfit.models.layers import Mish, NormedLinear, SimNorm, mlp
 from ccfit.obs import stack_cameras
 
 preprocess_frames = stack_cameras
@@ -106,7 +106,7 @@ class PixelEncoder(nn.Module):
             flat = self.conv(torch.zeros(1, 9, image_size, image_size)).shape[-1]
         self.conv_out = flat
         self.image_proj = NormedLinear(flat, enc_dim)
-        self.proprio = mlp(proprio_dim, [enc_dim] * max(num_layers - 1, 1), enc_dim, act=nn.Mish())
+        self.proprio = mlp(proprio_dim, [enc_dim] * max(num_layers - 1, 1), enc_dim, act=Mish())
         self.fuse = mlp(2 * enc_dim, [enc_dim], latent_dim, act=SimNorm(simnorm_dim))
 
     def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
