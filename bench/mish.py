@@ -52,7 +52,7 @@ def main() -> None:
             for name, act in (("torch", F.mish), ("ours", mish)):
                 fn = torch.compile(act) if mode == "compiled" else act
 
-                def step(fn=fn) -> None:
+                def step(fn=fn, x=x, grad=grad) -> None:
                     torch.autograd.grad(fn(x), x, grad)
 
                 row[f"{mode}_{name}_us"] = _median_us(step, args.repeats, args.warmup)
