@@ -73,3 +73,25 @@ def test_auto_compiles_only_what_was_measured_to_pay():
         assert compiled_paths(cls, "on", cpu) == list(cls.hot_paths)
         assert set(compiled_paths(cls, "auto", cpu)) <= set(cls.hot_paths)
         assert compiled_paths(cls, "auto", cuda) == list(cls.compile_pays.get("cuda", ()))
+
+
+def test_a_compiled_plan_stays_compiled_over_the_variants_a_run_meets(caplog):
+    # Evaluation batches shrink as episodes end, plans start warm or cold, in eval or train
+    # mode, with the heads in either mode: Dynamo's default limit (8) sent the plan back to
+    # eager partway through a curriculum.
+    cls = config_class("tdmpc2")
+    model = make_model(cls(**cls.PRESETS["smoke"]), "cpu")
+    model.begin_task(0, 1000)
+    heads = model.new_heads()
+    assert compile_hot_paths(model, "on")
+    torch._dynamo.reset()
+    with caplog.at_level("WARNING", logger="torch._dynamo"), torch.no_grad():
+        for training in (True, False):
+            heads.train(training)
+            for eval_mode in (False, True):
+                for n in (5, 1):
+                    mean = model.plan(torch.randn(n, model.cfg.latent_dim), heads, None,
+                                      eval_mode=eval_mode)[1]  # fmt: skip
+                    model.plan(torch.randn(n, model.cfg.latent_dim), heads, mean,
+                               eval_mode=eval_mode)  # fmt: skip
+    assert not [r for r in caplog.records if "recompile_limit" in r.getMessage()]

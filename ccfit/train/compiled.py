@@ -14,6 +14,8 @@ compute the same losses up to floating-point reassociation (tested).
 
 from __future__ import annotations
 
+import types
+
 import torch
 
 from ccfit.models.base import WorldModel
@@ -32,11 +34,19 @@ def compile_hot_paths(model: WorldModel, setting: str) -> list[str]:
     """Replace `model`'s hot methods by compiled ones (on the instance); returns their names."""
     names = compiled_paths(type(model), setting, model.device)
     if names:
+        import torch._dynamo.config
         import torch._inductor.config
 
         torch._inductor.config.fallback_random = True
+        # A plan specialises on batch 1 or more (an evaluation batch shrinks as its episodes
+        # end), a warm start or none, eval_mode and the heads' train flag: 16 variants, twice
+        # Dynamo's default limit, past which it silently runs eager.
+        torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 32)
     for name in names:
-        setattr(model, name, torch.compile(getattr(model, name)))
+        # Compile the class's function, bound to the model: compiling the bound method would
+        # wrap every method in one shared code object, so all of them would share one limit.
+        fn = torch.compile(getattr(type(model), name))
+        setattr(model, name, types.MethodType(fn, model))
     return names
 
 
