@@ -223,13 +223,43 @@ def active_jobs(job_ids: list[str]) -> list[str]:
     return active
 
 
+def controller_states(job_ids: list[str]) -> dict[str, str]:
+    """The controller's live state (squeue) of those of `job_ids` (jobs or array tasks `A_i`)
+    it still lists; a finished job is absent. One squeue call for all, one per job when the
+    controller refuses the list (some versions reject it whole for one id they forgot)."""
+
+    def query(ids: list[str]) -> dict[str, str] | None:
+        try:
+            cmd = ["squeue", "-h", "-r", "-o", "%i|%T", "-j", ",".join(ids)]
+            done = subprocess.run(cmd, capture_output=True, text=True, timeout=PROBE_TIMEOUT_S)
+        except (FileNotFoundError, subprocess.TimeoutExpired):
+            return None
+        if done.returncode != 0:
+            return None
+        return dict(line.split("|", 1) for line in done.stdout.split() if "|" in line)
+
+    ids = list(dict.fromkeys(job_ids))
+    found = query(ids) if ids else {}
+    if found is None:
+        found = {}
+        for job in ids:
+            found.update(query([job]) or {})
+    return {job: found[job] for job in ids if job in found}
+
+
 def job_states(folder: Path, job_ids: list[str]) -> dict[str, str]:
-    """sacct's state of each job whose submitit folder is `folder/<job id>` (through
-    submitit's watcher: one sacct call for all); UNKNOWN while sacct lags behind."""
+    """The state of each job whose submitit folder is `folder/<job id>`: the controller's
+    (squeue) while it lists the job, else sacct's (through submitit's watcher, one call for
+    all). Accounting lags behind the controller, so a job that already runs can still be
+    missing from sacct: asking sacct alone read such a job as UNKNOWN. UNKNOWN remains only
+    for a job neither lists yet."""
     import submitit
 
-    jobs = {j: submitit.SlurmJob(folder=folder / "%j", job_id=j) for j in dict.fromkeys(job_ids)}
-    return {j: job.state.split()[0] if job.state else "UNKNOWN" for j, job in jobs.items()}
+    ids = list(dict.fromkeys(job_ids))
+    live = controller_states(ids)
+    jobs = {j: submitit.SlurmJob(folder=folder / "%j", job_id=j) for j in ids if j not in live}
+    finished = {j: job.state.split()[0] if job.state else "UNKNOWN" for j, job in jobs.items()}
+    return {j: live.get(j) or finished[j] for j in ids}
 
 
 # ── Submitting ────────────────────────────────────────────────────────────────────────────

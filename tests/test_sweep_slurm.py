@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import subprocess
 import threading
 import time
@@ -139,3 +140,24 @@ def test_no_accounting_is_one_line(tmp_path, capsys, monkeypatch):
     assert code == 2 and len(err.splitlines()) == 1
     assert "sacct not available (sacct is not on PATH)" in err
     assert not (tmp_path / "runs").exists()
+
+
+def test_a_job_the_controller_lists_reads_its_live_state_whatever_accounting_says(
+    tmp_path, monkeypatch
+):
+    """Accounting (sacct) lags behind the controller: a job that already ran could read as
+    UNKNOWN (CI saw a running sweep job reported 'pending'). The controller's state comes first;
+    here sacct is absent, so any answer but squeue's would fail."""
+    from ccdata.slurm import job_states
+
+    sbatch = ["sbatch", "--parsable", "--array=0-1", "--time=2", "-o", "/dev/null"]
+    done = subprocess.run([*sbatch, "--wrap", "sleep 120"], capture_output=True, text=True,
+                          check=True)  # fmt: skip
+    array, scancel = done.stdout.strip().split(";")[0], shutil.which("scancel")
+    try:
+        monkeypatch.setenv("PATH", str(bin_with(tmp_path / "bin", "squeue")))
+        states = job_states(tmp_path / "slurm", [f"{array}_0", f"{array}_1"])
+        assert set(states) == {f"{array}_0", f"{array}_1"}
+        assert set(states.values()) <= {"PENDING", "RUNNING", "CONFIGURING"}, states
+    finally:
+        subprocess.run([scancel, array], check=False)

@@ -2,9 +2,9 @@
 
 Done is read from the outputs (a run's metrics.json, a reference's done.json, the report's
 status.json), so it holds whoever produced them. Otherwise the state is that of the job last
-submitted for it: sacct's (through submitit) for SLURM jobs, the local launcher's record in
-sweep.json for local ones (a record left 'running' by a launcher that is gone reads
-'interrupted').
+submitted for it: for SLURM jobs the controller's (squeue) while it lists them, else sacct's;
+for local ones the launcher's record in sweep.json (a record left 'running' by a launcher
+that is gone reads 'interrupted').
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from ccfit.sweep.grid import REPORT, STATUS_JSON, Sweep, load_sweep
 
 CATEGORIES = ("pending", "running", "done", "failed", "not submitted")
 _PENDING = {"PENDING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "SUSPENDED", "PREEMPTED",
-            "UNKNOWN"}  # UNKNOWN: sacct lags a poll behind a fresh submission  # fmt: skip
+            "UNKNOWN"}  # UNKNOWN: in neither squeue nor sacct yet  # fmt: skip
 _RUNNING = {"RUNNING", "COMPLETING", "CONFIGURING", "SIGNALING", "STAGE_OUT", "RESIZING"}
 
 
