@@ -20,6 +20,7 @@ import math
 import numpy as np
 
 from ccdata.env import EPISODE_STEPS, make_env
+from ccdata.errors import InputError
 from ccdata.scoring import discounted_return
 from ccdata.tasks import ExplorationNoise, get_task
 
@@ -109,7 +110,7 @@ def calibrate(
     get_task(task_id)
     if (not 0 < target < 1 or episodes < 1 or iterations < 1 or not 0 < low <= start <= high
             or step <= 1):
-        raise ValueError("need 0 < target < 1, episodes >= 1, iterations >= 1, "
+        raise InputError("need 0 < target < 1, episodes >= 1, iterations >= 1, "
                          "low <= start <= high, step > 1")
     seeds = calibration_seeds(episodes)
     lo_bound, hi_bound = math.log(low), math.log(high)

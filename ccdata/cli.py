@@ -23,6 +23,7 @@ import json
 import sys
 from pathlib import Path
 
+from ccdata.errors import InputError
 from ccdata.slurm import OPTIONS as SLURM_OPTIONS
 from ccdata.slurm import add_options as add_slurm_options
 
@@ -360,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         code = args.func(args)
-    except (CliError, HubError, ValueError, FileNotFoundError, FileExistsError) as err:
+    except (CliError, HubError, InputError, FileNotFoundError, FileExistsError) as err:
         print(f"ccdata {args.command}: error: {err}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ccdata.env import ACTION_REPEAT, EPISODE_STEPS, FPS, PROPRIO_DIM
+from ccdata.errors import InputError
 from ccdata.render import CAMERAS
 from ccdata.settings import (
     FORMAT_VERSION,
@@ -125,8 +126,11 @@ def ccdata_metadata(config: DatasetSettings) -> dict:
 def read_ccdata_metadata(root: Path) -> dict:
     path = Path(root) / CCDATA_META
     if not path.is_file():
-        raise ValueError(f"{root} holds no {CCDATA_META}: not a ccdata dataset")
-    return json.loads(path.read_text())
+        raise InputError(f"{root} holds no {CCDATA_META}: not a ccdata dataset")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise InputError(f"{path} is corrupt ({err}); regenerate the dataset") from None
 
 
 def write_json(path: Path, content: dict) -> None:
@@ -143,7 +147,7 @@ def check_identity(found: dict, config: DatasetSettings, where: Path) -> None:
         if found.get(k) != expected[k]
     ]
     if diffs:
-        raise ValueError(
+        raise InputError(
             f"{where} was generated with other settings; refusing to mix them "
             f"(use another --root, or delete it): " + "; ".join(diffs)
         )

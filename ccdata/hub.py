@@ -23,6 +23,8 @@ import re
 from contextlib import contextmanager
 from pathlib import Path
 
+from ccdata.errors import InputError
+
 os.environ["HF_HUB_DISABLE_XET"] = "1"
 os.environ["HF_HUB_DISABLE_TELEMETRY"] = "1"
 
@@ -61,22 +63,22 @@ def validate_repo_id(repo_id: str) -> str:
     letter, digit or `_`; no `--` or `..`; the name does not end in `.git`.
     """
     if not isinstance(repo_id, str):
-        raise ValueError(f"repo id must be a string like 'ORG/NAME', got {type(repo_id).__name__}")
+        raise InputError(f"repo id must be a string like 'ORG/NAME', got {type(repo_id).__name__}")
     parts = repo_id.split("/")
     if len(parts) != 2:
-        raise ValueError(f"repo id {repo_id!r} must have the form 'ORG/NAME' (exactly one '/')")
+        raise InputError(f"repo id {repo_id!r} must have the form 'ORG/NAME' (exactly one '/')")
     for label, part in zip(("ORG", "NAME"), parts, strict=True):
         if not 1 <= len(part) <= _MAX_PART:
-            raise ValueError(f"repo id {repo_id!r}: {label} must have 1 to {_MAX_PART} characters")
+            raise InputError(f"repo id {repo_id!r}: {label} must have 1 to {_MAX_PART} characters")
         if not _NAME_PART.fullmatch(part):
-            raise ValueError(
+            raise InputError(
                 f"repo id {repo_id!r}: {label} may only use letters, digits, '-', '_', '.' and "
                 "must start and end with a letter, digit or '_'"
             )
         if "--" in part or ".." in part:
-            raise ValueError(f"repo id {repo_id!r}: '--' and '..' are not allowed")
+            raise InputError(f"repo id {repo_id!r}: '--' and '..' are not allowed")
     if parts[1].endswith(".git"):
-        raise ValueError(f"repo id {repo_id!r}: NAME must not end with '.git'")
+        raise InputError(f"repo id {repo_id!r}: NAME must not end with '.git'")
     return repo_id
 
 

@@ -29,6 +29,7 @@ from ccdata.dataset_format import (
     read_ccdata_metadata,
 )
 from ccdata.episode_plan import EpisodeSpec, plan
+from ccdata.errors import InputError
 from ccdata.journal import (
     JournalPaths,
     Merger,
@@ -54,7 +55,7 @@ class GenerateConfig(DatasetSettings):
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.workers < 1:
-            raise ValueError(f"workers must be >= 1, got {self.workers}")
+            raise InputError(f"workers must be >= 1, got {self.workers}")
 
 
 # ── generate ──────────────────────────────────────────────────────────────────────────────

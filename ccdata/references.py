@@ -18,6 +18,7 @@ import numpy as np
 
 from ccdata.calibration import noisy_oracle_rollouts
 from ccdata.env import EPISODE_STEPS, make_env
+from ccdata.errors import InputError
 from ccdata.policies import make_policy
 from ccdata.scoring import GAMMA, REFERENCE_FILE, discounted_return, references
 from ccdata.tasks import TASKS, get_task
@@ -65,7 +66,7 @@ def write_references(tasks=None, episodes: int = 50, path: Path | None = None) -
     for t in task_ids:
         get_task(t)
     if episodes < 1:
-        raise ValueError("episodes must be >= 1")
+        raise InputError("episodes must be >= 1")
     path = path or Path(__file__).with_name(REFERENCE_FILE)
     data = json.loads(path.read_text()) if path.is_file() else {"tasks": {}}
     seeds = [REFERENCE_SEED_BASE + i for i in range(episodes)]

@@ -15,6 +15,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from ccdata.errors import InputError
+
 CAMERAS: tuple[str, ...] = ("topview", "frontview", "gripperPOV")
 """The benchmark's cameras, in channel-stacking order."""
 
@@ -38,9 +40,9 @@ class RenderSettings:
 
     def __post_init__(self) -> None:
         if self.image_size < 8:
-            raise ValueError(f"image_size must be >= 8, got {self.image_size}")
+            raise InputError(f"image_size must be >= 8, got {self.image_size}")
         if self.msaa_samples < 0:
-            raise ValueError(f"msaa_samples must be >= 0, got {self.msaa_samples}")
+            raise InputError(f"msaa_samples must be >= 0, got {self.msaa_samples}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -9,6 +9,7 @@ from importlib import resources
 import numpy as np
 
 from ccdata.env import EPISODE_STEPS
+from ccdata.errors import InputError
 from ccdata.tasks import get_task
 
 GAMMA = 0.99
@@ -40,7 +41,7 @@ def oracle_reference(task_id: str) -> float:
     try:
         return float(references()["tasks"][task_id]["mean_discounted_return"])
     except KeyError:
-        raise ValueError(
+        raise InputError(
             f"no oracle reference for {task_id!r}: run `ccdata references` to regenerate"
         ) from None
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ccdata.env import EPISODE_STEPS, FPS
+from ccdata.errors import InputError
 from ccdata.render import RenderSettings
 from ccdata.suites import SUITES, get_suite
 from ccdata.tasks import ExplorationNoise, get_task
@@ -103,25 +104,25 @@ class DatasetSettings:
 
     def __post_init__(self) -> None:
         if self.suite not in SUITES:
-            raise ValueError(f"unknown suite {self.suite!r}; valid suites: {', '.join(SUITES)}")
+            raise InputError(f"unknown suite {self.suite!r}; valid suites: {', '.join(SUITES)}")
         for name in ("episodes", "explore_episodes"):
             if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+                raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.episodes + self.explore_episodes == 0:
-            raise ValueError("episodes and explore_episodes are both 0: nothing to generate")
+            raise InputError("episodes and explore_episodes are both 0: nothing to generate")
         if self.seed < 0:
-            raise ValueError(f"seed must be >= 0, got {self.seed}")
+            raise InputError(f"seed must be >= 0, got {self.seed}")
         if self.max_steps is not None and not 1 <= self.max_steps <= EPISODE_STEPS:
-            raise ValueError(
+            raise InputError(
                 f"max_steps must be in [1, {EPISODE_STEPS}] or None, got {self.max_steps}"
             )
         if (self.noise_std is not None and not self.noise_std >= 0) or (
                 self.random_prob is not None and not 0.0 <= self.random_prob <= 1.0):
-            raise ValueError("noise_std must be >= 0 and random_prob in [0, 1] (or unset)")
+            raise InputError("noise_std must be >= 0 and random_prob in [0, 1] (or unset)")
         if self.repo_id is None:
             self.repo_id = default_repo_id(self.suite)
         if self.repo_id.count("/") != 1 or not all(self.repo_id.split("/")):
-            raise ValueError(f"repo_id must look like 'owner/name', got {self.repo_id!r}")
+            raise InputError(f"repo_id must look like 'owner/name', got {self.repo_id!r}")
         _ = self.render_settings  # validates image_size and msaa_samples
 
     @property

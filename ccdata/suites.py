@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ccdata.errors import InputError
 from ccdata.tasks import TaskSpec, get_task
 
 AXES = ("action", "perception", "full")
@@ -86,4 +87,4 @@ def get_suite(name: str) -> Suite:
     try:
         return SUITES[name]
     except KeyError:
-        raise ValueError(f"unknown suite {name!r}; valid suites: {', '.join(SUITES)}") from None
+        raise InputError(f"unknown suite {name!r}; valid suites: {', '.join(SUITES)}") from None

@@ -128,10 +128,7 @@ def cmd_fit(argv: list[str]) -> None:
 def _cmd_report(args: argparse.Namespace) -> None:
     from ccfit.report import write_report
 
-    try:
-        paths = write_report([Path(p) for p in args.runs], Path(args.out))
-    except ValueError as e:
-        raise CliError(str(e)) from None
+    paths = write_report([Path(p) for p in args.runs], Path(args.out))
     for path in paths:
         print(path)
 
@@ -139,20 +136,14 @@ def _cmd_report(args: argparse.Namespace) -> None:
 def _cmd_publish(args: argparse.Namespace) -> None:
     from ccfit.publish import publish
 
-    try:
-        paths = publish(Path(args.runs), Path(args.out))
-    except ValueError as e:
-        raise CliError(str(e)) from None
+    paths = publish(Path(args.runs), Path(args.out))
     print(f"{len(paths)} files -> {args.out}")
 
 
 def _cmd_learnability(args: argparse.Namespace) -> None:
     from ccfit.analysis.learnability import write_learnability
 
-    try:
-        paths = write_learnability([Path(p) for p in args.runs], Path(args.out))
-    except ValueError as e:
-        raise CliError(str(e)) from None
+    paths = write_learnability([Path(p) for p in args.runs], Path(args.out))
     for path in paths:
         print(path)
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+from ccdata.errors import InputError
 from ccfit.report import find_runs, scratch_dir_of, write_report
 from ccfit.sweep.grid import SCRATCH, SCRATCH_DONE, SWEEP_JSON
 
@@ -50,7 +51,7 @@ def _copy(src: Path, dst: Path, names: tuple[str, ...]) -> list[Path]:
             continue
         size = f.stat().st_size
         if size > MAX_FILE_BYTES:
-            raise ValueError(f"{f} is {size} bytes: too large to publish "
+            raise InputError(f"{f} is {size} bytes: too large to publish "
                              f"(limit {MAX_FILE_BYTES})")  # fmt: skip
         shutil.copyfile(f, dst / name)
         copied.append(dst / name)

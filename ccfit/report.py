@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from ccdata.errors import InputError
 from ccfit import metrics as M
 from ccfit.analysis import report_routing
 from ccfit.config_parse import flatten
@@ -133,11 +134,11 @@ def find_runs(paths: list[Path]) -> list[Run]:
     dirs: list[Path] = []
     for p in paths:
         if not p.exists():
-            raise ValueError(f"no such run directory: {p}")
+            raise InputError(f"no such run directory: {p}")
         dirs += [m.parent for m in sorted(p.rglob(METRICS_JSON))] if p.is_dir() else []
     if not dirs:
         where = ", ".join(map(str, paths))
-        raise ValueError(f"no finished runs (with {METRICS_JSON}) under {where}")
+        raise InputError(f"no finished runs (with {METRICS_JSON}) under {where}")
     runs = []
     for d in dict.fromkeys(dirs):
         metrics = json.loads((d / METRICS_JSON).read_text())
@@ -157,7 +158,7 @@ def scratch_dir_of(run_dir: Path, metrics: dict) -> Path:
     beside = run_dir.parent / "scratch" / stored.name
     if (beside / "done.json").is_file():
         return beside
-    raise ValueError(f"{run_dir}: its from-scratch reference {stored} is missing")
+    raise InputError(f"{run_dir}: its from-scratch reference {stored} is missing")
 
 
 def group_metrics(runs: list[Run]) -> dict:
@@ -167,7 +168,7 @@ def group_metrics(runs: list[Run]) -> dict:
     if any(i != identities[0] for i in identities[1:]):
         differ = sorted(k for k in set().union(*identities)
                         if len({repr(i.get(k)) for i in identities}) > 1)
-        raise ValueError(f"refusing to average runs whose configs differ in {differ}: "
+        raise InputError(f"refusing to average runs whose configs differ in {differ}: "
                          + ", ".join(str(r.path) for r in runs))
     num_tasks = len(runs[0].metrics["task_ends"])
     budget = runs[0].metrics["budget"]
@@ -315,7 +316,7 @@ def table_frame(groups: dict, backbone: str):
 
     if not any(k[0] == backbone for k in groups):
         valid = ", ".join(sorted({k[0] for k in groups}))
-        raise ValueError(f"no runs of backbone {backbone!r}; valid: {valid}")
+        raise InputError(f"no runs of backbone {backbone!r}; valid: {valid}")
     rows = _rows(groups, backbone)
     methods = method_columns(groups, backbone)
     columns = pd.MultiIndex.from_product([methods, ["BWT", "FWT"]], names=["method", "metric"])

@@ -137,3 +137,24 @@ def test_card_has_lerobot_header_and_suite_yaml():
     for section in ("## Composition matrix", "## Oracle reference returns", "## Loading",
                     "## Citation", "## Policies and counts", "## Rendering"):
         assert section in text
+
+
+def test_a_corrupt_dataset_record_is_one_line_and_a_bug_keeps_its_traceback(
+    tmp_path, monkeypatch, capsys
+):
+    """Bad input (here a ccdata.json cut short) is one line and exit 2; a ValueError from the
+    code itself is a bug, not bad input, and must escape with its traceback (it was printed as
+    one line and exit 2 before InputError was told apart)."""
+    from ccdata.dataset_format import CCDATA_META, read_ccdata_metadata
+
+    (tmp_path / CCDATA_META).parent.mkdir(parents=True, exist_ok=True)
+    (tmp_path / CCDATA_META).write_text('{"suite": "Rea')
+    with pytest.raises(ccdata.errors.InputError, match=f"{CCDATA_META} is corrupt"):
+        read_ccdata_metadata(tmp_path)
+
+    def broken(args):
+        raise ValueError("an internal inconsistency")
+
+    monkeypatch.setattr("ccdata.cli._cmd_list", broken)
+    with pytest.raises(ValueError, match="an internal inconsistency"):
+        main(["list"])

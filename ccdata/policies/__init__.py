@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ccdata.errors import InputError
 from ccdata.policies.base import Oracle, Policy, State, move, pose_action
 from ccdata.tasks import get_task
 
@@ -38,7 +39,7 @@ class NoisyOracle:
 
     def __post_init__(self) -> None:
         if self.noise_std < 0 or not 0 <= self.random_prob <= 1:
-            raise ValueError("noise_std must be >= 0 and random_prob in [0, 1]")
+            raise InputError("noise_std must be >= 0 and random_prob in [0, 1]")
         self.rng = np.random.default_rng(self.seed)
 
     def reset(self) -> None:
@@ -79,7 +80,7 @@ def make_policy(
         )
     if name == "random":
         return RandomPolicy(seed)
-    raise ValueError(f"unknown policy {name!r}; valid policies: {', '.join(POLICIES)}")
+    raise InputError(f"unknown policy {name!r}; valid policies: {', '.join(POLICIES)}")
 
 
 __all__ = [

@@ -6,6 +6,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from ccdata.errors import InputError
+
 if TYPE_CHECKING:
     from ccdata.policies.base import Oracle
     from ccdata.tasks.base import SceneEnv
@@ -90,6 +92,6 @@ def get_task(task_id: str) -> TaskSpec:
     try:
         return TASKS[task_id]
     except KeyError:
-        raise ValueError(
+        raise InputError(
             f"unknown task {task_id!r}; known tasks: {', '.join(TASKS)}"
         ) from None

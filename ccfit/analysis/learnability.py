@@ -17,6 +17,7 @@ import json
 import math
 from pathlib import Path
 
+from ccdata.errors import InputError
 from ccfit.io import atomic_write_json, atomic_write_text
 from ccfit.train.cost import read_cost
 
@@ -83,7 +84,7 @@ def write_learnability(runs: list[Path], out: Path) -> list[Path]:
     found = sorted({p.parent for r in runs for p in Path(r).rglob("config.json")})
     rows = [row for row in (read_run(p) for p in found) if row is not None]
     if not rows:
-        raise ValueError(f"no finished `ccfit train` run under {', '.join(map(str, runs))}")
+        raise InputError(f"no finished `ccfit train` run under {', '.join(map(str, runs))}")
     rows.sort(key=lambda r: (r["suites"][0], r["task"], r["model"], r["seed"]))
     out.mkdir(parents=True, exist_ok=True)
     cols = ["suites", "task", "model", "seed", "budget", "steps_to_50", "steps_to_80", "best",
