@@ -15,11 +15,11 @@ Running the same command again submits only the unfinished work.
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 import sys
 
 from ccdata.errors import InputError
+from ccdata.processes import available_cores
 from ccdata.slurm import REQUEUE_SAFE_MIN, LaunchError, check_slurm, settings_from_options
 from ccdata.slurm import add_options as add_slurm_options
 from ccfit.config_base import DEFAULTS, PRESETS
@@ -124,9 +124,10 @@ def cmd_sweep(argv: list[str]) -> None:
     if args.dry_run or work.empty:
         return
     if args.launcher == "local":
-        parallel = args.max_parallel or os.cpu_count() or 1
+        cores = available_cores()  # not os.cpu_count(): inside taskset or SLURM it overstates
+        parallel = args.max_parallel or cores
         # a config asking for torch's default thread count shares the cores among the jobs
-        threads = max(1, (os.cpu_count() or 1) // parallel)
+        threads = max(1, cores // parallel)
         with sweep_lock(sweep):
             launch_local(sweep, work, submissions, parallel, threads)
         return

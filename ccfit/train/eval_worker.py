@@ -15,7 +15,6 @@ if it dies, collecting its results raises in the training process.
 from __future__ import annotations
 
 import multiprocessing as mp
-import os
 from collections.abc import Mapping, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
@@ -24,6 +23,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from ccdata.processes import available_cores
 from ccfit.models.base import WorldModel
 
 
@@ -173,4 +173,4 @@ def parallel_on(setting: str) -> bool:
     """`--train.parallel`: 'on', 'off', or 'auto' (on when this process may use 2+ cores)."""
     if setting != "auto":
         return setting == "on"
-    return len(os.sched_getaffinity(0)) >= 2
+    return available_cores() >= 2
