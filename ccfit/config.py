@@ -27,6 +27,7 @@ from ccfit.config_base import (
     ConfigError,
     check,
     check_types,
+    suite_tasks,
 )
 from ccfit.continual.base import MethodConfig, method_config_class
 from ccfit.models import DEFAULT_MODEL
@@ -281,12 +282,7 @@ class CurriculumConfig(RunConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        from ccdata.suites import get_suite
-
-        try:
-            get_suite(self.suite)
-        except ValueError as e:
-            raise ConfigError(str(e)) from None
+        suite_tasks(self.suite)
         # Everything that would fail once the run is under way fails here, before it starts.
         check_pairing(self.model, self.method, len(self.tasks))
         check_references(self.tasks)
@@ -296,9 +292,7 @@ class CurriculumConfig(RunConfig):
 
     @property
     def tasks(self) -> list[str]:
-        from ccdata.suites import get_suite
-
-        return list(get_suite(self.suite).task_ids)
+        return suite_tasks(self.suite)
 
 
 def check_pairing(model: ModelConfig, method: MethodConfig, num_tasks: int) -> None:

@@ -48,6 +48,17 @@ def check(ok: bool, message: str) -> None:
         raise ConfigError(message)
 
 
+def suite_tasks(suite: str) -> list[str]:
+    """The suite's task ids in curriculum order (the composition last); ConfigError for a suite
+    that does not exist."""
+    from ccdata.suites import get_suite
+
+    try:
+        return list(get_suite(suite).task_ids)
+    except InputError as e:
+        raise ConfigError(str(e)) from None
+
+
 _SIMPLE = {int: (int,), float: (int, float), bool: (bool,), str: (str,), type(None): (type(None),)}
 _HINTS: dict[type, dict[str, Any]] = {}
 

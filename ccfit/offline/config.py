@@ -11,7 +11,14 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from ccfit.config import BaseRunConfig, check_pairing, models_offering
-from ccfit.config_base import DEFAULTS, DEVICES, PRESETS, ConfigError, check, check_types
+from ccfit.config_base import (
+    DEFAULTS,
+    DEVICES,
+    PRESETS,
+    check,
+    check_types,
+    suite_tasks,
+)
 from ccfit.continual.base import MethodConfig, method_config_class
 from ccfit.models import DEFAULT_OFFLINE_MODEL
 from ccfit.models.registry import ModelConfig, config_class, model_class
@@ -117,20 +124,13 @@ class OfflineConfig(BaseRunConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        from ccdata.suites import get_suite
-
-        try:
-            get_suite(self.suite)
-        except ValueError as e:
-            raise ConfigError(str(e)) from None
+        suite_tasks(self.suite)
         check_prediction(self.model, self.encoder is not None)
         check_pairing(self.model, self.method, len(self.tasks))
 
     @property
     def tasks(self) -> list[str]:
-        from ccdata.suites import get_suite
-
-        return list(get_suite(self.suite).task_ids)
+        return suite_tasks(self.suite)
 
     @property
     def measurement_space(self) -> str:
