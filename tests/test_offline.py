@@ -130,6 +130,7 @@ def runs(dataset, tmp_path_factory):
     model's `backbone_loss`: the fitting updates, ER's replay, EWC's Fisher batches)."""
     root = tmp_path_factory.mktemp("runs")
     seen: dict[str, set[bytes]] = {}
+    updates: dict[str, list[set[int]]] = {}
     real = OR.load_model
 
     def traced_model(cfg, device):
@@ -141,17 +142,24 @@ def runs(dataset, tmp_path_factory):
             return loss(batch)
 
         model.backbone_loss = traced
+        after = model.after_backbone_update
+
+        def counted(batch):  # the fitted task's own batches only, one call per update
+            updates[current].append(set(batch.task.flatten().tolist()))
+            after(batch)
+
+        model.after_backbone_update = counted
         return model
 
     out = {}
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(OR, "load_model", traced_model)
         for current in METHODS:
-            seen[current] = set()
+            seen[current], updates[current] = set(), []
             cfg = _config(dataset, current)
             result = OfflineCurriculum(cfg, root / current, root / "scratch", progress=False).run()
             out[current] = SimpleNamespace(cfg=cfg, dir=root / current, result=result)
-    return SimpleNamespace(root=root, runs=out, seen=seen)
+    return SimpleNamespace(root=root, runs=out, seen=seen, updates=updates)
 
 
 def _split_rows(dataset: Path, split: dict) -> tuple[set[bytes], set[bytes]]:
@@ -233,6 +241,15 @@ def test_methods_act_through_their_hooks(runs):
     assert state["ewc"]["method"]["fisher"]
     pack = state["packnet"]["method"]
     assert {int(v.max()) for v in pack["owner"].values()} == {3}
+    # The model's per-update hook sees each fitting update's batch (PackNet's retraining of
+    # every task but the last, which it does not prune, included), of the task being fitted
+    # alone; the from-scratch reference fits once, in the first run.
+    updates = runs.runs["er"].cfg.fit.updates
+    scratch = {"er": updates}
+    for name, calls in runs.updates.items():
+        retrain = 3 * OPTIONS[name].get("retrain_steps", 0)
+        assert len(calls) == 4 * updates + retrain + scratch.get(name, 0), name
+        assert all(len(tasks) == 1 for tasks in calls)
     # The runs differ only by the method, and share one from-scratch reference.
     dirs = {r.result["scratch_dir"] for r in runs.runs.values()}
     assert len(dirs) == 1 and len(list((runs.root / "scratch").glob("offline-*"))) == 1

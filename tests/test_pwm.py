@@ -365,6 +365,28 @@ def test_temperature_schedule():
     assert int(fast.dynamics.tau_hold[1]) == 20_000 and int(fast.dynamics.tau_hold[0]) == 0
 
 
+def test_an_offline_update_steps_the_temperature_as_an_online_one():
+    """Offline (`ccfit fit`, no heads) the temperature steps in `after_backbone_update`, with the
+    schedule and entropy feedback of online training: held, then tau += rate * tanh(H* - H).
+    Before the hook existed an offline PWM never left tau_init."""
+    hold = 2
+    model = build(tau_hold_min=hold, tau_hold_frac=0.0, tau_rate=0.05)
+    cfg, target, expected = model.cfg, 0.75 * math.log(K), model.cfg.tau_init
+    model.begin_task(0, task_steps=10)
+    for i in range(6):
+        batch = make_batch(cfg, seed=i)
+        z = model.encode({k: v[0] for k, v in batch.obs.items()})
+        entropy = float(torch.special.entr(model.routing_weights(z, batch.action[0], 0)).sum(-1)
+                        .mean())  # fmt: skip
+        model.after_backbone_update(batch)
+        if i >= hold:
+            step = cfg.tau_rate * math.tanh(target - entropy)
+            expected = min(max(expected + step, cfg.tau_min), cfg.tau_max)
+        assert model.tau == pytest.approx(expected, abs=1e-6), i
+    assert int(model.dynamics.tau_updates[0]) == 6 and model.tau < cfg.tau_init
+    assert torch.all(model.dynamics.tau[1:] == cfg.tau_init)
+
+
 # ------------------------------------------------------------------------------ continual
 
 

@@ -187,6 +187,12 @@ class WorldModel(nn.Module, ABC):
         """Task-agnostic terms only (dynamics consistency, reconstruction, KL): what continual
         methods replay (ER) or take Fisher information from (EWC)."""
 
+    def after_backbone_update(self, batch: Batch) -> None:  # noqa: B027 - optional
+        """The offline track's counterpart of `head_update`'s bookkeeping: called after each
+        backbone-only update (`ccfit fit`) with that update's batch of the task being fitted,
+        never with replayed earlier tasks. What a model advances once per update of its current
+        task (PWM: its router temperature) goes here. No-op by default."""
+
     @abstractmethod
     def head_update(
         self,

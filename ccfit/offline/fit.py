@@ -2,9 +2,10 @@
 
 `TaskFitter` mirrors the online `Trainer` without an environment and without heads: each
 update samples the task's replay, takes the model's `backbone_loss` plus the continual
-method's `penalty` (ER's replayed windows, EWC's anchor), clips to the model's `grad_clip`, steps
-the model's `backbone_optimizer` and calls the method's `after_step` (PackNet's and progressive
-experts' masks). Every `score_interval` updates each task with held-out windows is scored
+method's `penalty` (ER's replayed windows, EWC's anchor), clips to the model's `grad_clip`,
+steps the model's `backbone_optimizer`, then calls the model's `after_backbone_update` (PWM's
+temperature) and the method's `after_step` (PackNet's and progressive experts' masks). Every
+`score_interval` updates each task with held-out windows is scored
 (`ccfit.offline.score`), inside the method's `evaluating(i, backbone)` view. When the task's
 updates are done the method closes it as online: `after_task(task, backbone,
 TaskData.from_buffer(...))` on the task's training replay, then the updates it asks for
@@ -134,6 +135,7 @@ class TaskFitter:
         total.backward()
         torch.nn.utils.clip_grad_norm_(self._params, mcfg.grad_clip)
         self.optim.step()
+        model.after_backbone_update(batch)
         if method is not None:
             method.after_step(model.backbone)
 

@@ -152,6 +152,18 @@ class PWM(TDMPC2, Routing):
         with self.routing_task(self._batch_task(batch)):
             return super().backbone_loss(batch)
 
+    @torch.no_grad()
+    def after_backbone_update(self, batch: Batch) -> None:
+        """Offline, the temperature steps once per update of the current task, as online in
+        `head_update`, on the mean routing entropy of the batch's first rows under the updated
+        router (with the 'task' router the weights depend on the task alone: the entropy of the
+        update's own rollout)."""
+        batch = batch.to(self.device)
+        z = self.encode({k: v[0] for k, v in batch.obs.items()})
+        w = self.dynamics.routing_weights(z, batch.action[0], self._batch_task(batch))
+        entropy = torch.special.entr(w).sum(-1).mean()
+        self.dynamics.step_temperature(entropy, int(self.dynamics.current_task))
+
     def open_loop(self, batch: Batch, context: int, horizon: int) -> OpenLoop:
         """TD-MPC2's, each window routed as its task."""
         batch = batch.to(self.device)
