@@ -32,7 +32,8 @@ interface, in this order, and reads nothing else from it:
   with earlier tasks' stored heads (ER replays through them, EWC takes its Fisher from them,
   analyses probe with them). Anything that must change once per update (target networks,
   temperatures, running statistics) changes in `head_update`, which the loop calls exactly
-  once per update with the current task's heads.
+  once per update with the current task's heads; the offline track (no heads) calls
+  `after_backbone_update(batch)` instead.
 - Optimisers are made fresh at every task (`world_model_optimizer(heads)` gets the new heads),
   so Adam's moments restart with each task; what carries over between tasks is the backbone's
   parameters and the continual method's state. A resumed task restores its optimisers.
