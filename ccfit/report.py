@@ -182,15 +182,22 @@ def group_metrics(runs: list[Run]) -> dict:
     out = {"seeds": sorted(r.seed for r in runs), "curves": curves, "scratch": scratch,
            "ends": ends, "budget": budget, "runs": [str(r.path) for r in runs],
            "track": track}  # fmt: skip
-    for name in ("bwt", "fwt"):
-        values = [r.metrics[name] for r in runs if r.metrics[name] is not None]
-        out[name] = mean[name]
+    for name, source in METRICS_SHOWN.items():
+        values = [r.metrics[source] for r in runs if r.metrics.get(source) is not None]
+        out[name] = mean[source]
         out[f"{name}_min"] = min(values) if values else None
         out[f"{name}_max"] = max(values) if values else None
     return out
 
 
 _MISSING = "—"
+
+METRICS_SHOWN = {"bwt": "bwt", "forgetting": "cw_forgetting", "fwt": "fwt"}
+"""Table columns per method -> the metrics.json key they read. Forgetting (Continual World's,
+end-of-task score minus final score, averaged over every task but the last, in score points) is
+shown beside BWT because it needs no floor: BWT leaves out a task whose end-of-task score is at
+or below 0 (never learnt), which offline means no better than persistence."""
+COLUMN_NAMES = {"bwt": "BWT", "forgetting": "F", "fwt": "FWT"}
 
 
 def _distinguishing_keys(identities: list[dict[str, Any]]) -> list[str]:
@@ -263,16 +270,19 @@ def write_tables(groups: dict, out: Path) -> list[Path]:
     written = []
     for backbone in sorted({k[0] for k in groups}):
         methods = method_columns(groups, backbone)
-        header = ["suite"] + [f"{m} {x}" for m in methods for x in ("BWT", "FWT")]
+        header = ["suite"] + [f"{m} {COLUMN_NAMES[x]}" for m in methods for x in METRICS_SHOWN]
         rows = []
         for suite, variant in _rows(groups, backbone):
             row = [row_label(suite, variant)]
             for m in methods:
                 g = groups.get((backbone, suite, m, variant))
-                row += [_cell(g, "bwt"), _cell(g, "fwt")] if g else ["", ""]
+                row += [_cell(g, x) if g else "" for x in METRICS_SHOWN]
             rows.append(row)
-        lines = [f"# {backbone}: BWT (lower is better) and FWT (higher is better)", "",
-                 "Mean over seeds of the seed-averaged curves' metric, [min, max] per seed."]
+        lines = [f"# {backbone}: BWT and F (lower is better), FWT (higher is better)", "",
+                 "Mean over seeds of the seed-averaged curves' metric, [min, max] per seed. "
+                 "F: Continual World's forgetting, end-of-task minus final score in score "
+                 "points, averaged over every task but the last (defined where BWT leaves out "
+                 "a task never learnt above 0)."]
         if any(g["track"] == TRACK for k, g in groups.items() if k[0] == backbone):
             lines += ["", "Offline track (`ccfit fit`): the curves are the open-loop prediction "
                       "score on held-out dataset episodes (0 = persistence, 100 = perfect "
@@ -290,13 +300,11 @@ def write_tables(groups: dict, out: Path) -> list[Path]:
         path = out / f"table_{backbone}.csv"
         text = io.StringIO(newline="")
         writer = csv.writer(text)
-        writer.writerow(["backbone", "suite", "method", "variant", "seeds", "bwt", "bwt_min",
-                         "bwt_max", "fwt", "fwt_min", "fwt_max"])  # fmt: skip
+        values = [f"{x}{end}" for x in METRICS_SHOWN for end in ("", "_min", "_max")]
+        writer.writerow(["backbone", "suite", "method", "variant", "seeds", *values])
         for (b, suite, m, variant), g in sorted(groups.items()):
             if b == backbone:
-                writer.writerow([b, suite, m, variant, len(g["seeds"])] + [
-                    g[k] for k in ("bwt", "bwt_min", "bwt_max", "fwt", "fwt_min", "fwt_max")
-                ])  # fmt: skip
+                writer.writerow([b, suite, m, variant, len(g["seeds"])] + [g[k] for k in values])
         atomic_write_text(path, text.getvalue())
         written += [md, path]
     return written
@@ -319,15 +327,16 @@ def table_frame(groups: dict, backbone: str):
         raise InputError(f"no runs of backbone {backbone!r}; valid: {valid}")
     rows = _rows(groups, backbone)
     methods = method_columns(groups, backbone)
-    columns = pd.MultiIndex.from_product([methods, ["BWT", "FWT"]], names=["method", "metric"])
+    names = [COLUMN_NAMES[x] for x in METRICS_SHOWN]
+    columns = pd.MultiIndex.from_product([methods, names], names=["method", "metric"])
     index = pd.Index([row_label(s, v) for s, v in rows], name="suite")
     frame = pd.DataFrame(index=index, columns=columns, dtype=float)
     for (b, suite, method, variant), g in groups.items():
         if b != backbone:
             continue
         label = row_label(suite, variant)
-        frame.loc[label, (method, "BWT")] = np.nan if g["bwt"] is None else g["bwt"]
-        frame.loc[label, (method, "FWT")] = np.nan if g["fwt"] is None else g["fwt"]
+        for x in METRICS_SHOWN:
+            frame.loc[label, (method, COLUMN_NAMES[x])] = np.nan if g[x] is None else g[x]
     return frame
 
 
@@ -346,8 +355,8 @@ def write_report(paths: list[Path], out: Path) -> list[Path]:
         written.append(plot_curves(k, g, _task_ids(k[1]), out))
         summary[_summary_name(k)] = {
             "variant": k[3], "track": g["track"],
-            **{n: g[n] for n in ("seeds", "bwt", "bwt_min", "bwt_max", "fwt", "fwt_min",
-                                 "fwt_max", "runs")},
+            "seeds": g["seeds"], "runs": g["runs"],
+            **{f"{x}{end}": g[f"{x}{end}"] for x in METRICS_SHOWN for end in ("", "_min", "_max")},
         }  # fmt: skip
         # Fig. 5 of the group's routed runs; a variant's figures in a folder of their own, since
         # their file names only say suite, method and seed.

@@ -565,12 +565,13 @@ def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
     for r in rows:
         assert (r["backbone"], r["suite"], r["seeds"]) == ("tdmpc2", SUITE, "1")
         metrics = runs.runs[r["method"]].result
-        for name in ("bwt", "fwt"):  # one seed: the group's metric is the run's
+        # one seed: the group's metric is the run's (forgetting: Continual World's)
+        for name, key in (("bwt", "bwt"), ("forgetting", "cw_forgetting"), ("fwt", "fwt")):
             value = None if r[name] == "" else float(r[name])
-            assert value == pytest.approx(metrics[name])
+            assert value == pytest.approx(metrics[key])
     md = (out / "table_tdmpc2.md").read_text().splitlines()
     header = next(line for line in md if line.startswith("| suite"))
-    assert all(f"{m} BWT" in header and f"{m} FWT" in header for m in METHODS)
+    assert all(f"| {m} BWT | {m} F | {m} FWT |" in header for m in METHODS)
     assert [line.split("|")[1].strip() for line in md if line.startswith(f"| {SUITE}")] == [SUITE]
     summary = json.loads((out / "summary.json").read_text())
     assert sorted(summary) == sorted(f"tdmpc2/{SUITE}/{m}" for m in METHODS)
@@ -609,11 +610,11 @@ def test_report_table_frame_matches_runs(runs):
     groups = load_groups([runs.root])
     frame = table_frame(groups, "tdmpc2")
     assert list(frame.index) == [SUITE]
-    assert list(frame.columns.get_level_values(0)[::2]) == list(METHODS)
+    assert list(frame.columns.get_level_values(0)[::3]) == list(METHODS)
     for m in METHODS:
-        for name in ("bwt", "fwt"):
+        for name, column in (("bwt", "BWT"), ("cw_forgetting", "F"), ("fwt", "FWT")):
             value = runs.runs[m].result[name]
-            cell = frame.loc[SUITE, (m, name.upper())]
+            cell = frame.loc[SUITE, (m, column)]
             assert np.isnan(cell) if value is None else cell == pytest.approx(value)
     with pytest.raises(ValueError, match="valid: tdmpc2"):
         table_frame(groups, "pwm")

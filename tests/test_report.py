@@ -95,6 +95,12 @@ def test_report_refuses_to_average_runs_differing_in_obs_mode(tmp_path):
     # The mean curve of the two state seeds (scales 1 and 0.5) is the scale-0.75 curve.
     mean_run = write_run(tmp_path / "probe", "mean", config("state", 0), 0.75)
     assert st["bwt"] == pytest.approx(json.loads((mean_run / "metrics.json").read_text())["bwt"])
+    # Forgetting (Continual World's) the same way: of the mean curve, min/max per seed.
+    forgetting = [json.loads((r / "metrics.json").read_text())["cw_forgetting"]
+                  for r in (state0, state1, mean_run)]  # fmt: skip
+    assert forgetting == pytest.approx([10.0] * 3)  # every curve loses 10 points, any scale
+    assert (st["forgetting"], st["forgetting_min"], st["forgetting_max"]) == pytest.approx(
+        (10.0, 10.0, 10.0))
 
     out = tmp_path / "report"
     written = {p.name for p in write_report([root], out)}
