@@ -228,6 +228,10 @@ def test_every_seen_task_is_scored_and_the_metrics_come_from_the_records(runs, m
         assert tasks == ([stage] if first else list(range(stage + 1))), (stage, step)
     scratch = json.loads((Path(metrics["scratch_dir"]) / "done.json").read_text())
     assert {r["task_index"] for r in scratch} == {3}
+    # What it cost, as online: the run's own cost.json, and the reference's where it ran.
+    cost = json.loads((run.dir / "cost.json").read_text())
+    assert cost["segments"] == 1 and 0 < cost["cpu_s"] and 0 < cost["wall_s"]
+    assert json.loads((Path(metrics["scratch_dir"]) / "cost.json").read_text())["cpu_s"] > 0
     again = M.compute_metrics(records, scratch, 4, UPDATES, key="score")
     for key in ("bwt", "fwt", "end_of_task", "final_per_task", "lopez_paz_bwt"):
         assert again[key] == metrics[key], key

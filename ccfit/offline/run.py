@@ -44,6 +44,7 @@ from ccfit.models.base import WorldModel
 from ccfit.offline.config import OfflineConfig
 from ccfit.offline.data import dataset_source, load_task, make_splits, write_split
 from ccfit.offline.fit import SCORE_KEY, TRACK, OfflineLogger, TaskFitter
+from ccfit.train.cost import RunCost
 from ccfit.train.run import CONFIG, check_saved_config, identity, load_model, render_settings
 
 STATE = "fit.pt"
@@ -118,11 +119,12 @@ def run_scratch(cfg: OfflineConfig, out: Path, progress: bool = True) -> list[di
             if not (out / "checkpoint.pt").exists():
                 logger.keep(lambda r: False)
             try:
-                records = TaskFitter(
-                    model=model, buffer=buffer, scored={n - 1: windows}, fit=cfg.fit,
-                    seed=cfg.seed, task_ids=tasks, task_index=n - 1, method=None,
-                    logger=logger, run_dir=out, progress=progress,
-                ).run()  # fmt: skip
+                with RunCost(out):
+                    records = TaskFitter(
+                        model=model, buffer=buffer, scored={n - 1: windows}, fit=cfg.fit,
+                        seed=cfg.seed, task_ids=tasks, task_index=n - 1, method=None,
+                        logger=logger, run_dir=out, progress=progress,
+                    ).run()  # fmt: skip
             finally:
                 logger.close()
             atomic_write_json(out / DONE, records)
@@ -142,6 +144,13 @@ class OfflineCurriculum:
         self.device = resolve_device(cfg.fit.device)
 
     def run(self) -> dict:
+        """The offline curriculum to its end (resuming what `out` holds); what this call cost
+        is added to `out/cost.json` (the from-scratch reference's included when it ran here,
+        as online)."""
+        with RunCost(self.out):
+            return self._run()
+
+    def _run(self) -> dict:
         cfg, fit, tasks = self.cfg, self.cfg.fit, self.cfg.tasks
         source = dataset_source(cfg)
         resolved = resolved_config(cfg, source)
