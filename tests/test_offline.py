@@ -288,6 +288,17 @@ def test_a_resumed_run_equals_an_uninterrupted_one(runs, dataset, tmp_path, monk
     for name, value in theirs["model"].items():
         assert torch.equal(ours["model"][name], value), name
     assert not list((out / "tasks").glob("*/checkpoint.pt"))
+    # TensorBoard holds each score once, as metrics.jsonl does (re-logging the checkpoint's
+    # records at resume wrote them twice).
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(out / "tb"))
+    events.Reload()
+    for task in TASKS:
+        steps = [e.step for e in events.Scalars(f"offline/{task}/score")]
+        expected = [r["global_step"] for r in _records(out)
+                    if r["task"] == task and r["score"] is not None]  # fmt: skip
+        assert sorted(steps) == sorted(expected), task
 
 
 # ============================================================================ bad input

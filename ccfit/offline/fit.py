@@ -220,7 +220,7 @@ class TaskFitter:
         self.finished = bool(state["finished"])
         self.records = list(state["records"])
         set_rng_state(state["rng"])
-        if self.logger is not None:  # the records of this stage are the checkpoint's
-            self.logger.keep(lambda r: r["stage"] < self.task_index)
-            for rec in self.records:
-                self.logger.log_score(rec)
+        if self.logger is not None:
+            # What was logged after the checkpoint is done again: forgotten in metrics.jsonl
+            # and in TensorBoard (which re-logging the checkpoint's records would duplicate).
+            self.logger.rewind(self.global_offset + self.update)
