@@ -141,11 +141,23 @@ def find_runs(paths: list[Path]) -> list[Run]:
         raise InputError(f"no finished runs (with {METRICS_JSON}) under {where}")
     runs = []
     for d in dict.fromkeys(dirs):
-        metrics = json.loads((d / METRICS_JSON).read_text())
-        records = [json.loads(x) for x in (d / METRICS).read_text().splitlines() if x.strip()]
-        scratch = json.loads((scratch_dir_of(d, metrics) / "done.json").read_text())
-        runs.append(Run(d, json.loads((d / CONFIG).read_text()), records, scratch, metrics))
+        metrics = _read_json(d / METRICS_JSON)
+        records = _read_json(d / METRICS, lines=True)
+        scratch = _read_json(scratch_dir_of(d, metrics) / "done.json")
+        runs.append(Run(d, _read_json(d / CONFIG), records, scratch, metrics))
     return runs
+
+
+def _read_json(path: Path, lines: bool = False) -> Any:
+    """A run's JSON file (`lines`: one record per line); InputError when it is missing or
+    corrupt: a run directory damaged or copied in part is bad input, not a bug."""
+    try:
+        text = path.read_text()
+        return [json.loads(x) for x in text.splitlines() if x.strip()] if lines else \
+            json.loads(text)  # fmt: skip
+    except (OSError, json.JSONDecodeError) as err:
+        raise InputError(f"{path}: missing or corrupt ({err}); rerun the run or leave it out "
+                         "of the report") from None
 
 
 def scratch_dir_of(run_dir: Path, metrics: dict) -> Path:

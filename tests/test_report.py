@@ -136,3 +136,22 @@ def test_step_budget_and_method_options_split_groups_but_output_paths_do_not(tmp
         "method_options.lam=10, train.steps=100": ["d"],
     }
     assert all(np.isfinite(g["bwt"]) for g in load_groups([root]).values())
+
+
+@pytest.mark.parametrize("damage", ["corrupt metrics.json", "missing metrics.jsonl"])
+def test_a_damaged_run_directory_is_one_line_and_exit_2(damage, tmp_path, capsys):
+    """A run copied in part or cut short is bad input: `ccfit report` names the file in one
+    line (a corrupt metrics.json gave a JSONDecodeError traceback, a missing metrics.jsonl a
+    FileNotFoundError one)."""
+    from ccfit.cli import main
+
+    run = write_run(tmp_path / "runs", "s0", config(), 1.0)
+    if damage == "corrupt metrics.json":
+        broken = run / "metrics.json"
+        broken.write_text('{"bwt": ')
+    else:
+        broken = run / "metrics.jsonl"
+        broken.unlink()
+    assert main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"ccfit: error: {broken}: missing or corrupt (") and err.count("\n") == 1
