@@ -210,6 +210,8 @@ end-of-task score minus final score, averaged over every task but the last, in s
 shown beside BWT because it needs no floor: BWT leaves out a task whose end-of-task score is at
 or below 0 (never learnt), which offline means no better than persistence."""
 COLUMN_NAMES = {"bwt": "BWT", "forgetting": "F", "fwt": "FWT"}
+GROUP_VALUES = [f"{x}{end}" for x in METRICS_SHOWN for end in ("", "_min", "_max")]
+"""What a group reports per metric: its value and the per-seed min and max (csv, summary)."""
 
 
 def _distinguishing_keys(identities: list[dict[str, Any]]) -> list[str]:
@@ -312,11 +314,11 @@ def write_tables(groups: dict, out: Path) -> list[Path]:
         path = out / f"table_{backbone}.csv"
         text = io.StringIO(newline="")
         writer = csv.writer(text)
-        values = [f"{x}{end}" for x in METRICS_SHOWN for end in ("", "_min", "_max")]
-        writer.writerow(["backbone", "suite", "method", "variant", "seeds", *values])
+        writer.writerow(["backbone", "suite", "method", "variant", "seeds", *GROUP_VALUES])
         for (b, suite, m, variant), g in sorted(groups.items()):
             if b == backbone:
-                writer.writerow([b, suite, m, variant, len(g["seeds"])] + [g[k] for k in values])
+                values = [g[k] for k in GROUP_VALUES]
+                writer.writerow([b, suite, m, variant, len(g["seeds"]), *values])
         atomic_write_text(path, text.getvalue())
         written += [md, path]
     return written
@@ -368,7 +370,7 @@ def write_report(paths: list[Path], out: Path) -> list[Path]:
         summary[_summary_name(k)] = {
             "variant": k[3], "track": g["track"],
             "seeds": g["seeds"], "runs": g["runs"],
-            **{f"{x}{end}": g[f"{x}{end}"] for x in METRICS_SHOWN for end in ("", "_min", "_max")},
+            **{k: g[k] for k in GROUP_VALUES},
         }  # fmt: skip
         # Fig. 5 of the group's routed runs; a variant's figures in a folder of their own, since
         # their file names only say suite, method and seed.
