@@ -75,6 +75,11 @@ def plot_bars(groups: dict, out: Path) -> list[Path]:
     return written
 
 
+TASK_COLOURS = ("tab:blue", "tab:orange", "tab:purple", "tab:brown", "tab:pink", "tab:olive",
+                "tab:cyan", "tab:gray")
+"""Task curves and their forgetting shading; green and red are left to the FWT shading alone."""
+
+
 def plot_curves(key: tuple, g: dict, task_ids: list[str], out: Path) -> Path:
     """Every task's normalised return over the curriculum for group `key` (backbone, suite,
     method[, variant])."""
@@ -86,7 +91,7 @@ def plot_curves(key: tuple, g: dict, task_ids: list[str], out: Path) -> Path:
     backbone, suite, method, *rest = key
     variant = rest[0] if rest else ""
     fig, ax = plt.subplots(figsize=(8, 3.8))
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    colours = TASK_COLOURS
     ends = g["ends"]
     for i, (steps, scores) in enumerate(g["curves"]):
         c = colours[i % len(colours)]

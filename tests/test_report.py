@@ -155,3 +155,28 @@ def test_a_damaged_run_directory_is_one_line_and_exit_2(damage, tmp_path, capsys
     assert main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"ccfit: error: {broken}: missing or corrupt (") and err.count("\n") == 1
+
+
+def test_curve_plot_keeps_green_and_red_for_forward_transfer(tmp_path, monkeypatch):
+    """The composed task's FWT shading is green/red; no task curve or forgetting shading may use
+    those colours (the default colour cycle gives the third task green and the fourth red)."""
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import to_hex
+
+    root = tmp_path / "runs"
+    write_run(root, "s0", config(), 1.0)
+    figures = []
+    monkeypatch.setattr(plt, "close", lambda fig=None: figures.append(fig))
+    write_report([root], tmp_path / "report")
+    (ax,) = [f for f in figures if f is not None and f.axes[0].get_xlabel() == "global step"
+             ][0].axes  # the curve plot (the bar plots have no step axis)
+    fwt = {to_hex("tab:green"), to_hex("tab:red")}
+    tasks = [line for line in ax.lines  # '_' labels: the task boundaries
+             if not line.get_label().startswith("_") and "(scratch)" not in line.get_label()]
+    assert len(tasks) == TASKS
+    task_colours = {to_hex(line.get_color()) for line in tasks}
+    assert len(task_colours) == TASKS and not task_colours & fwt
+    shading = {c.get_label(): to_hex(c.get_facecolor()[0][:3]) for c in ax.collections}
+    assert {shading["FWT +"], shading["FWT -"]} == fwt
+    forgetting = {v for k, v in shading.items() if not k.startswith("FWT")}
+    assert forgetting and forgetting <= task_colours
