@@ -27,14 +27,17 @@ from ccdata.suites import get_suite
 from ccdata.tasks.base import STATE_DIM
 
 __all__ = [  # the settings' constants are re-exported: older code imports them from here
-    "CCDATA_META", "FINAL_KEY", "FORMAT_VERSION", "IDENTITY_KEYS", "POLICY_ORDER",
+    "CCDATA_META", "CODEBASE_VERSION", "FINAL_KEY", "FORMAT_VERSION", "IDENTITY_KEYS", "POLICY_ORDER",
     "VIDEO_ENCODER", "camera_key", "ccdata_metadata", "check_identity", "episode_table",
-    "existing_keys", "features", "measure_dataset", "quiet_libraries", "read_ccdata_metadata",
+    "check_lerobot_info", "existing_keys", "features", "measure_dataset", "quiet_libraries", "read_ccdata_metadata",
     "write_json",
 ]
 
 CCDATA_META = "meta/ccdata.json"
 """Generation settings stored inside every dataset (relative to its root)."""
+
+CODEBASE_VERSION = "v3.0"
+"""LeRobot's dataset format version (meta/info.json's codebase_version) that ccdata writes."""
 
 FINAL_KEY = "is_final_observation"
 """Per frame: True on the last frame of every episode, which holds the observation after the
@@ -133,6 +136,21 @@ def read_ccdata_metadata(root: Path) -> dict:
         raise InputError(f"{path} is corrupt ({err}); regenerate the dataset") from None
 
 
+def check_lerobot_info(root: Path) -> None:
+    """A dataset already at `root` must have a readable LeRobot v3 meta/info.json: generation
+    adds to it and trusts it, and a dataset whose info.json is damaged cannot be loaded
+    (before this check such a dataset was reported complete)."""
+    path = Path(root) / "meta" / "info.json"
+    try:
+        version = json.loads(path.read_text()).get("codebase_version")
+    except (OSError, json.JSONDecodeError, AttributeError) as err:
+        raise InputError(f"{path} is missing or corrupt ({err}); `ccdata verify --root {root}` "
+                         "lists what is damaged; remove the dataset to regenerate it") from None
+    if version != CODEBASE_VERSION:
+        raise InputError(f"{path} says LeRobot codebase {version!r}, not {CODEBASE_VERSION!r}; "
+                         "remove the dataset to regenerate it")
+
+
 def write_json(path: Path, content: dict) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(content, indent=2, sort_keys=False))
@@ -171,6 +189,7 @@ def quiet_libraries() -> None:
 
 def existing_keys(root: Path) -> list[str]:
     """Keys (task__policy__seed) of the episodes in a ccdata dataset, in episode order."""
+    import pyarrow as pa
     import pyarrow.parquet as pq
 
     meta = read_ccdata_metadata(root)
@@ -179,7 +198,11 @@ def existing_keys(root: Path) -> list[str]:
     cols = ["episode_index", "task_id_index", "policy_index", "episode_seed"]
     first: dict[int, str] = {}
     for path in sorted((root / "data").rglob("*.parquet")):
-        table = pq.read_table(path, columns=cols).to_pydict()
+        try:
+            table = pq.read_table(path, columns=cols).to_pydict()
+        except (OSError, pa.ArrowException) as err:  # pyarrow's errors for a damaged file
+            raise InputError(f"{path} is corrupt ({err}); `ccdata verify --root {root}` lists "
+                             "what is damaged; remove the dataset to regenerate it") from None
         for e, t, p, s in zip(*(table[c] for c in cols), strict=True):
             first.setdefault(int(e), f"{task_ids[int(t)]}__{policies[int(p)]}__{int(s)}")
     return [first[e] for e in sorted(first)]

@@ -34,6 +34,7 @@ from ccdata.dataset_format import (
     CCDATA_META,
     ccdata_metadata,
     check_identity,
+    check_lerobot_info,
     existing_keys,
     quiet_libraries,
     read_ccdata_metadata,
@@ -267,6 +268,7 @@ def prepare(config: DatasetSettings) -> JournalPaths:
         else:
             check_identity(read_ccdata_metadata(paths.root).get("identity", {}), config,
                             paths.root)
+            check_lerobot_info(paths.root)
     settings = paths.work / "settings.json"
     if settings.is_file():
         check_identity(json.loads(settings.read_text()), config, paths.work)

@@ -12,9 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ccdata.dataset_format import FINAL_KEY, FORMAT_VERSION
+from ccdata.dataset_format import CODEBASE_VERSION, FINAL_KEY, FORMAT_VERSION
 
-CODEBASE_VERSION = "v3.0"
 LEROBOT_COLUMNS = ("timestamp", "frame_index", "episode_index", "index", "task_index")
 
 

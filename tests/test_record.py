@@ -19,6 +19,7 @@ import pytest
 
 import ccdata
 from ccdata.dataset_format import POLICY_ORDER, existing_keys, features
+from ccdata.errors import InputError
 from ccdata.episode_plan import plan
 from ccdata.record import GenerateConfig, generate
 from ccdata.verify import verify_dataset
@@ -536,3 +537,24 @@ def test_faster_lerobot_writes_and_merges_the_same_bytes(tmp_path):
     info = json.loads((roots["faster"] / "meta/info.json").read_text())
     assert info["total_episodes"] == 2
     assert info["total_frames"] == sum(len(e["action"]) for e in episodes)
+
+
+@pytest.mark.parametrize("damage", ["info.json", "parquet"])
+def test_generating_into_a_damaged_dataset_is_one_line(damage, tiny, tmp_path, capsys):
+    """A dataset at the target whose meta/info.json or a data file is damaged is refused with
+    one line naming the file (a corrupt info.json was reported complete before; a cut parquet
+    file was a pyarrow traceback)."""
+    from ccdata.cli import main as ccdata_main
+
+    root = tmp_path / "Reach"
+    shutil.copytree(tiny[0], root)
+    path = root / "meta" / "info.json" if damage == "info.json" else next(
+        (root / "data").rglob("*.parquet"))
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(InputError, match=f"{path.name} is (missing or )?corrupt"):
+        generate(GenerateConfig(**TINY, root=root), progress=False)
+    args = ["generate", "--suite", TINY["suite"], "--root", str(root)]
+    args += [f"--{k.replace('_', '-')}={v}" for k, v in TINY.items() if k != "suite"]
+    assert ccdata_main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and path.name in err
