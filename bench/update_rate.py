@@ -14,6 +14,14 @@ compiled, `--train.compile=on`), `auto` (what `--train.compile=auto` compiles on
 and `bf16` (eager under `--train.autocast=bf16`); the first compiled call (the compilation) is
 part of the warmup, not of the median.
 
+The roof: every row also counts the GFLOP of the matrix products in one update
+(`update_gflop`, forward and backward, by torch's FLOP formulas) and divides it by the time
+(`update_gflop_per_s`) and by this machine's float32 matmul rate at the same thread count
+(`matmul_peak_gflop_per_s`, square products; `update_fraction_of_matmul_peak`). A speed-up
+target is only reachable while that fraction has room: an update that is all matmuls cannot
+run faster than the peak. TD-MPC2 rows with an official reference time also give the official
+update's rate on the same arithmetic (`official_update_gflop_per_s`).
+
     python bench/update_rate.py                          # default set, minutes on 2 cores
     python bench/update_rate.py --models tdmpc2,pwm,dreamerv3 --presets cpu --variants state \
         --modes eager,compiled,auto --threads 1
@@ -154,11 +162,12 @@ def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmu
     model = make_model(cfg, "cpu", encoder=frozen_encoder(cfg, preset) if frozen else None)
     model.begin_task(0, 1000)
     heads = model.new_heads()
-    compiled = compile_hot_paths(model, compile_setting)
-    step = UpdateStep(model, heads, autocast=precision)
     batch = synthetic_batch(cfg, torch.Generator().manual_seed(0))
     if cached:  # replay then holds latents, encoded once when the episode was stored
         batch = dataclasses.replace(batch, obs=model.replay_obs(batch.obs))
+    gflop = matmul_gflop(lambda: UpdateStep(model, heads)(batch))  # eager: the same arithmetic
+    compiled = compile_hot_paths(model, compile_setting)
+    step = UpdateStep(model, heads, autocast=precision)
     one = dataclasses.replace(cfg, batch_size=1)
     obs = {k: v[0, :1] for k, v in synthetic_batch(one, torch.Generator()).obs.items()}
 
@@ -174,7 +183,8 @@ def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmu
             model.act(obs, heads, state, eval_mode=False)
 
     result = {"mode": mode, "compiled": compiled, "autocast": precision,
-              "parameters": count_parameters(model, heads)}
+              "parameters": count_parameters(model, heads),
+              "update_gflop": gflop}
     for name, fn in (("update", update), ("act", act)):
         t = _median_times(fn, repeats, warmup)
         result[f"{name}_s_median"] = t["wall"]
@@ -182,7 +192,42 @@ def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmu
     # The names run_tdmpc2.sh reads (an MPPI plan is TD-MPC2's act).
     result["plan_s_median"] = result["act_s_median"]
     result["updates_per_s"] = 1.0 / result["update_s_median"]
+    result["update_gflop_per_s"] = result["update_gflop"] / result["update_s_median"]
     return result
+
+
+def matmul_gflop(fn) -> float:
+    """GFLOP of the matrix products (mm, addmm, bmm, convolutions; forward and backward) one
+    call of `fn` does: the arithmetic no implementation of the same update can skip. Counted
+    with torch's FLOP formulas by a dispatch mode of its own: `FlopCounterMode`'s module tracker
+    fails on DreamerV3's imagination."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+    from torch.utils.flop_counter import flop_registry
+
+    class Count(TorchDispatchMode):
+        flop = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            out = func(*args, **(kwargs or {}))
+            formula = flop_registry.get(func._overloadpacket)
+            if formula is not None:
+                self.flop += formula(*args, **(kwargs or {}), out_val=out)
+            return out
+
+    with Count() as counter:
+        fn()
+    return counter.flop / 1e9
+
+
+def matmul_peak_gflop_per_s(repeats: int = 20) -> dict[str, float]:
+    """This machine's float32 matmul rate at the current thread count, for square products of
+    a few sizes: the roof an update made of matmuls cannot pass (median per size)."""
+    rates = {}
+    for n in (256, 512, 1024):
+        a, b = torch.randn(n, n), torch.randn(n, n)
+        t = _median_times(lambda a=a, b=b: torch.mm(a, b), repeats, warmup=3)["wall"]
+        rates[str(n)] = 2 * n**3 / t / 1e9
+    return rates
 
 
 def rows_to_time(args) -> list[dict]:
@@ -219,6 +264,8 @@ def attach_references(row: dict, anchor: dict | None) -> None:
     if row["model"] == "tdmpc2" and official and not row["frozen_encoder"]:
         row["official_s"] = official
         row["speedup_vs_official"] = {k: v / row[f"{k}_s_median"] for k, v in official.items()}
+        # The same architecture and batch: the same matmul arithmetic per update.
+        row["official_update_gflop_per_s"] = row["update_gflop"] / official["update"]
     if anchor is not None and row["preset"] in ANCHOR_SIZES:
         ref = anchor.get(ANCHOR_SIZES[row["preset"]][0])
         if ref is not None:
@@ -272,6 +319,7 @@ def main() -> None:
     if args.anchor_json:
         anchor = {r["config"]: r for r in json.loads(Path(args.anchor_json).read_text())["results"]}
     torch.set_num_threads(args.threads)
+    peak = matmul_peak_gflop_per_s()
     results = []
     for spec in rows_to_time(args):
         cfg = spec.pop("cfg")
@@ -283,12 +331,13 @@ def main() -> None:
                                   spec["latents_cached"], args.repeats,
                                   args.warmup + (mode != "eager"), mode))  # fmt: skip
             attach_references(row, anchor)
+            row["update_fraction_of_matmul_peak"] = row["update_gflop_per_s"] / max(peak.values())
             results.append(row)
     print(json.dumps({
         "batch_size": args.batch_size, "threads": args.threads, "repeats": args.repeats,
         "warmup": args.warmup, "image_size": args.image_size, "cpu_count": os.cpu_count(),
         "loadavg": Path("/proc/loadavg").read_text().split()[:3], "torch": torch.__version__,
-        "results": results,
+        "matmul_peak_gflop_per_s": peak, "results": results,
     }, indent=2))  # fmt: skip
 
 
