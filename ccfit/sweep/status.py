@@ -9,6 +9,7 @@ that is gone reads 'interrupted').
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -21,12 +22,34 @@ _PENDING = {"PENDING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "SUSPENDED", "
 _RUNNING = {"RUNNING", "COMPLETING", "CONFIGURING", "SIGNALING", "STAGE_OUT", "RESIZING"}
 
 
-def units(sweep: Sweep) -> dict[str, bool]:
-    """Every job name of the sweep -> whether its output exists."""
-    out = {f"scratch:{k}": sweep.scratch_done(k) for k in sweep.scratch_configs()}
-    out.update({f"run:{r.name}": sweep.run_done(r) for r in sweep.runs})
-    out["report"] = (sweep.root / REPORT / STATUS_JSON).is_file()  # its own lines list gaps
+def units(sweep: Sweep) -> dict[str, tuple[bool, Path]]:
+    """Every job name of the sweep -> (whether its output exists, its directory)."""
+    out = {f"scratch:{k}": (sweep.scratch_done(k), sweep.scratch_dir(k))
+           for k in sweep.scratch_configs()}  # fmt: skip
+    out.update({f"run:{r.name}": (sweep.run_done(r), sweep.run_dir(r)) for r in sweep.runs})
+    # The report's own lines list its gaps.
+    out["report"] = ((sweep.root / REPORT / STATUS_JSON).is_file(), sweep.root / REPORT)
     return out
+
+
+def progress(directory: Path) -> str:
+    """Where an unfinished run is: its last evaluation's task and global step ('' before the
+    first), read from the tail of its metrics.jsonl."""
+    try:
+        with (directory / "metrics.jsonl").open("rb") as f:
+            f.seek(0, os.SEEK_END)
+            f.seek(max(0, f.tell() - 4096))
+            lines = f.read().decode(errors="replace").splitlines()
+    except OSError:  # not started, or its directory is not one
+        return ""
+    for line in reversed(lines):
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:  # the first line of the tail may be cut
+            continue
+        if isinstance(record, dict) and "global_step" in record:
+            return f"last evaluated {record.get('task', '?')} at global step {record['global_step']}"
+    return ""
 
 
 def latest_jobs(submissions: list[dict]) -> dict[str, tuple[dict, object]]:
@@ -58,7 +81,7 @@ def sweep_status(root: str | Path) -> dict[str, dict]:
         check_slurm()
         states = job_states(sweep.root / "slurm", slurm_ids)
     out = {}
-    for name, done in units(sweep).items():
+    for name, (done, directory) in units(sweep).items():
         entry, job = latest.get(name, ({}, None))
         if done:
             out[name] = {"state": "done", "job": _job_id(entry, job, name), "detail": ""}
@@ -80,6 +103,9 @@ def sweep_status(root: str | Path) -> dict[str, dict]:
             detail = job.get("error") or {"INTERRUPTED": "interrupted", "COMPLETED":
                                           "completed without its output"}.get(state, "")
             out[name] = {"state": category, "job": _job_id(entry, job, name), "detail": detail}
+        if out[name]["state"] != "done":
+            where = progress(directory)
+            out[name]["detail"] = "; ".join(filter(None, (out[name]["detail"], where)))
     return out
 
 
