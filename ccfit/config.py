@@ -87,6 +87,11 @@ class TrainConfig:
     """'off' (eager), 'on' (every hot path of the model through torch.compile) or 'auto' (the
     hot paths measured faster compiled on this device type); see `ccfit.train.compiled`. The
     paths compiled are recorded in config.json."""
+    demo_fraction: float = 0.0
+    """Fraction of each update's replay windows that start on the task's demonstrations (the
+    seed dataset's oracle episodes of the task) instead of anywhere in replay: oversampling
+    demonstrations, as MoDem (Hansen et al. 2023) does, for tasks that the uniform mix learns
+    too slowly. Needs a seed dataset. 0: off (every preset's default, the paper's setting)."""
 
     def __post_init__(self) -> None:
         for name in ("parallel", "compile", "autocast"):
@@ -103,6 +108,8 @@ class TrainConfig:
         check(self.torch_threads >= 0, f"train.torch_threads must be >= 0, got "
                                        f"{self.torch_threads}")  # fmt: skip
         check(self.checkpoint_minutes >= 0, "train.checkpoint_minutes must be >= 0")
+        check(0.0 <= self.demo_fraction < 1.0,
+              f"train.demo_fraction must be in [0, 1), got {self.demo_fraction}")  # fmt: skip
         check(self.device in DEVICES, f"train.device must be one of {DEVICES}, got "
                                       f"{self.device!r}")  # fmt: skip
         check(self.parallel in ("auto", "on", "off"),
@@ -236,6 +243,12 @@ class RunConfig(BaseRunConfig):
     suite's dataset when it exists locally, None = off, or a repo id / directory."""
     train: TrainConfig = field(default_factory=TrainConfig)
     """The online training loop."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(self.train.demo_fraction == 0 or self.seed_dataset is not None,
+              "train.demo_fraction > 0 oversamples the seed dataset's demonstrations: it needs "
+              "a seed dataset (--seed_dataset)")  # fmt: skip
 
 
 def _with_encoder(model: ModelConfig, path: str, image_size: int) -> ModelConfig:

@@ -73,8 +73,8 @@ class ReplayBuffer:
         self._task = torch.empty(0, dtype=torch.long)
         self._written = 0  # rows ever written; row number n lives at n % capacity
         # Stored episodes, oldest first (the oldest may be partly overwritten):
-        # [number of its first row ever written, rows, task index].
-        self._episodes: deque[tuple[int, int, int]] = deque()
+        # [number of its first row ever written, rows, task index, 1 if a demonstration].
+        self._episodes: deque[tuple[int, int, int, int]] = deque()
         self._cache: dict[str, torch.Tensor] = {}
 
     # ----------------------------------------------------------------------------- adding
@@ -86,10 +86,12 @@ class ReplayBuffer:
         reward: np.ndarray | torch.Tensor,
         terminated: np.ndarray | torch.Tensor,
         task: int = 0,
+        demo: bool = False,
     ) -> None:
         """Store one episode: obs arrays (T+1, ...), action (T, A), reward (T,), terminated (T,).
 
         terminated may be true only at the last transition (the success that ended it).
+        demo: the episode is a demonstration, which `sample(demo_fraction=)` oversamples.
         """
         action = _tensor(action).float()
         reward = _tensor(reward).float().reshape(-1)
@@ -126,6 +128,7 @@ class ReplayBuffer:
             first,
             [steps + 1],
             int(task),
+            bool(demo),
         )
 
     def add_windows(self, windows: Batch, task: int = 0) -> None:
@@ -154,7 +157,8 @@ class ReplayBuffer:
             int(task),
         )
 
-    def _append(self, obs, action, reward, term, first, episode_rows: list[int], task: int):
+    def _append(self, obs, action, reward, term, first, episode_rows: list[int], task: int,
+                demo: bool = False) -> None:  # fmt: skip
         n = action.shape[0]
         self._check_layout(obs, action)
         start = self._written
@@ -170,7 +174,7 @@ class ReplayBuffer:
         self._task[idx] = task
         self._written += n
         for rows in episode_rows:
-            self._episodes.append((start, rows, task))
+            self._episodes.append((start, rows, task, int(demo)))
             start += rows
         oldest = self._oldest
         while self._episodes and sum(self._episodes[0][:2]) <= oldest:
@@ -273,15 +277,34 @@ class ReplayBuffer:
     def can_sample(self, seq_len: int) -> bool:
         return self.num_starts(seq_len) > 0
 
-    def sample(self, batch_size: int, seq_len: int) -> Batch:
-        """`batch_size` windows of `seq_len` rows, uniform (with replacement) over starts."""
+    def sample(self, batch_size: int, seq_len: int, demo_fraction: float = 0.0) -> Batch:
+        """`batch_size` windows of `seq_len` rows, uniform (with replacement) over starts;
+        with `demo_fraction`, the first round(demo_fraction * batch_size) of them start on a
+        row of a stored demonstration instead (uniform over those rows)."""
         if seq_len < 1 or batch_size < 1:
             raise ValueError(f"seq_len and batch_size must be >= 1, got {seq_len}, {batch_size}")
         total = self.num_starts(seq_len)
         if total == 0:
             raise ValueError(f"replay holds {self.size} rows, fewer than a window of {seq_len}")
         starts = torch.randint(0, total, (batch_size,), generator=self.generator)
+        demos = round(demo_fraction * batch_size)
+        if demos > 0:
+            pool = self.demo_starts(seq_len)
+            if len(pool) == 0:
+                raise ValueError("demo_fraction > 0 but replay holds no demonstration rows")
+            starts[:demos] = pool[torch.randint(0, len(pool), (demos,), generator=self.generator)]
         return self.gather(starts, seq_len)
+
+    def demo_starts(self, seq_len: int) -> torch.Tensor:
+        """Window starts (counted from the oldest row) on the stored rows of demonstrations."""
+        key = f"demo_starts/{seq_len}"
+        if key not in self._cache:
+            oldest, total = self._oldest, self.num_starts(seq_len)
+            rows = [torch.arange(max(first, oldest), first + n) - oldest
+                    for first, n, _, demo in self._episodes if demo]  # fmt: skip
+            pool = torch.cat(rows) if rows else torch.zeros(0, dtype=torch.long)
+            self._cache[key] = pool[pool < total]
+        return self._cache[key]
 
     def gather(self, starts, seq_len: int) -> Batch:
         """The windows whose first rows are `starts` in [0, num_starts(seq_len)), counted from
@@ -311,7 +334,7 @@ class ReplayBuffer:
         if "starts" not in self._cache:
             oldest = self._oldest
             self._cache["starts"] = torch.tensor(
-                [max(first, oldest) - oldest for first, _, _ in self._episodes], dtype=torch.long
+                [max(first, oldest) - oldest for first, *_ in self._episodes], dtype=torch.long
             )
         return self._cache["starts"]
 
@@ -356,7 +379,7 @@ class ReplayBuffer:
         return {
             "capacity": self.capacity,
             "written": self._written,
-            "episodes": torch.tensor(list(self._episodes), dtype=torch.long).reshape(-1, 3),
+            "episodes": torch.tensor(list(self._episodes), dtype=torch.long).reshape(-1, 4),
             "generator": self.generator.get_state(),
         }
 
@@ -383,7 +406,9 @@ class ReplayBuffer:
                 v[idx] = cols[k].to(self.storage)
         if oldest > 0 and self._obs:  # as `_append` marks it (after its row was saved)
             self._first[self._physical(torch.tensor([oldest])).to(self.storage)] = True
-        self._episodes = deque(tuple(int(x) for x in row) for row in meta["episodes"].tolist())
+        # Checkpoints written before demonstrations were marked hold 3 columns: none is one.
+        self._episodes = deque((*(int(x) for x in row), 0)[:4]
+                               for row in meta["episodes"].tolist())  # fmt: skip
         self.generator.set_state(meta["generator"])
 
     def state_dict(self) -> dict:

@@ -35,6 +35,9 @@ from ccfit.data import (
 )
 from ccfit.obs import obs_to_arrays
 
+DEMO_POLICY = "oracle"
+"""The dataset policy whose episodes are demonstrations (`--train.demo_fraction`)."""
+
 
 def final_observation(episode: dict[str, np.ndarray], task_id: str) -> dict[str, np.ndarray]:
     """The env observation after the episode's last action (LeRobot does not store it).
@@ -144,23 +147,24 @@ def seed_buffer(
     render: RenderSettings | None = None,
     task_index: int = 0,
     endpoint: str | None = None,
-) -> int:
+) -> dict[str, int]:
     """Preload `task_id`'s episodes of a LeRobot dataset into `buffer` (through
-    `buffer.add_episode(obs=(T+1, ...), action=(T, 4), reward=(T,), terminated=(T,), task=)`);
-    returns how many were added. See `replay_items` for what is kept."""
-    added = 0
-    for _, item in replay_items(source, task_id, obs_mode, render, endpoint):
-        buffer.add_episode(**item, task=task_index)
-        added += 1
+    `buffer.add_episode(obs=(T+1, ...), action=(T, 4), reward=(T,), terminated=(T,), task=,
+    demo=)`, the oracle's episodes marked as demonstrations); returns how many were added per
+    policy. See `replay_items` for what is kept."""
+    added: dict[str, int] = {}
+    for _, policy, item in replay_items(source, task_id, obs_mode, render, endpoint):
+        buffer.add_episode(**item, task=task_index, demo=policy == DEMO_POLICY)
+        added[policy] = added.get(policy, 0) + 1
     return added
 
 
 def replay_items(
     source, task_id: str, obs_mode: str, render: RenderSettings | None = None,
     endpoint: str | None = None,
-) -> Iterator[tuple[int, dict]]:  # fmt: skip
-    """(episode index, `episode_to_replay` item) of each of `task_id`'s episodes of a LeRobot
-    dataset, in episode order. In pixel mode the dataset must have been rendered with `render`
+) -> Iterator[tuple[int, str | None, dict]]:  # fmt: skip
+    """(episode index, policy name (None if the dataset does not say), `episode_to_replay`
+    item) of each of `task_id`'s episodes of a LeRobot dataset, in episode order. In pixel mode the dataset must have been rendered with `render`
     (the run's settings; None: ccdata's defaults at the dataset's own size).
 
     Every transition is kept, the successes that ended episodes included: format-2 datasets
@@ -178,7 +182,7 @@ def replay_items(
                 final = final_observation(ep, task_id)
             if final is None and len(ep[ACTION_KEY]) < 2:
                 continue  # one frame: no transition once the unobserved last one is dropped
-        yield int(ep["episode_index"]), episode_to_replay(ep, obs_mode, final)
+        yield int(ep["episode_index"]), ep.get("policy"), episode_to_replay(ep, obs_mode, final)
 
 
 def _stack(values) -> np.ndarray:

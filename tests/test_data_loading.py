@@ -150,7 +150,8 @@ def test_seed_buffer_preloads_the_tasks_episodes(tiny_dataset):
     root, written = tiny_dataset
     steps = len(written[0]["state"])
     buf = ReplayBuffer(1000)
-    assert seed_buffer(buf, root, "reach-xy", "state") == 1
+    assert seed_buffer(buf, root, "reach-xy", "state") == {"oracle": 1}
+    assert len(buf.demo_starts(2)) == steps  # the oracle's episode is a demonstration
     # The success ended the episode: its final observation is replayed, the terminal kept.
     assert buf.num_episodes == 1 and buf.num_transitions == steps
     b = buf.sample(256, 2)  # windows of two rows: one transition each
@@ -174,4 +175,38 @@ def test_seed_buffer_preloads_the_tasks_episodes(tiny_dataset):
             seed_buffer(ReplayBuffer(1000), root, "reach-xyz", "pixels", RenderSettings(32))
         finally:
             meta_path.write_text(json.dumps(meta))
-    assert seed_buffer(ReplayBuffer(1000), root, "reach-xyz", "pixels", RenderSettings(32)) == 1
+    random = ReplayBuffer(1000)
+    assert seed_buffer(random, root, "reach-xyz", "pixels", RenderSettings(32)) == {"random": 1}
+    assert len(random.demo_starts(2)) == 0
+
+
+def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
+    tiny_dataset, tmp_path, capsys, monkeypatch
+):
+    """`--train.demo_fraction` trains with the seed dataset's oracle episodes oversampled (every
+    update's batch is drawn with it) and records the setting; without demonstrations to
+    oversample it is one line, exit 2."""
+    from ccfit.cli import main
+
+    root, _ = tiny_dataset
+    sample, fractions = ReplayBuffer.sample, []
+
+    def spy(self, batch_size, seq_len, demo_fraction=0.0):
+        fractions.append(demo_fraction)
+        return sample(self, batch_size, seq_len, demo_fraction)
+
+    monkeypatch.setattr(ReplayBuffer, "sample", spy)
+    base = ["train", "--preset", "smoke", "--seed_dataset", str(root), "--train.steps=200",
+            "--train.seed_steps=100", "--train.eval_interval=200", "--train.demo_fraction=0.25",
+            "--quiet"]  # fmt: skip
+    out = tmp_path / "xy"
+    assert main([*base, "--task", "reach-xy", "--out", str(out)]) == 0
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["train"]["demo_fraction"] == 0.25
+    assert len(fractions) >= 100 and set(fractions) == {0.25}  # smoke: 1 update per step
+    assert main([*base, "--task", "reach-xyz", "--out", str(tmp_path / "xyz")]) == 2
+    assert "holds no oracle episode of reach-xyz" in capsys.readouterr().err
+    assert main([*base[:4], "null", *base[5:], "--task", "reach-xy"]) == 2
+    assert "needs a seed dataset" in capsys.readouterr().err
+    assert main([*base, "--task", "reach-xy", "--train.demo_fraction=1"]) == 2
+    assert "train.demo_fraction must be in [0, 1)" in capsys.readouterr().err

@@ -152,6 +152,6 @@ def test_ccfit_reads_a_pushed_dataset_by_repo_id_from_the_endpoint(
     buffer = ReplayBuffer(1000)
     added = seed_buffer(buffer, "org/reach-seed", "reach-xz", "state",
                         endpoint=hub_server.url)  # fmt: skip
-    assert added == 1 and buffer.num_episodes == 1
+    assert sum(added.values()) == 1 and buffer.num_episodes == 1
     with pytest.raises(ValueError, match="cannot read LeRobot dataset 'org/missing'"):
         data.load_episodes("org/missing", endpoint=hub_server.url)

@@ -141,6 +141,48 @@ def test_same_seed_same_batches():
     assert not torch.equal(x.obs["id"], z.obs["id"])
 
 
+def test_demonstrations_are_oversampled_by_demo_fraction(tmp_path):
+    """The first round(demo_fraction * B) windows start on a demonstration's rows, uniform over
+    them; the rest stay uniform over replay; demo_fraction 0 draws exactly what it drew before
+    demonstrations were marked; the marks survive the ring and a checkpoint."""
+    def build(seed=5):
+        buf, src = ReplayBuffer(26, seed=seed), Source()
+        for i, steps in enumerate([6, 4, 7, 5, 8]):
+            buf.add_episode(**src.episode(steps), demo=i in (1, 3))
+        return buf, src
+
+    buf, src = build()
+    check_windows(buf.sample(8, 3, demo_fraction=0.5), src)
+    demo_rows = {r for e in (1, 3) for r in range(sum(src.lengths[:e]) + e,
+                                                  sum(src.lengths[:e + 1]) + e + 1)}
+    assert len(demo_rows) == 5 + 6
+    firsts = [[], []]
+    for _ in range(300):
+        ids = buf.sample(8, 3, demo_fraction=0.5).obs["id"][0, :, 2].long().tolist()
+        assert set(ids[:4]) <= demo_rows  # round(0.5 * 8) = 4 demo windows, first
+        firsts[0] += ids[:4]
+        firsts[1] += ids[4:]
+    # A ring of 26 rows holding 35: episode 0 is gone and demo 1 lost its first 2 rows.
+    assert buf.oldest == 9 and set(firsts[0]) == {r for r in demo_rows if r >= 9}
+    assert len(set(firsts[1]) - demo_rows) > 10  # the rest: anywhere
+    plain, _ = filled([6, 4, 7, 5, 8], capacity=26, seed=5)
+    marked, _ = build()
+    for _ in range(3):
+        assert torch.equal(plain.sample(8, 3).obs["id"], marked.sample(8, 3).obs["id"])
+
+    torch.save(buf.state_dict(), tmp_path / "replay.pt")
+    other = ReplayBuffer(26)
+    other.load_state_dict(torch.load(tmp_path / "replay.pt", weights_only=False))
+    assert torch.equal(other.sample(8, 3, 0.5).obs["id"], buf.sample(8, 3, 0.5).obs["id"])
+    old = buf.state_dict()  # as written before demonstrations were marked: 3 columns
+    old["episodes"] = old["episodes"][:, :3]
+    legacy = ReplayBuffer(26)
+    legacy.load_state_dict(old)
+    assert legacy.num_episodes == buf.num_episodes and len(legacy.demo_starts(3)) == 0
+    with pytest.raises(ValueError, match="no demonstration"):
+        filled([6])[0].sample(4, 2, demo_fraction=0.5)
+
+
 # ------------------------------------------------------------------------------ ring
 
 

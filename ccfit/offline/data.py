@@ -114,7 +114,7 @@ def load_task(cfg: OfflineConfig, source: str, model: WorldModel, task_index: in
                           obs_transform=model.replay_obs) if train else None  # fmt: skip
     held = ReplayBuffer(None, obs_transform=model.replay_obs)
     fitting, scoring, first_row = set(split.train), set(split.heldout), {}
-    for episode, item in replay_items(source, task, cfg.obs, render_settings(cfg),
+    for episode, _, item in replay_items(source, task, cfg.obs, render_settings(cfg),
                                       cfg.dataset_endpoint):  # fmt: skip
         if episode in fitting and buffer is not None:
             buffer.add_episode(**item, task=task_index)

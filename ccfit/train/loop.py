@@ -245,7 +245,8 @@ class Trainer:
 
     def _update(self) -> None:
         mcfg = self.model.cfg
-        logs = self.step(self.buffer.sample(mcfg.batch_size, mcfg.seq_len).to(self.device))
+        batch = self.buffer.sample(mcfg.batch_size, mcfg.seq_len, self.cfg.demo_fraction)
+        logs = self.step(batch.to(self.device))
         self.updates += 1
         # Logged values stay tensors until a flush: no host sync inside an update.
         for k, v in logs.items():

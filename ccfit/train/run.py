@@ -12,6 +12,7 @@ from pathlib import Path
 
 import torch
 
+from ccdata.errors import InputError
 from ccdata.render import RenderSettings
 from ccfit.config import BaseRunConfig, RunConfig, TaskRunConfig
 from ccfit.config_base import ConfigError, resolve_device
@@ -20,7 +21,7 @@ from ccfit.io import atomic_write_json, derived_seed, seed_everything
 from ccfit.models.base import WorldModel
 from ccfit.models.registry import make_model, model_class
 from ccfit.replay import ReplayBuffer
-from ccfit.seeding import seed_buffer
+from ccfit.seeding import DEMO_POLICY, seed_buffer
 from ccfit.train.compiled import compile_hot_paths, compiled_paths
 from ccfit.train.cost import RunCost
 from ccfit.train.eval_worker import AsyncEvaluator, WorkerSpec, has_view, parallel_on
@@ -41,9 +42,14 @@ def resolved_config(cfg: RunConfig, suite: str | None) -> dict:
     """config.json of a run: the config, plus what it resolved to where it runs: the seed
     dataset ('auto'), the device ('auto'), the compiled methods and the render settings."""
     device = resolve_device(cfg.train.device)
+    source = dataset_source(cfg, suite)
+    if cfg.train.demo_fraction > 0 and source is None:
+        raise ConfigError(f"train.demo_fraction > 0 needs the seed dataset's demonstrations, "
+                          f"but --seed_dataset auto found no local dataset of suite {suite} "
+                          f"(`ccdata generate --suite {suite}`, or name one)")  # fmt: skip
     return {
         **cfg.to_dict(),
-        "resolved_seed_dataset": dataset_source(cfg, suite),
+        "resolved_seed_dataset": source,
         "resolved_device": str(device),
         "resolved_compile": compiled_paths(model_class(cfg.model.type), cfg.train.compile,
                                            device),
@@ -99,8 +105,11 @@ def make_replay(cfg: RunConfig, model: WorldModel, task_id: str, task_index: int
                           storage=plan.storage if plan else "cpu",
                           pin=plan.pin if plan else False)  # fmt: skip
     if source is not None:
-        seed_buffer(buffer, source, task_id, cfg.obs, render_settings(cfg), task_index=task_index,
-                    endpoint=cfg.dataset_endpoint)  # fmt: skip
+        added = seed_buffer(buffer, source, task_id, cfg.obs, render_settings(cfg),
+                            task_index=task_index, endpoint=cfg.dataset_endpoint)  # fmt: skip
+        if cfg.train.demo_fraction > 0 and not added.get(DEMO_POLICY):
+            raise InputError(f"{source} holds no {DEMO_POLICY} episode of {task_id}: "
+                             "train.demo_fraction has no demonstrations to oversample")
     return buffer
 
 
