@@ -15,9 +15,10 @@ and `bf16` (eager under `--train.autocast=bf16`); the first compiled call (the c
 part of the warmup, not of the median.
 
 The roof: every row also counts the GFLOP of the matrix products in one update
-(`update_gflop`, forward and backward, by torch's FLOP formulas) and divides it by the time
-(`update_gflop_per_s`) and by this machine's float32 matmul rate at the same thread count
-(`matmul_peak_gflop_per_s`, square products; `update_fraction_of_matmul_peak`). A speed-up
+(`update_gflop`, forward and backward, by torch's FLOP formulas; `act_gflop` for one act) and
+divides it by the time (`update_gflop_per_s`) and by this machine's float32 matmul rate at the
+same thread count (`matmul_peak_gflop_per_s`, square products;
+`update_fraction_of_matmul_peak`). A speed-up
 target is only reachable while that fraction has room: an update that is all matmuls cannot
 run faster than the peak. TD-MPC2 rows with an official reference time also give the official
 update's rate on the same arithmetic (`official_update_gflop_per_s`).
@@ -165,15 +166,8 @@ def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmu
     batch = synthetic_batch(cfg, torch.Generator().manual_seed(0))
     if cached:  # replay then holds latents, encoded once when the episode was stored
         batch = dataclasses.replace(batch, obs=model.replay_obs(batch.obs))
-    gflop = matmul_gflop(lambda: UpdateStep(model, heads)(batch))  # eager: the same arithmetic
-    compiled = compile_hot_paths(model, compile_setting)
-    step = UpdateStep(model, heads, autocast=precision)
     one = dataclasses.replace(cfg, batch_size=1)
     obs = {k: v[0, :1] for k, v in synthetic_batch(one, torch.Generator()).obs.items()}
-
-    def update() -> None:
-        step(batch)
-
     with torch.no_grad(), autocast(model.device, precision):  # a warm-started plan / a
         # mid-episode recurrent state is timed
         state = model.act(obs, heads, model.initial_state(heads), eval_mode=False)[1]
@@ -182,9 +176,18 @@ def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmu
         with torch.no_grad(), autocast(model.device, precision):
             model.act(obs, heads, state, eval_mode=False)
 
+    # Counted eager, before compiling: the same arithmetic.
+    gflop = {"update": matmul_gflop(lambda: UpdateStep(model, heads)(batch)),
+             "act": matmul_gflop(act)}  # fmt: skip
+    compiled = compile_hot_paths(model, compile_setting)
+    step = UpdateStep(model, heads, autocast=precision)
+
+    def update() -> None:
+        step(batch)
+
     result = {"mode": mode, "compiled": compiled, "autocast": precision,
               "parameters": count_parameters(model, heads),
-              "update_gflop": gflop}
+              "update_gflop": gflop["update"], "act_gflop": gflop["act"]}
     for name, fn in (("update", update), ("act", act)):
         t = _median_times(fn, repeats, warmup)
         result[f"{name}_s_median"] = t["wall"]
@@ -192,7 +195,8 @@ def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmu
     # The names run_tdmpc2.sh reads (an MPPI plan is TD-MPC2's act).
     result["plan_s_median"] = result["act_s_median"]
     result["updates_per_s"] = 1.0 / result["update_s_median"]
-    result["update_gflop_per_s"] = result["update_gflop"] / result["update_s_median"]
+    for name in ("update", "act"):
+        result[f"{name}_gflop_per_s"] = result[f"{name}_gflop"] / result[f"{name}_s_median"]
     return result
 
 
@@ -331,7 +335,9 @@ def main() -> None:
                                   spec["latents_cached"], args.repeats,
                                   args.warmup + (mode != "eager"), mode))  # fmt: skip
             attach_references(row, anchor)
-            row["update_fraction_of_matmul_peak"] = row["update_gflop_per_s"] / max(peak.values())
+            for name in ("update", "act"):
+                row[f"{name}_fraction_of_matmul_peak"] = (row[f"{name}_gflop_per_s"]
+                                                          / max(peak.values()))  # fmt: skip
             results.append(row)
     print(json.dumps({
         "batch_size": args.batch_size, "threads": args.threads, "repeats": args.repeats,
