@@ -10,14 +10,14 @@ from ccfit.analysis.learnability import budgets, first_step_at, read_run
 
 
 def _fake_run(root: Path, task: str, model: str, scores: list[float], interval: int = 1000,
-              seed: int = 0) -> Path:  # fmt: skip
+              seed: int = 0, demo_fraction: float = 0.0) -> Path:  # fmt: skip
     """A run directory as `ccfit train` leaves it (config.json, metrics.jsonl, cost.json)."""
-    run = root / f"{model}-{task}-s{seed}"
+    run = root / f"{model}-{task}-s{seed}-demo{demo_fraction}"
     run.mkdir(parents=True)
     steps = interval * (len(scores) - 1)
     (run / "config.json").write_text(json.dumps({
         "task": task, "seed": seed, "preset": "cpu", "obs": "state", "model": {"type": model},
-        "train": {"steps": steps, "eval_interval": interval},
+        "train": {"steps": steps, "eval_interval": interval, "demo_fraction": demo_fraction},
     }))  # fmt: skip
     (run / "metrics.jsonl").write_text("".join(
         json.dumps({"task_step": i * interval, "normalized_return": s}) + "\n"
@@ -42,10 +42,15 @@ def test_first_steps_and_budgets_by_hand(tmp_path):
     pnp = next(r for r in rows if r["task"] == "pnp-cube")
     assert pnp["suites"] == ["Grasp", "DrawerPnP", "PnPBoxClose"] and pnp["cpu_hours"] == 2.0
     assert (pnp["steps_to_50"], pnp["steps_to_80"], pnp["best"]) == (4000, None, 55)
+    # runs oversampling demonstrations are rows (and budgets) of their own
+    for task in ("pick-cube", "place-cube", "pnp-cube"):
+        _fake_run(tmp_path, task, "m", [0, 60], demo_fraction=0.25)
+    rows = [read_run(p) for p in sorted(tmp_path.iterdir())]
+    assert budgets(rows)["Grasp"] == {"m": 4000, "m [demo_fraction=0.25]": 1000}
     # a task that never reaches 50: the suite has no budget within the runs
     _fake_run(tmp_path, "pick-cube", "m", [0, 10, 20, 30], seed=1)
     rows = [read_run(p) for p in sorted(tmp_path.iterdir())]
-    assert budgets(rows)["Grasp"] == {"m": None}
+    assert budgets(rows)["Grasp"] == {"m": None, "m [demo_fraction=0.25]": 1000}
 
 
 def test_cli_on_a_real_smoke_run(tmp_path, capsys, short_episodes):

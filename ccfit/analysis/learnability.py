@@ -1,7 +1,8 @@
 """How many steps a model needs to learn each task: the budgets of the `cpu` preset.
 
 `ccfit learnability RUNS --out DIR` reads single-task runs (`ccfit train`, one per task,
-model and seed, long budgets) and writes `learnability.md` / `.csv`: per suite, task, model
+model and seed, long budgets; runs oversampling demonstrations, `--train.demo_fraction`, are
+rows of their own, their model named with the setting) and writes `learnability.md` / `.csv`: per suite, task, model
 and seed, the first evaluated step whose normalised return reached 50 and 80, the best and
 last score, the budget and what the run cost (`cost.json`), plus `budgets.json`: per suite
 and model, the steps per task every task of the suite needs to reach 50 (the largest first
@@ -48,9 +49,13 @@ def read_run(run: Path) -> dict | None:
         return None
     scores = [r["normalized_return"] for r in records if r["normalized_return"] is not None]
     cost = read_cost(run)
+    model = cfg["model"]["type"]
+    demo = cfg["train"].get("demo_fraction", 0.0)  # absent from configs older than the option
+    if demo:  # another way of learning: its rows and budgets are kept apart
+        model += f" [demo_fraction={demo}]"
     return {
         "suites": [s.name for s in SUITES.values() if cfg["task"] in s.task_ids],
-        "task": cfg["task"], "model": cfg["model"]["type"], "seed": cfg["seed"],
+        "task": cfg["task"], "model": model, "seed": cfg["seed"],
         "preset": cfg["preset"], "obs": cfg["obs"], "budget": steps,
         "eval_interval": int(cfg["train"]["eval_interval"]),
         **{f"steps_to_{t}": first_step_at(records, t) for t in THRESHOLDS},
