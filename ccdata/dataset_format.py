@@ -27,10 +27,10 @@ from ccdata.suites import get_suite
 from ccdata.tasks.base import STATE_DIM
 
 __all__ = [  # the settings' constants are re-exported: older code imports them from here
-    "CCDATA_META", "CODEBASE_VERSION", "FINAL_KEY", "FORMAT_VERSION", "IDENTITY_KEYS", "POLICY_ORDER",
-    "VIDEO_ENCODER", "camera_key", "ccdata_metadata", "check_identity", "episode_table",
-    "check_lerobot_info", "existing_keys", "features", "measure_dataset", "quiet_libraries", "read_ccdata_metadata",
-    "write_json",
+    "CCDATA_META", "CODEBASE_VERSION", "FINAL_KEY", "FORMAT_VERSION", "IDENTITY_KEYS",
+    "POLICY_ORDER", "VIDEO_ENCODER", "camera_key", "ccdata_metadata", "check_identity",
+    "check_lerobot_info", "episode_table", "existing_keys", "features", "measure_dataset",
+    "quiet_libraries", "read_ccdata_metadata", "write_json",
 ]
 
 CCDATA_META = "meta/ccdata.json"

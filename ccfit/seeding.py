@@ -164,8 +164,9 @@ def replay_items(
     endpoint: str | None = None,
 ) -> Iterator[tuple[int, str | None, dict]]:  # fmt: skip
     """(episode index, policy name (None if the dataset does not say), `episode_to_replay`
-    item) of each of `task_id`'s episodes of a LeRobot dataset, in episode order. In pixel mode the dataset must have been rendered with `render`
-    (the run's settings; None: ccdata's defaults at the dataset's own size).
+    item) of each of `task_id`'s episodes of a LeRobot dataset, in episode order. In pixel
+    mode the dataset must have been rendered with `render` (the run's settings; None: ccdata's
+    defaults at the dataset's own size).
 
     Every transition is kept, the successes that ended episodes included: format-2 datasets
     record each episode's final observation; for format-1 datasets it is replayed for successful

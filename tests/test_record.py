@@ -19,8 +19,8 @@ import pytest
 
 import ccdata
 from ccdata.dataset_format import POLICY_ORDER, existing_keys, features
-from ccdata.errors import InputError
 from ccdata.episode_plan import plan
+from ccdata.errors import InputError
 from ccdata.record import GenerateConfig, generate
 from ccdata.verify import verify_dataset
 

@@ -1,13 +1,13 @@
 """How many steps a model needs to learn each task: the budgets of the `cpu` preset.
 
-`ccfit learnability RUNS --out DIR` reads single-task runs (`ccfit train`, one per task,
-model and seed, long budgets; runs oversampling demonstrations, `--train.demo_fraction`, are
-rows of their own, their model named with the setting) and writes `learnability.md` / `.csv`: per suite, task, model
-and seed, the first evaluated step whose normalised return reached 50 and 80, the best and
-last score, the budget and what the run cost (`cost.json`), plus `budgets.json`: per suite
-and model, the steps per task every task of the suite needs to reach 50 (the largest first
-step to 50 over its tasks and seeds, rounded up to the evaluation interval), or None when a
-task never reached it within the run's budget.
+`ccfit learnability RUNS --out DIR` reads single-task runs (`ccfit train`, one per task, model
+and seed, long budgets; runs oversampling demonstrations, `--train.demo_fraction`, are rows of
+their own, their model named with the setting) and writes `learnability.md` / `.csv`: per
+suite, task, model and seed, the first evaluated step whose normalised return reached 50 and
+80, the best and last score, the budget and what the run cost (`cost.json`), plus
+`budgets.json`: per suite and model, the steps per task every task of the suite needs to reach
+50 (the largest first step to 50 over its tasks and seeds, rounded up to the evaluation
+interval), or None when a task never reached it within the run's budget.
 """
 
 from __future__ import annotations

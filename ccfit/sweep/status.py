@@ -48,7 +48,8 @@ def progress(directory: Path) -> str:
         except json.JSONDecodeError:  # the first line of the tail may be cut
             continue
         if isinstance(record, dict) and "global_step" in record:
-            return f"last evaluated {record.get('task', '?')} at global step {record['global_step']}"
+            task, step = record.get("task", "?"), record["global_step"]
+            return f"last evaluated {task} at global step {step}"
     return ""
 
 
