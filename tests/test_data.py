@@ -3,6 +3,7 @@ reaches the buffer, the successes that ended episodes included, in pixel and in 
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -51,7 +52,8 @@ def test_seeded_pixel_replay_holds_one_terminal_success_per_successful_episode(r
     successful = [ep for ep in episodes if ep["next.success"].any()]
     assert len(successful) >= 3 and len(successful) < len(episodes)  # random ones fail
     buffer = ReplayBuffer(10_000)
-    assert seed_buffer(buffer, reach, TASK, "pixels", RenderSettings(32)) == len(episodes)
+    added = seed_buffer(buffer, reach, TASK, "pixels", RenderSettings(32))
+    assert added == dict(Counter(ep["policy"] for ep in episodes))
     # Every step of every episode is a transition (the final frame is an observation only).
     steps = [int((~ep[FINAL_KEY].reshape(-1).astype(bool)).sum()) for ep in episodes]
     assert buffer.num_transitions == sum(steps)
@@ -87,6 +89,7 @@ def test_state_replay_keeps_every_transition_without_a_simulator(reach):
         with pytest.raises(ValueError, match="records its final observation"):
             episode_to_replay(ep, "state", final_obs={"state": item["obs"]["state"][-1]})
     buffer = ReplayBuffer(10_000)
-    assert seed_buffer(buffer, reach, TASK, "state") == len(episodes)
+    added = seed_buffer(buffer, reach, TASK, "state")
+    assert added == dict(Counter(ep["policy"] for ep in episodes))
     batch = all_transitions(buffer)
     assert int(batch.terminated.sum()) == sum(bool(ep["next.success"].any()) for ep in episodes)
