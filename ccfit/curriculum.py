@@ -73,6 +73,8 @@ STATE = "curriculum.pt"
 STATE_KIND = "ccfit-curriculum"
 STATE_VERSION = 3
 METRICS_JSON = "metrics.json"
+REFERENCE_DONE = "done.json"
+"""A from-scratch reference's records, written when it is finished (online and offline)."""
 
 
 @dataclass
@@ -116,7 +118,7 @@ def run_scratch(cfg: CurriculumConfig, out: Path, progress: bool = True) -> list
     dependency instead)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    done = out / "done.json"
+    done = out / REFERENCE_DONE
     with open(out.parent / f".{out.name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
@@ -144,7 +146,7 @@ def _scratch_worker(cfg: CurriculumConfig, out: Path, episode_steps: int) -> Non
 def start_scratch(cfg: CurriculumConfig, out: Path) -> Future | None:
     """The from-scratch reference trained in a worker process beside the curriculum
     (`--train.parallel`), unless it is done already; its evaluation stays in that worker."""
-    if (out / "done.json").is_file() or not parallel_on(cfg.train.parallel):
+    if (out / REFERENCE_DONE).is_file() or not parallel_on(cfg.train.parallel):
         return None
     import ccdata.env
 

@@ -38,7 +38,7 @@ from ccdata.errors import InputError
 from ccfit import metrics as M
 from ccfit.analysis import report_routing
 from ccfit.config_parse import flatten
-from ccfit.curriculum import METRICS_JSON
+from ccfit.curriculum import METRICS_JSON, REFERENCE_DONE
 from ccfit.io import atomic_write_text
 from ccfit.metrics import metrics_from_curves, task_curves
 from ccfit.offline.fit import SCORE_KEY, TRACK
@@ -143,7 +143,7 @@ def find_runs(paths: list[Path]) -> list[Run]:
     for d in dict.fromkeys(dirs):
         metrics = _read_json(d / METRICS_JSON)
         records = _read_json(d / METRICS, lines=True)
-        scratch = _read_json(scratch_dir_of(d, metrics) / "done.json")
+        scratch = _read_json(scratch_dir_of(d, metrics) / REFERENCE_DONE)
         runs.append(Run(d, _read_json(d / CONFIG), records, scratch, metrics))
     return runs
 
@@ -165,10 +165,10 @@ def scratch_dir_of(run_dir: Path, metrics: dict) -> Path:
     resolve from here (a relative path from another working directory, a moved tree), the
     default location beside the run (`<run>/../scratch/<key>`)."""
     stored = Path(metrics["scratch_dir"])
-    if (stored / "done.json").is_file():
+    if (stored / REFERENCE_DONE).is_file():
         return stored
     beside = run_dir.parent / "scratch" / stored.name
-    if (beside / "done.json").is_file():
+    if (beside / REFERENCE_DONE).is_file():
         return beside
     raise InputError(f"{run_dir}: its from-scratch reference {stored} is missing")
 

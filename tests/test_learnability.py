@@ -53,6 +53,26 @@ def test_first_steps_and_budgets_by_hand(tmp_path):
     assert budgets(rows)["Grasp"] == {"m": None, "m [demo_fraction=0.25]": 1000}
 
 
+def test_a_from_scratch_reference_is_a_row_of_its_task(tmp_path):
+    """A curriculum's from-scratch reference (config of the suite, done.json, records of the
+    suite's last task, no cost recorded) is the same single-task run: a row of that task; an
+    unfinished one (no done.json) is not."""
+    run = _fake_run(tmp_path, "reach-xyz", "m", [0, 40, 90])
+    cfg = json.loads((run / "config.json").read_text())
+    del cfg["task"]
+    (run / "config.json").write_text(json.dumps({**cfg, "suite": "Reach"}))
+    records = [{**json.loads(x), "task": "reach-xyz"}
+               for x in (run / "metrics.jsonl").read_text().splitlines()]  # fmt: skip
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    (run / "cost.json").unlink()
+    assert read_run(run) is None
+    (run / "done.json").write_text(json.dumps(records))
+    row = read_run(run)
+    assert (row["task"], row["suites"], row["steps_to_50"], row["steps_to_80"]) == (
+        "reach-xyz", ["Reach"], 2000, 2000)
+    assert row["cpu_hours"] is None  # not 0: no cost was recorded
+
+
 def test_cli_on_a_real_smoke_run(tmp_path, capsys, short_episodes):
     from ccfit.cli import main
 

@@ -1,13 +1,14 @@
 """How many steps a model needs to learn each task: the budgets of the `cpu` preset.
 
 `ccfit learnability RUNS --out DIR` reads single-task runs (`ccfit train`, one per task, model
-and seed, long budgets; runs oversampling demonstrations, `--train.demo_fraction`, are rows of
-their own, their model named with the setting) and writes `learnability.md` / `.csv`: per
-suite, task, model and seed, the first evaluated step whose normalised return reached 50 and
-80, the best and last score, the budget and what the run cost (`cost.json`), plus
-`budgets.json`: per suite and model, the steps per task every task of the suite needs to reach
-50 (the largest first step to 50 over its tasks and seeds, rounded up to the evaluation
-interval), or None when a task never reached it within the run's budget.
+and seed, long budgets, and the from-scratch references of curricula and sweeps; runs
+oversampling demonstrations, `--train.demo_fraction`, are rows of their own, their model named
+with the setting) and writes `learnability.md` / `.csv`: per suite, task, model and seed, the
+first evaluated step whose normalised return reached 50 and 80, the best and last score, the
+budget and what the run cost (`cost.json`), plus `budgets.json`: per suite and model, the steps
+per task every task of the suite needs to reach 50 (the largest first step to 50 over its tasks
+and seeds, rounded up to the evaluation interval), or None when a task never reached it within
+the run's budget.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import math
 from pathlib import Path
 
 from ccdata.errors import InputError
+from ccfit.curriculum import REFERENCE_DONE
 from ccfit.io import atomic_write_json, atomic_write_text
 from ccfit.train.cost import read_cost
 
@@ -34,16 +36,21 @@ def first_step_at(records: list[dict], level: float) -> int | None:
 
 
 def read_run(run: Path) -> dict | None:
-    """The learnability row of one `ccfit train` directory (None: not a finished one)."""
+    """The learnability row of one `ccfit train` directory, or of a curriculum's from-scratch
+    reference (the same single-task run of the suite's last task; None: neither, or not
+    finished)."""
     config, metrics = run / "config.json", run / "metrics.jsonl"
     if not (config.is_file() and metrics.is_file()):
         return None
     from ccdata import SUITES
 
     cfg = json.loads(config.read_text())
-    if "task" not in cfg:
-        return None
     records = [json.loads(x) for x in metrics.read_text().splitlines() if x.strip()]
+    task = cfg.get("task")
+    if task is None and (run / REFERENCE_DONE).is_file() and records:
+        task = records[0].get("task")
+    if task is None:
+        return None
     steps = int(cfg["train"]["steps"])
     if not records or max(r["task_step"] for r in records) < steps:
         return None
@@ -54,13 +61,14 @@ def read_run(run: Path) -> dict | None:
     if demo:  # another way of learning: its rows and budgets are kept apart
         model += f" [demo_fraction={demo}]"
     return {
-        "suites": [s.name for s in SUITES.values() if cfg["task"] in s.task_ids],
-        "task": cfg["task"], "model": model, "seed": cfg["seed"],
+        "suites": [s.name for s in SUITES.values() if task in s.task_ids],
+        "task": task, "model": model, "seed": cfg["seed"],
         "preset": cfg["preset"], "obs": cfg["obs"], "budget": steps,
         "eval_interval": int(cfg["train"]["eval_interval"]),
         **{f"steps_to_{t}": first_step_at(records, t) for t in THRESHOLDS},
         "best": max(scores) if scores else None, "last": scores[-1] if scores else None,
-        "cpu_hours": cost["cpu_s"] / 3600, "run": str(run),
+        # A from-scratch reference trained in a worker records no cost.
+        "cpu_hours": cost["cpu_s"] / 3600 if cost["segments"] else None, "run": str(run),
     }  # fmt: skip
 
 

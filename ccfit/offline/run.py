@@ -32,6 +32,7 @@ import torch
 from ccfit import metrics as M
 from ccfit.config_base import resolve_device
 from ccfit.continual.base import ContinualMethod, make_method
+from ccfit.curriculum import METRICS_JSON, REFERENCE_DONE
 from ccfit.io import (
     atomic_torch_save,
     atomic_write_json,
@@ -50,8 +51,6 @@ from ccfit.train.run import CONFIG, check_saved_config, identity, load_model, re
 STATE = "fit.pt"
 STATE_KIND = "ccfit-offline"
 STATE_VERSION = 1
-METRICS_JSON = "metrics.json"
-DONE = "done.json"
 
 
 def default_out(cfg: OfflineConfig) -> Path:
@@ -105,8 +104,8 @@ def run_scratch(cfg: OfflineConfig, out: Path, progress: bool = True) -> list[di
     with open(out.parent / f".{out.name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
-            if (out / DONE).is_file():
-                return json.loads((out / DONE).read_text())
+            if (out / REFERENCE_DONE).is_file():
+                return json.loads((out / REFERENCE_DONE).read_text())
             source = dataset_source(cfg)
             saved = scratch_config(cfg, source)
             splits = _prepare(cfg, out, saved, source)
@@ -127,7 +126,7 @@ def run_scratch(cfg: OfflineConfig, out: Path, progress: bool = True) -> list[di
                     ).run()  # fmt: skip
             finally:
                 logger.close()
-            atomic_write_json(out / DONE, records)
+            atomic_write_json(out / REFERENCE_DONE, records)
             (out / "checkpoint.pt").unlink(missing_ok=True)
             return records
         finally:

@@ -27,7 +27,7 @@ from ccfit.io import atomic_write_json
 SWEEP_JSON = "sweep.json"
 SWEEP_VERSION = 1
 SCRATCH = "scratch"
-SCRATCH_DONE = "done.json"
+SCRATCH_DONE = "done.json"  # ccfit.curriculum.REFERENCE_DONE (kept import-free here)
 REPORT = "report"
 STATUS_JSON = "status.json"
 METRICS_JSON = "metrics.json"  # ccfit.curriculum.METRICS_JSON (kept import-free here)
