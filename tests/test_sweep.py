@@ -224,6 +224,22 @@ def test_local_sweep_trains_once_and_resubmits_only_unfinished_work(tmp_path, ca
     assert code == 0 and "0 pending, 0 running, 4 done, 0 failed, 0 not submitted" in out
 
 
+def test_a_local_sweep_finishes_seed_after_seed(tmp_path, capsys):
+    """One job at a time, the jobs start seed-major, each reference just before its runs:
+    stopped at any point, the sweep holds every method of the seeds it finished."""
+    root = tmp_path / "runs"
+    code, _, err = sweep_cli(capsys, "--suites", "Reach", "--methods", "ft,er", "--seeds", "0,1",
+                             "--out", str(root), "--max-parallel", "1", *TOY)
+    assert code == 0, err
+    sweep, record = load_sweep(root)
+    jobs = record["submissions"][0]["jobs"]
+    started = sorted((j["start"], i, n) for i, (n, j) in enumerate(jobs.items()) if "start" in j)
+    order = [n.split(":")[0] + ":" + ("s0" if "-s0" in n else "s1") +
+             (":" + n.split("-")[2] if n.startswith("run:") else "") for _, _, n in started]
+    assert order[:6] == ["scratch:s0", "run:s0:ft", "run:s0:er", "scratch:s1", "run:s1:ft",
+                         "run:s1:er"]  # fmt: skip
+
+
 def test_status_reads_an_abandoned_local_record_as_interrupted(tmp_path):
     sweep = expand(Grid(("Reach",), ("toy",), ("ft",), (0,), "smoke", RUN_ARGS, ("test_seam",)),
                    tmp_path)  # fmt: skip

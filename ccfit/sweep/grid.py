@@ -187,8 +187,10 @@ def expand(grid: Grid, root: str | Path) -> Sweep:
     import_plugins(grid.plugins)
     root = Path(root).resolve()
     runs = []
-    for suite, model, method, seed in itertools.product(grid.suites, grid.models, grid.methods,
-                                                        grid.seeds):  # fmt: skip
+    # Seed-major: a sweep run in order (a local pool, an array) finishes every method of a
+    # seed before the next seed, so a partly run sweep already compares all of them.
+    for seed, suite, model, method in itertools.product(grid.seeds, grid.suites, grid.models,
+                                                        grid.methods):  # fmt: skip
         argv = [f"--preset={grid.preset}", f"--suite={suite}", f"--seed={seed}",
                 f"--model.type={model}", f"--method.type={method}", *grid.args]  # fmt: skip
         cfg = parse_cli(config_class, argv, prog="ccfit sweep")

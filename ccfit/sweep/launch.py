@@ -102,11 +102,17 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
             return config
         return {**config, "train": {**config.get("train", {}), "parallel": "off"}}
 
+    def scratch_call(key: str) -> tuple:
+        return (ScratchJob(), alone(sweep.scratch_configs()[key]), str(sweep.scratch_dir(key)),
+                plugins, code, threads)  # fmt: skip
+
+    # In the grid's (seed-major) order, each reference just before the first run that needs
+    # it: the pool starts jobs in this order as they become ready, so a seed's runs go before
+    # the next seed's reference and a partly run sweep holds whole seeds.
     calls: dict[str, tuple] = {}
-    for key in work.scratch:
-        calls[f"scratch:{key}"] = (ScratchJob(), alone(sweep.scratch_configs()[key]),
-                                   str(sweep.scratch_dir(key)), plugins, code, threads)
     for run in work.runs:
+        if run.scratch_key in work.scratch and f"scratch:{run.scratch_key}" not in calls:
+            calls[f"scratch:{run.scratch_key}"] = scratch_call(run.scratch_key)
         calls[f"run:{run.name}"] = (RunJob(), alone(run.config), str(sweep.run_dir(run)),
                                     str(sweep.root / SCRATCH), run.scratch_key, plugins, code,
                                     threads)  # fmt: skip
