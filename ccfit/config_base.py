@@ -124,3 +124,29 @@ def resolve_device(name: str | torch.device) -> torch.device:
           f"device {str(device)!r} requested but CUDA is not available; use 'cpu' or "
           "'auto'")  # fmt: skip
     return device
+
+
+LEGACY_VALUES: dict[str, Any] = {"train.demo_fraction": 0.0}
+"""Settings added after runs were made, each with the value that reproduces what runs did
+before it existed. A setting at that value is left out wherever configs are compared or hashed
+(config.json, sweep.json, checkpoints, the from-scratch key), so a run or sweep written before
+it resumes under newer code, and a new one at that value is the same as the old."""
+
+
+def drop_legacy_values(config: dict, prefix: str = "") -> dict:
+    """`config` (a nested dict; `prefix`: where it sits, e.g. 'train.') without the
+    `LEGACY_VALUES` settings that hold their legacy value; a copy, the input is unchanged."""
+    out = dict(config)
+    for path, value in LEGACY_VALUES.items():
+        if not path.startswith(prefix):
+            continue
+        *parents, leaf = path[len(prefix):].split(".")
+        node = out
+        for key in parents:
+            if not isinstance(node.get(key), dict):
+                break
+            node[key] = node = dict(node[key])
+        else:
+            if leaf in node and node[leaf] == value:
+                del node[leaf]
+    return out

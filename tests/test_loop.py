@@ -63,6 +63,14 @@ def test_resume_after_interruption_matches_uninterrupted_run(tmp_path, monkeypat
         train_single(_run_config(broken), progress=False)
     monkeypatch.setattr(TDMPC2, "loss", original)
     assert torch.load(broken / "checkpoint.pt", weights_only=False)["task_step"] == 60
+    # Written by other versions: a config.json from before `train.demo_fraction` existed, a
+    # checkpoint that states it at its legacy value. Both are the same run.
+    saved = json.loads((broken / "config.json").read_text())
+    del saved["train"]["demo_fraction"]
+    (broken / "config.json").write_text(json.dumps(saved))
+    state = torch.load(broken / "checkpoint.pt", weights_only=False)
+    state["train_config"]["demo_fraction"] = 0.0
+    torch.save(state, broken / "checkpoint.pt")
     train_single(_run_config(broken), progress=False)
 
     a, b = _params(full), _params(broken)

@@ -22,6 +22,7 @@ from pathlib import Path
 
 from ccdata.errors import InputError
 from ccdata.slurm import code_version
+from ccfit.config_base import LEGACY_VALUES, drop_legacy_values
 from ccfit.io import atomic_write_json
 
 SWEEP_JSON = "sweep.json"
@@ -144,7 +145,7 @@ class Sweep:
 
     def identity(self) -> dict:
         """What makes two sweeps the same: every run's config but where it is stored."""
-        return {r.name: {k: v for k, v in r.config.items() if k != "out"} for r in self.runs}
+        return {r.name: run_identity(r.config) for r in self.runs}
 
     def record(self) -> dict:
         """sweep.json without the submissions."""
@@ -224,10 +225,14 @@ def load_sweep(root: str | Path) -> tuple[Sweep, dict]:
     return sweep, record
 
 
+def run_identity(config: dict) -> dict:
+    """A run's config but where it is stored and the settings at their legacy values."""
+    return {k: v for k, v in drop_legacy_values(config).items() if k != "out"}
+
+
 def check_same_sweep(sweep: Sweep, record: dict) -> None:
     """Refuse a folder whose sweep.json holds another sweep (other runs or other configs)."""
-    theirs = {r["name"]: {k: v for k, v in r["config"].items() if k != "out"}
-              for r in record.get("runs", [])}  # fmt: skip
+    theirs = {r["name"]: run_identity(r["config"]) for r in record.get("runs", [])}
     ours = sweep.identity()
     if theirs == ours:
         return
@@ -239,6 +244,8 @@ def check_same_sweep(sweep: Sweep, record: dict) -> None:
     else:
         name = next(n for n in ours if ours[n] != theirs[n])
         key, a, b = _first_difference(theirs[name], ours[name])
+        # A setting missing from one side is at its legacy value there.
+        a, b = (LEGACY_VALUES.get(key, v) if v is None else v for v in (a, b))
         what = f"run {name}: {key} is {b!r}, was {a!r}"
     raise InputError(f"{where} holds a different sweep ({what}); use another --out")
 

@@ -32,6 +32,7 @@ from torch import nn
 from ccdata.errors import InputError
 from ccdata.scoring import discounted_return
 from ccfit.config import TrainConfig
+from ccfit.config_base import drop_legacy_values
 from ccfit.continual.base import ContinualMethod, TaskData
 from ccfit.io import atomic_torch_save, derived_seed, load_checkpoint, rng_state, set_rng_state
 from ccfit.models.base import Batch, WorldModel
@@ -290,7 +291,8 @@ class Trainer:
     # ------------------------------------------------------------------------- checkpoints
 
     def _identity(self) -> dict:
-        return {"train_config": dataclasses.asdict(self.cfg), "seed": self.seed,
+        return {"train_config": drop_legacy_values(dataclasses.asdict(self.cfg), "train."),
+                "seed": self.seed,
                 "task_id": self.task_id, "global_offset": self.global_offset}  # fmt: skip
 
     def state_dict(self) -> dict:
@@ -322,7 +324,9 @@ class Trainer:
 
     def load_checkpoint(self, path: str | Path) -> None:
         state = load_checkpoint(path, CHECKPOINT_KIND, CHECKPOINT_VERSION)
-        if {k: state[k] for k in self._identity()} != self._identity():
+        saved = {k: state[k] for k in self._identity()}  # as written, by whichever version
+        saved["train_config"] = drop_legacy_values(saved["train_config"], "train.")
+        if saved != self._identity():
             raise InputError(f"{path} was written by another run (config, seed or task "
                              "differ); use another run directory or delete it")  # fmt: skip
         self.model.load_state_dict(state["model"])

@@ -15,7 +15,7 @@ import torch
 from ccdata.errors import InputError
 from ccdata.render import RenderSettings
 from ccfit.config import BaseRunConfig, RunConfig, TaskRunConfig
-from ccfit.config_base import ConfigError, resolve_device
+from ccfit.config_base import ConfigError, drop_legacy_values, resolve_device
 from ccfit.config_parse import flatten
 from ccfit.io import atomic_write_json, derived_seed, seed_everything
 from ccfit.models.base import WorldModel
@@ -141,8 +141,9 @@ over processes: not what it computes)."""
 
 
 def identity(resolved: dict) -> dict:
-    """`resolved` (config.json) without the `NOT_IDENTITY` settings."""
-    out = json.loads(json.dumps(resolved))
+    """`resolved` (config.json) without the `NOT_IDENTITY` settings and the settings at their
+    legacy values (`drop_legacy_values`)."""
+    out = drop_legacy_values(json.loads(json.dumps(resolved)))
     for path in NOT_IDENTITY:
         *parents, leaf = path.split(".")
         node = out
