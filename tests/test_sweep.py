@@ -280,7 +280,8 @@ def test_status_reads_an_abandoned_local_record_as_interrupted(tmp_path):
 
 
 def test_status_says_where_an_unfinished_run_is(tmp_path):
-    """A running or interrupted run's detail names its last evaluation (task, global step),
+    """A running or interrupted run's detail names its last evaluation (task, global step of
+    the steps it trains),
     read from the tail of its metrics.jsonl, a cut line skipped; nothing before the first."""
     sweep = expand(Grid(("Reach",), ("toy",), ("ft",), (0,), "smoke", RUN_ARGS, ("test_seam",)),
                    tmp_path)  # fmt: skip
@@ -290,13 +291,13 @@ def test_status_says_where_an_unfinished_run_is(tmp_path):
         name: {"state": "RUNNING"}}}])
     assert sweep_status(tmp_path)[name]["detail"] == ""
     sweep.run_dir(run).mkdir(parents=True)
-    records = [{"task": t, "global_step": 1000 * i} for i, t in enumerate(["reach-xy"] * 120
+    records = [{"task": t, "global_step": 5 * i} for i, t in enumerate(["reach-xy"] * 120
                                                                          + ["reach-xz"])]
     text = "".join(json.dumps(r) + "\n" for r in records) + '{"task": "reach-xz", "glo'
     (sweep.run_dir(run) / "metrics.jsonl").write_text(text)  # longer than the tail read
     assert sweep_status(tmp_path)[name] == {
         "state": "running", "job": f"local:{os.getpid()}",
-        "detail": "last evaluated reach-xz at global step 120000"}
+        "detail": "last evaluated reach-xz at global step 600 of 800"}  # 200 x 4 tasks
 
 
 def test_a_failed_reference_fails_its_runs_unstarted(tmp_path, capsys):

@@ -14,6 +14,7 @@ import os
 from pathlib import Path
 
 from ccdata.slurm import check_slurm, job_states
+from ccfit.config_base import suite_tasks
 from ccfit.sweep.grid import REPORT, STATUS_JSON, Sweep, load_sweep
 
 CATEGORIES = ("pending", "running", "done", "failed", "not submitted")
@@ -22,19 +23,31 @@ _PENDING = {"PENDING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "SUSPENDED", "
 _RUNNING = {"RUNNING", "COMPLETING", "CONFIGURING", "SIGNALING", "STAGE_OUT", "RESIZING"}
 
 
-def units(sweep: Sweep) -> dict[str, tuple[bool, Path]]:
-    """Every job name of the sweep -> (whether its output exists, its directory)."""
-    out = {f"scratch:{k}": (sweep.scratch_done(k), sweep.scratch_dir(k))
-           for k in sweep.scratch_configs()}  # fmt: skip
-    out.update({f"run:{r.name}": (sweep.run_done(r), sweep.run_dir(r)) for r in sweep.runs})
+def units(sweep: Sweep) -> dict[str, tuple[bool, Path, int | None]]:
+    """Every job name of the sweep -> (whether its output exists, its directory, the global
+    steps it trains when that is known)."""
+    out = {f"scratch:{k}": (sweep.scratch_done(k), sweep.scratch_dir(k),
+                            _total_steps(c, reference=True))
+           for k, c in sweep.scratch_configs().items()}  # fmt: skip
+    out.update({f"run:{r.name}": (sweep.run_done(r), sweep.run_dir(r), _total_steps(r.config))
+                for r in sweep.runs})  # fmt: skip
     # The report's own lines list its gaps.
-    out["report"] = ((sweep.root / REPORT / STATUS_JSON).is_file(), sweep.root / REPORT)
+    out["report"] = ((sweep.root / REPORT / STATUS_JSON).is_file(), sweep.root / REPORT, None)
     return out
 
 
-def progress(directory: Path) -> str:
-    """Where an unfinished run is: its last evaluation's task and global step ('' before the
-    first), read from the tail of its metrics.jsonl."""
+def _total_steps(config: dict, reference: bool = False) -> int | None:
+    """Global steps of an online curriculum (steps per task x tasks) or of its from-scratch
+    reference (one task); None for other tracks."""
+    steps = config.get("train", {}).get("steps")
+    if steps is None or "suite" not in config:
+        return None
+    return int(steps) * (1 if reference else len(suite_tasks(config["suite"])))
+
+
+def progress(directory: Path, total: int | None = None) -> str:
+    """Where an unfinished run is: its last evaluation's task and global step, of `total`
+    when given ('' before the first), read from the tail of its metrics.jsonl."""
     try:
         with (directory / "metrics.jsonl").open("rb") as f:
             f.seek(0, os.SEEK_END)
@@ -49,7 +62,8 @@ def progress(directory: Path) -> str:
             continue
         if isinstance(record, dict) and "global_step" in record:
             task, step = record.get("task", "?"), record["global_step"]
-            return f"last evaluated {task} at global step {step}"
+            of = f" of {total}" if total else ""
+            return f"last evaluated {task} at global step {step}{of}"
     return ""
 
 
@@ -82,7 +96,7 @@ def sweep_status(root: str | Path) -> dict[str, dict]:
         check_slurm()
         states = job_states(sweep.root / "slurm", slurm_ids)
     out = {}
-    for name, (done, directory) in units(sweep).items():
+    for name, (done, directory, total) in units(sweep).items():
         entry, job = latest.get(name, ({}, None))
         if done:
             out[name] = {"state": "done", "job": _job_id(entry, job, name), "detail": ""}
@@ -105,7 +119,7 @@ def sweep_status(root: str | Path) -> dict[str, dict]:
                                           "completed without its output"}.get(state, "")
             out[name] = {"state": category, "job": _job_id(entry, job, name), "detail": detail}
         if out[name]["state"] != "done":
-            where = progress(directory)
+            where = progress(directory, total)
             out[name]["detail"] = "; ".join(filter(None, (out[name]["detail"], where)))
     return out
 
