@@ -133,20 +133,25 @@ before it existed. A setting at that value is left out wherever configs are comp
 it resumes under newer code, and a new one at that value is the same as the old."""
 
 
+def without_setting(config: dict, path: str, only_if: Any = ...) -> dict:
+    """A copy of the nested dict `config` without the setting at dotted `path` (when it is
+    there and, given `only_if`, holds that value); the dicts on the way are copied, the input
+    is unchanged."""
+    *parents, leaf = path.split(".")
+    out = node = dict(config)
+    for key in parents:
+        if not isinstance(node.get(key), dict):
+            return out
+        node[key] = node = dict(node[key])
+    if leaf in node and (only_if is ... or node[leaf] == only_if):
+        del node[leaf]
+    return out
+
+
 def drop_legacy_values(config: dict, prefix: str = "") -> dict:
     """`config` (a nested dict; `prefix`: where it sits, e.g. 'train.') without the
     `LEGACY_VALUES` settings that hold their legacy value; a copy, the input is unchanged."""
-    out = dict(config)
     for path, value in LEGACY_VALUES.items():
-        if not path.startswith(prefix):
-            continue
-        *parents, leaf = path[len(prefix):].split(".")
-        node = out
-        for key in parents:
-            if not isinstance(node.get(key), dict):
-                break
-            node[key] = node = dict(node[key])
-        else:
-            if leaf in node and node[leaf] == value:
-                del node[leaf]
-    return out
+        if path.startswith(prefix):
+            config = without_setting(config, path[len(prefix):], only_if=value)
+    return config

@@ -20,8 +20,10 @@ import math
 from pathlib import Path
 
 from ccdata.errors import InputError
+from ccfit.config_base import LEGACY_VALUES
 from ccfit.curriculum import REFERENCE_DONE
 from ccfit.io import atomic_write_json, atomic_write_text
+from ccfit.train import CONFIG, METRICS
 from ccfit.train.cost import read_cost
 
 THRESHOLDS = (50, 80)
@@ -39,7 +41,7 @@ def read_run(run: Path) -> dict | None:
     """The learnability row of one `ccfit train` directory, or of a curriculum's from-scratch
     reference (the same single-task run of the suite's last task; None: neither, or not
     finished)."""
-    config, metrics = run / "config.json", run / "metrics.jsonl"
+    config, metrics = run / CONFIG, run / METRICS
     if not (config.is_file() and metrics.is_file()):
         return None
     from ccdata import SUITES
@@ -57,8 +59,9 @@ def read_run(run: Path) -> dict | None:
     scores = [r["normalized_return"] for r in records if r["normalized_return"] is not None]
     cost = read_cost(run)
     model = cfg["model"]["type"]
-    demo = cfg["train"].get("demo_fraction", 0.0)  # absent from configs older than the option
-    if demo:  # another way of learning: its rows and budgets are kept apart
+    legacy = LEGACY_VALUES["train.demo_fraction"]  # configs older than the option lack it
+    demo = cfg["train"].get("demo_fraction", legacy)
+    if demo != legacy:  # another way of learning: its rows and budgets are kept apart
         model += f" [demo_fraction={demo}]"
     return {
         "suites": [s.name for s in SUITES.values() if task in s.task_ids],

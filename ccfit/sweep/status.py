@@ -16,6 +16,7 @@ from pathlib import Path
 from ccdata.slurm import check_slurm, job_states
 from ccfit.config_base import suite_tasks
 from ccfit.sweep.grid import REPORT, STATUS_JSON, Sweep, load_sweep
+from ccfit.train.records import METRICS
 
 CATEGORIES = ("pending", "running", "done", "failed", "not submitted")
 _PENDING = {"PENDING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "SUSPENDED", "PREEMPTED",
@@ -49,7 +50,7 @@ def progress(directory: Path, total: int | None = None) -> str:
     """Where an unfinished run is: its last evaluation's task and global step, of `total`
     when given ('' before the first), read from the tail of its metrics.jsonl."""
     try:
-        with (directory / "metrics.jsonl").open("rb") as f:
+        with (directory / METRICS).open("rb") as f:
             f.seek(0, os.SEEK_END)
             f.seek(max(0, f.tell() - 4096))
             lines = f.read().decode(errors="replace").splitlines()

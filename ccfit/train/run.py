@@ -15,7 +15,7 @@ import torch
 from ccdata.errors import InputError
 from ccdata.render import RenderSettings
 from ccfit.config import BaseRunConfig, RunConfig, TaskRunConfig
-from ccfit.config_base import ConfigError, drop_legacy_values, resolve_device
+from ccfit.config_base import ConfigError, drop_legacy_values, resolve_device, without_setting
 from ccfit.config_parse import flatten
 from ccfit.io import atomic_write_json, derived_seed, seed_everything
 from ccfit.models.base import WorldModel
@@ -145,11 +145,7 @@ def identity(resolved: dict) -> dict:
     legacy values (`drop_legacy_values`)."""
     out = drop_legacy_values(json.loads(json.dumps(resolved)))
     for path in NOT_IDENTITY:
-        *parents, leaf = path.split(".")
-        node = out
-        for key in parents:
-            node = node.get(key, {})
-        node.pop(leaf, None)
+        out = without_setting(out, path)
     return out
 
 
