@@ -11,7 +11,8 @@ Each is the median of --repeats calls after --warmup calls, as wall time and as 
 this process (on a shared machine wall time inflates with other load; CPU time much less so).
 Every row is timed per --modes: `eager` (`--train.compile=off`), `compiled` (every hot path
 compiled, `--train.compile=on`), `auto` (what `--train.compile=auto` compiles on this device)
-and `bf16` (eager under `--train.autocast=bf16`); the first compiled call (the compilation) is
+`bf16` (eager under `--train.autocast=bf16`) and `auto-bf16` (both); the first compiled call
+(the compilation) is
 part of the warmup, not of the median.
 
 The roof: every row also counts the GFLOP of the matrix products in one update
@@ -151,7 +152,7 @@ def _median_times(fn, repeats: int, warmup: int) -> dict[str, float]:
 
 MODES = {  # name -> (--train.compile, --train.autocast)
     "eager": ("off", "off"), "compiled": ("on", "off"), "auto": ("auto", "off"),
-    "bf16": ("off", "bf16"),
+    "bf16": ("off", "bf16"), "auto-bf16": ("auto", "bf16"),
 }  # fmt: skip
 
 

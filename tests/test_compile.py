@@ -21,12 +21,12 @@ except ImportError:  # tests/ imported as a package
     from tests.replay_data import random_buffer
 
 
-def _run(name: str, setting: str, device: str = "cpu") -> dict:
-    cfg = config_class(name).preset("smoke")
+def _run(name: str, setting: str, device: str = "cpu", **overrides) -> dict:
+    cfg = config_class(name).preset("smoke", **overrides)
     if hasattr(cfg, "num_elites"):
         # Every sample an elite: the plan is then a continuous function of the values, not a
         # top-k choice that float reassociation can flip.
-        cfg = config_class(name).preset("smoke", num_elites=cfg.num_samples)
+        cfg = config_class(name).preset("smoke", num_elites=cfg.num_samples, **overrides)
     torch.manual_seed(0)
     model = make_model(cfg, device)
     model.begin_task(0, 100)
@@ -54,15 +54,32 @@ def _run(name: str, setting: str, device: str = "cpu") -> dict:
     return {"losses": losses, "action": action, "params": params}
 
 
-@pytest.mark.parametrize("name", model_names())
-def test_compiled_hot_paths_compute_what_the_eager_ones_do(name, device="cpu"):
-    if not model_class(name).hot_paths:
-        pytest.skip(f"{name} declares no hot path")
-    eager, compiled = _run(name, "off", device), _run(name, "on", device)
+def _assert_same(compiled: dict, eager: dict) -> None:
     assert compiled["losses"] == pytest.approx(eager["losses"], rel=1e-4, abs=1e-5)
     np.testing.assert_allclose(compiled["action"], eager["action"], rtol=1e-3, atol=1e-4)
     for k, v in eager["params"].items():
         torch.testing.assert_close(compiled["params"][k], v, rtol=1e-3, atol=1e-4, msg=k)
+
+
+@pytest.mark.parametrize("name", model_names())
+def test_compiled_hot_paths_compute_what_the_eager_ones_do(name, device="cpu"):
+    if not model_class(name).hot_paths:
+        pytest.skip(f"{name} declares no hot path")
+    _assert_same(_run(name, "on", device), _run(name, "off", device))
+
+
+@pytest.mark.parametrize("name", model_names())
+def test_one_process_compiles_models_of_two_sizes(name):
+    # Compiled code is shared by every instance of a class, so a second batch size makes
+    # Dynamo trace the hot paths again with dynamic shapes: torch.quantile could not be
+    # traced then, and DreamerV3's actor step (retain_graph) met a backward that had donated
+    # its buffers. A notebook that trains two presets in turn did exactly this.
+    if not model_class(name).hot_paths:
+        pytest.skip(f"{name} declares no hot path")
+    size = config_class(name).preset("smoke").batch_size
+    for batch_size in (size, size + 2):
+        _assert_same(_run(name, "on", batch_size=batch_size),
+                     _run(name, "off", batch_size=batch_size))  # fmt: skip
 
 
 def test_auto_compiles_only_what_was_measured_to_pay():

@@ -9,7 +9,7 @@ import torch
 from ccfit.config_base import ConfigError
 from ccfit.models.base import Batch
 from ccfit.models.encoders import preprocess_frames, random_shift
-from ccfit.models.layers import EnsembleMLP, SimNorm, TwoHot, mish, mlp, symexp, symlog
+from ccfit.models.layers import EnsembleMLP, SimNorm, TwoHot, mish, mlp, quantiles, symexp, symlog
 from ccfit.models.tdmpc2 import TDMPC2, TDMPC2_SIZES, TDMPC2Config, modules_in_eval
 
 try:
@@ -89,6 +89,14 @@ def test_closed_form_mish_equals_torch_mish_in_value_and_gradient():
     assert torch.isfinite(mish(half)).all()
     torch.testing.assert_close(mish(half).float(), torch.nn.functional.mish(half.float()),
                                rtol=2e-3, atol=2e-3)  # fmt: skip
+
+
+def test_quantiles_are_torch_quantile_bit_for_bit():
+    g = torch.Generator().manual_seed(0)
+    for n in (1, 2, 3, 240, 3841):
+        x = torch.randn(n, generator=g) * 50
+        qs = (0.0, 0.05, 0.5, 0.95, 1.0)
+        assert torch.equal(quantiles(x, qs), torch.quantile(x, torch.tensor(qs)))
 
 
 def test_simnorm_and_ensemble():

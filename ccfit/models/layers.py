@@ -210,6 +210,17 @@ def init_weights(module: nn.Module) -> None:
         nn.init.zeros_(module.bias)
 
 
+def quantiles(x: torch.Tensor, qs: tuple[float, ...]) -> torch.Tensor:
+    """`torch.quantile(x, qs)` of a 1-D tensor, bit for bit (linear interpolation between
+    order statistics, in x's dtype), from one sort: torch.quantile cannot be traced by
+    `torch.compile` once a shape is dynamic, which it becomes when one process compiles
+    models of two sizes."""
+    ordered = x.sort().values
+    rank = torch.tensor(qs, dtype=x.dtype, device=x.device) * (x.shape[0] - 1)
+    below = rank.floor()
+    return torch.lerp(ordered[below.long()], ordered[rank.ceil().long()], rank - below)
+
+
 def symlog(x: torch.Tensor) -> torch.Tensor:
     """sign(x) * log(1 + |x|): compresses large magnitudes symmetrically."""
     return torch.sign(x) * torch.log1p(x.abs())

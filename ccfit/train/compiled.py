@@ -35,9 +35,14 @@ def compile_hot_paths(model: WorldModel, setting: str) -> list[str]:
     names = compiled_paths(type(model), setting, model.device)
     if names:
         import torch._dynamo.config
+        import torch._functorch.config
         import torch._inductor.config
 
         torch._inductor.config.fallback_random = True
+        # DreamerV3's actor step differentiates with retain_graph (its critic pass serves the
+        # critic's loss too), which a compiled backward that donates its saved buffers
+        # refuses; Inductor compiles such a backward when it meets a second model size.
+        torch._functorch.config.donated_buffer = False
         # A plan specialises on batch 1 or more (an evaluation batch shrinks as its episodes
         # end), a warm start or none, eval_mode and the heads' train flag: 16 variants, twice
         # Dynamo's default limit, past which it silently runs eager.

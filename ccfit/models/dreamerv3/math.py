@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ccfit.models.layers import TwoHot, symexp, symlog
+from ccfit.models.layers import TwoHot, quantiles, symexp, symlog
 
 __all__ = [
     "TwoHot",
@@ -116,7 +116,7 @@ class ReturnNormalizer(nn.Module):
     @torch.no_grad()
     def update(self, returns: torch.Tensor) -> None:
         x = returns.detach().float().flatten()
-        q = torch.quantile(x, torch.tensor([self.q_low, self.q_high], device=x.device))
+        q = quantiles(x, (self.q_low, self.q_high))
         self.low.mul_(1.0 - self.rate).add_(self.rate * q[0])
         self.high.mul_(1.0 - self.rate).add_(self.rate * q[1])
 

@@ -15,7 +15,16 @@ from torch import nn
 from ccfit.config_base import resolve_device
 from ccfit.models.base import LATENT_KEY, Batch, LossOutput, OpenLoop, Prediction, WorldModel
 from ccfit.models.encoders import FrozenEncoder, build_encoder
-from ccfit.models.layers import EnsembleMLP, SimNorm, TwoHot, adam, init_weights, mlp, polyak
+from ccfit.models.layers import (
+    EnsembleMLP,
+    SimNorm,
+    TwoHot,
+    adam,
+    init_weights,
+    mlp,
+    polyak,
+    quantiles,
+)
 from ccfit.models.mppi import mppi_plan
 from ccfit.models.registry import register_model
 from ccfit.models.tdmpc2.config import Q_RETURN_TYPES, TDMPC2Config
@@ -323,7 +332,7 @@ class TDMPC2(WorldModel, Prediction):
         action, info = self.pi(zs, h)
         q = self.Q(zs, action, h, "avg", detach=True)
         with torch.no_grad():
-            lo, hi = torch.quantile(q[0].float().flatten(), q.new_tensor([0.05, 0.95]))
+            lo, hi = quantiles(q[0].float().flatten(), (0.05, 0.95))
             h.q_scale.lerp_((hi - lo).clamp(min=1.0).reshape(1), cfg.tau)
         q = q / h.q_scale
         rho = cfg.rho ** torch.arange(zs.shape[0], device=zs.device, dtype=zs.dtype)
