@@ -10,10 +10,9 @@ observation (TD-MPC2: a warm-started MPPI plan; DreamerV3: a posterior step and 
 Each is the median of --repeats calls after --warmup calls, as wall time and as CPU time of
 this process (on a shared machine wall time inflates with other load; CPU time much less so).
 Every row is timed per --modes: `eager` (`--train.compile=off`), `compiled` (every hot path
-compiled, `--train.compile=on`), `auto` (what `--train.compile=auto` compiles on this device)
+compiled, `--train.compile=on`), `auto` (what `--train.compile=auto` compiles on this device),
 `bf16` (eager under `--train.autocast=bf16`) and `auto-bf16` (both); the first compiled call
-(the compilation) is
-part of the warmup, not of the median.
+(the compilation) is part of the warmup, not of the median.
 
 The roof: every row also counts the GFLOP of the matrix products in one update
 (`update_gflop`, forward and backward, by torch's FLOP formulas; `act_gflop` for one act) and
