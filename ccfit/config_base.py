@@ -14,6 +14,7 @@ build on it without importing each other:
 from __future__ import annotations
 
 import dataclasses
+import json
 import typing
 from typing import Any, ClassVar
 
@@ -145,6 +146,21 @@ def without_setting(config: dict, path: str, only_if: Any = ...) -> dict:
         node[key] = node = dict(node[key])
     if leaf in node and (only_if is ... or node[leaf] == only_if):
         del node[leaf]
+    return out
+
+
+NOT_IDENTITY = ("log", "train.parallel")
+"""config.json settings a run may change when it is resumed (where it logs, how it spreads
+over processes: not what it computes)."""
+
+
+def identity(resolved: dict) -> dict:
+    """A run's config (config.json) as far as it decides what the run computes: without the
+    `NOT_IDENTITY` settings and the settings at their legacy values (`drop_legacy_values`),
+    as JSON reads it back."""
+    out = drop_legacy_values(json.loads(json.dumps(resolved)))
+    for path in NOT_IDENTITY:
+        out = without_setting(out, path)
     return out
 
 

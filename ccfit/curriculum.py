@@ -41,7 +41,7 @@ from ccdata.env import make_env
 from ccdata.errors import InputError
 from ccfit import metrics as M
 from ccfit.config import CurriculumConfig
-from ccfit.config_base import resolve_device
+from ccfit.config_base import identity, resolve_device
 from ccfit.continual.base import ContinualMethod, make_method
 from ccfit.io import (
     atomic_torch_save,
@@ -62,7 +62,6 @@ from ccfit.train.run import (
     CONFIG,
     build_model,
     check_saved_config,
-    identity,
     make_evaluator,
     make_replay,
     resolved_config,

@@ -6,6 +6,7 @@ pytest puts tests/ on sys.path and spawned workers inherit it), on Reach at tiny
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import os
@@ -138,6 +139,19 @@ def test_check_same_sweep_ignores_where_runs_are_stored(tmp_path):
     grid = Grid(("Reach",), ("toy",), ("ft",), (0,), "smoke", RUN_ARGS, ("test_seam",))
     a, b = expand(grid, tmp_path / "a"), expand(grid, tmp_path / "b")
     check_same_sweep(b, a.record())  # the folder moved: the same sweep
+
+
+def test_a_sweep_resumed_with_other_process_or_logging_settings_is_the_same_sweep(tmp_path):
+    # What a run may change when it resumes (`config_base.NOT_IDENTITY`), its sweep may too:
+    # resuming with --train.parallel=off was refused as 'a different sweep'.
+    grid = Grid(("Reach",), ("toy",), ("ft",), (0,), "smoke", RUN_ARGS, ("test_seam",))
+    before = expand(grid, tmp_path)
+    resumed = dataclasses.replace(grid, args=(*RUN_ARGS, "--train.parallel=off",
+                                              "--log.tensorboard=false"))  # fmt: skip
+    check_same_sweep(expand(resumed, tmp_path), before.record())
+    other = dataclasses.replace(grid, args=(*RUN_ARGS, "--train.eval_episodes=3"))
+    with pytest.raises(InputError, match="holds a different sweep"):
+        check_same_sweep(expand(other, tmp_path), before.record())
 
 
 @pytest.mark.parametrize("bad,expected", [

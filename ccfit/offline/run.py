@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 
 from ccfit import metrics as M
-from ccfit.config_base import resolve_device
+from ccfit.config_base import identity, resolve_device
 from ccfit.continual.base import ContinualMethod, make_method
 from ccfit.curriculum import METRICS_JSON, REFERENCE_DONE
 from ccfit.io import (
@@ -46,7 +46,7 @@ from ccfit.offline.config import OfflineConfig
 from ccfit.offline.data import dataset_source, load_task, make_splits, write_split
 from ccfit.offline.fit import SCORE_KEY, TRACK, OfflineLogger, TaskFitter
 from ccfit.train.cost import RunCost
-from ccfit.train.run import CONFIG, check_saved_config, identity, load_model, render_settings
+from ccfit.train.run import CONFIG, check_saved_config, load_model, render_settings
 
 STATE = "fit.pt"
 STATE_KIND = "ccfit-offline"

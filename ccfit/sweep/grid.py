@@ -22,7 +22,7 @@ from pathlib import Path
 
 from ccdata.errors import InputError
 from ccdata.slurm import code_version
-from ccfit.config_base import LEGACY_VALUES, drop_legacy_values
+from ccfit.config_base import LEGACY_VALUES, identity
 from ccfit.io import atomic_write_json
 
 SWEEP_JSON = "sweep.json"
@@ -226,8 +226,8 @@ def load_sweep(root: str | Path) -> tuple[Sweep, dict]:
 
 
 def run_identity(config: dict) -> dict:
-    """A run's config but where it is stored and the settings at their legacy values."""
-    return {k: v for k, v in drop_legacy_values(config).items() if k != "out"}
+    """What a run computes (`config_base.identity`), wherever it is stored."""
+    return {k: v for k, v in identity(config).items() if k != "out"}
 
 
 def check_same_sweep(sweep: Sweep, record: dict) -> None:

@@ -15,7 +15,7 @@ import torch
 from ccdata.errors import InputError
 from ccdata.render import RenderSettings
 from ccfit.config import BaseRunConfig, RunConfig, TaskRunConfig
-from ccfit.config_base import ConfigError, drop_legacy_values, resolve_device, without_setting
+from ccfit.config_base import ConfigError, identity, resolve_device
 from ccfit.config_parse import flatten
 from ccfit.io import atomic_write_json, derived_seed, seed_everything
 from ccfit.models.base import WorldModel
@@ -133,20 +133,6 @@ def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
     return Evaluator(model, task_ids, seed=cfg.seed, obs_mode=cfg.obs,
                      image_size=cfg.image_size, episodes=cfg.train.eval_episodes,
                      view=view, autocast=cfg.train.autocast)  # fmt: skip
-
-
-NOT_IDENTITY = ("log", "train.parallel")
-"""config.json settings a run may change when it is resumed (where it logs, how it spreads
-over processes: not what it computes)."""
-
-
-def identity(resolved: dict) -> dict:
-    """`resolved` (config.json) without the `NOT_IDENTITY` settings and the settings at their
-    legacy values (`drop_legacy_values`)."""
-    out = drop_legacy_values(json.loads(json.dumps(resolved)))
-    for path in NOT_IDENTITY:
-        out = without_setting(out, path)
-    return out
 
 
 def check_saved_config(out: Path, resolved: dict) -> None:
