@@ -74,6 +74,18 @@ def atomic_write_json(path: str | Path, obj: Any) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
 
+def read_run_json(path: Path, lines: bool = False, leave_out: str = "the report") -> Any:
+    """A run's JSON file (`lines`: one record per line); InputError when it is missing or
+    corrupt: a run directory damaged or copied in part is bad input, not a bug."""
+    try:
+        text = Path(path).read_text()
+        return [json.loads(x) for x in text.splitlines() if x.strip()] if lines else \
+            json.loads(text)  # fmt: skip
+    except (OSError, json.JSONDecodeError) as err:
+        raise InputError(f"{path}: missing or corrupt ({err}); rerun the run or leave it out "
+                         f"of {leave_out}") from None
+
+
 def seed_everything(seed: int) -> None:
     """Seed Python, NumPy and torch (CPU and every CUDA device)."""
     random.seed(seed)

@@ -39,7 +39,7 @@ from ccfit import metrics as M
 from ccfit.analysis import report_routing
 from ccfit.config_parse import flatten
 from ccfit.curriculum import METRICS_JSON, REFERENCE_DONE
-from ccfit.io import atomic_write_text
+from ccfit.io import atomic_write_text, read_run_json
 from ccfit.metrics import metrics_from_curves, task_curves
 from ccfit.offline.fit import SCORE_KEY, TRACK
 from ccfit.report_plots import (
@@ -141,23 +141,11 @@ def find_runs(paths: list[Path]) -> list[Run]:
         raise InputError(f"no finished runs (with {METRICS_JSON}) under {where}")
     runs = []
     for d in dict.fromkeys(dirs):
-        metrics = _read_json(d / METRICS_JSON)
-        records = _read_json(d / METRICS, lines=True)
-        scratch = _read_json(scratch_dir_of(d, metrics) / REFERENCE_DONE)
-        runs.append(Run(d, _read_json(d / CONFIG), records, scratch, metrics))
+        metrics = read_run_json(d / METRICS_JSON)
+        records = read_run_json(d / METRICS, lines=True)
+        scratch = read_run_json(scratch_dir_of(d, metrics) / REFERENCE_DONE)
+        runs.append(Run(d, read_run_json(d / CONFIG), records, scratch, metrics))
     return runs
-
-
-def _read_json(path: Path, lines: bool = False) -> Any:
-    """A run's JSON file (`lines`: one record per line); InputError when it is missing or
-    corrupt: a run directory damaged or copied in part is bad input, not a bug."""
-    try:
-        text = path.read_text()
-        return [json.loads(x) for x in text.splitlines() if x.strip()] if lines else \
-            json.loads(text)  # fmt: skip
-    except (OSError, json.JSONDecodeError) as err:
-        raise InputError(f"{path}: missing or corrupt ({err}); rerun the run or leave it out "
-                         "of the report") from None
 
 
 def scratch_dir_of(run_dir: Path, metrics: dict) -> Path:

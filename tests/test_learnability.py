@@ -90,3 +90,14 @@ def test_cli_on_a_real_smoke_run(tmp_path, capsys, short_episodes):
     md = (tmp_path / "out" / "learnability.md").read_text()
     assert "| Reach | reach-xy | tdmpc2 | 0 | 100 |" in md
     assert main(["learnability", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 2
+
+
+def test_a_damaged_run_is_one_line_and_exit_2(tmp_path, capsys):
+    from ccfit.cli import main
+
+    run = _fake_run(tmp_path / "runs", "pick-cube", "m", [0, 60, 90])
+    with (run / "metrics.jsonl").open("a") as f:
+        f.write('{"task_step": 3000, "normalized_ret')  # a copy cut short
+    assert main(["learnability", str(tmp_path / "runs"), "--out", str(tmp_path / "out")]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert "metrics.jsonl: missing or corrupt" in line and "leave it out of the table" in line

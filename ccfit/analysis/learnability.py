@@ -15,14 +15,13 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 from pathlib import Path
 
 from ccdata.errors import InputError
 from ccfit.config_base import LEGACY_VALUES
 from ccfit.curriculum import REFERENCE_DONE
-from ccfit.io import atomic_write_json, atomic_write_text
+from ccfit.io import atomic_write_json, atomic_write_text, read_run_json
 from ccfit.train import CONFIG, METRICS
 from ccfit.train.cost import read_cost
 
@@ -46,8 +45,8 @@ def read_run(run: Path) -> dict | None:
         return None
     from ccdata import SUITES
 
-    cfg = json.loads(config.read_text())
-    records = [json.loads(x) for x in metrics.read_text().splitlines() if x.strip()]
+    cfg = read_run_json(config, leave_out="the table")
+    records = read_run_json(metrics, lines=True, leave_out="the table")
     task = cfg.get("task")
     if task is None and (run / REFERENCE_DONE).is_file() and records:
         task = records[0].get("task")
