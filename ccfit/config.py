@@ -47,7 +47,8 @@ class TrainConfig:
         "cpu": dict(steps=6_000, seed_steps=1_000, eval_interval=1_000, eval_episodes=5,
                     checkpoint_interval=1_000, buffer_capacity=50_000),
         "paper": dict(steps=1_000_000, seed_steps=5_000, eval_interval=10_000, eval_episodes=10,
-                      checkpoint_interval=50_000, buffer_capacity=1_000_000, torch_threads=0),
+                      checkpoint_interval=50_000, buffer_capacity=1_000_000, torch_threads=0,
+                      autocast="auto"),
     }  # fmt: skip
 
     steps: int = 100_000
@@ -80,9 +81,12 @@ class TrainConfig:
     identity."""
     autocast: str = "off"
     """'bf16': the model's updates and acting run under bfloat16 autocast (matmuls in bf16,
-    parameters, optimiser state and reductions in float32); 'off': float32. fp16 is not
+    parameters, optimiser state and reductions in float32); 'off': float32; 'auto': bf16
+    where the hardware multiplies in bf16 (a CUDA GPU of compute capability 8.0+, a CPU with
+    AVX512-BF16 or AMX), else float32 (`ccfit.train.compiled.resolve_autocast`). fp16 is not
     offered: `head_update` steps its own optimisers inside the model, where a loss scaler
-    cannot reach, and bf16 needs none. Changes the numbers (recorded in config.json)."""
+    cannot reach, and bf16 needs none. Changes the numbers: config.json records what it
+    resolved to (`resolved_autocast`)."""
     compile: str = "auto"
     """'off' (eager), 'on' (every hot path of the model through torch.compile) or 'auto' (the
     hot paths measured faster compiled on this device type); see `ccfit.train.compiled`. The
@@ -114,8 +118,8 @@ class TrainConfig:
                                       f"{self.device!r}")  # fmt: skip
         check(self.parallel in ("auto", "on", "off"),
               f"train.parallel must be auto, on or off, got {self.parallel!r}")  # fmt: skip
-        check(self.autocast in ("off", "bf16"),
-              f"train.autocast must be 'off' or 'bf16', got {self.autocast!r}")  # fmt: skip
+        check(self.autocast in AUTOCAST_SETTINGS, f"train.autocast must be one of "
+                                                  f"{AUTOCAST_SETTINGS}, got {self.autocast!r}")
         check(self.compile in COMPILE_SETTINGS,
               f"train.compile must be one of {COMPILE_SETTINGS}, got {self.compile!r}")  # fmt: skip
         from ccdata.env import EPISODE_STEPS
@@ -133,6 +137,8 @@ class TrainConfig:
 
 COMPILE_SETTINGS: tuple[str, ...] = ("auto", "on", "off")
 """`--train.compile` values (`ccfit.train.compiled`)."""
+AUTOCAST_SETTINGS: tuple[str, ...] = ("off", "bf16", "auto")
+"""`--train.autocast` values (`ccfit.train.compiled.resolve_autocast`)."""
 WANDB_MODES: tuple[str, ...] = ("online", "offline")
 
 

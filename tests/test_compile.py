@@ -92,6 +92,22 @@ def test_auto_compiles_only_what_was_measured_to_pay():
         assert compiled_paths(cls, "auto", cuda) == list(cls.compile_pays.get("cuda", ()))
 
 
+def test_autocast_auto_is_bf16_where_the_hardware_multiplies_in_bf16():
+    from ccfit.config import TrainConfig
+    from ccfit.train.compiled import cpu_flags, native_bf16, resolve_autocast
+
+    cpu = torch.device("cpu")
+    assert native_bf16(cpu, frozenset({"avx2", "avx512f", "avx512_bf16"}))
+    assert native_bf16(cpu, frozenset({"amx_bf16", "amx_tile"}))
+    assert not native_bf16(cpu, frozenset({"avx2", "avx512f", "avx512bw"}))  # emulated only
+    here = "bf16" if cpu_flags() & {"avx512_bf16", "amx_bf16"} else "off"
+    assert resolve_autocast("auto", cpu) == here
+    assert resolve_autocast("bf16", cpu) == "bf16" and resolve_autocast("off", cpu) == "off"
+    # The paper's scale is matmul-bound, where bf16 pays; the small presets are not.
+    assert TrainConfig.preset("paper").autocast == "auto"
+    assert TrainConfig.preset("cpu").autocast == TrainConfig.preset("smoke").autocast == "off"
+
+
 def test_a_compiled_plan_stays_compiled_over_the_variants_a_run_meets(caplog):
     # Evaluation batches shrink as episodes end, plans start warm or cold, in eval or train
     # mode, with the heads in either mode: Dynamo's default limit (8) sent the plan back to

@@ -200,6 +200,7 @@ def test_each_method_writes_metrics_and_resolved_config(runs, method):
     cfg = json.loads((run.dir / CONFIG).read_text())
     assert cfg == json.loads(json.dumps(resolved_config(run.cfg, SUITE)))
     assert cfg["resolved_device"] == "cpu" and cfg["render"]["image_size"] == 64
+    assert cfg["train"]["autocast"] == "off" and cfg["resolved_autocast"] == "off"
     assert cfg["train"]["steps"] == STEPS and cfg["train"]["eval_interval"] == EVAL
     assert cfg["model"]["batch_size"] == 16  # the smoke preset under the overrides
     assert cfg["model"]["latent_dim"] == 32 and cfg["resolved_seed_dataset"] is None

@@ -63,10 +63,11 @@ def test_resume_after_interruption_matches_uninterrupted_run(tmp_path, monkeypat
         train_single(_run_config(broken), progress=False)
     monkeypatch.setattr(TDMPC2, "loss", original)
     assert torch.load(broken / "checkpoint.pt", weights_only=False)["task_step"] == 60
-    # Written by other versions: a config.json from before `train.demo_fraction` existed, a
-    # checkpoint that states it at its legacy value. Both are the same run.
+    # Written by other versions: a config.json from before `train.demo_fraction` and
+    # `resolved_autocast` existed, a checkpoint that states the former at its legacy value.
+    # Both are the same run.
     saved = json.loads((broken / "config.json").read_text())
-    del saved["train"]["demo_fraction"]
+    del saved["train"]["demo_fraction"], saved["resolved_autocast"]
     (broken / "config.json").write_text(json.dumps(saved))
     state = torch.load(broken / "checkpoint.pt", weights_only=False)
     state["train_config"]["demo_fraction"] = 0.0
@@ -159,6 +160,8 @@ def test_preset_fills_defaults_and_flags_override_them():
         (["run", "--suite", "Reach", "--method.type=experts"], "pwm"),
         (["run", "--suite", "Nowhere"], "Reach"),
         (["run", "--suite", "Reach", "--method.type=ewc", "--method.lam=-1"], "lam"),
+        (["train", "--task", "reach-xy", "--train.autocast=fp16"],
+         "train.autocast must be one of ('off', 'bf16', 'auto')"),
         (["fly"], "invalid choice"),
     ],
 )

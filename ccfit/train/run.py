@@ -22,7 +22,7 @@ from ccfit.models.base import WorldModel
 from ccfit.models.registry import make_model, model_class
 from ccfit.replay import ReplayBuffer
 from ccfit.seeding import DEMO_POLICY, seed_buffer
-from ccfit.train.compiled import compile_hot_paths, compiled_paths
+from ccfit.train.compiled import compile_hot_paths, compiled_paths, resolve_autocast
 from ccfit.train.cost import RunCost
 from ccfit.train.eval_worker import AsyncEvaluator, WorkerSpec, has_view, parallel_on
 from ccfit.train.evaluate import REPLAY_TAG, Evaluator
@@ -40,7 +40,8 @@ def render_settings(cfg: BaseRunConfig) -> RenderSettings:
 
 def resolved_config(cfg: RunConfig, suite: str | None) -> dict:
     """config.json of a run: the config, plus what it resolved to where it runs: the seed
-    dataset ('auto'), the device ('auto'), the compiled methods and the render settings."""
+    dataset ('auto'), the device ('auto'), the compiled methods, the precision and the render
+    settings."""
     device = resolve_device(cfg.train.device)
     source = dataset_source(cfg, suite)
     if cfg.train.demo_fraction > 0 and source is None:
@@ -53,6 +54,7 @@ def resolved_config(cfg: RunConfig, suite: str | None) -> dict:
         "resolved_device": str(device),
         "resolved_compile": compiled_paths(model_class(cfg.model.type), cfg.train.compile,
                                            device),
+        "resolved_autocast": resolve_autocast(cfg.train.autocast, device),
         "render": render_settings(cfg).to_dict(),
     }
 
