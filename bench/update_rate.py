@@ -31,8 +31,10 @@ update's rate on the same arithmetic (`official_update_gflop_per_s`).
         --warmup 2 --sizes anchor-small,anchor-default,anchor-pixels --anchor-json dv3-torch.json
 
 References on this machine (2 threads):
-- official TD-MPC2, batch 256: 1M state 0.156 s/update and 0.214 s/plan; 5M state 0.546 and
-  0.558; 5M 64 px 1.21 s/update (our `paper` preset is the official 5M).
+- official TD-MPC2 (e9f5932, eager, episodic), batch 256, quiet, in two rounds alternating with
+  this script (../shared/tools/anchors/tdmpc2_official.py): 1M state 0.1145 s/update and
+  0.170 s/plan; 5M state 0.3915 and 0.449 (our `paper` preset is the official 5M); 5M 64 px
+  1.21 s/update (an earlier, single measurement).
 - dreamerv3-torch (object814 fork), batch 16 x 64, imagination from all 1024 starts:
   ../shared/tools/anchors/run_dreamerv3.sh; pass its JSON as --anchor-json to get the ratio
   anchor / ours per size (> 1: ours is faster). Anchor sizes (`ANCHOR_SIZES`): anchor-small =
@@ -71,9 +73,9 @@ VARIANTS = {  # name -> (obs mode, frozen encoder, latents cached in replay)
     "frozen": ("pixels", True, False),
     "cached": ("pixels", True, True),
 }
-OFFICIAL_TDMPC2_S = {
-    ("1M", "state"): {"update": 0.156, "act": 0.214},
-    ("paper", "state"): {"update": 0.546, "act": 0.558},
+OFFICIAL_TDMPC2_S = {  # medians of two rounds alternating with ours, quiet (the docstring)
+    ("1M", "state"): {"update": 0.1145, "act": 0.170},
+    ("paper", "state"): {"update": 0.3915, "act": 0.449},
     ("paper", "pixels"): {"update": 1.21},
 }
 _ANCHOR_SMALL = dict(deter=256, hidden=64, stoch=16, classes=8, units=128, layers=2)
