@@ -13,6 +13,11 @@ end-of-task scores, BWT and FWT (the learning must not change beyond seed noise)
 
 `--baseline` is a source tree of another commit, e.g. `git worktree add ../baseline 4e65a89`.
 Run nothing else meanwhile (`../shared/tools/anchors/wait_quiet.sh` waits for that).
+
+Compiling is part of a run's cost, and Inductor caches what it compiled on disk
+(TORCHINDUCTOR_CACHE_DIR): a machine's first run compiles every hot path (cold), later runs
+load them (warm). `--inductor-cache cold` gives each run an empty cache; `warm` runs this
+checkout once more first, untimed, to fill a cache of its own; `both` times it cold, then warm.
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parents[1]
 
 
-def run_one(src: Path, out: Path, args, model: str) -> dict:
+def run_one(src: Path, out: Path, args, model: str, cache: Path) -> dict:
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     cmd = [sys.executable, "-m", "ccfit.cli", "run", "--suite", args.suite, "--preset",
@@ -38,7 +43,8 @@ def run_one(src: Path, out: Path, args, model: str) -> dict:
            f"--model.type={model}", f"--method.type={args.method}",
            f"--train.steps={args.steps}", "--out", str(out / "run"),
            "--scratch-root", str(out / "scratch"), "--quiet", *args.extra]  # fmt: skip
-    env = {**os.environ, "PYTHONPATH": str(src), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    env = {**os.environ, "PYTHONPATH": str(src), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+           "TORCHINDUCTOR_CACHE_DIR": str(cache)}  # fmt: skip
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     # cwd=src: `python -m` puts the working directory first on sys.path, ahead of PYTHONPATH
@@ -69,27 +75,38 @@ def main() -> None:
                         "budget may differ between them")  # fmt: skip
     parser.add_argument("--out", default="/tmp/ccfit-bench-curriculum",
                         help="scratch folder for the runs")
+    parser.add_argument("--inductor-cache", choices=("cold", "warm", "both"), default="both",
+                        help="time runs with an empty compile cache, a filled one, or both "
+                             "(this checkout only; see the module doc)")  # fmt: skip
     parser.add_argument("--extra", nargs=argparse.REMAINDER, default=[],
                         help="more `ccfit run` options for both versions (last)")
     args = parser.parse_args()
-    versions = {"current": HERE}
+    current = {"cold": ["current_cold"], "warm": ["untimed", "current_warm"],
+               "both": ["current_cold", "current_warm"]}[args.inductor_cache]  # fmt: skip
+    versions = [(name, HERE) for name in current]
     if args.baseline:
-        versions = {"baseline": Path(args.baseline).resolve(), **versions}
+        versions = [("baseline", Path(args.baseline).resolve()), *versions]
     results: dict[str, dict] = {}
     for model in args.models.split(","):
         row = {}
-        for name, src in versions.items():
-            row[name] = run_one(src, Path(args.out) / f"{model}-{name}", args, model)
-            print(json.dumps({model: {name: row[name]}}), file=sys.stderr, flush=True)
-        if "baseline" in row:
-            base, cur = row["baseline"], row["current"]
-            row["wall_ratio_baseline_over_current"] = base["wall_s"] / cur["wall_s"]
-            row["cpu_ratio_baseline_over_current"] = base["cpu_s"] / cur["cpu_s"]
+        cache = Path(args.out) / f"{model}-inductor-cache"
+        for name, src in versions:
+            if name in ("baseline", "current_cold"):
+                shutil.rmtree(cache, ignore_errors=True)
+            result = run_one(src, Path(args.out) / f"{model}-{name}", args, model, cache)
+            if name != "untimed":
+                row[name] = result
+                print(json.dumps({model: {name: result}}), file=sys.stderr, flush=True)
+        for name in ("current_cold", "current_warm"):
+            if "baseline" in row and name in row:
+                base, cur = row["baseline"], row[name]
+                row[f"wall_ratio_baseline_over_{name}"] = base["wall_s"] / cur["wall_s"]
+                row[f"cpu_ratio_baseline_over_{name}"] = base["cpu_s"] / cur["cpu_s"]
         results[model] = row
     print(json.dumps({
         "suite": args.suite, "preset": args.preset, "method": args.method, "seed": args.seed,
         "obs": "state", "steps": args.steps, "cpu_count": os.cpu_count(), "baseline": args.baseline,
-        "extra": args.extra, "results": results,
+        "inductor_cache": args.inductor_cache, "extra": args.extra, "results": results,
     }, indent=2))  # fmt: skip
 
 

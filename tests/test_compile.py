@@ -7,6 +7,8 @@ actions, compiled or eager, within floating-point tolerance (Inductor reassociat
 
 from __future__ import annotations
 
+import types
+
 import numpy as np
 import pytest
 import torch
@@ -128,3 +130,37 @@ def test_a_compiled_plan_stays_compiled_over_the_variants_a_run_meets(caplog):
                     model.plan(torch.randn(n, model.cfg.latent_dim), heads, mean,
                                eval_mode=eval_mode)  # fmt: skip
     assert not [r for r in caplog.records if "recompile_limit" in r.getMessage()]
+
+
+@pytest.mark.parametrize("name", [n for n in model_names() if "plan" in model_class(n).hot_paths])
+def test_acting_compiles_one_plan_per_mode_and_batch_kind(name):
+    # What a run meets: training acts on one episode, from a cold start and then warm;
+    # evaluation acts on a batch that shrinks as its episodes end (down to one), its acting
+    # state selected per episode. A cold start is a warm start from zero means, the batch
+    # size is dynamic above one and the plan means come back in row-major strides, so this
+    # compiles three plans (train at 1, eval above 1, eval at 1), not one per start, size
+    # and stride pattern (5 before).
+    from torch._dynamo.testing import CompileCounter
+
+    from ccfit.models.base import select_state
+
+    cfg = config_class(name).preset("smoke")
+    model = make_model(cfg, "cpu")
+    model.begin_task(0, 1000)
+    heads = model.new_heads()
+    counter = CompileCounter()
+    torch._dynamo.reset()
+    model.plan = types.MethodType(torch.compile(type(model).plan, backend=counter), model)
+    rows = random_buffer(cfg, seed=1, steps=(10, 20)).sample(8, cfg.seq_len).obs
+    with torch.no_grad():
+        state = None
+        for _ in range(3):
+            obs = {k: v[0, :1] for k, v in rows.items()}
+            state = model.act(obs, heads, state, eval_mode=False)[1]
+        state = None
+        for n in (5, 5, 4, 3, 1):
+            if state is not None:
+                state = select_state(state, torch.arange(n))
+            obs = {k: v[0, :n] for k, v in rows.items()}
+            state = model.act(obs, heads, state, eval_mode=True)[1]
+    assert counter.frame_count == 3

@@ -77,4 +77,6 @@ def mppi_plan(
     else:
         pick = torch.multinomial(score, 1).squeeze(1)
         a = elite_actions[0, rows, pick] + std[0] * torch.randn(n, d, device=z.device)
-    return a.clamp(-1, 1), mean.transpose(0, 1)
+    # In row-major strides whatever n is (a transposed view's strides depend on n, and
+    # `contiguous` keeps them for n = 1): a compiled plan guards on the strides of its input.
+    return a.clamp(-1, 1), mean.transpose(0, 1).clone(memory_format=torch.contiguous_format)

@@ -385,6 +385,14 @@ class TDMPC2(WorldModel, Prediction):
         h = _heads(heads)
         with modules_in_eval(self.backbone, h):
             z = self.encode(obs)
+            if state is None:
+                # A plan warm-started from zero means is the cold start, exactly: one
+                # compiled plan serves both.
+                state = z.new_zeros(z.shape[0], self.cfg.horizon, self.cfg.action_dim)
+            if z.shape[0] > 1:
+                # Evaluation batches shrink as their episodes end: one plan for every size.
+                torch._dynamo.maybe_mark_dynamic(z, 0)
+                torch._dynamo.maybe_mark_dynamic(state, 0)
             action, mean = self.plan(z, h, state, eval_mode=eval_mode)
         return action.float().cpu().numpy(), mean
 
