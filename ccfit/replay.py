@@ -16,6 +16,11 @@ surviving row then gets is_first = 1, so what is left of a partly overwritten ep
 shorter episode starting there (its remaining transitions stay usable). Hence the oldest
 stored row always has is_first = 1.
 
+Demonstrations (`add_episode(demo=True)`) are also kept whole outside the ring, for
+`sample(demo_fraction=)` to oversample as long as the buffer lives: a long run would otherwise
+overwrite the seed dataset's demonstrations and have none left to oversample. In the ring they
+are rows like any other. Checkpoints keep the row files that hold them (`demo_spans`).
+
 `add_windows` stores windows taken from another buffer (`gather`), each as one stored episode
 whose first row is marked is_first: what experience replay keeps of a finished task.
 """
@@ -33,6 +38,21 @@ from ccfit.models.base import Batch
 
 def _tensor(x) -> torch.Tensor:
     return x if isinstance(x, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(x))
+
+
+def _rows_of(chunks: list[tuple[int, dict[str, torch.Tensor]]], first: int, end: int
+             ) -> dict[str, torch.Tensor]:  # fmt: skip
+    """Rows first .. end - 1 (write numbers) out of (first write number, columns) chunks,
+    which may overlap."""
+    pieces, row = [], first
+    for start, cols in sorted(chunks, key=lambda chunk: chunk[0]):
+        a, b = max(row, start), min(end, start + cols["action"].shape[0])
+        if a < b:
+            pieces.append({k: v[a - start:b - start] for k, v in cols.items()})
+            row = b
+    if row != end:
+        raise ValueError(f"the checkpoint's rows lack rows {row}..{end} of a demonstration")
+    return {k: torch.cat([p[k] for p in pieces]) for k in pieces[0]}
 
 
 class ReplayBuffer:
@@ -75,6 +95,11 @@ class ReplayBuffer:
         # Stored episodes, oldest first (the oldest may be partly overwritten):
         # [number of its first row ever written, rows, task index, 1 if a demonstration].
         self._episodes: deque[tuple[int, int, int, int]] = deque()
+        # Every demonstration ever stored: its write numbers [first, end) and its rows (as
+        # `rows` gives them), kept after the ring overwrites them.
+        self.demo_spans: list[tuple[int, int]] = []
+        self._demo_parts: list[dict[str, torch.Tensor]] = []
+        self._demo: dict[str, torch.Tensor] | None = None  # the parts concatenated
         self._cache: dict[str, torch.Tensor] = {}
 
     # ----------------------------------------------------------------------------- adding
@@ -173,6 +198,8 @@ class ReplayBuffer:
         self._first[idx] = first.to(self.storage)
         self._task[idx] = task
         self._written += n
+        if demo:
+            self._keep_demo(start, self.rows(start, start + n))
         for rows in episode_rows:
             self._episodes.append((start, rows, task, int(demo)))
             start += rows
@@ -182,6 +209,22 @@ class ReplayBuffer:
         if oldest > 0:  # the remainder of a partly overwritten episode starts here
             self._first[self._physical(torch.tensor([oldest])).to(self.storage)] = True
         self._cache.clear()
+
+    def _keep_demo(self, start: int, cols: dict[str, torch.Tensor]) -> None:
+        """Keep the demonstration written as rows start .. start + n - 1 (one episode: only
+        its first row is_first, though the ring may since have marked another)."""
+        cols = {k: v.to(self.storage) for k, v in cols.items()}
+        cols["is_first"] = torch.zeros_like(cols["is_first"])
+        cols["is_first"][0] = True
+        self.demo_spans.append((start, start + cols["action"].shape[0]))
+        self._demo_parts.append(cols)
+        self._demo = None
+
+    def _demo_columns(self) -> dict[str, torch.Tensor]:
+        if self._demo is None:
+            self._demo = {k: torch.cat([p[k] for p in self._demo_parts])
+                          for k in self._demo_parts[0]}  # fmt: skip
+        return self._demo
 
     def _check_layout(self, obs: dict[str, torch.Tensor], action: torch.Tensor) -> None:
         if not self._obs:
@@ -288,23 +331,22 @@ class ReplayBuffer:
             raise ValueError(f"replay holds {self.size} rows, fewer than a window of {seq_len}")
         starts = torch.randint(0, total, (batch_size,), generator=self.generator)
         demos = round(demo_fraction * batch_size)
-        if demos > 0:
-            pool = self.demo_starts(seq_len)
-            if len(pool) == 0:
-                raise ValueError("demo_fraction > 0 but replay holds no demonstration rows")
-            starts[:demos] = pool[torch.randint(0, len(pool), (demos,), generator=self.generator)]
-        return self.gather(starts, seq_len)
+        if demos == 0:
+            return self.gather(starts, seq_len)
+        pool = len(self.demo_starts(seq_len))
+        if pool == 0:
+            raise ValueError(f"demo_fraction > 0 but replay holds no demonstration rows to "
+                             f"start a window of {seq_len} on")  # fmt: skip
+        picks = torch.randint(0, pool, (demos,), generator=self.generator)
+        window = torch.arange(seq_len).unsqueeze(1)
+        return self._window([(self._demo_columns(), picks.unsqueeze(0) + window),
+                             (self._columns(), self._rows(starts[demos:].unsqueeze(0) + window))])
 
     def demo_starts(self, seq_len: int) -> torch.Tensor:
-        """Window starts (counted from the oldest row) on the stored rows of demonstrations."""
-        key = f"demo_starts/{seq_len}"
-        if key not in self._cache:
-            oldest, total = self._oldest, self.num_starts(seq_len)
-            rows = [torch.arange(max(first, oldest), first + n) - oldest
-                    for first, n, _, demo in self._episodes if demo]  # fmt: skip
-            pool = torch.cat(rows) if rows else torch.zeros(0, dtype=torch.long)
-            self._cache[key] = pool[pool < total]
-        return self._cache[key]
+        """Window starts on the kept demonstrations' rows (one after another, each starting
+        with is_first): every row that `seq_len` - 1 kept rows follow."""
+        rows = sum(end - first for first, end in self.demo_spans)
+        return torch.arange(max(0, rows - seq_len + 1))
 
     def gather(self, starts, seq_len: int) -> Batch:
         """The windows whose first rows are `starts` in [0, num_starts(seq_len)), counted from
@@ -313,7 +355,8 @@ class ReplayBuffer:
         total = self.num_starts(seq_len)
         if len(pick) and (int(pick.min()) < 0 or int(pick.max()) >= total):
             raise ValueError(f"window starts must be in [0, {total}) for seq_len {seq_len}")
-        return self._window(pick.unsqueeze(0) + torch.arange(seq_len).unsqueeze(1))
+        logical = pick.unsqueeze(0) + torch.arange(seq_len).unsqueeze(1)
+        return self._window([(self._columns(), self._rows(logical))])
 
     def sample_at_episode_starts(self, batch_size: int, seq_len: int) -> Batch:
         """`batch_size` windows of `seq_len` rows, each starting on an episode's first row,
@@ -327,7 +370,8 @@ class ReplayBuffer:
         if len(firsts) == 0:
             raise ValueError("replay is empty")
         pick = firsts[torch.randint(0, len(firsts), (batch_size,), generator=self.generator)]
-        return self._window((pick.unsqueeze(0) + torch.arange(seq_len).unsqueeze(1)) % self.size)
+        logical = (pick.unsqueeze(0) + torch.arange(seq_len).unsqueeze(1)) % self.size
+        return self._window([(self._columns(), self._rows(logical))])
 
     def _episode_starts(self) -> torch.Tensor:
         """First stored row of every stored episode, counted from the oldest row."""
@@ -338,20 +382,21 @@ class ReplayBuffer:
             )
         return self._cache["starts"]
 
-    def _window(self, logical: torch.Tensor) -> Batch:
-        rows = self._rows(logical).to(self.storage)  # (L, B)
-
-        def take(col: torch.Tensor) -> torch.Tensor:
-            out = col[rows]
+    def _window(self, parts: list[tuple[dict[str, torch.Tensor], torch.Tensor]]) -> Batch:
+        """The windows of each (columns as `_columns` names them, storage rows (L, B_i)),
+        side by side in the order given."""
+        def take(name: str) -> torch.Tensor:
+            outs = [cols[name][rows.to(self.storage)] for cols, rows in parts]
+            out = outs[0] if len(outs) == 1 else torch.cat(outs, dim=1)
             return out.pin_memory() if self.pin else out  # so `Batch.to(gpu)` won't block
 
         return Batch(
-            obs={k: take(v) for k, v in self._obs.items()},
-            action=take(self._action),
-            reward=take(self._reward).unsqueeze(-1),
-            terminated=take(self._term).unsqueeze(-1),
-            is_first=take(self._first).float().unsqueeze(-1),
-            task=take(self._task),
+            obs={k: take(f"obs.{k}") for k in self._obs},
+            action=take("action"),
+            reward=take("reward").unsqueeze(-1),
+            terminated=take("terminated").unsqueeze(-1),
+            is_first=take("is_first").float().unsqueeze(-1),
+            task=take("task"),
         )
 
     # ------------------------------------------------------------------------- checkpoints
@@ -380,18 +425,27 @@ class ReplayBuffer:
             "capacity": self.capacity,
             "written": self._written,
             "episodes": torch.tensor(list(self._episodes), dtype=torch.long).reshape(-1, 4),
+            "demo_spans": torch.tensor(self.demo_spans, dtype=torch.long).reshape(-1, 2),
             "generator": self.generator.get_state(),
         }
 
     def load_state(self, meta: dict, chunks: list[tuple[int, dict[str, torch.Tensor]]]) -> None:
         """Restore from `meta_state` and (first write number, `rows`) chunks covering every
-        stored row, oldest first."""
+        stored row and every kept demonstration's, oldest first."""
         if meta["capacity"] != self.capacity:
             raise ValueError(
                 f"checkpoint buffer capacity {meta['capacity']} != configured {self.capacity}"
             )
         self._obs, self._written, self._cache = {}, int(meta["written"]), {}
         oldest = self._oldest
+        episodes = meta["episodes"].tolist()
+        # Checkpoints written before demonstrations were kept: those still stored are kept.
+        spans = (meta["demo_spans"].tolist() if "demo_spans" in meta else
+                 [(max(first, oldest), first + n) for first, n, _, *demo in episodes
+                  if demo and demo[0]])  # fmt: skip
+        self.demo_spans, self._demo_parts, self._demo = [], [], None
+        for first, end in spans:
+            self._keep_demo(first, _rows_of(chunks, first, end))
         for start, cols in chunks:
             keep = max(oldest, start) - start
             cols = {k: v[keep:] for k, v in cols.items()}
@@ -414,8 +468,16 @@ class ReplayBuffer:
     def state_dict(self) -> dict:
         """Everything needed to continue identically, in one dict (the rows stored, not the
         storage allocated); `ccfit.replay_store` writes large buffers incrementally instead."""
-        return {**self.meta_state(), "rows": self.rows(self._oldest, self._written)}
+        demos = self._demo_columns() if self.demo_spans else {}
+        return {**self.meta_state(), "rows": self.rows(self._oldest, self._written),
+                "demo_rows": {k: v.cpu() for k, v in demos.items()}}  # fmt: skip
 
     def load_state_dict(self, state: dict) -> None:
-        self.load_state(state, [(int(state["written"]) - state["rows"]["action"].shape[0],
-                                 state["rows"])])  # fmt: skip
+        written, rows = int(state["written"]), state["rows"]
+        chunks = [(written - rows["action"].shape[0], rows)]
+        offset = 0  # the kept demonstrations' rows, one span after another
+        for first, end in state.get("demo_spans", torch.zeros(0, 2)).tolist():
+            chunks.append((first, {k: v[offset:offset + end - first]
+                                   for k, v in state["demo_rows"].items()}))
+            offset += end - first
+        self.load_state(state, chunks)

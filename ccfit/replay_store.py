@@ -4,7 +4,8 @@ A checkpoint used to hold the whole buffer: at the paper's scale (a million 64 p
 of GB) every checkpoint would rewrite all of it. Here each checkpoint writes only the rows
 added since the previous one, as one file `replay/rows-<first>-<end>.pt` (write numbers),
 and records the list of files it needs (its manifest) with the buffer's small state. A file
-whose rows have all been overwritten leaves the manifest; it is deleted only after the
+whose rows have all been overwritten leaves the manifest, unless it holds rows of a
+demonstration (the buffer keeps those, `ReplayBuffer.demo_spans`); it is deleted only after the
 checkpoint that no longer needs it is written, so the previous checkpoint stays readable
 until then. Files a killed process wrote after its last checkpoint are not in any manifest
 and are deleted when the run resumes.
@@ -27,8 +28,12 @@ def save_rows(buffer: ReplayBuffer, run_dir: Path, manifest: list[dict]
     """Write the rows added since `manifest` (the previous checkpoint's); returns the new
     manifest and the files it no longer needs (delete them once it is saved)."""
     directory = Path(run_dir) / ROWS_DIR
-    keep = [f for f in manifest if f["end"] > buffer.oldest]
-    stale = [directory / f["file"] for f in manifest if f["end"] <= buffer.oldest]
+    def needed(f: dict) -> bool:
+        return f["end"] > buffer.oldest or any(f["start"] < end and first < f["end"]
+                                               for first, end in buffer.demo_spans)
+
+    keep = [f for f in manifest if needed(f)]
+    stale = [directory / f["file"] for f in manifest if not needed(f)]
     start = max(keep[-1]["end"] if keep else 0, buffer.oldest)
     if buffer.written > start:
         name = f"rows-{start:012d}-{buffer.written:012d}.pt"

@@ -184,8 +184,8 @@ def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
     tiny_dataset, tmp_path, capsys, monkeypatch
 ):
     """`--train.demo_fraction` trains with the seed dataset's oracle episodes oversampled (every
-    update's batch is drawn with it) and records the setting; without demonstrations to
-    oversample it is one line, exit 2."""
+    update's batch is drawn with it), also after online episodes overwrote them in the ring,
+    and records the setting; without demonstrations to oversample it is one line, exit 2."""
     from ccfit.cli import main
 
     root, _ = tiny_dataset
@@ -204,6 +204,9 @@ def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
     saved = json.loads((out / "config.json").read_text())
     assert saved["train"]["demo_fraction"] == 0.25
     assert len(fractions) >= 100 and set(fractions) == {0.25}  # smoke: 1 update per step
+    # A ring of one episode's rows: the online episodes overwrite the oracle's (failed before).
+    small = ["--train.buffer_capacity=251", "--train.steps=600", "--train.eval_interval=600"]
+    assert main([*base, *small, "--task", "reach-xy", "--out", str(tmp_path / "ring")]) == 0
     assert main([*base, "--task", "reach-xyz", "--out", str(tmp_path / "xyz")]) == 2
     assert "holds no oracle episode of reach-xyz" in capsys.readouterr().err
     assert main([*base[:4], "null", *base[5:], "--task", "reach-xy"]) == 2

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from ccfit.models.base import Batch
 from ccfit.replay import ReplayBuffer
 
 A = 4
@@ -42,13 +43,21 @@ def filled(lengths, capacity=1000, seed=0, successes=()) -> tuple[ReplayBuffer, 
     return buf, src
 
 
-def check_windows(batch, src: Source) -> None:
+def columns(batch: Batch, pick: slice) -> Batch:
+    """The windows `pick` of `batch`."""
+    return Batch(obs={k: v[:, pick] for k, v in batch.obs.items()}, action=batch.action[:, pick],
+                 reward=batch.reward[:, pick], terminated=batch.terminated[:, pick],
+                 is_first=batch.is_first[:, pick], task=batch.task[:, pick])
+
+
+def check_windows(batch, src: Source, oldest: int = 0) -> None:
     """Every row of every window is what the source wrote at that row, consecutive in write
-    order, with is_first exactly on episode starts and the filler transition on last rows."""
+    order, with is_first exactly on episode starts (and on the `oldest` stored row of a ring
+    that wrapped) and the filler transition on last rows."""
     ids = batch.obs["id"]  # (L, B, 3): episode, step, row
     episode, step, row = ids[..., 0], ids[..., 1], ids[..., 2]
     assert torch.equal(row[1:] - row[:-1], torch.ones_like(row[1:]))
-    assert torch.equal(batch.is_first[..., 0], (step == 0).float())
+    assert torch.equal(batch.is_first[..., 0], ((step == 0) | (row == oldest)).float())
     last = step == torch.tensor(src.lengths, dtype=step.dtype)[episode.long()]
     expected_action = episode.unsqueeze(-1) + step.unsqueeze(-1) / 100 + torch.arange(A)
     expected_action[last] = 0.0
@@ -143,8 +152,9 @@ def test_same_seed_same_batches():
 
 def test_demonstrations_are_oversampled_by_demo_fraction(tmp_path):
     """The first round(demo_fraction * B) windows start on a demonstration's rows, uniform over
-    them; the rest stay uniform over replay; demo_fraction 0 draws exactly what it drew before
-    demonstrations were marked; the marks survive the ring and a checkpoint."""
+    them, and run through the demonstrations only; the rest stay uniform over replay;
+    demo_fraction 0 draws exactly what it drew before demonstrations were marked. The
+    demonstrations are kept whole when the ring overwrites them, and through a checkpoint."""
     def build(seed=5):
         buf, src = ReplayBuffer(26, seed=seed), Source()
         for i, steps in enumerate([6, 4, 7, 5, 8]):
@@ -152,19 +162,26 @@ def test_demonstrations_are_oversampled_by_demo_fraction(tmp_path):
         return buf, src
 
     buf, src = build()
-    check_windows(buf.sample(8, 3, demo_fraction=0.5), src)
-    demo_rows = {r for e in (1, 3) for r in range(sum(src.lengths[:e]) + e,
-                                                  sum(src.lengths[:e + 1]) + e + 1)}
+    demo_rows = [r for e in (1, 3) for r in range(sum(src.lengths[:e]) + e,
+                                                  sum(src.lengths[:e + 1]) + e + 1)]
     assert len(demo_rows) == 5 + 6
+    # A ring of 26 rows holding 35: episode 0 is gone and demo 1 lost its first 2 rows there.
+    assert buf.oldest == 9 and demo_rows[0] == 7
     firsts = [[], []]
     for _ in range(300):
-        ids = buf.sample(8, 3, demo_fraction=0.5).obs["id"][0, :, 2].long().tolist()
-        assert set(ids[:4]) <= demo_rows  # round(0.5 * 8) = 4 demo windows, first
-        firsts[0] += ids[:4]
-        firsts[1] += ids[4:]
-    # A ring of 26 rows holding 35: episode 0 is gone and demo 1 lost its first 2 rows.
-    assert buf.oldest == 9 and set(firsts[0]) == {r for r in demo_rows if r >= 9}
-    assert len(set(firsts[1]) - demo_rows) > 10  # the rest: anywhere
+        batch = buf.sample(8, 3, demo_fraction=0.5)  # round(0.5 * 8) = 4 demo windows, first
+        check_windows(columns(batch, slice(4, None)), src, buf.oldest)
+        ids = batch.obs["id"][..., 2].long()
+        for j in range(4):  # consecutive demonstration rows, is_first where one starts
+            at = demo_rows.index(int(ids[0, j]))
+            assert ids[:, j].tolist() == demo_rows[at:at + 3]
+            assert batch.is_first[:, j, 0].tolist() == [float(batch.obs["id"][t, j, 1] == 0)
+                                                          for t in range(3)]
+        firsts[0] += ids[0, :4].tolist()
+        firsts[1] += ids[0, 4:].tolist()
+    assert set(firsts[0]) == set(demo_rows[:-2])  # the overwritten rows 7, 8 included
+    assert len(set(firsts[1]) - set(demo_rows)) > 10  # the rest: anywhere in the ring
+    assert min(firsts[1]) >= buf.oldest
     plain, _ = filled([6, 4, 7, 5, 8], capacity=26, seed=5)
     marked, _ = build()
     for _ in range(3):
@@ -173,14 +190,40 @@ def test_demonstrations_are_oversampled_by_demo_fraction(tmp_path):
     torch.save(buf.state_dict(), tmp_path / "replay.pt")
     other = ReplayBuffer(26)
     other.load_state_dict(torch.load(tmp_path / "replay.pt", weights_only=False))
-    assert torch.equal(other.sample(8, 3, 0.5).obs["id"], buf.sample(8, 3, 0.5).obs["id"])
+    for _ in range(3):
+        a, b = other.sample(8, 3, 0.5), buf.sample(8, 3, 0.5)
+        assert torch.equal(a.obs["id"], b.obs["id"]) and torch.equal(a.is_first, b.is_first)
     old = buf.state_dict()  # as written before demonstrations were marked: 3 columns
     old["episodes"] = old["episodes"][:, :3]
+    del old["demo_spans"], old["demo_rows"]
     legacy = ReplayBuffer(26)
     legacy.load_state_dict(old)
     assert legacy.num_episodes == buf.num_episodes and len(legacy.demo_starts(3)) == 0
     with pytest.raises(ValueError, match="no demonstration"):
         filled([6])[0].sample(4, 2, demo_fraction=0.5)
+
+
+def test_checkpoints_keep_the_row_files_of_overwritten_demonstrations(tmp_path):
+    """A run longer than its ring oversamples its seed demonstrations to the end: the row file
+    holding them stays in the checkpoint's manifest after the ring overwrote them, and a
+    resumed buffer draws what the uninterrupted one draws."""
+    from ccfit.replay_store import load_rows, save_rows
+
+    buf, src = ReplayBuffer(24, seed=3), Source()
+    buf.add_episode(**src.episode(5), demo=True)  # rows 0..5
+    buf.add_episode(**src.episode(6))  # rows 6..12
+    manifest, _ = save_rows(buf, tmp_path, [])
+    for steps in (9, 9, 9):  # 42 rows written: every row of the first file is overwritten
+        buf.add_episode(**src.episode(steps))
+        manifest, stale = save_rows(buf, tmp_path, manifest)
+        assert not stale
+    assert buf.oldest > 12 and manifest[0]["start"] == 0
+    other = ReplayBuffer(24, seed=0)
+    load_rows(other, tmp_path, buf.meta_state(), manifest)
+    for _ in range(3):
+        a, b = buf.sample(6, 3, demo_fraction=0.5), other.sample(6, 3, demo_fraction=0.5)
+        assert torch.equal(a.obs["id"], b.obs["id"]) and torch.equal(a.is_first, b.is_first)
+        assert set(a.obs["id"][:, :3, 2].flatten().tolist()) <= set(range(6))
 
 
 # ------------------------------------------------------------------------------ ring
