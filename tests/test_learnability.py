@@ -37,11 +37,14 @@ def test_first_steps_and_budgets_by_hand(tmp_path):
                          ("pnp-cube", [0, 10, 20, 30, 55])]:  # fmt: skip
         _fake_run(tmp_path, task, "m", scores)
     _fake_run(tmp_path, "reach-xy", "m", [0, 90])
+    _fake_run(tmp_path, "reach-xz", "m", [0, 10, 20, 30, 40, 50, 60, 70])
     rows = [read_run(p) for p in sorted(tmp_path.iterdir())]
     assert budgets(rows)["Grasp"] == {"m": 4000} and "Reach" not in budgets(rows)
     pnp = next(r for r in rows if r["task"] == "pnp-cube")
     assert pnp["suites"] == ["Grasp", "DrawerPnP", "PnPBoxClose"] and pnp["cpu_hours"] == 2.0
     assert (pnp["steps_to_50"], pnp["steps_to_80"], pnp["best"]) == (4000, None, 55)
+    assert pnp["last"] == 55 and pnp["last_5"] == 23.0  # (0 + 10 + 20 + 30 + 55) / 5
+    assert next(r for r in rows if r["task"] == "reach-xz")["last_5"] == 50.0  # 30 .. 70
     # runs oversampling demonstrations are rows (and budgets) of their own
     for task in ("pick-cube", "place-cube", "pnp-cube"):
         _fake_run(tmp_path, task, "m", [0, 60], demo_fraction=0.25)

@@ -5,10 +5,11 @@ and seed, long budgets, and the from-scratch references of curricula and sweeps;
 oversampling demonstrations, `--train.demo_fraction`, are rows of their own, their model named
 with the setting) and writes `learnability.md` / `.csv`: per suite, task, model and seed, the
 first evaluated step whose normalised return reached 50 and 80, the best and last score, the
-budget and what the run cost (`cost.json`), plus `budgets.json`: per suite and model, the steps
-per task every task of the suite needs to reach 50 (the largest first step to 50 over its tasks
-and seeds, rounded up to the evaluation interval), or None when a task never reached it within
-the run's budget.
+mean of the last `PLATEAU` evaluations (one evaluation of a few episodes swings with the
+policy's acting noise: TD-MPC2's grasping by tens of points), the budget and what the run
+cost (`cost.json`), plus `budgets.json`: per suite and model, the steps per task every task of
+the suite needs to reach 50 (the largest first step to 50 over its tasks and seeds, rounded
+up to the evaluation interval), or None when a task never reached it within the run's budget.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ from ccfit.train import CONFIG, METRICS
 from ccfit.train.cost import read_cost
 
 THRESHOLDS = (50, 80)
+PLATEAU = 5
+"""Evaluations at the end of a run averaged into `last_5` (what the run ends at)."""
 
 
 def first_step_at(records: list[dict], level: float) -> int | None:
@@ -69,6 +72,7 @@ def read_run(run: Path) -> dict | None:
         "eval_interval": int(cfg["train"]["eval_interval"]),
         **{f"steps_to_{t}": first_step_at(records, t) for t in THRESHOLDS},
         "best": max(scores) if scores else None, "last": scores[-1] if scores else None,
+        f"last_{PLATEAU}": sum(scores[-PLATEAU:]) / len(scores[-PLATEAU:]) if scores else None,
         # A from-scratch reference trained in a worker records no cost.
         "cpu_hours": cost["cpu_s"] / 3600 if cost["segments"] else None, "run": str(run),
     }  # fmt: skip
@@ -103,7 +107,7 @@ def write_learnability(runs: list[Path], out: Path) -> list[Path]:
     rows.sort(key=lambda r: (r["suites"][0], r["task"], r["model"], r["seed"]))
     out.mkdir(parents=True, exist_ok=True)
     cols = ["suites", "task", "model", "seed", "budget", "steps_to_50", "steps_to_80", "best",
-            "last", "cpu_hours"]  # fmt: skip
+            "last", f"last_{PLATEAU}", "cpu_hours"]  # fmt: skip
 
     def cell(col: str, v) -> str:
         if v is None:
