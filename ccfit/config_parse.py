@@ -30,8 +30,8 @@ def preset_defaults(cls: type[BaseRunConfig], choices: dict[str, Any]) -> dict:
     """The nested plain-data defaults of `cls` for `choices`: preset, obs, image_size,
     model (its type) and method (its type), each `DEFAULTS[...]` unless given; and the
     preset of every other section with presets (`train`, an offline run's `fit`). A
-    curriculum's steps per task from state are the model's measured budget for its suite at
-    this preset (`ModelConfig.SUITE_STEPS`) when it has one."""
+    curriculum's training settings from state (steps per task, ...) are the model's measured
+    budget for its suite at this preset (`ModelConfig.SUITE_TRAIN`) when it has one."""
     model = getattr(cls, "DEFAULT_MODEL", DEFAULT_MODEL)  # a config class may choose its own
     c = {**DEFAULTS, "model": model, **{k: v for k, v in choices.items() if v is not None}}
     preset, model, method = c["preset"], c["model"], c["method"]
@@ -44,9 +44,9 @@ def preset_defaults(cls: type[BaseRunConfig], choices: dict[str, Any]) -> dict:
                   "image_size": c["image_size"]},
     }  # fmt: skip
     out.update(_preset_sections(cls, preset))
-    steps = vars(mcls).get("SUITE_STEPS", {}).get(preset, {}).get(c.get("suite"))
-    if steps is not None and "train" in out and c["obs"] == "state":  # measured on state
-        out["train"]["steps"] = steps
+    budget = vars(mcls).get("SUITE_TRAIN", {}).get(preset, {}).get(c.get("suite"))
+    if budget is not None and "train" in out and c["obs"] == "state":  # measured on state
+        out["train"].update(budget)
     if _has_method(cls):
         out["method"] = {"type": method, **method_config_class(method).preset_fields(preset)}
     return out

@@ -525,16 +525,27 @@ def test_cli_run_model_and_method_options_reach_the_config():
     assert config("--method.type=ewc", "--method.lam=7").method.lam == 7.0
 
 
-def test_a_models_suite_budget_sets_the_steps_per_task_unless_given(monkeypatch):
+def test_a_models_suite_budget_sets_the_training_settings_unless_given(monkeypatch):
     from ccfit.models.tdmpc2.config import TDMPC2Config
 
-    monkeypatch.setattr(TDMPC2Config, "SUITE_STEPS", {"cpu": {"Grasp": 9_000}})
+    budget = {"steps": 9_000, "demo_fraction": 0.25, "buffer_capacity": 80_000}
+    monkeypatch.setattr(TDMPC2Config, "SUITE_TRAIN", {"cpu": {"Grasp": budget}})
 
-    def steps(*argv, **over):
-        cli = parse_cli(CurriculumConfig, ["--model.type=tdmpc2", *argv]).train.steps
-        nested = resolve(CurriculumConfig, {"model": {"type": "tdmpc2"}, **over}).train.steps
+    def train(*argv, **over):
+        cli = parse_cli(CurriculumConfig, ["--model.type=tdmpc2", *argv]).train
+        nested = resolve(CurriculumConfig, {"model": {"type": "tdmpc2"}, **over}).train
         assert cli == nested
         return cli
+
+    def steps(*argv, **over):
+        return train(*argv, **over).steps
+
+    grasp = train("--suite", "Grasp", "--preset", "cpu", suite="Grasp", preset="cpu")
+    assert (grasp.demo_fraction, grasp.buffer_capacity) == (0.25, 80_000)
+    reach = train("--suite", "Reach", "--preset", "cpu", suite="Reach", preset="cpu")
+    assert (reach.demo_fraction, reach.buffer_capacity) == (0.0, 50_000)
+    assert train("--suite", "Grasp", "--preset", "cpu", "--train.demo_fraction=0",
+                 suite="Grasp", preset="cpu", train={"demo_fraction": 0.0}).demo_fraction == 0
 
     assert steps("--suite", "Grasp", "--preset", "cpu", suite="Grasp", preset="cpu") == 9_000
     assert steps("--suite", "Reach", "--preset", "cpu", suite="Reach", preset="cpu") == 6_000

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import draccus
 import torch
@@ -27,11 +27,12 @@ class ModelConfig(ChoiceConfig, draccus.ChoiceRegistry):
     its model by `register_model`. Subclasses list presets in `PRESETS` (name -> fields): every
     name of `ccfit.config_base.PRESETS`, and more if they like (e.g. sizes)."""
 
-    SUITE_STEPS: ClassVar[dict[str, dict[str, int]]] = {}
-    """Preset -> suite -> env steps per task: what this model needs at that preset for every
-    task of the suite to be learnt from state (measured with `ccfit learnability`). A state
-    curriculum of the suite at the preset trains that long per task unless `--train.steps`
-    says otherwise; pixel runs keep the preset's steps (nothing measured there yet). A
+    SUITE_TRAIN: ClassVar[dict[str, dict[str, dict[str, Any]]]] = {}
+    """Preset -> suite -> `--train.*` settings: what this model needs at that preset for every
+    task of the suite to be learnt from state (measured with `ccfit learnability`): the steps
+    per task, and where a suite needs them, e.g. demonstrations oversampled or a replay that
+    holds the whole task. A state curriculum of the suite at the preset uses them unless the
+    command line says otherwise; pixel runs keep the preset's (nothing measured there yet). A
     subclass does not inherit its parent's budgets unless it says so."""
 
     obs_mode: str = "state"

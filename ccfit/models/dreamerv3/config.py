@@ -23,7 +23,9 @@ class DreamerV3Config(ModelConfig):
 
     # Measured with `ccfit learnability` (state, seed 0): at the cpu size reach-xy first
     # reaches 80 at 10k steps and does not reach 50 inside the cpu preset's 6k per task.
-    SUITE_STEPS: ClassVar[dict[str, dict[str, int]]] = {"cpu": {"Reach": 10_000}}
+    SUITE_TRAIN: ClassVar[dict[str, dict[str, dict[str, Any]]]] = {
+        "cpu": {"Reach": {"steps": 10_000}},
+    }
 
     PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
         # Seconds on a CPU: for CI and wiring checks only, learns nothing useful.

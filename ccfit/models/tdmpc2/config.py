@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import ccdata.env
 from ccfit.config_base import check
@@ -40,7 +40,9 @@ class TDMPC2Config(ModelConfig):
 
     # Measured with `ccfit learnability` (state, seed 0, cpu size): every reach task is at >= 80
     # by 2k steps (reach-xyz 88 at 2k, all four 100 at 4k); twice that for other seeds.
-    SUITE_STEPS: ClassVar[dict[str, dict[str, int]]] = {"cpu": {"Reach": 4_000}}
+    SUITE_TRAIN: ClassVar[dict[str, dict[str, dict[str, Any]]]] = {
+        "cpu": {"Reach": {"steps": 4_000}},
+    }
 
     PRESETS = {
         # Tiny: unit tests and smoke runs finish in seconds. One MPPI iteration: evaluation
