@@ -10,14 +10,16 @@ from ccfit.analysis.learnability import budgets, first_step_at, read_run
 
 
 def _fake_run(root: Path, task: str, model: str, scores: list[float], interval: int = 1000,
-              seed: int = 0, demo_fraction: float = 0.0) -> Path:  # fmt: skip
+              seed: int = 0, demo_fraction: float = 0.0,
+              capacity: int = 50_000) -> Path:  # fmt: skip
     """A run directory as `ccfit train` leaves it (config.json, metrics.jsonl, cost.json)."""
-    run = root / f"{model}-{task}-s{seed}-demo{demo_fraction}"
+    run = root / f"{model}-{task}-s{seed}-demo{demo_fraction}-cap{capacity}"
     run.mkdir(parents=True)
     steps = interval * (len(scores) - 1)
     (run / "config.json").write_text(json.dumps({
         "task": task, "seed": seed, "preset": "cpu", "obs": "state", "model": {"type": model},
-        "train": {"steps": steps, "eval_interval": interval, "demo_fraction": demo_fraction},
+        "train": {"steps": steps, "eval_interval": interval, "demo_fraction": demo_fraction,
+                  "buffer_capacity": capacity},
     }))  # fmt: skip
     (run / "metrics.jsonl").write_text("".join(
         json.dumps({"task_step": i * interval, "normalized_return": s}) + "\n"
@@ -54,6 +56,10 @@ def test_first_steps_and_budgets_by_hand(tmp_path):
     _fake_run(tmp_path, "pick-cube", "m", [0, 10, 20, 30], seed=1)
     rows = [read_run(p) for p in sorted(tmp_path.iterdir())]
     assert budgets(rows)["Grasp"] == {"m": None, "m [demo_fraction=0.25]": 1000}
+    # so are runs with another replay capacity than the preset's (cpu: 50 000 rows)
+    _fake_run(tmp_path, "pnp-cube", "m", [0, 60], capacity=100_000, demo_fraction=0.25)
+    row = read_run(sorted(tmp_path.glob("*cap100000"))[0])
+    assert row["model"] == "m [demo_fraction=0.25, buffer_capacity=100000]"
 
 
 def test_a_from_scratch_reference_is_a_row_of_its_task(tmp_path):

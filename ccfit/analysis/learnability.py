@@ -1,20 +1,22 @@
 """How many steps a model needs to learn each task: the budgets of the `cpu` preset.
 
 `ccfit learnability RUNS --out DIR` reads single-task runs (`ccfit train`, one per task, model
-and seed, long budgets, and the from-scratch references of curricula and sweeps; runs
-oversampling demonstrations, `--train.demo_fraction`, are rows of their own, their model named
-with the setting) and writes `learnability.md` / `.csv`: per suite, task, model and seed, the
-first evaluated step whose normalised return reached 50 and 80, the best and last score, the
-mean of the last `PLATEAU` evaluations (one evaluation of a few episodes swings with the
-policy's acting noise: TD-MPC2's grasping by tens of points), the budget and what the run
-cost (`cost.json`), plus `budgets.json`: per suite and model, the steps per task every task of
-the suite needs to reach 50 (the largest first step to 50 over its tasks and seeds, rounded
-up to the evaluation interval), or None when a task never reached it within the run's budget.
+and seed, long budgets, and the from-scratch references of curricula and sweeps; runs that
+learn another way, `RECIPE` settings off their preset's values (demonstrations oversampled,
+another replay capacity), are rows of their own, their model named with the settings) and
+writes `learnability.md` / `.csv`: per suite, task, model and seed, the first evaluated step
+whose normalised return reached 50 and 80, the best and last score, the mean of the last
+`PLATEAU` evaluations (one evaluation of a few episodes swings with the policy's acting noise:
+TD-MPC2's grasping by tens of points), the budget and what the run cost (`cost.json`), plus
+`budgets.json`: per suite and model, the steps per task every task of the suite needs to reach
+50 (the largest first step to 50 over its tasks and seeds, rounded up to the evaluation
+interval), or None when a task never reached it within the run's budget.
 """
 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import math
 from pathlib import Path
@@ -27,6 +29,9 @@ from ccfit.train import CONFIG, METRICS
 from ccfit.train.cost import read_cost
 
 THRESHOLDS = (50, 80)
+RECIPE = ("demo_fraction", "buffer_capacity")
+"""`--train.*` settings that change how a task is learnt: a run with one of them off its
+preset's value is a row (and budget) of its own."""
 PLATEAU = 5
 """Evaluations at the end of a run averaged into `last_5` (what the run ends at)."""
 
@@ -37,6 +42,17 @@ def first_step_at(records: list[dict], level: float) -> int | None:
         if r["normalized_return"] is not None and r["normalized_return"] >= level:
             return int(r["task_step"])
     return None
+
+
+def _preset_value(cfg: dict, setting: str):
+    """`--train.<setting>` of the run's preset (as configs older than the setting ran)."""
+    from ccfit.config import TrainConfig
+
+    legacy = LEGACY_VALUES.get(f"train.{setting}")
+    if legacy is not None:
+        return legacy
+    default = next(f.default for f in dataclasses.fields(TrainConfig) if f.name == setting)
+    return TrainConfig.PRESETS.get(cfg["preset"], {}).get(setting, default)
 
 
 def read_run(run: Path) -> dict | None:
@@ -61,10 +77,10 @@ def read_run(run: Path) -> dict | None:
     scores = [r["normalized_return"] for r in records if r["normalized_return"] is not None]
     cost = read_cost(run)
     model = cfg["model"]["type"]
-    legacy = LEGACY_VALUES["train.demo_fraction"]  # configs older than the option lack it
-    demo = cfg["train"].get("demo_fraction", legacy)
-    if demo != legacy:  # another way of learning: its rows and budgets are kept apart
-        model += f" [demo_fraction={demo}]"
+    recipe = [f"{k}={cfg['train'][k]}" for k in RECIPE
+              if cfg["train"].get(k, _preset_value(cfg, k)) != _preset_value(cfg, k)]
+    if recipe:  # another way of learning: its rows and budgets are kept apart
+        model += f" [{', '.join(recipe)}]"
     return {
         "suites": [s.name for s in SUITES.values() if task in s.task_ids],
         "task": task, "model": model, "seed": cfg["seed"],
