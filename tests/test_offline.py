@@ -29,6 +29,7 @@ from ccfit.offline import OfflineConfig, OfflineCurriculum
 from ccfit.offline.data import SPLIT
 from ccfit.offline.fit import TaskFitter
 from ccfit.offline.score import normalised_score, score_windows
+from ccfit.train.cost import running_code
 
 SUITE = "Reach"
 TASKS = ("reach-xy", "reach-xz", "reach-yz", "reach-xyz")
@@ -231,6 +232,7 @@ def test_every_seen_task_is_scored_and_the_metrics_come_from_the_records(runs, m
     # What it cost, as online: the run's own cost.json, and the reference's where it ran.
     cost = json.loads((run.dir / "cost.json").read_text())
     assert cost["segments"] == 1 and 0 < cost["cpu_s"] and 0 < cost["wall_s"]
+    assert cost["code"] == [running_code()] and cost["code"][0]["torch"] == torch.__version__
     assert json.loads((Path(metrics["scratch_dir"]) / "cost.json").read_text())["cpu_s"] > 0
     again = M.compute_metrics(records, scratch, 4, UPDATES, key="score")
     for key in ("bwt", "fwt", "end_of_task", "final_per_task", "lopez_paz_bwt"):

@@ -1,5 +1,6 @@
 """What a run cost: `cost.json` in its run directory, wall and CPU seconds, summed over every
-process that ran it (the training process and its worker processes) and over resumptions.
+process that ran it (the training process and its worker processes) and over resumptions,
+and which code ran each segment (a run resumed under newer code says so).
 
 A resumed run adds to what is recorded; the segment a killed process was in when it died is
 not recorded (its CPU time is lost with it)."""
@@ -11,6 +12,9 @@ import resource
 import time
 from pathlib import Path
 
+import torch
+
+from ccdata.slurm import code_version
 from ccfit.io import atomic_write_json
 
 COST = "cost.json"
@@ -44,12 +48,23 @@ class RunCost:
             "wall_s": before["wall_s"] + time.monotonic() - self._wall,
             "cpu_s": before["cpu_s"] + _cpu() - self._cpu,
             "segments": before["segments"] + 1,
+            "code": [*before["code"], running_code()],
         })  # fmt: skip
 
 
+def running_code() -> dict:
+    """The code of this process: ccbench's version, git describe and commit of its source
+    tree (None outside a checkout), torch's version."""
+    code = code_version()
+    return {"package": code["package"], "git": code["git"], "commit": code["commit"],
+            "torch": torch.__version__}  # fmt: skip
+
+
 def read_cost(run_dir: str | Path) -> dict:
-    """{'wall_s', 'cpu_s', 'segments'} of a run directory (zeros when none is recorded)."""
+    """{'wall_s', 'cpu_s', 'segments', 'code'} of a run directory (zeros when none is
+    recorded); 'code' lists the code of each segment (`running_code`) in order, recorded since
+    cost.json holds it (older files list none)."""
     path = Path(run_dir) / COST
     if not path.is_file():
-        return {"wall_s": 0.0, "cpu_s": 0.0, "segments": 0}
-    return json.loads(path.read_text())
+        return {"wall_s": 0.0, "cpu_s": 0.0, "segments": 0, "code": []}
+    return {"code": [], **json.loads(path.read_text())}
