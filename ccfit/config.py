@@ -253,8 +253,9 @@ class RunConfig(BaseRunConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         check(self.train.demo_fraction == 0 or self.seed_dataset is not None,
-              "train.demo_fraction > 0 oversamples the seed dataset's demonstrations: it needs "
-              "a seed dataset (--seed_dataset)")  # fmt: skip
+              f"train.demo_fraction {self.train.demo_fraction} (given, or the model's budget "
+              f"for the suite) oversamples the seed dataset's demonstrations: it needs a seed "
+              f"dataset (--seed_dataset), or --train.demo_fraction=0")  # fmt: skip
 
 
 def _with_encoder(model: ModelConfig, path: str, image_size: int) -> ModelConfig:

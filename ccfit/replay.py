@@ -333,7 +333,7 @@ class ReplayBuffer:
         demos = round(demo_fraction * batch_size)
         if demos == 0:
             return self.gather(starts, seq_len)
-        pool = len(self.demo_starts(seq_len))
+        pool = self.num_demo_starts(seq_len)
         if pool == 0:
             raise ValueError(f"demo_fraction > 0 but replay holds no demonstration rows to "
                              f"start a window of {seq_len} on")  # fmt: skip
@@ -342,11 +342,11 @@ class ReplayBuffer:
         return self._window([(self._demo_columns(), picks.unsqueeze(0) + window),
                              (self._columns(), self._rows(starts[demos:].unsqueeze(0) + window))])
 
-    def demo_starts(self, seq_len: int) -> torch.Tensor:
-        """Window starts on the kept demonstrations' rows (one after another, each starting
-        with is_first): every row that `seq_len` - 1 kept rows follow."""
+    def num_demo_starts(self, seq_len: int) -> int:
+        """How many windows of `seq_len` rows the kept demonstrations hold (one after another,
+        each starting with is_first): `sample(demo_fraction=)` draws among them."""
         rows = sum(end - first for first, end in self.demo_spans)
-        return torch.arange(max(0, rows - seq_len + 1))
+        return max(0, rows - seq_len + 1)
 
     def gather(self, starts, seq_len: int) -> Batch:
         """The windows whose first rows are `starts` in [0, num_starts(seq_len)), counted from

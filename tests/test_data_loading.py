@@ -151,7 +151,7 @@ def test_seed_buffer_preloads_the_tasks_episodes(tiny_dataset):
     steps = len(written[0]["state"])
     buf = ReplayBuffer(1000)
     assert seed_buffer(buf, root, "reach-xy", "state") == {"oracle": 1}
-    assert len(buf.demo_starts(2)) == steps  # the oracle's episode is a demonstration
+    assert buf.num_demo_starts(2) == steps  # the oracle's episode is a demonstration
     # The success ended the episode: its final observation is replayed, the terminal kept.
     assert buf.num_episodes == 1 and buf.num_transitions == steps
     b = buf.sample(256, 2)  # windows of two rows: one transition each
@@ -177,7 +177,7 @@ def test_seed_buffer_preloads_the_tasks_episodes(tiny_dataset):
             meta_path.write_text(json.dumps(meta))
     random = ReplayBuffer(1000)
     assert seed_buffer(random, root, "reach-xyz", "pixels", RenderSettings(32)) == {"random": 1}
-    assert len(random.demo_starts(2)) == 0
+    assert random.num_demo_starts(2) == 0
 
 
 def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
@@ -207,9 +207,13 @@ def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
     # A ring of one episode's rows: the online episodes overwrite the oracle's (failed before).
     small = ["--train.buffer_capacity=251", "--train.steps=600", "--train.eval_interval=600"]
     assert main([*base, *small, "--task", "reach-xy", "--out", str(tmp_path / "ring")]) == 0
+    meta = torch.load(tmp_path / "ring" / "checkpoint.pt", weights_only=False)["buffer"]
+    (first, end), = meta["demo_spans"].tolist()
+    assert first == 0 and meta["written"] - meta["capacity"] >= end  # every demo row overwritten
     assert main([*base, "--task", "reach-xyz", "--out", str(tmp_path / "xyz")]) == 2
     assert "holds no oracle episode of reach-xyz" in capsys.readouterr().err
     assert main([*base[:4], "null", *base[5:], "--task", "reach-xy"]) == 2
-    assert "needs a seed dataset" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "needs a seed dataset" in err and "or --train.demo_fraction=0" in err
     assert main([*base, "--task", "reach-xy", "--train.demo_fraction=1"]) == 2
     assert "train.demo_fraction must be in [0, 1)" in capsys.readouterr().err

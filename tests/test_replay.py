@@ -198,7 +198,7 @@ def test_demonstrations_are_oversampled_by_demo_fraction(tmp_path):
     del old["demo_spans"], old["demo_rows"]
     legacy = ReplayBuffer(26)
     legacy.load_state_dict(old)
-    assert legacy.num_episodes == buf.num_episodes and len(legacy.demo_starts(3)) == 0
+    assert legacy.num_episodes == buf.num_episodes and legacy.num_demo_starts(3) == 0
     with pytest.raises(ValueError, match="no demonstration"):
         filled([6])[0].sample(4, 2, demo_fraction=0.5)
 

@@ -45,9 +45,11 @@ def resolved_config(cfg: RunConfig, suite: str | None) -> dict:
     device = resolve_device(cfg.train.device)
     source = dataset_source(cfg, suite)
     if cfg.train.demo_fraction > 0 and source is None:
-        raise ConfigError(f"train.demo_fraction > 0 needs the seed dataset's demonstrations, "
-                          f"but --seed_dataset auto found no local dataset of suite {suite} "
-                          f"(`ccdata generate --suite {suite}`, or name one)")  # fmt: skip
+        raise ConfigError(f"train.demo_fraction {cfg.train.demo_fraction} (given, or the "
+                          f"model's budget for the suite) needs the seed dataset's "
+                          f"demonstrations, but --seed_dataset auto found no local dataset of "
+                          f"suite {suite} (`ccdata generate --suite {suite}`, name one, or "
+                          f"--train.demo_fraction=0)")  # fmt: skip
     return {
         **cfg.to_dict(),
         "resolved_seed_dataset": source,
