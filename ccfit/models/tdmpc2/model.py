@@ -105,7 +105,7 @@ class TDMPC2(WorldModel, Prediction):
 
     cfg: TDMPC2Config
     capabilities = frozenset({"pixel-encoder", "prediction"})  # the shared `build_encoder`
-    hot_paths = ("loss", "head_update", "plan")
+    hot_paths = ("loss", "pi_loss", "plan")
     # bench/update_rate.py, cpu preset, 1 thread, Mish in closed form (layers.mish): update
     # (loss + backward + head_update) ~15 -> ~10 ms compiled, plan 5.2 -> 2.3 ms.
     compile_pays = {"cpu": hot_paths}
@@ -327,8 +327,25 @@ class TDMPC2(WorldModel, Prediction):
     ) -> dict[str, float]:
         """Policy step on the detached rollout latents of `out`, then the Polyak step of the
         target Qs."""
-        cfg, h = self.cfg, _heads(heads)
-        zs, mask = out.aux["zs"].detach(), out.aux["mask"]
+        h = _heads(heads)
+        pi_loss, logs = self.pi_loss(out.aux["zs"].detach(), out.aux["mask"], h)
+        optim = optimizers["pi"]
+        optim.zero_grad(set_to_none=True)
+        pi_loss.backward()
+        grad_norm = nn.utils.clip_grad_norm_(h.pi.parameters(), self.cfg.grad_clip)
+        optim.step()
+        optim.zero_grad(set_to_none=True)
+        polyak(list(h.target_qs.parameters()), list(h.qs.parameters()), self.cfg.tau)
+        return {"pi_loss": pi_loss.detach(), "pi_grad_norm": grad_norm.detach(), **logs}
+
+    def pi_loss(
+        self, zs: torch.Tensor, mask: torch.Tensor, h: TDMPC2Heads
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The policy's objective on latents zs (T+1, B, L): entropy-regularised Q of its own
+        actions, scaled by the running 5-95% range of Q (moved here, by tau), weighted rho^t
+        and masked past an episode's end. Pure tensor code (no optimiser), so it compiles
+        into one graph that fits every task's heads."""
+        cfg = self.cfg
         action, info = self.pi(zs, h)
         q = self.Q(zs, action, h, "avg", detach=True)
         with torch.no_grad():
@@ -337,19 +354,9 @@ class TDMPC2(WorldModel, Prediction):
         q = q / h.q_scale
         rho = cfg.rho ** torch.arange(zs.shape[0], device=zs.device, dtype=zs.dtype)
         per_step = (-(cfg.entropy_coef * info["scaled_entropy"] + q) * mask).mean(dim=(1, 2))
-        pi_loss = (per_step * rho).mean()
-        optim = optimizers["pi"]
-        optim.zero_grad(set_to_none=True)
-        pi_loss.backward()
-        grad_norm = nn.utils.clip_grad_norm_(h.pi.parameters(), cfg.grad_clip)
-        optim.step()
-        optim.zero_grad(set_to_none=True)
-        polyak(list(h.target_qs.parameters()), list(h.qs.parameters()), cfg.tau)
-        return {
-            "pi_loss": pi_loss.detach(), "pi_grad_norm": grad_norm.detach(),
-            "pi_entropy": info["entropy"].mean().detach(),
-            "q_scale": h.q_scale.detach().clone().reshape(()),
-        }
+        logs = {"pi_entropy": info["entropy"].mean().detach(),
+                "q_scale": h.q_scale.detach().clone().reshape(())}  # fmt: skip
+        return (per_step * rho).mean(), logs
 
     # ---------------------------------------------------------------- prediction
 
