@@ -180,7 +180,7 @@ class Curriculum:
         if train.torch_threads > 0:
             torch.set_num_threads(train.torch_threads)
         tasks = cfg.tasks
-        model, method, stored, completed = restore(cfg, self.out, self.device)
+        model, method, stored, completed, pending = restore(cfg, self.out, self.device)
         plan = plan_replay(cfg, model)  # what does not fit fails here, before anything runs
         check_disk(plan, self.out)
         self.out.mkdir(parents=True, exist_ok=True)
@@ -190,6 +190,10 @@ class Curriculum:
         logger = RunLogger(self.out, cfg.log, resolved)
         evaluator = make_evaluator(cfg, model, dict(enumerate(tasks)), method)
         evaluator.heads.update(enumerate(stored))
+        for request in logger.settle(pending)[1]:  # the saved weights are those it had
+            evaluator.submit(request["tasks"], stage=request["stage"],
+                             global_step=request["global_step"],
+                             task_step=request["task_step"])  # fmt: skip
         source = resolved["resolved_seed_dataset"]
         try:
             for i in range(completed, len(tasks)):
@@ -210,7 +214,8 @@ class Curriculum:
                     stored_heads_loss=lambda batch, j: model.loss(batch, stored[j]).total,
                 )  # fmt: skip
                 try:
-                    trainer.run()
+                    # The task's last evaluation runs on while the next task trains.
+                    trainer.run(wait=False)
                 finally:
                     env.close()
                 heads.requires_grad_(False)
@@ -218,8 +223,10 @@ class Curriculum:
                 stored.append(heads)
                 for callback in self.callbacks:
                     callback(Stage(self.out, cfg, model, stored, method, self.device))
-                self._save(i + 1, model, method, stored)
+                self._save(i + 1, model, method, stored, evaluator.pending)
                 shutil.rmtree(task_dir, ignore_errors=True)
+            for record in evaluator.results(until=None):
+                logger.log_eval(record)
         finally:
             evaluator.close()
             logger.close()
@@ -234,7 +241,9 @@ class Curriculum:
         atomic_write_json(self.out / METRICS_JSON, result)
         return result
 
-    def _save(self, completed: int, model, method, stored) -> None:
+    def _save(self, completed: int, model, method, stored, pending: list[dict]) -> None:
+        """The state after `completed` tasks; `pending`: evaluation requests still running,
+        all submitted with these weights (the task's checkpoint waited for earlier ones)."""
         atomic_torch_save({
             "kind": STATE_KIND,
             "version": STATE_VERSION,
@@ -242,6 +251,7 @@ class Curriculum:
             "model": model.state_dict(),
             "method": method.state_dict(),
             "heads": [h.state_dict() for h in stored],
+            "pending_evals": pending,
             "rng": rng_state(),
         }, self.out / STATE)  # fmt: skip
 
@@ -250,16 +260,17 @@ class Curriculum:
 
 
 def restore(cfg: CurriculumConfig, run_dir: Path, device: torch.device
-            ) -> tuple[WorldModel, ContinualMethod, list[torch.nn.Module], int]:  # fmt: skip
-    """Model, method, stored heads and finished task count of `run_dir` (fresh ones when it
-    has no saved state yet). Global RNGs are seeded, or restored from the saved state."""
+            ) -> tuple[WorldModel, ContinualMethod, list[torch.nn.Module], int, list[dict]]:
+    """Model, method, stored heads, finished task count and the evaluation requests in flight
+    when it was saved, of `run_dir` (fresh ones when it has no saved state yet). Global RNGs
+    are seeded, or restored from the saved state."""
     seed_everything(cfg.seed)
     model = build_model(cfg, device)
     method = make_method(cfg.method, len(cfg.tasks), cfg.seed)
     stored: list[torch.nn.Module] = []
     path = Path(run_dir) / STATE
     if not path.exists():
-        return model, method, stored, 0
+        return model, method, stored, 0, []
     state = load_checkpoint(path, STATE_KIND, STATE_VERSION)
     # Model structure never changes shape (expert groups are allocated up front), so the
     # states load directly; the next task's before_task continues from them.
@@ -272,7 +283,8 @@ def restore(cfg: CurriculumConfig, run_dir: Path, device: torch.device
         heads.eval()
         stored.append(heads)
     set_rng_state(state["rng"])
-    return model, method, stored, int(state["completed"])
+    # Older states were saved once their evaluations had finished.
+    return model, method, stored, int(state["completed"]), list(state.get("pending_evals", []))
 
 
 @dataclass
@@ -299,5 +311,5 @@ def load_run(run_dir: str | Path, device: torch.device | str | None = None) -> L
     names = {f.name for f in dataclasses.fields(CurriculumConfig)}
     cfg = resolve(CurriculumConfig, {k: v for k, v in saved.items() if k in names})
     dev = resolve_device(device if device is not None else cfg.train.device)
-    model, method, stored, completed = restore(cfg, run_dir, dev)
+    model, method, stored, completed, _ = restore(cfg, run_dir, dev)
     return LoadedRun(cfg, model, method, stored, completed, dev)

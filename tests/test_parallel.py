@@ -84,3 +84,48 @@ def test_killed_parallel_run_resumes_to_the_serial_result(serial, tmp_path):
                           timeout=600)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
     assert _outputs(out) == _outputs(serial / "run")
+
+
+@pytest.mark.parametrize("at", ["task-checkpoint", "curriculum-state"])
+def test_a_run_stopped_with_evaluations_in_flight_resumes_to_the_serial_result(
+        serial, tmp_path, monkeypatch, at):  # fmt: skip
+    # A checkpoint lists the evaluations still running at its step, and so does the
+    # curriculum's state at a task's end (the next task trains while the last one's
+    # evaluation runs). Records of such a request that came in before a kill are kept, not
+    # logged twice; those that did not are computed again. Built exactly: the run directory
+    # as it stood when task 1's first checkpoint (with the records logged up to its step), or
+    # the state after task 0 (with those logged until then), was written.
+    import shutil
+
+    import ccfit.curriculum as curriculum
+    import ccfit.train.loop as loop
+
+    out, snapshot = tmp_path / "run", tmp_path / "stopped"
+    save = loop.atomic_torch_save
+    assert curriculum.atomic_torch_save is save
+
+    def save_and_snapshot(state, path):
+        save(state, path)
+        if snapshot.exists():
+            return
+        task = (state["kind"] == loop.CHECKPOINT_KIND and state["task_step"] == 50
+                and state["global_offset"] == TRAIN["steps"])  # fmt: skip
+        if task if at == "task-checkpoint" else state.get("completed") == 1:
+            assert state["pending_evals"], "no evaluation in flight"
+            shutil.copytree(out, snapshot)
+
+    monkeypatch.setattr(loop, "atomic_torch_save", save_and_snapshot)
+    monkeypatch.setattr(curriculum, "atomic_torch_save", save_and_snapshot)
+    torch.set_num_threads(1)
+    with shorter_episodes():
+        Curriculum(_config("on"), out, tmp_path / "scratch", progress=False).run()
+        assert snapshot.exists()
+        if at == "task-checkpoint":
+            records = (out / "metrics.jsonl").read_text().splitlines(keepends=True)
+            step = TRAIN["steps"] + 50
+            logged = [r for r in records if json.loads(r)["global_step"] <= step]
+            (snapshot / "metrics.jsonl").write_text("".join(logged))
+        monkeypatch.setattr(loop, "atomic_torch_save", save)
+        monkeypatch.setattr(curriculum, "atomic_torch_save", save)
+        Curriculum(_config("on"), snapshot, tmp_path / "scratch", progress=False).run()
+    assert _outputs(snapshot) == _outputs(serial / "run")

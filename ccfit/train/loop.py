@@ -109,16 +109,22 @@ class Trainer:
 
     # -------------------------------------------------------------------------- main loop
 
-    def run(self) -> dict:
+    def run(self, wait: bool = True) -> dict | None:
         """Train to `config.steps` task steps and close the task; returns this task's last
-        evaluation record."""
+        evaluation record. wait=False: return (None) without waiting for the evaluations
+        still running, which the evaluator then holds for its next collector (a curriculum's
+        next task trains meanwhile)."""
         from tqdm.auto import tqdm
 
         cfg = self.cfg
         if self.run_dir is not None and (self.run_dir / CHECKPOINT).exists():
-            self.load_checkpoint(self.run_dir / CHECKPOINT)
+            pending = self.load_checkpoint(self.run_dir / CHECKPOINT)
             if self.logger is not None:
                 self.logger.rewind(self.global_step)
+                done, pending = self.logger.settle(pending)
+                self.evals += done
+            for request in pending:  # with the checkpoint's weights, as when submitted
+                self._submit(request)
         bar = tqdm(total=cfg.steps, initial=self.task_step, desc=self.task_id, unit="step",
                    disable=not self.progress, dynamic_ncols=True, mininterval=1.0)  # fmt: skip
         try:
@@ -157,6 +163,8 @@ class Trainer:
                 self._evaluate()
                 self.finished = True
                 self._checkpoint()
+            if not wait:
+                return None
             self._collect(until=None)
         finally:
             bar.close()
@@ -322,7 +330,9 @@ class Trainer:
             state["method"] = self.method.state_dict()
         return state
 
-    def load_checkpoint(self, path: str | Path) -> None:
+    def load_checkpoint(self, path: str | Path) -> list[dict]:
+        """Restore the checkpoint at `path`; returns the evaluation requests that were in
+        flight when it was written (all at its step: earlier ones were waited for)."""
         state = load_checkpoint(path, CHECKPOINT_KIND, CHECKPOINT_VERSION)
         saved = {k: state[k] for k in self._identity()}  # as written, by whichever version
         saved["train_config"] = drop_legacy_values(saved["train_config"], "train.")
@@ -343,5 +353,4 @@ class Trainer:
         self.evals = list(state["evals"])
         self._episode = None
         set_rng_state(state["rng"], actions=self.action_rng)
-        for request in state["pending_evals"]:  # with the weights they were submitted with
-            self._submit(request)
+        return list(state["pending_evals"])

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import secrets
+from collections.abc import Sequence
 from pathlib import Path
 
 from ccfit.config import LogConfig
@@ -75,6 +76,24 @@ class RunLogger:
             self._tb = None
         self._writer(purge_step=global_step + 1)
 
+    def settle(self, requests: Sequence[dict]) -> tuple[list[dict], list[dict]]:
+        """Evaluation requests a checkpoint lists as in flight (their records may have come in
+        after it was written): (the records of those logged whole, the requests to submit
+        again). The records of a request logged in part are dropped."""
+        logged = {_key(r): r for r in self.read_evals()}
+        done, again, partial = [], [], set()
+        for request in requests:
+            keys = [(request["global_step"], request["stage"], t) for t in request["tasks"]]
+            have = [k for k in keys if k in logged]
+            if len(have) == len(keys):
+                done += [logged[k] for k in keys]
+            else:
+                again.append(request)
+                partial.update(have)
+        if partial:
+            self.keep(lambda r: _key(r) not in partial)
+        return done, again
+
     def log_eval(self, record: dict) -> None:
         with self.jsonl.open("a") as f:
             f.write(json.dumps(record, sort_keys=True) + "\n")
@@ -108,3 +127,8 @@ class RunLogger:
         if self._wandb is not None:
             self._wandb.finish()
             self._wandb = None
+
+
+def _key(record: dict) -> tuple[int, int, int]:
+    """An evaluation record's identity: global step, stage (task being trained), task."""
+    return record["global_step"], record.get("stage", record["task_index"]), record["task_index"]
