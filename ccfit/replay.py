@@ -93,8 +93,8 @@ class ReplayBuffer:
         self._task = torch.empty(0, dtype=torch.long)
         self._written = 0  # rows ever written; row number n lives at n % capacity
         # Stored episodes, oldest first (the oldest may be partly overwritten):
-        # [number of its first row ever written, rows, task index, 1 if a demonstration].
-        self._episodes: deque[tuple[int, int, int, int]] = deque()
+        # [number of its first row ever written, rows, task index].
+        self._episodes: deque[tuple[int, int, int]] = deque()
         # Every demonstration ever stored: its write numbers [first, end) and its rows (as
         # `rows` gives them), kept after the ring overwrites them.
         self.demo_spans: list[tuple[int, int]] = []
@@ -201,7 +201,7 @@ class ReplayBuffer:
         if demo:
             self._keep_demo(start, self.rows(start, start + n))
         for rows in episode_rows:
-            self._episodes.append((start, rows, task, int(demo)))
+            self._episodes.append((start, rows, task))
             start += rows
         oldest = self._oldest
         while self._episodes and sum(self._episodes[0][:2]) <= oldest:
@@ -424,7 +424,7 @@ class ReplayBuffer:
         return {
             "capacity": self.capacity,
             "written": self._written,
-            "episodes": torch.tensor(list(self._episodes), dtype=torch.long).reshape(-1, 4),
+            "episodes": torch.tensor(list(self._episodes), dtype=torch.long).reshape(-1, 3),
             "demo_spans": torch.tensor(self.demo_spans, dtype=torch.long).reshape(-1, 2),
             "generator": self.generator.get_state(),
         }
@@ -439,7 +439,8 @@ class ReplayBuffer:
         self._obs, self._written, self._cache = {}, int(meta["written"]), {}
         oldest = self._oldest
         episodes = meta["episodes"].tolist()
-        # Checkpoints written before demonstrations were kept: those still stored are kept.
+        # Checkpoints written before demonstrations were kept marked them by a 4th episode
+        # column (those before that by none): the ones still stored are kept.
         spans = (meta["demo_spans"].tolist() if "demo_spans" in meta else
                  [(max(first, oldest), first + n) for first, n, _, *demo in episodes
                   if demo and demo[0]])  # fmt: skip
@@ -460,9 +461,7 @@ class ReplayBuffer:
                 v[idx] = cols[k].to(self.storage)
         if oldest > 0 and self._obs:  # as `_append` marks it (after its row was saved)
             self._first[self._physical(torch.tensor([oldest])).to(self.storage)] = True
-        # Checkpoints written before demonstrations were marked hold 3 columns: none is one.
-        self._episodes = deque((*(int(x) for x in row), 0)[:4]
-                               for row in meta["episodes"].tolist())  # fmt: skip
+        self._episodes = deque(tuple(int(x) for x in row[:3]) for row in episodes)
         self.generator.set_state(meta["generator"])
 
     def state_dict(self) -> dict:

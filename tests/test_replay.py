@@ -199,6 +199,14 @@ def test_demonstrations_are_oversampled_by_demo_fraction(tmp_path):
     legacy = ReplayBuffer(26)
     legacy.load_state_dict(old)
     assert legacy.num_episodes == buf.num_episodes and legacy.num_demo_starts(3) == 0
+    # As written when demonstrations were marked (a 4th episode column) but not kept: what
+    # the ring still stores of them is kept (demo 1 from row 9, demo 3 whole).
+    marked = {**old, "episodes": torch.cat([old["episodes"], torch.tensor([[1], [0], [1], [0]])],
+                                           dim=1)}  # fmt: skip
+    kept = ReplayBuffer(26)
+    kept.load_state_dict(marked)
+    assert kept.demo_spans == [(9, 12), (20, 26)] and kept.num_demo_starts(3) == 7
+    assert kept.meta_state()["episodes"].tolist() == buf.meta_state()["episodes"].tolist()
     with pytest.raises(ValueError, match="no demonstration"):
         filled([6])[0].sample(4, 2, demo_fraction=0.5)
 
