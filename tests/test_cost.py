@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
+import time
 from pathlib import Path
 
 import torch
@@ -28,3 +30,27 @@ def test_each_segment_records_the_code_that_ran_it(tmp_path):
         assert cost["code"][0]["commit"] == head.stdout.strip()
     assert read_cost(tmp_path / "none") == {"wall_s": 0.0, "cpu_s": 0.0, "segments": 0,
                                             "code": []}  # fmt: skip
+
+
+def test_a_killed_segment_stays_counted_up_to_its_last_flush(tmp_path):
+    # a process killed without warning (SIGKILL: no `finally`, no exit hook) keeps its cost
+    busy = (
+        "import sys\nfrom ccfit.train.cost import RunCost\n"
+        "with RunCost(sys.argv[1], flush_s=0.05):\n    while True: sum(range(1000))\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", busy, str(tmp_path)])
+    try:
+        deadline = time.monotonic() + 60
+        while read_cost(tmp_path)["cpu_s"] < 0.3:
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.05)
+    finally:
+        proc.kill()
+        proc.wait()
+    killed = read_cost(tmp_path)
+    assert killed["segments"] == 1 and killed["code"] == [running_code()]
+    with RunCost(tmp_path):
+        pass
+    cost = read_cost(tmp_path)
+    assert cost["segments"] == 2 and cost["cpu_s"] >= killed["cpu_s"] >= 0.3
+    assert cost["code"] == [running_code()] * 2

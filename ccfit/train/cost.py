@@ -2,13 +2,16 @@
 process that ran it (the training process and its worker processes) and over resumptions,
 and which code ran each segment (a run resumed under newer code says so).
 
-A resumed run adds to what is recorded; the segment a killed process was in when it died is
-not recorded (its CPU time is lost with it)."""
+A resumed run adds to what is recorded. While a segment runs, its cost so far is written every
+`FLUSH_S` seconds, so a process killed without warning (a session's end, a SLURM timeout's
+SIGKILL) leaves its segment counted up to its last flush; only the minute before it died is
+lost."""
 
 from __future__ import annotations
 
 import json
 import resource
+import threading
 import time
 from pathlib import Path
 
@@ -18,6 +21,8 @@ from ccdata.slurm import code_version
 from ccfit.io import atomic_write_json
 
 COST = "cost.json"
+FLUSH_S = 60.0
+"""Seconds between writes of a running segment's cost so far."""
 
 
 def _cpu() -> float:
@@ -30,25 +35,43 @@ def _cpu() -> float:
 
 
 class RunCost:
-    """Context manager: on exit (also by an exception), adds the wall and CPU time spent in
-    the block (the block's own worker processes included, once they ended) to `cost.json`."""
+    """Context manager: adds the wall and CPU time spent in the block (the block's own worker
+    processes included, once they ended) to `cost.json`, every `flush_s` seconds while it
+    runs (from a background thread) and once more on exit, also by an exception."""
 
-    def __init__(self, run_dir: str | Path) -> None:
+    def __init__(self, run_dir: str | Path, flush_s: float = FLUSH_S) -> None:
         self.path = Path(run_dir) / COST
+        self.flush_s = flush_s
 
     def __enter__(self) -> RunCost:
+        # what earlier segments recorded, a killed one's up to its last flush
+        self._before = read_cost(self.path.parent)
+        self._code = running_code()
         self._wall, self._cpu = time.monotonic(), _cpu()
+        self._stop = threading.Event()
+        self._flusher = threading.Thread(target=self._flush_until_stopped, daemon=True,
+                                         name="ccfit-cost")  # fmt: skip
+        self._flusher.start()
         return self
 
     def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._flusher.join()
+        self._write()
+
+    def _flush_until_stopped(self) -> None:
+        while not self._stop.wait(self.flush_s):
+            self._write()
+
+    def _write(self) -> None:
         if not self.path.parent.is_dir():
             return  # the run never started (bad input): nothing was spent on it
-        before = read_cost(self.path.parent)
+        before = self._before
         atomic_write_json(self.path, {
             "wall_s": before["wall_s"] + time.monotonic() - self._wall,
             "cpu_s": before["cpu_s"] + _cpu() - self._cpu,
             "segments": before["segments"] + 1,
-            "code": [*before["code"], running_code()],
+            "code": [*before["code"], self._code],
         })  # fmt: skip
 
 
