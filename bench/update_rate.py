@@ -11,7 +11,8 @@ Each is the median of --repeats calls after --warmup calls, as wall time and as 
 this process (on a shared machine wall time inflates with other load; CPU time much less so).
 Every row is timed per --modes: `eager` (`--train.compile=off`), `compiled` (every hot path
 compiled, `--train.compile=on`), `auto` (what `--train.compile=auto` compiles on this device),
-`bf16` (eager under `--train.autocast=bf16`) and `auto-bf16` (both); the first compiled call
+`bf16` (eager under `--train.autocast=bf16`), `auto-bf16` (both) and `compile:PATH+PATH` (those
+hot paths compiled, the rest eager: what decides `compile_pays`); the first compiled call
 (the compilation) is part of the warmup, not of the median.
 
 The roof: every row also counts the GFLOP of the matrix products in one update
@@ -58,7 +59,7 @@ import torch
 from ccfit.models import make_model
 from ccfit.models.base import Batch
 from ccfit.models.encoders import load_frozen_encoder, save_encoder
-from ccfit.models.registry import config_class
+from ccfit.models.registry import config_class, model_class
 from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
 from ccfit.train.compiled import autocast, compile_hot_paths
 from ccfit.train.update import UpdateStep
@@ -157,10 +158,19 @@ MODES = {  # name -> (--train.compile, --train.autocast)
 }  # fmt: skip
 
 
+def _paths_mode(mode: str) -> bool:
+    """`compile:loss+head_update`: these hot paths compiled, the rest eager."""
+    if not mode.startswith("compile:"):
+        return False
+    known = {p for m in MODELS for p in model_class(m).hot_paths}
+    return all(p in known for p in mode.removeprefix("compile:").split("+"))
+
+
 def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmup: int,
                mode: str = "eager") -> dict:  # fmt: skip
     """Times one update and one act of the model of `cfg`, run as `mode` says."""
-    compile_setting, precision = MODES[mode]
+    compile_setting, precision = MODES.get(mode, ("on", "off"))
+    paths = mode.removeprefix("compile:").split("+") if mode.startswith("compile:") else None
     torch.manual_seed(0)
     model = make_model(cfg, "cpu", encoder=frozen_encoder(cfg, preset) if frozen else None)
     model.begin_task(0, 1000)
@@ -181,7 +191,7 @@ def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmu
     # Counted eager, before compiling: the same arithmetic.
     gflop = {"update": matmul_gflop(lambda: UpdateStep(model, heads)(batch)),
              "act": matmul_gflop(act)}  # fmt: skip
-    compiled = compile_hot_paths(model, compile_setting)
+    compiled = compile_hot_paths(model, compile_setting, paths)
     step = UpdateStep(model, heads, autocast=precision)
 
     def update() -> None:
@@ -318,7 +328,7 @@ def main() -> None:
     for what, names, valid in (("model", args.models, MODELS), ("size", args.sizes, ANCHOR_SIZES),
                                ("variant", args.variants, VARIANTS),
                                ("mode", args.modes, MODES)):  # fmt: skip
-        bad = [n for n in names if n not in valid]
+        bad = [n for n in names if n not in valid and not (what == "mode" and _paths_mode(n))]
         if bad:
             parser.error(f"unknown {what} {bad}; valid: {list(valid)}")
     anchor = None

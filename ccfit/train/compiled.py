@@ -32,9 +32,12 @@ def compiled_paths(model_class: type[WorldModel], setting: str, device: torch.de
     return list(model_class.compile_pays.get(torch.device(device).type, ()))
 
 
-def compile_hot_paths(model: WorldModel, setting: str) -> list[str]:
-    """Replace `model`'s hot methods by compiled ones (on the instance); returns their names."""
-    names = compiled_paths(type(model), setting, model.device)
+def compile_hot_paths(model: WorldModel, setting: str,
+                      paths: list[str] | None = None) -> list[str]:  # fmt: skip
+    """Replace `model`'s hot methods by compiled ones (on the instance); returns their names.
+    `paths`: these methods instead of those `setting` names (`bench/update_rate.py` times
+    them one by one to decide `compile_pays`)."""
+    names = compiled_paths(type(model), setting, model.device) if paths is None else paths
     if names:
         import torch._dynamo.config
         import torch._functorch.config
