@@ -190,12 +190,12 @@ class Curriculum:
         logger = RunLogger(self.out, cfg.log, resolved)
         evaluator = make_evaluator(cfg, model, dict(enumerate(tasks)), method)
         evaluator.heads.update(enumerate(stored))
-        for request in logger.settle(pending)[1]:  # the saved weights are those it had
-            evaluator.submit(request["tasks"], stage=request["stage"],
-                             global_step=request["global_step"],
-                             task_step=request["task_step"])  # fmt: skip
         source = resolved["resolved_seed_dataset"]
         try:
+            for request in logger.settle(pending)[1]:  # the saved weights are those it had
+                evaluator.submit(request["tasks"], stage=request["stage"],
+                                 global_step=request["global_step"],
+                                 task_step=request["task_step"])  # fmt: skip
             for i in range(completed, len(tasks)):
                 task_dir = self.out / "tasks" / f"{i}-{tasks[i]}"
                 resumed = (task_dir / "checkpoint.pt").exists()
