@@ -186,7 +186,11 @@ class Curriculum:
         self.out.mkdir(parents=True, exist_ok=True)
         check_saved_config(self.out, resolved)
         scratch_dir = (self.scratch_root / scratch_key(cfg)).resolve()
-        scratch_job = start_scratch(cfg, scratch_dir)
+        # With compiled hot paths and tasks left after this one, the reference starts when this
+        # process has trained its first task: the compiled graphs are then in Inductor's cache,
+        # which the reference's process reads instead of compiling them beside this one.
+        defer_scratch = bool(resolved["resolved_compile"]) and len(tasks) - completed > 1
+        scratch_job = None if defer_scratch else start_scratch(cfg, scratch_dir)
         logger = RunLogger(self.out, cfg.log, resolved)
         evaluator = make_evaluator(cfg, model, dict(enumerate(tasks)), method)
         evaluator.heads.update(enumerate(stored))
@@ -218,6 +222,8 @@ class Curriculum:
                     trainer.run(wait=False)
                 finally:
                     env.close()
+                if defer_scratch:
+                    scratch_job, defer_scratch = start_scratch(cfg, scratch_dir), False
                 heads.requires_grad_(False)
                 heads.eval()
                 stored.append(heads)

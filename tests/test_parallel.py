@@ -129,3 +129,29 @@ def test_a_run_stopped_with_evaluations_in_flight_resumes_to_the_serial_result(
         monkeypatch.setattr(curriculum, "atomic_torch_save", save)
         Curriculum(_config("on"), snapshot, tmp_path / "scratch", progress=False).run()
     assert _outputs(snapshot) == _outputs(serial / "run")
+
+
+def test_with_compiled_hot_paths_the_reference_starts_after_the_first_task(tmp_path, monkeypatch):
+    # A compiled run's reference starts once the first task has trained (the compiled graphs
+    # are then cached for it; an eager run's starts at once). The compiled paths are faked in
+    # the resolved settings: compiling for real takes minutes, and the start reads only them.
+    import ccfit.curriculum as curriculum
+
+    real_resolved, real_start = curriculum.resolved_config, curriculum.start_scratch
+    seen = []
+
+    def resolved(cfg, suite):
+        return {**real_resolved(cfg, suite), "resolved_compile": ["loss"]}
+
+    def start(cfg, out):
+        seen.append(sorted(p.name for p in (tmp_path / "run" / "tasks").glob("*")))
+        return real_start(cfg, out)
+
+    monkeypatch.setattr(curriculum, "resolved_config", resolved)
+    monkeypatch.setattr(curriculum, "start_scratch", start)
+    torch.set_num_threads(1)
+    with shorter_episodes():
+        Curriculum(_config("on", "ft"), tmp_path / "run", tmp_path / "scratch",
+                   progress=False).run()  # fmt: skip
+    assert seen == [["0-pick-cube"]]
+    assert len(list((tmp_path / "scratch").glob("*/done.json"))) == 1
