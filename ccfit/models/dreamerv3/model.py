@@ -90,10 +90,11 @@ class DreamerV3(WorldModel, Prediction):
 
     capabilities = frozenset({"prediction"})
     hot_paths = ("loss", "head_update", "act")
-    # cpu preset, 1 thread, one update (UpdateStep) per path compiled, alternating, quiet:
-    # eager 88.5 ms, loss 73.4, head_update 94.0 (its autograd.grad and optimiser steps break
-    # the graph, and each task's new optimisers retrace it, ~3.5 s), both 80.7. Acting costs
-    # ~0.3 ms either way.
+    # bench/update_rate.py --models dreamerv3 --presets cpu --threads 1 --modes eager,auto,
+    # compile:head_update,compile:loss+head_update (two rounds, quiet): update eager 73.7 /
+    # 84.1 ms, loss compiled 70.5 / 67.9, head_update compiled 91.9 / 95.3 (its autograd.grad
+    # and optimiser steps break the graph; each task's new optimisers retrace it, ~3.5 s), both
+    # 80.5 / 73.5. Acting costs ~0.3 ms either way.
     compile_pays = {"cpu": ("loss",)}
 
     def __init__(
