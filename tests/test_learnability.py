@@ -60,6 +60,12 @@ def test_first_steps_and_budgets_by_hand(tmp_path):
     _fake_run(tmp_path, "pnp-cube", "m", [0, 60], capacity=100_000, demo_fraction=0.25)
     row = read_run(sorted(tmp_path.glob("*cap100000"))[0])
     assert row["model"] == "m [demo_fraction=0.25, buffer_capacity=100000]"
+    # and runs from pixels, through a frozen encoder or not (the state budget is not theirs)
+    for obs, encoder in (("pixels", "frozen:enc.safetensors"), ("pixels", None)):
+        run = _fake_run(tmp_path / obs / str(encoder), "reach-xy", "m", [0, 60])
+        cfg = json.loads((run / "config.json").read_text())
+        (run / "config.json").write_text(json.dumps({**cfg, "obs": obs, "encoder": encoder}))
+        assert read_run(run)["model"] == ("m [pixels, frozen encoder]" if encoder else "m [pixels]")
 
 
 def test_a_from_scratch_reference_is_a_row_of_its_task(tmp_path):

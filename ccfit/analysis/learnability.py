@@ -3,7 +3,8 @@
 `ccfit learnability RUNS --out DIR` reads single-task runs (`ccfit train`, one per task, model
 and seed, long budgets, and the from-scratch references of curricula and sweeps; runs that
 learn another way, `RECIPE` settings off their preset's values (demonstrations oversampled,
-another replay capacity), are rows of their own, their model named with the settings) and
+another replay capacity), pixels or a frozen encoder, are rows of their own, their model named
+with the settings) and
 writes `learnability.md` / `.csv`: per suite, task, model and seed, the first evaluated step
 whose normalised return reached 50 and 80, the best and last score, the mean of the last
 `PLATEAU` evaluations (one evaluation of a few episodes swings with the policy's acting noise:
@@ -79,6 +80,10 @@ def read_run(run: Path) -> dict | None:
     model = cfg["model"]["type"]
     recipe = [f"{k}={cfg['train'][k]}" for k in RECIPE
               if cfg["train"].get(k, _preset_value(cfg, k)) != _preset_value(cfg, k)]
+    if cfg.get("encoder"):  # through a frozen pretrained encoder: another problem to learn
+        recipe.insert(0, "frozen encoder")
+    if cfg.get("obs", "state") != "state":
+        recipe.insert(0, cfg["obs"])
     if recipe:  # another way of learning: its rows and budgets are kept apart
         model += f" [{', '.join(recipe)}]"
     return {
