@@ -158,19 +158,17 @@ MODES = {  # name -> (--train.compile, --train.autocast)
 }  # fmt: skip
 
 
-def _paths_mode(mode: str) -> bool:
-    """`compile:loss+head_update`: these hot paths compiled, the rest eager."""
-    if not mode.startswith("compile:"):
-        return False
-    known = {p for m in MODELS for p in model_class(m).hot_paths}
-    return all(p in known for p in mode.removeprefix("compile:").split("+"))
+def _compiled_paths_of(mode: str) -> list[str] | None:
+    """`compile:loss+head_update` -> ['loss', 'head_update'] (those hot paths compiled, the
+    rest eager); None for the named modes."""
+    return mode.removeprefix("compile:").split("+") if mode.startswith("compile:") else None
 
 
 def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmup: int,
                mode: str = "eager") -> dict:  # fmt: skip
     """Times one update and one act of the model of `cfg`, run as `mode` says."""
     compile_setting, precision = MODES.get(mode, ("on", "off"))
-    paths = mode.removeprefix("compile:").split("+") if mode.startswith("compile:") else None
+    paths = _compiled_paths_of(mode)
     torch.manual_seed(0)
     model = make_model(cfg, "cpu", encoder=frozen_encoder(cfg, preset) if frozen else None)
     model.begin_task(0, 1000)
@@ -328,9 +326,16 @@ def main() -> None:
     for what, names, valid in (("model", args.models, MODELS), ("size", args.sizes, ANCHOR_SIZES),
                                ("variant", args.variants, VARIANTS),
                                ("mode", args.modes, MODES)):  # fmt: skip
-        bad = [n for n in names if n not in valid and not (what == "mode" and _paths_mode(n))]
+        bad = [n for n in names
+               if n not in valid and not (what == "mode" and n.startswith("compile:"))]
         if bad:
-            parser.error(f"unknown {what} {bad}; valid: {list(valid)}")
+            parser.error(f"unknown {what} {bad}; valid: {list(valid)} or compile:PATH+PATH")
+    for mode in args.modes:  # each timed model must have the paths a compile: mode names
+        for m in args.models + (["dreamerv3"] if args.sizes else []):
+            unknown = sorted(set(_compiled_paths_of(mode) or ()) - set(model_class(m).hot_paths))
+            if unknown:
+                parser.error(f"{mode}: {unknown} are not hot paths of {m} "
+                             f"({', '.join(model_class(m).hot_paths)})")  # fmt: skip
     anchor = None
     if args.anchor_json:
         anchor = {r["config"]: r for r in json.loads(Path(args.anchor_json).read_text())["results"]}
