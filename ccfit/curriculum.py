@@ -57,13 +57,14 @@ from ccfit.train.cost import RunCost
 from ccfit.train.eval_worker import parallel_on
 from ccfit.train.loop import Trainer
 from ccfit.train.records import RunLogger
-from ccfit.train.resources import check_disk, plan_replay
+from ccfit.train.resources import check_disk
 from ccfit.train.run import (
     CONFIG,
     build_model,
     check_saved_config,
     make_evaluator,
     make_replay,
+    plan_run_replay,
     resolved_config,
     train_task,
 )
@@ -181,7 +182,9 @@ class Curriculum:
             torch.set_num_threads(train.torch_threads)
         tasks = cfg.tasks
         model, method, stored, completed, pending = restore(cfg, self.out, self.device)
-        plan = plan_replay(cfg, model)  # what does not fit fails here, before anything runs
+        source = resolved["resolved_seed_dataset"]
+        # What does not fit fails here, before anything runs.
+        plan = plan_run_replay(cfg, model, list(tasks), source)
         check_disk(plan, self.out)
         self.out.mkdir(parents=True, exist_ok=True)
         check_saved_config(self.out, resolved)
@@ -194,7 +197,6 @@ class Curriculum:
         logger = RunLogger(self.out, cfg.log, resolved)
         evaluator = make_evaluator(cfg, model, dict(enumerate(tasks)), method)
         evaluator.heads.update(enumerate(stored))
-        source = resolved["resolved_seed_dataset"]
         try:
             for request in logger.settle(pending)[1]:  # the saved weights are those it had
                 evaluator.submit(request["tasks"], stage=request["stage"],
@@ -231,6 +233,10 @@ class Curriculum:
                     callback(Stage(self.out, cfg, model, stored, method, self.device))
                 self._save(i + 1, model, method, stored, evaluator.pending)
                 shutil.rmtree(task_dir, ignore_errors=True)
+                # Release this task's replay before the next task allocates its own: held here,
+                # the two rings would coexist while the next one is seeded (twice the memory
+                # `plan_replay` checked).
+                del trainer, buffer
             for record in evaluator.results(until=None):
                 logger.log_eval(record)
         finally:

@@ -167,6 +167,30 @@ def _decode(path: Path, wanted: list[tuple[int, int]], fps: float) -> dict[int, 
     return out
 
 
+def episode_lengths(source: str | Path, task: str | int, policy: str,
+                    endpoint: str | None = None) -> list[int]:  # fmt: skip
+    """Frames of each of `task`'s episodes by `policy` (names as `load_episodes` takes them),
+    read from two index columns of the data files: what their episodes would weigh, without
+    reading them."""
+    meta, root = _open_metadata(source, endpoint)
+    task_ids, policies = _id_maps(root)
+    task_index = _index_of(task, task_ids, "task")
+    policy_index = _index_of(policy, policies, "policy")
+    counts: dict[int, int] = defaultdict(int)
+    for rel in sorted({
+        meta.data_path.format(chunk_index=int(r["data/chunk_index"]),
+                              file_index=int(r["data/file_index"]))
+        for _, r in meta.episodes.iterrows()
+    }):  # fmt: skip
+        table = pq.read_table(root / rel, columns=[TASK_ID_INDEX_KEY, POLICY_INDEX_KEY,
+                                                   EPISODE_INDEX])  # fmt: skip
+        mask = _matches(table, TASK_ID_INDEX_KEY, task_index)
+        mask &= _matches(table, POLICY_INDEX_KEY, policy_index)
+        for ep in _column(table, EPISODE_INDEX)[mask]:
+            counts[int(ep)] += 1
+    return [counts[ep] for ep in sorted(counts)]
+
+
 def load_episodes(
     source: str | Path,
     task: str | int | None = None,

@@ -224,6 +224,8 @@ class ReplayBuffer:
         if self._demo is None:
             self._demo = {k: torch.cat([p[k] for p in self._demo_parts])
                           for k in self._demo_parts[0]}  # fmt: skip
+            # The concatenation replaces the parts: both would hold the demonstrations twice.
+            self._demo_parts = [self._demo]
         return self._demo
 
     def _check_layout(self, obs: dict[str, torch.Tensor], action: torch.Tensor) -> None:

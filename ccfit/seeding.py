@@ -30,6 +30,7 @@ from ccfit.data import (
     REWARD_KEY,
     STATE_KEY,
     SUCCESS_KEY,
+    episode_lengths,
     load_episodes,
     resolve_source,
 )
@@ -147,16 +148,27 @@ def seed_buffer(
     render: RenderSettings | None = None,
     task_index: int = 0,
     endpoint: str | None = None,
+    demos: bool = True,
 ) -> dict[str, int]:
     """Preload `task_id`'s episodes of a LeRobot dataset into `buffer` (through
     `buffer.add_episode(obs=(T+1, ...), action=(T, 4), reward=(T,), terminated=(T,), task=,
-    demo=)`, the oracle's episodes marked as demonstrations); returns how many were added per
-    policy. See `replay_items` for what is kept."""
+    demo=)`); returns how many were added per policy. See `replay_items` for what is kept.
+    demos: mark the oracle's episodes as demonstrations, which the buffer keeps beside its
+    ring for `--train.demo_fraction` (only worth their memory when that is on)."""
     added: dict[str, int] = {}
     for _, policy, item in replay_items(source, task_id, obs_mode, render, endpoint):
-        buffer.add_episode(**item, task=task_index, demo=policy == DEMO_POLICY)
+        buffer.add_episode(**item, task=task_index, demo=demos and policy == DEMO_POLICY)
         added[policy] = added.get(policy, 0) + 1
     return added
+
+
+def demonstration_rows(source, task_ids, endpoint: str | None = None) -> int:
+    """The most replay rows one of `task_ids` has in demonstrations (the oracle's episodes of
+    `source`): what a buffer keeps beside its ring for `--train.demo_fraction`. Counted from
+    two index columns, without reading the episodes; an episode stores one row per frame,
+    plus its final observation where the dataset does not record it (counted, to be safe)."""
+    return max(sum(n + 1 for n in episode_lengths(source, task, DEMO_POLICY, endpoint))
+               for task in task_ids)  # fmt: skip
 
 
 def replay_items(

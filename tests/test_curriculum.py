@@ -649,3 +649,32 @@ def test_results_notebook_runs_on_smoke_runs(runs, tmp_path, monkeypatch):
     pngs = [o for o in outputs if "image/png" in o.get("data", {})]
     assert len(pngs) == 1 + len(METHODS)  # the bars and one curve plot per group
     assert len(list((tmp_path / "figures").glob("*.png"))) == 1 + len(METHODS)
+
+
+# ============================================================================= memory
+
+
+def test_a_tasks_replay_is_freed_before_the_next_task_allocates_its_own(tmp_path, monkeypatch):
+    """Two tasks' replay rings never coexist (the memory check counts one): when the
+    curriculum makes task i's buffer, nothing references an earlier task's buffer any more."""
+    import gc
+    import weakref
+
+    made, alive_when_making = [], []
+    real = C.make_replay
+
+    def watched(*args, **kwargs):
+        gc.collect()  # unreachable cycles (torch's first import of Dynamo leaves some) aside
+        alive_when_making.append(sum(ref() is not None for ref in made))
+        buffer = real(*args, **kwargs)
+        made.append(weakref.ref(buffer))
+        return buffer
+
+    monkeypatch.setattr(C, "make_replay", watched)
+    train = {"steps": 40, "seed_steps": 20, "eval_interval": 40, "checkpoint_interval": 40,
+             "parallel": "off"}  # fmt: skip
+    cfg = resolve(CurriculumConfig, {"suite": SUITE, "preset": "smoke", "seed_dataset": None,
+                                     "train": train, "method": {"type": "ft"}})  # fmt: skip
+    with shorter_episodes():
+        Curriculum(cfg, tmp_path / "run", tmp_path / "scratch", progress=False).run()
+    assert alive_when_making == [0] * len(TASKS)

@@ -217,3 +217,24 @@ def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
     assert "needs a seed dataset" in err and "or --train.demo_fraction=0" in err
     assert main([*base, "--task", "reach-xy", "--train.demo_fraction=1"]) == 2
     assert "train.demo_fraction must be in [0, 1)" in capsys.readouterr().err
+
+
+def test_demonstrations_are_kept_only_for_demo_fraction_and_counted_before_seeding(tiny_dataset):
+    """Oracle episodes are marked as demonstrations (kept beside the ring) only when asked;
+    `demonstration_rows` counts, from the index columns alone, the rows they then take."""
+    from ccfit.data import episode_lengths
+    from ccfit.seeding import demonstration_rows, seed_buffer
+
+    root, written = tiny_dataset
+    kept, plain = ReplayBuffer(1000), ReplayBuffer(1000)
+    seed_buffer(kept, root, "reach-xy", "state")
+    seed_buffer(plain, root, "reach-xy", "state", demos=False)
+    assert plain.num_transitions == kept.num_transitions and not plain.demo_spans
+    rows = sum(end - first for first, end in kept.demo_spans)
+    assert rows == len(written[0]["state"]) + 1  # the transitions and the final observation
+    # This dataset records no final observation: the episode's frames are its transitions.
+    assert episode_lengths(root, "reach-xy", "oracle") == [rows - 1]
+    assert episode_lengths(root, "reach-xyz", "oracle") == []
+    assert demonstration_rows(root, ["reach-xy", "reach-xyz"]) == rows
+    with pytest.raises(InputError, match="task 'reach-zz' is not in this dataset"):
+        episode_lengths(root, "reach-zz", "oracle")

@@ -317,6 +317,26 @@ def test_wandb_offline_logs_the_evaluations_and_resumes_the_same_run(tmp_path):
     assert subprocess.run(ccfit_command(plain), capture_output=True, timeout=300).returncode == 0
 
 
+def test_the_memory_check_counts_the_kept_demonstrations():
+    """Demonstrations kept beside the ring (`--train.demo_fraction`) count in the memory
+    check; the message names what to lower, the demonstrations themselves when they alone
+    do not fit."""
+    from ccfit.train import build_model
+    from ccfit.train.resources import HOST_SHARE, available_host_memory, plan_replay, row_bytes
+
+    cfg = resolve(TaskRunConfig, {"task": "reach-xy", "preset": "smoke", "seed_dataset": None,
+                                  "train": {"buffer_capacity": 1000}})  # fmt: skip
+    model = build_model(cfg, torch.device("cpu"))
+    row = row_bytes(cfg, model)
+    assert plan_replay(cfg, model, 500).bytes == row * 1500
+    fits = int(HOST_SHARE * available_host_memory() // row)  # rows the machine holds
+    with pytest.raises(ConfigError, match="1000 rows and .* rows of demonstrations") as e:
+        plan_replay(cfg, model, fits - 500)
+    assert "lower --train.buffer_capacity to at most" in str(e.value)
+    with pytest.raises(ConfigError, match="set --train.demo_fraction=0"):
+        plan_replay(cfg, model, fits + 1)
+
+
 def test_a_replay_that_fits_nowhere_is_refused_before_the_run(tmp_path, capsys):
     """`--preset paper --obs pixels` asks for a million 64 px rows (37 GB): on a machine
     without that memory the run stops at once, naming the setting to lower, and leaves no run

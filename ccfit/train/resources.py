@@ -59,19 +59,24 @@ def available_host_memory() -> int:
     raise RuntimeError("no MemAvailable in /proc/meminfo")
 
 
-def plan_replay(cfg: RunConfig, model: WorldModel) -> ReplayPlan:
-    """Where this run's replay goes, or ConfigError when it fits nowhere."""
+def plan_replay(cfg: RunConfig, model: WorldModel, demo_rows: int = 0) -> ReplayPlan:
+    """Where this run's replay goes, or ConfigError when it fits nowhere. demo_rows: the
+    demonstrations a task's buffer keeps beside its ring (`seeding.demonstration_rows`; only
+    with `--train.demo_fraction`)."""
     row = row_bytes(cfg, model)
-    total = row * cfg.train.buffer_capacity
+    total = row * (cfg.train.buffer_capacity + demo_rows)
     device = model.device
     if device.type == "cuda" and total <= GPU_SHARE * torch.cuda.mem_get_info(device)[0]:
         return ReplayPlan(row, total, device, False)
     free = available_host_memory()
     if total > HOST_SHARE * free:
+        demos = f" and {demo_rows} rows of demonstrations" if demo_rows else ""
+        most = int(HOST_SHARE * free // row) - demo_rows
+        fix = (f"lower --train.buffer_capacity to at most {most}" if most >= 2 else
+               "set --train.demo_fraction=0 (the demonstrations alone do not fit)")  # fmt: skip
         raise ConfigError(
-            f"replay needs {_gb(total)} ({cfg.train.buffer_capacity} rows of {row} B) but "
-            f"{_gb(free)} of memory is available: lower --train.buffer_capacity to at most "
-            f"{int(HOST_SHARE * free // row)}"
+            f"replay needs {_gb(total)} ({cfg.train.buffer_capacity} rows{demos} of {row} B) "
+            f"but {_gb(free)} of memory is available: {fix}"
         )
     return ReplayPlan(row, total, torch.device("cpu"), device.type == "cuda")
 

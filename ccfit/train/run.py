@@ -21,7 +21,7 @@ from ccfit.io import atomic_write_json, derived_seed, seed_everything
 from ccfit.models.base import WorldModel
 from ccfit.models.registry import make_model, model_class
 from ccfit.replay import ReplayBuffer
-from ccfit.seeding import DEMO_POLICY, seed_buffer
+from ccfit.seeding import DEMO_POLICY, demonstration_rows, seed_buffer
 from ccfit.train.compiled import compile_hot_paths, compiled_paths, resolve_autocast
 from ccfit.train.cost import RunCost
 from ccfit.train.eval_worker import AsyncEvaluator, WorkerSpec, has_view, parallel_on
@@ -99,6 +99,15 @@ def dataset_source(cfg: RunConfig, suite: str | None) -> str | None:
     return str(root) if (root / "meta" / "info.json").is_file() else None
 
 
+def plan_run_replay(cfg: RunConfig, model: WorldModel, task_ids: list[str],
+                    source: str | None) -> ReplayPlan:  # fmt: skip
+    """`plan_replay` for a run over `task_ids` seeded from `source`, counting the
+    demonstrations its buffers keep when `--train.demo_fraction` is on."""
+    demos = cfg.train.demo_fraction > 0 and source is not None
+    rows = demonstration_rows(source, task_ids, cfg.dataset_endpoint) if demos else 0
+    return plan_replay(cfg, model, rows)
+
+
 def make_replay(cfg: RunConfig, model: WorldModel, task_id: str, task_index: int,
                 source: str | None, plan: ReplayPlan | None = None) -> ReplayBuffer:  # fmt: skip
     """Task `task_index`'s replay, preloaded with that task's own episodes of `source` (later
@@ -110,7 +119,8 @@ def make_replay(cfg: RunConfig, model: WorldModel, task_id: str, task_index: int
                           pin=plan.pin if plan else False)  # fmt: skip
     if source is not None:
         added = seed_buffer(buffer, source, task_id, cfg.obs, render_settings(cfg),
-                            task_index=task_index, endpoint=cfg.dataset_endpoint)  # fmt: skip
+                            task_index=task_index, endpoint=cfg.dataset_endpoint,
+                            demos=cfg.train.demo_fraction > 0)  # fmt: skip
         if cfg.train.demo_fraction > 0 and not added.get(DEMO_POLICY):
             raise InputError(f"{source} holds no {DEMO_POLICY} episode of {task_id}: "
                              "train.demo_fraction has no demonstrations to oversample")
@@ -180,7 +190,7 @@ def train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, save
     seed_everything(cfg.seed)
     model = build_model(cfg, device)
     model.begin_task(task_index, cfg.train.steps)
-    plan = plan_replay(cfg, model)
+    plan = plan_run_replay(cfg, model, [task_id], saved["resolved_seed_dataset"])
     check_disk(plan, out)
     # Seed data is read before anything is written: a bad dataset leaves no run directory.
     source = None if resumed else saved["resolved_seed_dataset"]
