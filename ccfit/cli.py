@@ -15,6 +15,7 @@ Commands:
              a results folder under version control
     learnability   steps each task needs (single-task runs) and the per-suite budgets
     ablate   a finished routed-model run's expert ablation on the composition task (Fig. 6)
+    probe-encoder   whether a frozen encoder's latent gives each task's hand, objects and goal
     pretrain-encoder   the frozen-encoder diagnostic: an autoencoder on every task's oracle
              episodes, saved for `ccfit run --obs pixels --encoder frozen:PATH`
 
@@ -148,6 +149,24 @@ def _cmd_learnability(args: argparse.Namespace) -> None:
         print(path)
 
 
+def _cmd_probe_encoder(args: argparse.Namespace) -> None:
+    from ccdata.tasks import get_task
+    from ccfit.analysis.encoder_probe import markdown, probe_encoder, write_probe
+
+    tasks = [get_task(t.strip()).id for t in args.tasks.split(",") if t.strip()]
+    if not tasks:
+        raise CliError("--tasks names no task")
+    if args.frames < 10:
+        raise CliError(f"--frames must be at least 10 (a held-out fifth to score), got "
+                       f"{args.frames}")
+    try:
+        result = probe_encoder(args.encoder, tasks, frames=args.frames, seed=args.seed)
+    except ValueError as err:  # a missing or mismatched encoder file
+        raise CliError(str(err)) from None
+    print(markdown(result), end="")
+    print("-> " + ", ".join(str(p) for p in write_probe(result, Path(args.out))))
+
+
 def _cmd_ablate(args: argparse.Namespace) -> None:
     from ccfit.analysis import ABLATION_JSON, ABLATION_PNG, ablate
 
@@ -188,6 +207,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("runs", nargs="+", help="run directories (or folders holding them)")
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=_cmd_learnability)
+
+    p = sub.add_parser("probe-encoder", help="how well a frozen encoder's latent gives each "
+                       "task's hand, object and goal positions (held-out R^2 of linear probes, "
+                       "beside the same from the pixels)")  # fmt: skip
+    p.add_argument("encoder", help="weights file written by `ccfit pretrain-encoder`")
+    p.add_argument("--tasks", required=True, help="comma list of task ids, e.g. reach-xy,pick-cube")
+    p.add_argument("--frames", type=int, default=1000, help="frames per task (fresh layouts)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="output directory (probe.json, probe.md)")
+    p.set_defaults(func=_cmd_probe_encoder)
 
     p = sub.add_parser("ablate", help="expert ablation of a finished run of a model offering "
                        "'routing' (prior / new / "
