@@ -328,8 +328,14 @@ def test_config_and_parser():
     config = config_from_args(args)
     assert (config.steps, config.seed, config.suites) == (7, 3, ("Reach", "Grasp"))
     assert callable(args.func)
+    args = parser.parse_args(["pretrain-encoder", "--decoder-channels", "32", "--augment-shift",
+                              "0", "--lr", "1e-3", "--batch-size", "8"])  # fmt: skip
+    config = config_from_args(args)
+    assert (config.decoder_channels, config.augment_shift, config.lr, config.batch_size,
+            config.steps) == (32, 0, 1e-3, 8, PretrainConfig.preset("cpu").steps)  # fmt: skip
     args = parser.parse_args(["pretrain-encoder"])
     config = config_from_args(args)
+    assert config.decoder_channels == PretrainConfig.preset("cpu").decoder_channels == 16
     assert config.suites == tuple(__import__("ccdata").SUITES) and config.model_preset == "cpu"
     enc, ref = config.encoder_config(), TDMPC2Config.preset("cpu", obs_mode="pixels")
     assert (enc.latent_dim, enc.enc_dim, enc.num_channels, enc.num_enc_layers) == (

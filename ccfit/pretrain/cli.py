@@ -12,6 +12,10 @@ from ccfit.pretrain.train import pretrain_encoder
 
 # ================================================================================== CLI
 
+_TRAINING_OVERRIDES = {"steps": int, "batch_size": int, "lr": float, "decoder_channels": int,
+                       "augment_shift": int}  # fmt: skip
+"""PretrainConfig fields a command line may set over the preset's values (see its docstrings)."""
+
 
 def add_pretrain_parser(subparsers) -> argparse.ArgumentParser:
     """Register `pretrain-encoder` on an argparse subparsers object; its handler is
@@ -28,7 +32,9 @@ def add_pretrain_parser(subparsers) -> argparse.ArgumentParser:
                         "'pixel-encoder')")  # fmt: skip
     p.add_argument("--out", default=None,
                    help="weights file (default runs/encoders/encoder-PRESET-sSEED.safetensors)")
-    p.add_argument("--steps", type=int, default=None, help="override the preset's steps")
+    for name, kind in _TRAINING_OVERRIDES.items():
+        p.add_argument(f"--{name.replace('_', '-')}", type=kind, default=None,
+                       help=f"override the preset's {name}")  # fmt: skip
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--image-size", type=int, default=64, help="camera image side of the datasets")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda")
@@ -41,8 +47,9 @@ def config_from_args(args: argparse.Namespace) -> PretrainConfig:
     """The PretrainConfig of a parsed `pretrain-encoder` command line."""
     overrides: dict[str, Any] = {"model": args.model, "suites": args.suites, "seed": args.seed,
                                  "image_size": args.image_size, "device": args.device}
-    if args.steps is not None:
-        overrides["steps"] = args.steps
+    for name in _TRAINING_OVERRIDES:
+        if getattr(args, name) is not None:
+            overrides[name] = getattr(args, name)
     return PretrainConfig.preset(args.preset, **overrides)
 
 
