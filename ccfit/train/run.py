@@ -190,10 +190,11 @@ def train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, save
     seed_everything(cfg.seed)
     model = build_model(cfg, device)
     model.begin_task(task_index, cfg.train.steps)
-    plan = plan_run_replay(cfg, model, [task_id], saved["resolved_seed_dataset"])
-    check_disk(plan, out)
-    # Seed data is read before anything is written: a bad dataset leaves no run directory.
+    # Seed data is read before anything is written: a bad dataset leaves no run directory. A
+    # resumed run reads it no more (its checkpoint holds the replay, demonstrations included).
     source = None if resumed else saved["resolved_seed_dataset"]
+    plan = plan_run_replay(cfg, model, [task_id], source)
+    check_disk(plan, out)
     buffer = make_replay(cfg, model, task_id, task_index, source, plan)
     check_saved_config(out, saved)
     logger = RunLogger(out, cfg.log, saved)
