@@ -159,10 +159,7 @@ def _cmd_probe_encoder(args: argparse.Namespace) -> None:
     if args.frames < 10:
         raise CliError(f"--frames must be at least 10 (a held-out fifth to score), got "
                        f"{args.frames}")
-    try:
-        result = probe_encoder(args.encoder, tasks, frames=args.frames, seed=args.seed)
-    except ValueError as err:  # a missing or mismatched encoder file
-        raise CliError(str(err)) from None
+    result = probe_encoder(args.encoder, tasks, frames=args.frames, seed=args.seed)
     print(markdown(result), end="")
     print("-> " + ", ".join(str(p) for p in write_probe(result, Path(args.out))))
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from ccfit.analysis.encoder_probe import ridge_r2
+from ccfit.analysis.encoder_probe import probe_rows, ridge_r2
 from ccfit.cli import main
 
 SIZE = 32
@@ -21,6 +21,24 @@ def test_ridge_r2_scores_what_the_inputs_hold():
     y = np.stack([x @ rng.normal(size=6), rng.normal(size=400), np.full(400, 0.3)], axis=1)
     linear, noise, constant = ridge_r2(x, y)
     assert linear > 0.99 and noise < 0.05 and constant is None
+
+
+def test_probe_rows_score_each_varying_position_and_drop_the_rest():
+    """A 'latent' that holds the hand (plus noise) and nothing of the goal: the hand scores
+    near 1, the goal near 0 or below, a coordinate that never varies and an absent object are
+    left out, and the pixels column is scored from its own input."""
+    rng = np.random.default_rng(1)
+    state = np.zeros((300, 39))
+    state[:, 0:3] = rng.uniform(-0.3, 0.3, (300, 3))  # hand
+    state[:, 36:38] = rng.uniform(-0.2, 0.2, (300, 2))  # goal x, y; its z stays 0
+    latent = np.concatenate([state[:, 0:3], rng.normal(size=(300, 5))], axis=1)
+    latent[:, :3] += 0.01 * rng.normal(size=(300, 3))
+    rows = probe_rows("t", {"latent": latent, "pixels": state[:, 36:38].copy(), "state": state})
+    by = {r["position"]: r for r in rows}
+    assert set(by) == {"hand", "goal"} and by["goal"]["axes"] == "xy"
+    assert min(by["hand"]["latent_r2"]) > 0.99 and max(by["goal"]["latent_r2"]) < 0.1
+    # The pixel probe's penalty (10x, for thousands of pooled inputs) shrinks two exact ones.
+    assert min(by["goal"]["pixels_r2"]) > 0.85
 
 
 @pytest.fixture
@@ -38,7 +56,7 @@ def encoder_path(tmp_path):
 def test_probe_reports_the_positions_each_task_varies(encoder_path, tmp_path, capsys):
     out = tmp_path / "probe"
     assert main(["probe-encoder", str(encoder_path), "--tasks", "reach-xy,reach-xyz",
-                 "--frames", "30", "--out", str(out)]) in (0, None)  # fmt: skip
+                 "--frames", "30", "--out", str(out)]) == 0  # fmt: skip
     result = json.loads((out / "probe.json").read_text())
     rows = {(r["task"], r["position"]): r for r in result["rows"]}
     # Reach has no object; reach-xy's goal moves in x and y only, reach-xyz's in all three.

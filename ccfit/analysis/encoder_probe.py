@@ -101,9 +101,13 @@ def probe_rows(task_id: str, data: dict[str, np.ndarray]) -> list[dict]:
 def probe_encoder(path: str | Path, task_ids: list[str], frames: int = 1000, walk: int = 30,
                   seed: int = 0) -> dict:  # fmt: skip
     """Probe the frozen encoder at `path` on each task (module docstring)."""
+    from ccdata.errors import InputError
     from ccfit.models.encoders import load_frozen_encoder
 
-    encoder, spec = load_frozen_encoder(path)
+    try:
+        encoder, spec = load_frozen_encoder(path)
+    except ValueError as err:  # missing, foreign or mismatched file: the user's to fix
+        raise InputError(str(err)) from None
     rows = []
     for task_id in task_ids:
         data = collect(encoder, task_id, frames, int(spec["image_size"]), walk, seed)
