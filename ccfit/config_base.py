@@ -149,9 +149,9 @@ def without_setting(config: dict, path: str, only_if: Any = ...) -> dict:
     return out
 
 
-NOT_IDENTITY = ("log", "train.parallel")
+NOT_IDENTITY = ("log", "train.parallel", "out")
 """config.json settings a run may change when it is resumed (where it logs, how it spreads
-over processes: not what it computes)."""
+over processes, where its directory now is: not what it computes)."""
 
 
 def identity(resolved: dict) -> dict:

@@ -72,7 +72,12 @@ def test_resume_after_interruption_matches_uninterrupted_run(tmp_path, monkeypat
     state = torch.load(broken / "checkpoint.pt", weights_only=False)
     state["train_config"]["demo_fraction"] = 0.0
     torch.save(state, broken / "checkpoint.pt")
+    # A run directory moved elsewhere (off a cluster's scratch disk) resumes where it is.
+    moved = tmp_path / "elsewhere" / "broken"
+    moved.parent.mkdir()
+    broken = broken.rename(moved)
     train_single(_run_config(broken), progress=False)
+    assert json.loads((broken / "config.json").read_text())["out"] == str(broken)
 
     a, b = _params(full), _params(broken)
     assert a.keys() == b.keys()

@@ -18,6 +18,7 @@ import pytest
 
 from ccdata.errors import InputError
 from ccfit.cli import main
+from ccfit.config_base import ConfigError
 from ccfit.sweep.grid import (
     Grid,
     check_same_sweep,
@@ -74,6 +75,30 @@ def test_grid_expands_into_resolved_run_configs(tmp_path):
         keys.setdefault((run.config["suite"], run.config["seed"]), set()).add(run.scratch_key)
     assert all(len(k) == 1 for k in keys.values())
     assert len(set.union(*keys.values())) == 4
+
+
+def test_an_option_of_some_methods_or_models_goes_to_the_points_having_it(tmp_path):
+    # --method.retrain_steps is PackNet's, --method.lam EWC's, --model.critic_replay_scale
+    # DreamerV3's: runs of the other methods and models would refuse them
+    args = (*RUN_ARGS, "--method.retrain_steps", "77", "--method.lam=10",
+            "--model.critic_replay_scale=0.3", "--train.seed_steps=60")  # fmt: skip
+    grid = Grid(("Reach",), ("tdmpc2", "dreamerv3"), ("ft", "packnet", "ewc"), (0,), "smoke",
+                args)  # fmt: skip
+    sweep = expand(grid, tmp_path)
+    for run in sweep.runs:
+        cfg = config_from_dict(run.config)
+        assert cfg.train.seed_steps == 60  # options of the run itself reach every run
+        assert getattr(cfg.method, "retrain_steps", 77) == 77
+        assert getattr(cfg.method, "lam", 10) == 10
+        assert getattr(cfg.model, "critic_replay_scale", 0.3) == 0.3
+    kinds = {(r.config["model"]["type"], r.config["method"]["type"]) for r in sweep.runs}
+    assert len(kinds) == 6
+    # the methods without the field share the from-scratch reference of those with it
+    assert len({r.scratch_key for r in sweep.runs}) == 2
+    # a field no method of the grid has is still an unknown option
+    with pytest.raises(ConfigError, match="retrain_steps"):
+        expand(Grid(("Reach",), ("tdmpc2",), ("ft", "er"), (0,), "smoke",
+                    (*RUN_ARGS, "--method.retrain_steps=5")), tmp_path / "b")  # fmt: skip
 
 
 def test_grid_refuses_options_it_sets_and_repeated_values():

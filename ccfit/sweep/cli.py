@@ -8,7 +8,8 @@
     ccfit sweep --status runs/sweep1
 
 Options the sweep does not know are run options (`ccfit run --help`, or `ccfit fit --help`
-with `--track offline`), set for every run.
+with `--track offline`), set for every run; a field of some models' or methods' configs only
+(`--method.retrain_steps=6000`, PackNet's) is set for their runs.
 Running the same command again submits only the unfinished work.
 """
 

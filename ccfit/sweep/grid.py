@@ -3,8 +3,10 @@
 Every grid point (suite x model x method x seed) is a `ccfit run` config, or with
 `--track offline` a `ccfit fit` config: the grid's values and the common options go through the
 same `parse_cli` as the command, so a sweep accepts every option of it and validates it the
-same way. Runs go to `RUNS/<name>` (named by their config); runs that differ only in the
-method share one from-scratch reference in `RUNS/scratch/<scratch_key>`.
+same way. An option of one model's or one method's config (`--method.retrain_steps=6000`, a
+PackNet field) goes to the grid points whose model or method has that field. Runs go to
+`RUNS/<name>` (named by their config); runs that differ only in the method share one
+from-scratch reference in `RUNS/scratch/<scratch_key>`.
 
 `sweep.json` holds the grid, each run's resolved config, its directory and scratch key, the
 code version, and one entry per submission (launcher, job ids, job states when local). It
@@ -187,18 +189,70 @@ def expand(grid: Grid, root: str | Path) -> Sweep:
 
     import_plugins(grid.plugins)
     root = Path(root).resolve()
+    scoped = _scoped_options(grid)
     runs = []
     # Seed-major: a sweep run in order (a local pool, an array) finishes every method of a
     # seed before the next seed, so a partly run sweep already compares all of them.
     for seed, suite, model, method in itertools.product(grid.seeds, grid.suites, grid.models,
                                                         grid.methods):  # fmt: skip
         argv = [f"--preset={grid.preset}", f"--suite={suite}", f"--seed={seed}",
-                f"--model.type={model}", f"--method.type={method}", *grid.args]  # fmt: skip
+                f"--model.type={model}", f"--method.type={method}",
+                *point_args(grid.args, scoped, {"model": model, "method": method})]  # fmt: skip
         cfg = parse_cli(config_class, argv, prog="ccfit sweep")
         name = run_name(cfg, grid.track)
         cfg.out = str(root / name)
         runs.append(RunSpec(name, cfg.to_dict(), scratch_key(cfg)))
     return Sweep(root, grid, runs, code_version())
+
+
+def _options(args: tuple[str, ...]) -> list[list[str]]:
+    """`args` cut into options: `--key=value`, `--key value` or a lone `--flag`."""
+    out: list[list[str]] = []
+    for a in args:
+        if a.startswith("--") or not out or "=" in out[-1][0] or len(out[-1]) == 2:
+            out.append([a])
+        else:
+            out[-1].append(a)
+    return out
+
+
+def _config_fields(group: str, name: str) -> set[str]:
+    import ccfit.continual  # noqa: F401  (registers the methods)
+    import ccfit.models  # noqa: F401  (registers the models)
+    from ccfit.continual.base import method_config_class
+    from ccfit.models.registry import config_class as model_config_class
+
+    config_class = model_config_class if group == "model" else method_config_class
+    return {f.name for f in dataclasses.fields(config_class(name))}
+
+
+def _scoped_options(grid: Grid) -> dict[str, dict[str, set[str]]]:
+    """Per `--model.FIELD` / `--method.FIELD` option that only some of the grid's models
+    (methods) have: group -> FIELD -> the grid values having it. An option none of them has
+    is left to `parse_cli`, which names it as unknown."""
+    values = {"model": grid.models, "method": grid.methods}
+    out: dict[str, dict[str, set[str]]] = {"model": {}, "method": {}}
+    for option in _options(grid.args):
+        group, _, name = (_flag_name(option[0]) or "").partition(".")
+        if group not in values or not name or name == "type":
+            continue
+        name = name.partition(".")[0]
+        having = {v for v in values[group] if name in _config_fields(group, v)}
+        if having and having != set(values[group]):
+            out[group][name] = having
+    return out
+
+
+def point_args(args: tuple[str, ...], scoped: dict[str, dict[str, set[str]]],
+               point: dict[str, str]) -> list[str]:  # fmt: skip
+    """The common options that apply to one grid point (`point`: its model and method)."""
+    out: list[str] = []
+    for option in _options(args):
+        group, _, name = (_flag_name(option[0]) or "").partition(".")
+        having = scoped.get(group, {}).get(name.partition(".")[0])
+        if having is None or point[group] in having:
+            out += option
+    return out
 
 
 # ================================================================================ sweep.json
