@@ -96,6 +96,14 @@ class TrainConfig:
     seed dataset's oracle episodes of the task) instead of anywhere in replay: oversampling
     demonstrations, as MoDem (Hansen et al. 2023) does, for tasks that the uniform mix learns
     too slowly. Needs a seed dataset. 0: off (every preset's default, the paper's setting)."""
+    stop_score: float | None = None
+    """Single-task runs (`ccfit train`) only: end the task early, at an evaluation step, once
+    its last `stop_evals` evaluations all scored at least this normalised return, so that a
+    learnability run spends only the steps the task needs. None: train all `steps` (a
+    curriculum always does: task ends are the paper's b_i)."""
+    stop_evals: int = 3
+    """Consecutive evaluations `stop_score` asks for (one evaluation of a few episodes is
+    noisy)."""
 
     def __post_init__(self) -> None:
         for name in ("parallel", "compile", "autocast"):
@@ -112,6 +120,7 @@ class TrainConfig:
         check(self.torch_threads >= 0, f"train.torch_threads must be >= 0, got "
                                        f"{self.torch_threads}")  # fmt: skip
         check(self.checkpoint_minutes >= 0, "train.checkpoint_minutes must be >= 0")
+        check(self.stop_evals >= 1, f"train.stop_evals must be >= 1, got {self.stop_evals}")
         check(0.0 <= self.demo_fraction < 1.0,
               f"train.demo_fraction must be in [0, 1), got {self.demo_fraction}")  # fmt: skip
         check(self.device in DEVICES, f"train.device must be one of {DEVICES}, got "
@@ -140,6 +149,14 @@ COMPILE_SETTINGS: tuple[str, ...] = ("auto", "on", "off")
 AUTOCAST_SETTINGS: tuple[str, ...] = ("off", "bf16", "auto")
 """`--train.autocast` values (`ccfit.train.compiled.resolve_autocast`)."""
 WANDB_MODES: tuple[str, ...] = ("online", "offline")
+
+
+def stop_reached(scores: list[float | None], stop_score: float | None, stop_evals: int) -> bool:
+    """Whether evaluations scoring `scores` (normalised returns, in order) end a single-task
+    run early (`TrainConfig.stop_score`)."""
+    last = scores[-stop_evals:]
+    return (stop_score is not None and len(last) == stop_evals
+            and all(x is not None and x >= stop_score for x in last))  # fmt: skip
 
 
 @dataclass
@@ -306,6 +323,9 @@ class CurriculumConfig(RunConfig):
         # Everything that would fail once the run is under way fails here, before it starts.
         check_pairing(self.model, self.method, len(self.tasks))
         check_references(self.tasks)
+        check(self.train.stop_score is None,
+              "train.stop_score ends single-task runs early (`ccfit train`); a curriculum "
+              "trains every task for its steps")  # fmt: skip
         check(self.train.steps % self.train.eval_interval == 0,
               f"steps per task ({self.train.steps}) must be a multiple of eval_interval "
               f"({self.train.eval_interval}) so every task is evaluated at its end")  # fmt: skip

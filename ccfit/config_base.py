@@ -127,7 +127,10 @@ def resolve_device(name: str | torch.device) -> torch.device:
     return device
 
 
-LEGACY_VALUES: dict[str, Any] = {"train.demo_fraction": 0.0, "resolved_autocast": "off"}
+LEGACY_VALUES: dict[str, Any] = {
+    "train.demo_fraction": 0.0, "resolved_autocast": "off", "train.stop_score": None,
+    "train.stop_evals": 3,
+}  # fmt: skip
 """Settings added after runs were made, each with the value that reproduces what runs did
 before it existed. A setting at that value is left out wherever configs are compared or hashed
 (config.json, sweep.json, checkpoints, the from-scratch key), so a run or sweep written before

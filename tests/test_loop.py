@@ -90,6 +90,34 @@ def test_resume_after_interruption_matches_uninterrupted_run(tmp_path, monkeypat
         train_single(_run_config(broken, steps=180), progress=False)
 
 
+@pytest.mark.parametrize("parallel", ["off", "on"])
+def test_stop_score_ends_a_single_task_run_early_and_resumed_it_stays_ended(parallel, tmp_path):
+    from ccfit.analysis.learnability import read_run
+    from ccfit.train import train_single
+
+    out = tmp_path / "run"
+    cfg = _run_config(out, steps=600)
+    cfg = resolve(TaskRunConfig, {**cfg.to_dict(), "train": {
+        **cfg.to_dict()["train"], "stop_score": -1e9, "stop_evals": 2,  # every score reaches it
+        "parallel": parallel}})  # evaluations in a worker: the same step ends the task
+    train_single(cfg, progress=False)
+    records = (out / "metrics.jsonl").read_text()
+    # decided at step 120 on the evaluations at 0 and 60; the task's final evaluation at 120
+    assert [json.loads(x)["task_step"] for x in records.splitlines()] == [0, 60, 120]
+    state = torch.load(out / "checkpoint.pt", weights_only=False)
+    assert (state["task_step"], state["finished"]) == (120, True)
+    train_single(cfg, progress=False)  # resumed: nothing more to train
+    assert (out / "metrics.jsonl").read_text() == records
+    assert torch.load(out / "checkpoint.pt", weights_only=False)["task_step"] == 120
+    row = read_run(out)  # finished, not cut short, for `ccfit learnability`
+    assert row is not None and row["budget"] == 600
+    # the same records without the rule that ended them: an unfinished run
+    saved = json.loads((out / "config.json").read_text())
+    saved["train"]["stop_score"] = None
+    (out / "config.json").write_text(json.dumps(saved))
+    assert read_run(out) is None
+
+
 @pytest.mark.slow  # two 300-step runs (~60 s); resume equality is covered by the tests below
 def test_wall_clock_checkpoints_do_not_change_the_run(tmp_path):
     """A checkpoint written at an episode end (checkpoint_minutes) cuts nothing: the run's
@@ -167,6 +195,8 @@ def test_preset_fills_defaults_and_flags_override_them():
         (["run", "--suite", "Reach", "--method.type=ewc", "--method.lam=-1"], "lam"),
         (["train", "--task", "reach-xy", "--train.autocast=fp16"],
          "train.autocast must be one of ('off', 'bf16', 'auto')"),
+        (["run", "--suite", "Reach", "--train.stop_score=80"], "single-task runs"),
+        (["train", "--task", "reach-xy", "--train.stop_evals=0"], "train.stop_evals"),
         (["fly"], "invalid choice"),
     ],
 )

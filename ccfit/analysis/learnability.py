@@ -11,7 +11,8 @@ whose normalised return reached 50 and 80, the best and last score, the mean of 
 TD-MPC2's grasping by tens of points), the budget and what the run cost (`cost.json`), plus
 `budgets.json`: per suite and model, the steps per task every task of the suite needs to reach
 50 (the largest first step to 50 over its tasks and seeds, rounded up to the evaluation
-interval), or None when a task never reached it within the run's budget.
+interval), or None when a task never reached it within the run's budget. A run ended early by
+`--train.stop_score` is finished; its budget column is still the steps it was given.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import math
 from pathlib import Path
 
 from ccdata.errors import InputError
+from ccfit.config import stop_reached
 from ccfit.config_base import LEGACY_VALUES
 from ccfit.curriculum import REFERENCE_DONE
 from ccfit.io import atomic_write_json, atomic_write_text, read_run_json
@@ -73,7 +75,13 @@ def read_run(run: Path) -> dict | None:
     if task is None:
         return None
     steps = int(cfg["train"]["steps"])
-    if not records or max(r["task_step"] for r in records) < steps:
+    if not records:
+        return None
+    # Finished: at its budget, or ended early by `--train.stop_score` (decided on the
+    # evaluations before the last one, the task's final evaluation at the step it ended).
+    stopped = stop_reached([r["normalized_return"] for r in records[:-1]],
+                           cfg["train"].get("stop_score"), cfg["train"].get("stop_evals", 3))
+    if max(r["task_step"] for r in records) < steps and not stopped:
         return None
     scores = [r["normalized_return"] for r in records if r["normalized_return"] is not None]
     cost = read_cost(run)

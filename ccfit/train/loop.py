@@ -31,7 +31,7 @@ from torch import nn
 
 from ccdata.errors import InputError
 from ccdata.scoring import discounted_return
-from ccfit.config import TrainConfig
+from ccfit.config import TrainConfig, stop_reached
 from ccfit.config_base import drop_legacy_values
 from ccfit.continual.base import ContinualMethod, TaskData
 from ccfit.io import atomic_torch_save, derived_seed, load_checkpoint, rng_state, set_rng_state
@@ -128,9 +128,11 @@ class Trainer:
         bar = tqdm(total=cfg.steps, initial=self.task_step, desc=self.task_id, unit="step",
                    disable=not self.progress, dynamic_ncols=True, mininterval=1.0)  # fmt: skip
         try:
-            while self.task_step < cfg.steps:
+            while self.task_step < cfg.steps and not self.finished:
                 if self.task_step % cfg.eval_interval == 0 and self.last_eval != self.task_step:
                     self._cut_episode()
+                    if self._learnt():
+                        break
                     self._evaluate()
                 if self._collect() and self._own_records():
                     rec = self._own_records()[-1]
@@ -172,6 +174,15 @@ class Trainer:
 
     def _own_records(self) -> list[dict]:
         return [r for r in self.evals if r["task_index"] == self.task_index]
+
+    def _learnt(self) -> bool:
+        """Whether `stop_score` ends the task here. Waits for the evaluations still running,
+        so that the step it ends at is the same with evaluation in a worker or in line."""
+        if self.cfg.stop_score is None or self.task_step == 0:
+            return False
+        self._collect(until=self.global_step)
+        scores = [r["normalized_return"] for r in self._own_records()]
+        return stop_reached(scores, self.cfg.stop_score, self.cfg.stop_evals)
 
     def _finish_task(self) -> None:
         """The method closes the task: `after_task` on this task's replay, then the extra
