@@ -1,0 +1,106 @@
+"""Why ER loses Grasp's pick-cube (TD-MPC2) where EWC keeps it.
+
+    python results/diagnostics/grasp_er_pick.py RUNS/Grasp-tdmpc2-{ewc,er,ft}-state-cpu-s0 \
+        > results/diagnostics/grasp_er_pick.jsonl
+
+For each finished Grasp curriculum, its final backbone with the stored heads of an earlier task:
+- reading: along 20 oracle and 20 random episodes of the task from the Grasp dataset (true
+  rewards and discounted returns known), the stored reward head's error per step, the stored Q
+  at the episode's actions against the discounted return obtained, the latent dynamics'
+  one-step error |next(z_t, a_t) - encode(o_t+1)|^2 / |encode(o_t+1)|^2 and the stored policy's
+  mean action against the episode's;
+- acting: the task's normalised return over 10 layouts x 3 noise seeds, acting as evaluation
+  does (MPPI through dynamics, reward and Q) and with the stored policy's mean alone.
+One JSON line per run.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ccfit.config import CurriculumConfig
+from ccfit.config_parse import parse_cli
+from ccfit.curriculum import restore
+from ccfit.data import load_episodes
+from ccfit.seeding import episode_to_replay
+from ccfit.train.evaluate import Evaluator
+
+DATASET = Path.home() / ".cache/huggingface/lerobot/ccdata/Grasp"
+EPISODES = 20
+
+
+def discounted_returns(rewards: np.ndarray, discount: float) -> np.ndarray:
+    g = np.zeros(len(rewards) + 1)
+    for t in reversed(range(len(rewards))):
+        g[t] = rewards[t] + discount * g[t + 1]
+    return g[:-1]
+
+
+def reading(model, method, heads, index: int, task: str, policy: str) -> dict:
+    errors: dict[str, list[float]] = {"reward": [], "q": [], "ret": [], "dyn": [], "act": []}
+    for episode in load_episodes(DATASET, task=task, policy=policy, images=False)[:EPISODES]:
+        rows = episode_to_replay(episode, "state")
+        obs = {k: torch.as_tensor(v).float() for k, v in rows["obs"].items()}
+        actions = torch.as_tensor(rows["action"]).float()
+        rewards = np.asarray(rows["reward"], dtype=np.float64).reshape(-1)
+        with torch.no_grad(), method.evaluating(index, model.backbone):
+            z = model.encode(obs)
+            reward = model.two_hot.logits_to_scalar(model.reward(z[:-1], actions, heads))[:, 0]
+            q = model.Q(z[:-1], actions, heads, return_type="avg")[:, 0]
+            step = ((model.next(z[:-1], actions) - z[1:]) ** 2).sum(-1) / (z[1:] ** 2).sum(-1)
+            _, info = model.pi(z[:-1], heads)
+        errors["reward"].append(np.abs(reward.numpy() - rewards).mean())
+        errors["q"].append(q.numpy().mean())
+        errors["ret"].append(discounted_returns(rewards, model.cfg.discount).mean())
+        errors["dyn"].append(step.numpy().mean())
+        errors["act"].append(np.abs(info["mean"].numpy() - rows["action"]).mean())
+    mean = {k: float(np.mean(v)) for k, v in errors.items()}
+    return {"reward_abs_err": round(mean["reward"], 4), "Q_mean": round(mean["q"], 2),
+            "return_mean": round(mean["ret"], 2), "dynamics_rel_err": round(mean["dyn"], 4),
+            "pi_vs_episode_action": round(mean["act"], 3)}  # fmt: skip
+
+
+def acting(model, method, heads, index: int, task: str) -> dict:
+    view = lambda i: method.evaluating(i, model.backbone)  # noqa: E731
+    evaluator = Evaluator(model, {index: task}, seed=0, obs_mode="state", image_size=64,
+                          episodes=10, view=view)  # fmt: skip
+    evaluator.heads[index] = heads
+    mppi = model.plan
+
+    def policy_mean(z, heads, prev_mean, *, eval_mode):
+        _, info = model.pi(z, heads)
+        return info["mean"], prev_mean
+
+    out = {}
+    for mode, plan in (("mppi", mppi), ("policy_mean", policy_mean)):
+        model.plan = plan
+        records = [evaluator.evaluate([index], stage=99, global_step=noise, task_step=None)[0]
+                   for noise in (1, 2, 3)]  # fmt: skip
+        out[mode] = [round(r["normalized_return"], 1) for r in records]
+    model.plan = mppi
+    return out
+
+
+def main() -> None:
+    torch.set_num_threads(1)
+    for run in map(Path, sys.argv[1:]):
+        cfg = parse_cli(CurriculumConfig, ["--config_path", str(run / "config.json")])
+        model, method, stored, _, _ = restore(cfg, run, torch.device("cpu"))
+        model.eval()
+        out: dict = {"run": run.name}
+        for index, task in enumerate(cfg.tasks[:-1]):  # the earlier tasks
+            heads = stored[index].eval()
+            for policy in ("oracle", "random"):
+                out[f"{task}/reading/{policy}"] = reading(model, method, heads, index, task,
+                                                          policy)  # fmt: skip
+            out[f"{task}/acting"] = acting(model, method, heads, index, task)
+        print(json.dumps(out), flush=True)
+
+
+if __name__ == "__main__":
+    main()
