@@ -103,7 +103,7 @@ def test_cli_on_a_real_smoke_run(tmp_path, capsys, short_episodes):
     (row,) = [read_run(run)]
     assert row["task"] == "reach-xy" and row["budget"] == 100 and row["cpu_hours"] > 0
     md = (tmp_path / "out" / "learnability.md").read_text()
-    assert "| Reach | reach-xy | tdmpc2 | 0 | 100 |" in md
+    assert "| Reach | reach-xy | tdmpc2 | 0 | 100 | 100 |" in md  # budget, trained
     assert main(["learnability", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 2
 
 

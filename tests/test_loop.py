@@ -110,7 +110,7 @@ def test_stop_score_ends_a_single_task_run_early_and_resumed_it_stays_ended(para
     assert (out / "metrics.jsonl").read_text() == records
     assert torch.load(out / "checkpoint.pt", weights_only=False)["task_step"] == 120
     row = read_run(out)  # finished, not cut short, for `ccfit learnability`
-    assert row is not None and row["budget"] == 600
+    assert row is not None and (row["budget"], row["trained"]) == (600, 120)
     # the same records without the rule that ended them: an unfinished run
     saved = json.loads((out / "config.json").read_text())
     saved["train"]["stop_score"] = None

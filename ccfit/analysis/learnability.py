@@ -12,7 +12,8 @@ TD-MPC2's grasping by tens of points), the budget and what the run cost (`cost.j
 `budgets.json`: per suite and model, the steps per task every task of the suite needs to reach
 50 (the largest first step to 50 over its tasks and seeds, rounded up to the evaluation
 interval), or None when a task never reached it within the run's budget. A run ended early by
-`--train.stop_score` is finished; its budget column is still the steps it was given.
+`--train.stop_score` is finished; its budget column is still the steps it was given, its
+`trained` column the step it ended at.
 """
 
 from __future__ import annotations
@@ -98,6 +99,7 @@ def read_run(run: Path) -> dict | None:
         "suites": [s.name for s in SUITES.values() if task in s.task_ids],
         "task": task, "model": model, "seed": cfg["seed"],
         "preset": cfg["preset"], "obs": cfg["obs"], "budget": steps,
+        "trained": max(int(r["task_step"]) for r in records),
         "eval_interval": int(cfg["train"]["eval_interval"]),
         **{f"steps_to_{t}": first_step_at(records, t) for t in THRESHOLDS},
         "best": max(scores) if scores else None, "last": scores[-1] if scores else None,
@@ -135,8 +137,8 @@ def write_learnability(runs: list[Path], out: Path) -> list[Path]:
         raise InputError(f"no finished `ccfit train` run under {', '.join(map(str, runs))}")
     rows.sort(key=lambda r: (r["suites"][0], r["task"], r["model"], r["seed"]))
     out.mkdir(parents=True, exist_ok=True)
-    cols = ["suites", "task", "model", "seed", "budget", "steps_to_50", "steps_to_80", "best",
-            "last", f"last_{PLATEAU}", "cpu_hours"]  # fmt: skip
+    cols = ["suites", "task", "model", "seed", "budget", "trained", "steps_to_50", "steps_to_80",
+            "best", "last", f"last_{PLATEAU}", "cpu_hours"]  # fmt: skip
 
     def cell(col: str, v) -> str:
         if v is None:
