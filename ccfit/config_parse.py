@@ -62,6 +62,23 @@ def resolve[C: BaseRunConfig](cls: type[C], overrides: dict[str, Any]) -> C:
     return _decode(cls, _deep_merge(preset_defaults(cls, choices), overrides))
 
 
+def saved_config[C: BaseRunConfig](cls: type[C], run_dir: str | Path,
+                                    name: str = "config.json") -> C:  # fmt: skip
+    """`cls` from the config.json a run wrote in `run_dir` (its fields only: a saved config
+    also records what was derived); InputError when there is none."""
+    from ccdata.errors import InputError
+
+    path = Path(run_dir) / name
+    if not path.is_file():
+        raise InputError(f"{run_dir} is not a run directory (no {name})")
+    try:
+        saved = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(f"{path} is not a JSON config: {e}") from None
+    names = {f.name for f in dataclasses.fields(cls)}
+    return resolve(cls, {k: v for k, v in saved.items() if k in names})
+
+
 def _preset_sections(cls: type, preset: str) -> dict[str, dict]:
     """Field name -> preset values of `cls`'s sections that are plain dataclasses with
     `PRESETS` (what a registered type chooses, model and method, is handled apart)."""

@@ -38,7 +38,6 @@ from pathlib import Path
 import torch
 
 from ccdata.env import make_env
-from ccdata.errors import InputError
 from ccfit import metrics as M
 from ccfit.config import CurriculumConfig
 from ccfit.config_base import identity, resolve_device
@@ -314,14 +313,9 @@ class LoadedRun:
 def load_run(run_dir: str | Path, device: torch.device | str | None = None) -> LoadedRun:
     """Read a run directory (config.json + curriculum.pt) back: the public run loader that
     analyses (routing, ablations) use."""
-    from ccfit.config_parse import resolve
+    from ccfit.config_parse import saved_config
 
-    run_dir = Path(run_dir)
-    if not (run_dir / CONFIG).is_file():
-        raise InputError(f"{run_dir} is not a run directory (no {CONFIG})")
-    saved = json.loads((run_dir / CONFIG).read_text())
-    names = {f.name for f in dataclasses.fields(CurriculumConfig)}
-    cfg = resolve(CurriculumConfig, {k: v for k, v in saved.items() if k in names})
+    cfg = saved_config(CurriculumConfig, run_dir, CONFIG)
     dev = resolve_device(device if device is not None else cfg.train.device)
     model, method, stored, completed, _ = restore(cfg, run_dir, dev)
     return LoadedRun(cfg, model, method, stored, completed, dev)

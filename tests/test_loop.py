@@ -90,6 +90,24 @@ def test_resume_after_interruption_matches_uninterrupted_run(tmp_path, monkeypat
         train_single(_run_config(broken, steps=180), progress=False)
 
 
+def test_load_task_run_reads_a_finished_run_back(tmp_path):
+    from ccdata.errors import InputError
+    from ccfit.train import load_task_run, train_single
+
+    out = tmp_path / "run"
+    cfg = _run_config(out)
+    train_single(cfg, progress=False)
+    loaded = load_task_run(out, "cpu")
+    assert loaded.cfg == cfg and loaded.checkpoint["task_step"] == 120
+    params = _params(out)
+    for prefix, module in (("model", loaded.model), ("heads", loaded.heads)):
+        for name, value in module.state_dict().items():
+            assert torch.equal(value, params[f"{prefix}.{name}"]), name
+    assert not loaded.model.training and not loaded.heads.training
+    with pytest.raises(InputError, match="not a run directory"):
+        load_task_run(tmp_path / "nothing")
+
+
 @pytest.mark.parametrize("parallel", ["off", "on"])
 def test_stop_score_ends_a_single_task_run_early_and_resumed_it_stays_ended(parallel, tmp_path):
     from ccfit.analysis.learnability import read_run

@@ -13,7 +13,9 @@ from ccfit.train.loop import CHECKPOINT, Trainer
 from ccfit.train.records import METRICS, RunLogger
 from ccfit.train.run import (
     CONFIG,
+    LoadedTaskRun,
     build_model,
+    load_task_run,
     make_evaluator,
     make_replay,
     resolved_config,
@@ -23,6 +25,7 @@ from ccfit.train.run import (
 
 __all__ = [
     "CHECKPOINT", "CONFIG", "METRICS", "EnvPool", "Episode", "EvalResult", "Evaluator",
-    "RunLogger", "Trainer", "build_model", "eval_seeds", "make_evaluator", "make_replay",
+    "LoadedTaskRun", "RunLogger", "Trainer", "build_model", "eval_seeds", "load_task_run",
+    "make_evaluator", "make_replay",
     "normalized_or_none", "play_episodes", "resolved_config", "train_single", "train_task",
 ]  # fmt: skip

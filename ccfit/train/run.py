@@ -8,6 +8,7 @@ model, replay, env and evaluator the same way: `build_model`, `make_replay`,
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -214,6 +215,36 @@ def train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, save
         env.close()
         logger.close()
     return trainer.evals
+
+
+@dataclass
+class LoadedTaskRun:
+    """A `ccfit train` run read back from its directory (config.json + checkpoint.pt)."""
+
+    cfg: TaskRunConfig
+    model: WorldModel
+    heads: torch.nn.Module
+    checkpoint: dict
+    """The whole checkpoint: `task_step`, the replay's `buffer` and `replay_files`, ..."""
+
+
+def load_task_run(run_dir: str | Path, device: torch.device | str | None = None
+                  ) -> LoadedTaskRun:  # fmt: skip
+    """The model and heads of a `ccfit train` run at its last checkpoint (its end once it
+    finished), in eval mode: the single-task twin of `ccfit.curriculum.load_run`."""
+    from ccfit.config_parse import saved_config
+    from ccfit.io import load_checkpoint
+    from ccfit.train.loop import CHECKPOINT_KIND, CHECKPOINT_VERSION
+
+    cfg = saved_config(TaskRunConfig, run_dir, CONFIG)
+    model = build_model(cfg, resolve_device(device if device is not None else cfg.train.device))
+    state = load_checkpoint(Path(run_dir) / CHECKPOINT, CHECKPOINT_KIND, CHECKPOINT_VERSION)
+    model.load_state_dict(state["model"])
+    heads = model.new_heads()
+    heads.load_state_dict(state["heads"])
+    model.eval()
+    heads.eval()
+    return LoadedTaskRun(cfg, model, heads, state)
 
 
 def train_single(cfg: TaskRunConfig, *, progress: bool = True) -> dict:

@@ -20,11 +20,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ccfit.config import TaskRunConfig
-from ccfit.config_parse import parse_cli
 from ccfit.data import load_episodes
 from ccfit.seeding import episode_to_replay
-from ccfit.train import build_model
+from ccfit.train import load_task_run
 
 DATASET = Path.home() / ".cache/huggingface/lerobot/ccdata/Grasp"
 EPISODES = 20
@@ -33,15 +31,9 @@ EPISODES = 20
 def main() -> None:
     torch.set_num_threads(1)
     run = Path(sys.argv[1])
-    cfg = parse_cli(TaskRunConfig, ["--config_path", str(run / "config.json")])
-    model = build_model(cfg, torch.device("cpu"))
-    state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
-    model.load_state_dict(state["model"])
-    heads = model.new_heads()
-    heads.load_state_dict(state["heads"])
-    model.eval()
-    heads.eval()
-    out: dict = {"run": run.name, "task_step": state["task_step"]}
+    loaded = load_task_run(run, "cpu")
+    model, heads = loaded.model, loaded.heads
+    out: dict = {"run": run.name, "task_step": loaded.checkpoint["task_step"]}
     for policy in ("oracle", "random"):
         episodes = load_episodes(DATASET, task="pick-cube", policy=policy, images=False)
         sums_true, sums_pred, errors, values, returns, actions = [], [], [], [], [], []

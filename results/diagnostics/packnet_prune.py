@@ -18,13 +18,11 @@ from pathlib import Path
 
 import torch
 
-from ccfit.config import TaskRunConfig
-from ccfit.config_parse import parse_cli
 from ccfit.continual.base import TaskData, make_method
 from ccfit.continual.packnet import PackNetConfig
 from ccfit.io import seed_everything
 from ccfit.replay_store import load_rows
-from ccfit.train import build_model
+from ccfit.train import load_task_run
 from ccfit.train.evaluate import Evaluator
 from ccfit.train.run import make_replay
 from ccfit.train.update import UpdateStep
@@ -36,12 +34,9 @@ def main() -> None:
     torch.set_num_threads(1)
     seed_everything(0)  # the updates' own noise (the replay samples with its seeded generator)
     run = Path(sys.argv[1])
-    cfg = parse_cli(TaskRunConfig, ["--config_path", str(run / "config.json")])
-    model = build_model(cfg, torch.device("cpu"))
-    state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
-    model.load_state_dict(state["model"])
-    heads = model.new_heads()
-    heads.load_state_dict(state["heads"])
+    loaded = load_task_run(run, "cpu")
+    cfg, model, heads, state = loaded.cfg, loaded.model, loaded.heads, loaded.checkpoint
+    heads.train()  # as the trainer's heads during updates (Q's dropout); acting sets eval
     replay = make_replay(cfg, model, cfg.task, 0, None)
     load_rows(replay, run, state["buffer"], state["replay_files"])
     method = make_method(PackNetConfig(retrain_steps=max(RETRAINING)), num_tasks=3, seed=0)
