@@ -64,19 +64,22 @@ def resolve[C: BaseRunConfig](cls: type[C], overrides: dict[str, Any]) -> C:
 
 def saved_config[C: BaseRunConfig](cls: type[C], run_dir: str | Path,
                                     name: str = "config.json") -> C:  # fmt: skip
-    """`cls` from the config.json a run wrote in `run_dir` (its fields only: a saved config
-    also records what was derived); InputError when there is none."""
-    from ccdata.errors import InputError
-
+    """`cls` from the config.json a run wrote in `run_dir`; ConfigError when there is none."""
     path = Path(run_dir) / name
-    if not path.is_file():
-        raise InputError(f"{run_dir} is not a run directory (no {name})")
+    check(path.is_file(), f"{run_dir} is not a run directory (no {name})")
+    return resolve(cls, _saved_fields(cls, path))
+
+
+def _saved_fields(cls: type, path: Path) -> dict:
+    """A saved config.json as plain data, `cls`'s fields only: it also records what was derived
+    (e.g. the resolved seed dataset), and a curriculum's config may seed a single-task run."""
+    check(path.is_file(), f"config file not found: {path}")
     try:
         saved = json.loads(path.read_text())
     except json.JSONDecodeError as e:
-        raise InputError(f"{path} is not a JSON config: {e}") from None
+        raise ConfigError(f"{path} is not a JSON config: {e}") from None
     names = {f.name for f in dataclasses.fields(cls)}
-    return resolve(cls, {k: v for k, v in saved.items() if k in names})
+    return {k: v for k, v in saved.items() if k in names}
 
 
 def _preset_sections(cls: type, preset: str) -> dict[str, dict]:
@@ -153,16 +156,7 @@ def parse_cli[C: BaseRunConfig](cls: type[C], argv: Sequence[str], prog: str | N
     args = [_underscored(a) for a in argv]
     pre = _preparse(args)
     if pre.get("config_path"):
-        path = Path(pre["config_path"])
-        check(path.is_file(), f"config file not found: {path}")
-        try:
-            defaults = json.loads(path.read_text())
-        except json.JSONDecodeError as e:
-            raise ConfigError(f"{path} is not a JSON config: {e}") from None
-        # A saved config.json also records what was derived (e.g. the resolved seed dataset),
-        # and a curriculum's config may seed a single-task run: keep this class's fields.
-        names = {f.name for f in dataclasses.fields(cls)}
-        defaults = {k: v for k, v in defaults.items() if k in names}
+        defaults = _saved_fields(cls, Path(pre["config_path"]))
         args = _without(args, "config_path")
     else:
         size = pre.get("image_size")  # a bad value is reported by draccus below

@@ -106,6 +106,13 @@ def test_load_task_run_reads_a_finished_run_back(tmp_path):
     assert not loaded.model.training and not loaded.heads.training
     with pytest.raises(InputError, match="not a run directory"):
         load_task_run(tmp_path / "nothing")
+    (out / "config.json").write_text('{"task": "reach-xy",')  # cut short
+    for read in (lambda: load_task_run(out),
+                 lambda: parse_cli(TaskRunConfig, ["--config_path", str(out / "config.json")])):
+        with pytest.raises(ConfigError, match="is not a JSON config"):
+            read()
+    with pytest.raises(ConfigError, match="config file not found"):
+        parse_cli(TaskRunConfig, ["--config_path", str(tmp_path / "none.json")])
 
 
 @pytest.mark.parametrize("parallel", ["off", "on"])

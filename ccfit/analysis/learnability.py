@@ -80,8 +80,9 @@ def read_run(run: Path) -> dict | None:
         return None
     # Finished: at its budget, or ended early by `--train.stop_score` (decided on the
     # evaluations before the last one, the task's final evaluation at the step it ended).
-    stopped = stop_reached([r["normalized_return"] for r in records[:-1]],
-                           cfg["train"].get("stop_score"), cfg["train"].get("stop_evals", 3))
+    train = cfg["train"]
+    stopped = train.get("stop_score") is not None and stop_reached(
+        [r["normalized_return"] for r in records[:-1]], train["stop_score"], train["stop_evals"])
     if max(r["task_step"] for r in records) < steps and not stopped:
         return None
     scores = [r["normalized_return"] for r in records if r["normalized_return"] is not None]

@@ -20,11 +20,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ccdata.settings import default_repo_id
 from ccfit.data import load_episodes
 from ccfit.seeding import episode_to_replay
 from ccfit.train import load_task_run
 
-DATASET = Path.home() / ".cache/huggingface/lerobot/ccdata/Grasp"
+DATASET = default_repo_id("Grasp")  # LeRobot's cache, where `ccdata generate` writes, or the Hub
 EPISODES = 20
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ccdata.settings import default_repo_id
 from ccfit.config import CurriculumConfig
 from ccfit.config_parse import parse_cli
 from ccfit.curriculum import restore
@@ -30,7 +31,7 @@ from ccfit.data import load_episodes
 from ccfit.seeding import episode_to_replay
 from ccfit.train.evaluate import Evaluator
 
-DATASET = Path.home() / ".cache/huggingface/lerobot/ccdata/Grasp"
+DATASET = default_repo_id("Grasp")  # LeRobot's cache, where `ccdata generate` writes, or the Hub
 EPISODES = 20
 
 
