@@ -63,8 +63,11 @@ def run_one(src: Path, out: Path, args, model: str, cache: Path) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--baseline", default=None,
-                        help="source tree of the other version (none: time this one only)")
+    parser.add_argument(
+        "--baseline",
+        default=None,
+        help="source tree of the other version (none: time this one only)",
+    )
     parser.add_argument("--models", default="tdmpc2,dreamerv3")
     parser.add_argument("--suite", default="Reach")
     parser.add_argument("--preset", default="cpu")
@@ -73,13 +76,18 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=6000,
                         help="steps per task, given to both versions: a model's per-suite "
                         "budget may differ between them")  # fmt: skip
-    parser.add_argument("--out", default="/tmp/ccfit-bench-curriculum",
-                        help="scratch folder for the runs")
+    parser.add_argument(
+        "--out", default="/tmp/ccfit-bench-curriculum", help="scratch folder for the runs"
+    )
     parser.add_argument("--inductor-cache", choices=("cold", "warm", "both"), default="both",
                         help="time runs with an empty compile cache, a filled one, or both "
                              "(this checkout only; see the module doc)")  # fmt: skip
-    parser.add_argument("--extra", nargs=argparse.REMAINDER, default=[],
-                        help="more `ccfit run` options for both versions (last)")
+    parser.add_argument(
+        "--extra",
+        nargs=argparse.REMAINDER,
+        default=[],
+        help="more `ccfit run` options for both versions (last)",
+    )
     args = parser.parse_args()
     current = {"cold": ["current_cold"], "warm": ["untimed", "current_warm"],
                "both": ["current_cold", "current_warm"]}[args.inductor_cache]  # fmt: skip

@@ -47,15 +47,20 @@ def main() -> None:
             ds[i]
         theirs_s = time.perf_counter() - start
     ours, theirs = frames / ours_s, n / theirs_s
-    print(json.dumps({
-        "frames": frames,
-        "loader_frames_per_s": ours,
-        "lerobot_getitem_frames_per_s": theirs,
-        "getitem_frames_timed": n,
-        "speedup": ours / theirs,
-        "target_speedup": 20,
-        "cpu_count": os.cpu_count(),
-    }, indent=2))
+    print(
+        json.dumps(
+            {
+                "frames": frames,
+                "loader_frames_per_s": ours,
+                "lerobot_getitem_frames_per_s": theirs,
+                "getitem_frames_timed": n,
+                "speedup": ours / theirs,
+                "target_speedup": 20,
+                "cpu_count": os.cpu_count(),
+            },
+            indent=2,
+        )
+    )
 
 
 if __name__ == "__main__":

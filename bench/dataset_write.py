@@ -77,8 +77,13 @@ if __name__ == "__main__":
 def generate_rate(args, workers: int, root: Path) -> tuple[float, int, float]:
     """Steps/s of a one-shot `generate` (end to end, merge included), the steps, and the cores
     it kept busy (all its processes)."""
-    config = dict(suite=args.suite, episodes=args.episodes,
-                  explore_episodes=args.explore_episodes, workers=workers, root=str(root))
+    config = dict(
+        suite=args.suite,
+        episodes=args.episodes,
+        explore_episodes=args.explore_episodes,
+        workers=workers,
+        root=str(root),
+    )
     start, cpu = time.perf_counter(), _children_cpu_seconds()
     done = subprocess.run([sys.executable, "-c", GENERATE, json.dumps(config)],
                           capture_output=True, text=True, check=True)  # fmt: skip
@@ -92,8 +97,10 @@ def _become_subreaper() -> None:
     """Orphans of our children (the fork server and what it forked outlive the generating
     process by moments) are reparented to us, so that waiting for them adds their CPU time."""
     if not sys.platform.startswith("linux"):
-        sys.exit("bench/dataset_write.py counts its generations' CPU through Linux's "
-                 "PR_SET_CHILD_SUBREAPER")
+        sys.exit(
+            "bench/dataset_write.py counts its generations' CPU through Linux's "
+            "PR_SET_CHILD_SUBREAPER"
+        )
     libc = ctypes.CDLL(None, use_errno=True)
     if libc.prctl(36, 1) != 0:  # PR_SET_CHILD_SUBREAPER
         raise OSError(ctypes.get_errno(), "prctl(PR_SET_CHILD_SUBREAPER) failed")

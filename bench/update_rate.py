@@ -195,9 +195,14 @@ def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmu
     def update() -> None:
         step(batch)
 
-    result = {"mode": mode, "compiled": compiled, "autocast": precision,
-              "parameters": count_parameters(model, heads),
-              "update_gflop": gflop["update"], "act_gflop": gflop["act"]}
+    result = {
+        "mode": mode,
+        "compiled": compiled,
+        "autocast": precision,
+        "parameters": count_parameters(model, heads),
+        "update_gflop": gflop["update"],
+        "act_gflop": gflop["act"],
+    }
     for name, fn in (("update", update), ("act", act)):
         t = _median_times(fn, repeats, warmup)
         result[f"{name}_s_median"] = t["wall"]
@@ -260,16 +265,32 @@ def rows_to_time(args) -> list[dict]:
                 over = {"obs_mode": mode, "image_size": args.image_size}
                 if args.batch_size:
                     over["batch_size"] = args.batch_size
-                rows.append(dict(model=name, preset=preset, obs=mode, frozen_encoder=frozen,
-                                 latents_cached=cached, cfg=cls.preset(preset, **over)))
+                rows.append(
+                    dict(
+                        model=name,
+                        preset=preset,
+                        obs=mode,
+                        frozen_encoder=frozen,
+                        latents_cached=cached,
+                        cfg=cls.preset(preset, **over),
+                    )
+                )
         if name == "dreamerv3":
             for size in args.sizes:
                 _, mode, fields = ANCHOR_SIZES[size]
                 over = {**_ANCHOR_COMMON, **fields, "obs_mode": mode}
                 if args.batch_size:
                     over["batch_size"] = args.batch_size
-                rows.append(dict(model=name, preset=size, obs=mode, frozen_encoder=False,
-                                 latents_cached=False, cfg=cls(**over)))
+                rows.append(
+                    dict(
+                        model=name,
+                        preset=size,
+                        obs=mode,
+                        frozen_encoder=False,
+                        latents_cached=False,
+                        cfg=cls(**over),
+                    )
+                )
     return rows
 
 
@@ -293,26 +314,36 @@ def _names(text: str) -> list[str]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--models", default=None,
-                        help="comma-separated (default: every model that has all of --presets, "
-                             "so the TD-MPC2 anchor's '--presets 1M,paper' times TD-MPC2 only)")
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--models",
+        default=None,
+        help="comma-separated (default: every model that has all of --presets, "
+        "so the TD-MPC2 anchor's '--presets 1M,paper' times TD-MPC2 only)",
+    )
     parser.add_argument("--presets", default=None,
                         help=f"comma-separated model presets ('none': only --sizes); default "
                              f"per model {DEFAULT_PRESETS}")  # fmt: skip
     parser.add_argument("--sizes", default="", help=f"DreamerV3 anchor sizes: {list(ANCHOR_SIZES)}")
     parser.add_argument("--variants", default=",".join(VARIANTS), help=f"of {list(VARIANTS)}")
-    parser.add_argument("--batch-size", type=int, default=None,
-                        help="replay windows per update (default: the preset's / size's)")
+    parser.add_argument(
+        "--batch-size",
+        type=int,
+        default=None,
+        help="replay windows per update (default: the preset's / size's)",
+    )
     parser.add_argument("--image-size", type=int, default=64)
-    parser.add_argument("--modes", default="auto",
-                        help=f"of {list(MODES)} (default: what a run does by default)")
+    parser.add_argument(
+        "--modes", default="auto", help=f"of {list(MODES)} (default: what a run does by default)"
+    )
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--warmup", type=int, default=1)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--anchor-json", default=None,
-                        help="output of ../shared/tools/anchors/run_dreamerv3.sh")
+    parser.add_argument(
+        "--anchor-json", default=None, help="output of ../shared/tools/anchors/run_dreamerv3.sh"
+    )
     args = parser.parse_args()
     args.presets = None if args.presets is None else _names(args.presets)
     if args.models is None:
@@ -326,8 +357,9 @@ def main() -> None:
     for what, names, valid in (("model", args.models, MODELS), ("size", args.sizes, ANCHOR_SIZES),
                                ("variant", args.variants, VARIANTS),
                                ("mode", args.modes, MODES)):  # fmt: skip
-        bad = [n for n in names
-               if n not in valid and not (what == "mode" and n.startswith("compile:"))]
+        bad = [
+            n for n in names if n not in valid and not (what == "mode" and n.startswith("compile:"))
+        ]
         if bad:
             parser.error(f"unknown {what} {bad}; valid: {list(valid)} or compile:PATH+PATH")
     for mode in args.modes:  # each timed model must have the paths a compile: mode names

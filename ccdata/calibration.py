@@ -59,8 +59,13 @@ def noisy_oracle_rollouts(
     out: dict[str, list] = {"successes": [], "lengths": [], "returns": []}
     try:
         for layout_seed, policy_seed in seeds:
-            policy = make_policy("noisy-oracle", task_id, seed=policy_seed,
-                                 noise_std=noise.noise_std, random_prob=noise.random_prob)
+            policy = make_policy(
+                "noisy-oracle",
+                task_id,
+                seed=policy_seed,
+                noise_std=noise.noise_std,
+                random_prob=noise.random_prob,
+            )
             policy.reset()
             obs, _ = env.reset(seed=int(layout_seed))
             rewards, success = [], False
@@ -79,8 +84,7 @@ def noisy_oracle_rollouts(
 
 
 def calibration_seeds(episodes: int) -> list[tuple[int, int]]:
-    return [(CALIBRATION_SEED_BASE + i, CALIBRATION_SEED_BASE + 10**6 + i)
-            for i in range(episodes)]
+    return [(CALIBRATION_SEED_BASE + i, CALIBRATION_SEED_BASE + 10**6 + i) for i in range(episodes)]
 
 
 def success_rate(task_id: str, noise: ExplorationNoise, seeds: list[tuple[int, int]]) -> float:
@@ -108,10 +112,16 @@ def calibrate(
     then interpolates log(level) linearly between the bracket's rates (kept inside the
     bracket's central 80%, so it always shrinks)."""
     get_task(task_id)
-    if (not 0 < target < 1 or episodes < 1 or iterations < 1 or not 0 < low <= start <= high
-            or step <= 1):
-        raise InputError("need 0 < target < 1, episodes >= 1, iterations >= 1, "
-                         "low <= start <= high, step > 1")
+    if (
+        not 0 < target < 1
+        or episodes < 1
+        or iterations < 1
+        or not 0 < low <= start <= high
+        or step <= 1
+    ):
+        raise InputError(
+            "need 0 < target < 1, episodes >= 1, iterations >= 1, low <= start <= high, step > 1"
+        )
     seeds = calibration_seeds(episodes)
     lo_bound, hi_bound = math.log(low), math.log(high)
     below: tuple[float, float] | None = None  # (log level, rate > target): too little noise
@@ -121,8 +131,13 @@ def calibrate(
     for _ in range(iterations):
         noise = at_level(math.exp(x))
         rate = success_rate(task_id, noise, seeds)
-        record = {"task": task_id, "level": round(math.exp(x), 4), **noise.to_dict(),
-                  "success_rate": rate, "episodes": episodes}
+        record = {
+            "task": task_id,
+            "level": round(math.exp(x), 4),
+            **noise.to_dict(),
+            "success_rate": rate,
+            "episodes": episodes,
+        }
         history.append(record)
         if on_step is not None:
             on_step(record)

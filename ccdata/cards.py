@@ -25,9 +25,14 @@ PAPER = {
     "url": "https://object814.github.io/Compositional-Continual-Learning/",
 }
 
-REFERENCE_SIZE_PER_1000_FRAMES = {"videos_mb": 4.5, "data_mb": 0.20, "measured_on": (
-    "a Grasp dataset with 4 oracle, 2 noisy-oracle and 2 random episodes per task, by "
-    "bench/dataset_write.py")}
+REFERENCE_SIZE_PER_1000_FRAMES = {
+    "videos_mb": 4.5,
+    "data_mb": 0.20,
+    "measured_on": (
+        "a Grasp dataset with 4 oracle, 2 noisy-oracle and 2 random episodes per task, by "
+        "bench/dataset_write.py"
+    ),
+}
 """Size of the default settings' datasets per 1000 stored frames, for the default cards (a
 generated dataset's card states its own measured size)."""
 
@@ -56,13 +61,19 @@ def _num(value, fmt: str) -> str:
     return "—" if value is None else format(value, fmt)
 
 
-def render_card(suite_or_settings: str | DatasetSettings, dataset: str | Path | None = None,
-                metadata: dict | None = None) -> str:
+def render_card(
+    suite_or_settings: str | DatasetSettings,
+    dataset: str | Path | None = None,
+    metadata: dict | None = None,
+) -> str:
     """A suite's default card (given a suite name), or the card of the dataset at `dataset`
     generated with `suite_or_settings` (its `meta/ccdata.json` content may be passed as
     `metadata`, else it is read from the dataset)."""
-    settings = (DatasetSettings(suite=suite_or_settings) if isinstance(suite_or_settings, str)
-                else suite_or_settings)
+    settings = (
+        DatasetSettings(suite=suite_or_settings)
+        if isinstance(suite_or_settings, str)
+        else suite_or_settings
+    )
     measured = None
     if dataset is not None:
         if metadata is None:
@@ -76,45 +87,67 @@ def render_card(suite_or_settings: str | DatasetSettings, dataset: str | Path | 
 def _header(settings: DatasetSettings) -> str:
     suite = get_suite(settings.suite)
     matrix = suite.composition_matrix().astype(int)
-    counts = {"oracle": settings.episodes, "noisy-oracle": settings.explore_episodes,
-              "random": settings.explore_episodes}
-    return "\n".join([
-        "---",
-        "license: mit",
-        "task_categories:",
-        "- robotics",
-        "tags:",
-        _yaml_list(["LeRobot", "metaworld", "continual-learning", "world-models", suite.name],
-                   indent=0),
-        "configs:",
-        "- config_name: default",
-        "  data_files: data/*/*.parquet",
-        "ccdata:",
-        f"  suite: {suite.name}",
-        f"  axis: {suite.axis}",
-        "  tasks:",
-        _yaml_list([t.id for t in suite.tasks], indent=2),
-        "  composition_matrix:",
-        _yaml_list([str(list(map(int, row))) for row in matrix], indent=2),
-        f"  image_size: {settings.image_size}",
-        "  episodes_per_task:",
-        *[f"    {p}: {counts[p]}" for p in POLICY_ORDER],
-        f"  seed: {settings.seed}",
-        f"  format: {FORMAT_VERSION}",
-        "---",
-    ])
+    counts = {
+        "oracle": settings.episodes,
+        "noisy-oracle": settings.explore_episodes,
+        "random": settings.explore_episodes,
+    }
+    return "\n".join(
+        [
+            "---",
+            "license: mit",
+            "task_categories:",
+            "- robotics",
+            "tags:",
+            _yaml_list(
+                ["LeRobot", "metaworld", "continual-learning", "world-models", suite.name], indent=0
+            ),
+            "configs:",
+            "- config_name: default",
+            "  data_files: data/*/*.parquet",
+            "ccdata:",
+            f"  suite: {suite.name}",
+            f"  axis: {suite.axis}",
+            "  tasks:",
+            _yaml_list([t.id for t in suite.tasks], indent=2),
+            "  composition_matrix:",
+            _yaml_list([str(list(map(int, row))) for row in matrix], indent=2),
+            f"  image_size: {settings.image_size}",
+            "  episodes_per_task:",
+            *[f"    {p}: {counts[p]}" for p in POLICY_ORDER],
+            f"  seed: {settings.seed}",
+            f"  format: {FORMAT_VERSION}",
+            "---",
+        ]
+    )
 
 
 def _tasks_section(settings: DatasetSettings) -> str:
     suite = get_suite(settings.suite)
     tasks = suite.tasks
     matrix = suite.composition_matrix().astype(int)
-    task_rows = [[i, f"`{t.id}`", f"**{t.title}**" if i == len(tasks) - 1 else t.title,
-                  t.instruction, t.success] for i, t in enumerate(tasks)]
-    mat_rows = [[f"`{t.id}`"] + ["✓" if v else "·" for v in row]
-                for t, row in zip(tasks, matrix, strict=True)]
-    comp_rows = [[f"`{t.id}`", ", ".join(t.components.get("action", ())) or "—",
-                  ", ".join(t.components.get("perception", ())) or "—"] for t in tasks]
+    task_rows = [
+        [
+            i,
+            f"`{t.id}`",
+            f"**{t.title}**" if i == len(tasks) - 1 else t.title,
+            t.instruction,
+            t.success,
+        ]
+        for i, t in enumerate(tasks)
+    ]
+    mat_rows = [
+        [f"`{t.id}`"] + ["✓" if v else "·" for v in row]
+        for t, row in zip(tasks, matrix, strict=True)
+    ]
+    comp_rows = [
+        [
+            f"`{t.id}`",
+            ", ".join(t.components.get("action", ())) or "—",
+            ", ".join(t.components.get("perception", ())) or "—",
+        ]
+        for t in tasks
+    ]
     return f"""## Tasks (curriculum order)
 
 {_table(["#", "id", "task", "instruction", "success"], task_rows)}
@@ -138,15 +171,30 @@ def _policies_section(settings: DatasetSettings) -> str:
         noise = settings.exploration(t.id)
         ref = refs.get(t.id, {})
         # Quoted only when measured with this very noise (`ccdata references`).
-        rate = (ref.get("noisy_oracle_success_rate")
-                if ref.get("noisy_oracle") == noise.to_dict() else None)
-        rows.append([f"`{t.id}`", noise.noise_std, noise.random_prob,
-                     "—" if rate is None else f"{rate:.2f} ({ref['episodes']} episodes)"])
-    cut = ("" if settings.max_steps is None else
-           f" Every episode was cut after at most {settings.max_steps} steps.")
-    source = ("each task's calibrated noise (`TaskSpec.exploration`, found by `ccdata "
-              "calibrate` so that about half of the noisy-oracle episodes succeed)"
-              if calibrated else "noise set for every task by the generating command")
+        rate = (
+            ref.get("noisy_oracle_success_rate")
+            if ref.get("noisy_oracle") == noise.to_dict()
+            else None
+        )
+        rows.append(
+            [
+                f"`{t.id}`",
+                noise.noise_std,
+                noise.random_prob,
+                "—" if rate is None else f"{rate:.2f} ({ref['episodes']} episodes)",
+            ]
+        )
+    cut = (
+        ""
+        if settings.max_steps is None
+        else f" Every episode was cut after at most {settings.max_steps} steps."
+    )
+    source = (
+        "each task's calibrated noise (`TaskSpec.exploration`, found by `ccdata "
+        "calibrate` so that about half of the noisy-oracle episodes succeed)"
+        if calibrated
+        else "noise set for every task by the generating command"
+    )
     return f"""## Policies and counts
 
 Per task: {settings.episodes} episodes of the scripted `oracle` (privileged state, phases),
@@ -154,8 +202,7 @@ and {settings.explore_episodes} episodes each of `noisy-oracle` and `random` (un
 The noisy oracle adds Gaussian noise (std `noise_std`) to each component of the oracle's action
 and takes a uniform random action with probability `random_prob`, with {source}:
 
-{_table(["task", "noise_std", "random_prob", "noisy-oracle success (reference layouts)"],
-        rows)}
+{_table(["task", "noise_std", "random_prob", "noisy-oracle success (reference layouts)"], rows)}
 
 Seeds: base seed {settings.seed}. Episode `i` of a policy on a task has layout seed
 `SeedSequence([base, crc32(task_id), policy_index, i])` (62 bits, the frames' `episode_seed`),
@@ -164,21 +211,29 @@ same episodes, bit for bit, with any number of workers."""
 
 
 def _measured_section(measured: dict, metadata: dict) -> str:
-    rows = [[f"`{r['task']}`", r["policy"], r["episodes"], r["steps"], f"{r['success_rate']:.2f}",
-             f"{r['mean_return']:.2f}", _num(r["mean_normalized_return"], ".1f")]
-            for r in measured["per_task_policy"]]
+    rows = [
+        [
+            f"`{r['task']}`",
+            r["policy"],
+            r["episodes"],
+            r["steps"],
+            f"{r['success_rate']:.2f}",
+            f"{r['mean_return']:.2f}",
+            _num(r["mean_normalized_return"], ".1f"),
+        ]
+        for r in measured["per_task_policy"]
+    ]
     size = measured["bytes_per_1000_frames"]
     versions = ", ".join(f"{k} {v}" for k, v in metadata.get("versions", {}).items() if v)
     return f"""## Measured on this dataset
 
-{measured['episodes']} episodes, {measured['steps']} steps, {measured['frames']} frames (one
+{measured["episodes"]} episodes, {measured["steps"]} steps, {measured["frames"]} frames (one
 more per episode than steps: the final observation). Success rate and mean discounted return
 (discount {GAMMA}) per task and policy, and the normalised return (oracle reference = 100):
 
-{_table(["task", "policy", "episodes", "steps", "success rate", "mean return",
-         "normalised"], rows)}
+{_table(["task", "policy", "episodes", "steps", "success rate", "mean return", "normalised"], rows)}
 
-Size: {size['videos'] / 1e6:.2f} MB of video and {size['data'] / 1e6:.2f} MB of parquet per
+Size: {size["videos"] / 1e6:.2f} MB of video and {size["data"] / 1e6:.2f} MB of parquet per
 1000 frames. Generated with {versions}."""
 
 
@@ -188,16 +243,25 @@ def _body(settings: DatasetSettings, measured: dict | None, metadata: dict | Non
     ref_rows = []
     for t in suite.tasks:
         r = refs.get(t.id)
-        ref_rows.append([f"`{t.id}`", f"{r['mean_discounted_return']:.3f}",
-                         f"{r['success_rate']:.2f}", f"{r['median_length']:.0f}"] if r
-                        else [f"`{t.id}`", "not yet measured (`ccdata references`)", "", ""])
+        ref_rows.append(
+            [
+                f"`{t.id}`",
+                f"{r['mean_discounted_return']:.3f}",
+                f"{r['success_rate']:.2f}",
+                f"{r['median_length']:.0f}",
+            ]
+            if r
+            else [f"`{t.id}`", "not yet measured (`ccdata references`)", "", ""]
+        )
     render_lines = [f"- `{k}`: {v}" for k, v in settings.render_settings.to_dict().items()]
     video_lines = [f"- `{k}`: {v}" for k, v in VIDEO_ENCODER.items()]
     if measured is None:
         ref = REFERENCE_SIZE_PER_1000_FRAMES
-        size = (f"Size: about {ref['videos_mb']} MB of video and {ref['data_mb']} MB of parquet "
-                f"per 1000 frames at 64 px (measured on {ref['measured_on']}); a generated "
-                "dataset's own card states its measured size and success rates.")
+        size = (
+            f"Size: about {ref['videos_mb']} MB of video and {ref['data_mb']} MB of parquet "
+            f"per 1000 frames at 64 px (measured on {ref['measured_on']}); a generated "
+            "dataset's own card states its measured size and success rates."
+        )
         measured_text = ""
     else:
         size = "Size: see *Measured on this dataset*."
@@ -281,12 +345,21 @@ def _command(settings: DatasetSettings) -> str:
     render = ("shadows", "reflections", "skybox", "msaa_samples")
     if any(getattr(settings, name) != getattr(default, name) for name in render):
         return "`ccdata.record.generate` and the settings above (not all are command options)"
-    flags = {"episodes": "--episodes", "explore_episodes": "--explore-episodes",
-             "image_size": "--image-size", "seed": "--seed", "noise_std": "--noise-std",
-             "random_prob": "--random-prob", "max_steps": "--max-steps"}
+    flags = {
+        "episodes": "--episodes",
+        "explore_episodes": "--explore-episodes",
+        "image_size": "--image-size",
+        "seed": "--seed",
+        "noise_std": "--noise-std",
+        "random_prob": "--random-prob",
+        "max_steps": "--max-steps",
+    }
     parts = [f"ccdata generate --suite {settings.suite}"]
-    parts += [f"{flag} {getattr(settings, name)}" for name, flag in flags.items()
-              if getattr(settings, name) != getattr(default, name)]
+    parts += [
+        f"{flag} {getattr(settings, name)}"
+        for name, flag in flags.items()
+        if getattr(settings, name) != getattr(default, name)
+    ]
     if settings.repo_id != default.repo_id:
         parts.append(f"--repo-id {settings.repo_id}")
     return "`" + " ".join(parts) + "`"

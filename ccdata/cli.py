@@ -142,16 +142,19 @@ def _submit_slurm(args: argparse.Namespace, config) -> None:
     if sub.array_job:
         tasks = len(sub.shards)
         episodes = sum(len(k) for k in sub.shards.values())
-        print(f"submitted {tasks} shard(s) with {episodes} episode(s) to write: job array "
-              f"{sub.array_job} (shards {', '.join(map(str, sub.shards))})")
+        print(
+            f"submitted {tasks} shard(s) with {episodes} episode(s) to write: job array "
+            f"{sub.array_job} (shards {', '.join(map(str, sub.shards))})"
+        )
     else:
         print("every episode is written; submitted the merge only")
     after = f" (starts after array {sub.array_job} ends)" if sub.array_job else ""
     print(f"merge job {sub.merge_job}{after} -> {sub.root}")
     print(f"logs: {sub.log_dir}  (code: {sub.code})")
     ids = ",".join(j for j in (sub.array_job, sub.merge_job) if j)
-    print(f"follow: squeue -j {ids}; sacct -j {ids}; if the merge fails, run the same command "
-          "again")
+    print(
+        f"follow: squeue -j {ids}; sacct -j {ids}; if the merge fails, run the same command again"
+    )
 
 
 SUMMARY_COLUMNS = (
@@ -233,16 +236,24 @@ def _cmd_calibrate(args: argparse.Namespace) -> None:
     tasks = args.task or list(TASKS)
     found = {}
     for task_id in tasks:
-        refine = {"start": level_of(get_task(task_id).exploration), "step": 1.5} if args.refine \
-            else {}
+        refine = (
+            {"start": level_of(get_task(task_id).exploration), "step": 1.5} if args.refine else {}
+        )
         noise, rate, _ = calibrate(
-            task_id, target=args.target, episodes=args.episodes, iterations=args.iterations,
-            tolerance=args.tolerance, **refine,
+            task_id,
+            target=args.target,
+            episodes=args.episodes,
+            iterations=args.iterations,
+            tolerance=args.tolerance,
+            **refine,
             on_step=lambda r: print(json.dumps(r), file=sys.stderr, flush=True),
         )
         found[task_id] = {**noise.to_dict(), "success_rate": rate, "episodes": args.episodes}
-        print(f"{task_id}: ExplorationNoise(noise_std={noise.noise_std}, "
-              f"random_prob={noise.random_prob})  success {rate:.2f}", flush=True)
+        print(
+            f"{task_id}: ExplorationNoise(noise_std={noise.noise_std}, "
+            f"random_prob={noise.random_prob})  success {rate:.2f}",
+            flush=True,
+        )
     if args.json:
         print(json.dumps(found, indent=2))
 
@@ -298,8 +309,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--target", type=float, default=0.5, help="noisy-oracle success rate")
     p.add_argument("--iterations", type=int, default=8, help="evaluations at most, per task")
     p.add_argument("--tolerance", type=float, default=0.1, help="accepted |rate - target|")
-    p.add_argument("--refine", action="store_true",
-                   help="start from each task's current calibration, in smaller steps")
+    p.add_argument(
+        "--refine",
+        action="store_true",
+        help="start from each task's current calibration, in smaller steps",
+    )
     p.add_argument("--json", action="store_true", help="also print the results as JSON")
     p.set_defaults(func=_cmd_calibrate)
 
@@ -311,27 +325,46 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--image-size", type=int, default=64)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--max-steps", type=int,
-                   help="cut episodes after this many steps (tests, previews; default: full)")
-    p.add_argument("--workers", type=int,
-                   help="rollout processes (default: one per core this process may use); the "
-                        "episodes are identical with any number of workers")
+    p.add_argument(
+        "--max-steps",
+        type=int,
+        help="cut episodes after this many steps (tests, previews; default: full)",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        help="rollout processes (default: one per core this process may use); the "
+        "episodes are identical with any number of workers",
+    )
     p.add_argument("--root", help="dataset directory (default: LeRobot's cache for the repo id)")
     p.add_argument("--repo-id", help="default ccdata/<Suite>")
-    p.add_argument("--noise-std", type=float,
-                   help="noisy-oracle noise std for every task (default: each task's calibration)")
-    p.add_argument("--random-prob", type=float,
-                   help="noisy-oracle random-action probability for every task (default: "
-                        "each task's calibration)")
+    p.add_argument(
+        "--noise-std",
+        type=float,
+        help="noisy-oracle noise std for every task (default: each task's calibration)",
+    )
+    p.add_argument(
+        "--random-prob",
+        type=float,
+        help="noisy-oracle random-action probability for every task (default: "
+        "each task's calibration)",
+    )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
-    p.add_argument("--launcher", choices=("local", "slurm"), default="local",
-                   help="local: processes here (default); slurm: a job array of shards, then a "
-                        "merge job (returns at once; needs sbatch and sacct)")
+    p.add_argument(
+        "--launcher",
+        choices=("local", "slurm"),
+        default="local",
+        help="local: processes here (default); slurm: a job array of shards, then a "
+        "merge job (returns at once; needs sbatch and sacct)",
+    )
     g = p.add_argument_group("with --launcher slurm")
     g.add_argument("--shards", type=int, help="array tasks to split the episodes into (1)")
     add_slurm_options(g, default_time=SLURM_TIME)
-    g.add_argument("--log-dir", help="submitit logs, on a filesystem the nodes share "
-                                     "(default: .<name>.ccdata-logs beside the dataset)")
+    g.add_argument(
+        "--log-dir",
+        help="submitit logs, on a filesystem the nodes share "
+        "(default: .<name>.ccdata-logs beside the dataset)",
+    )
     p.set_defaults(func=_cmd_generate)
 
     p = sub.add_parser("card", help="render a suite's default card or a dataset's own card")

@@ -27,10 +27,24 @@ from ccdata.suites import get_suite
 from ccdata.tasks.base import STATE_DIM
 
 __all__ = [  # the settings' constants are re-exported: older code imports them from here
-    "CCDATA_META", "CODEBASE_VERSION", "FINAL_KEY", "FORMAT_VERSION", "IDENTITY_KEYS",
-    "POLICY_ORDER", "VIDEO_ENCODER", "camera_key", "ccdata_metadata", "check_identity",
-    "check_lerobot_info", "episode_table", "existing_keys", "features", "measure_dataset",
-    "quiet_libraries", "read_ccdata_metadata", "write_json",
+    "CCDATA_META",
+    "CODEBASE_VERSION",
+    "FINAL_KEY",
+    "FORMAT_VERSION",
+    "IDENTITY_KEYS",
+    "POLICY_ORDER",
+    "VIDEO_ENCODER",
+    "camera_key",
+    "ccdata_metadata",
+    "check_identity",
+    "check_lerobot_info",
+    "episode_table",
+    "existing_keys",
+    "features",
+    "measure_dataset",
+    "quiet_libraries",
+    "read_ccdata_metadata",
+    "write_json",
 ]
 
 CCDATA_META = "meta/ccdata.json"
@@ -50,23 +64,34 @@ def camera_key(camera: str) -> str:
 
 def features(image_size: int) -> dict:
     """LeRobot feature spec of a ccdata dataset."""
-    image = {"dtype": "video", "shape": (image_size, image_size, 3),
-             "names": ["height", "width", "channels"]}
+    image = {
+        "dtype": "video",
+        "shape": (image_size, image_size, 3),
+        "names": ["height", "width", "channels"],
+    }
     feats = {camera_key(c): dict(image) for c in CAMERAS}
-    feats.update({
-        "observation.state": {"dtype": "float32", "shape": (PROPRIO_DIM,), "names": [
-            "ee_x", "ee_y", "ee_z", "ee_vx", "ee_vy", "ee_vz", "gripper_opening"]},
-        "observation.environment_state": {"dtype": "float32", "shape": (STATE_DIM,),
-                                          "names": None},
-        "action": {"dtype": "float32", "shape": (4,), "names": ["dx", "dy", "dz", "grip"]},
-        "next.reward": {"dtype": "float32", "shape": (1,), "names": None},
-        "next.done": {"dtype": "bool", "shape": (1,), "names": None},
-        "next.success": {"dtype": "bool", "shape": (1,), "names": None},
-        "task_id_index": {"dtype": "int64", "shape": (1,), "names": None},
-        "policy_index": {"dtype": "int64", "shape": (1,), "names": None},
-        "episode_seed": {"dtype": "int64", "shape": (1,), "names": None},
-        FINAL_KEY: {"dtype": "bool", "shape": (1,), "names": None},
-    })
+    feats.update(
+        {
+            "observation.state": {
+                "dtype": "float32",
+                "shape": (PROPRIO_DIM,),
+                "names": ["ee_x", "ee_y", "ee_z", "ee_vx", "ee_vy", "ee_vz", "gripper_opening"],
+            },
+            "observation.environment_state": {
+                "dtype": "float32",
+                "shape": (STATE_DIM,),
+                "names": None,
+            },
+            "action": {"dtype": "float32", "shape": (4,), "names": ["dx", "dy", "dz", "grip"]},
+            "next.reward": {"dtype": "float32", "shape": (1,), "names": None},
+            "next.done": {"dtype": "bool", "shape": (1,), "names": None},
+            "next.success": {"dtype": "bool", "shape": (1,), "names": None},
+            "task_id_index": {"dtype": "int64", "shape": (1,), "names": None},
+            "policy_index": {"dtype": "int64", "shape": (1,), "names": None},
+            "episode_seed": {"dtype": "int64", "shape": (1,), "names": None},
+            FINAL_KEY: {"dtype": "bool", "shape": (1,), "names": None},
+        }
+    )
     return feats
 
 
@@ -89,8 +114,9 @@ def ccdata_metadata(config: DatasetSettings) -> dict:
         "axis": suite.axis,
         "repo_id": config.repo_id,
         "identity": config.identity(),
-        "config": {k: v for k, v in DatasetSettings.to_dict(config).items()
-                   if k not in ("root", "workers")},
+        "config": {
+            k: v for k, v in DatasetSettings.to_dict(config).items() if k not in ("root", "workers")
+        },
         "tasks": [
             {"index": i, "id": t.id, "title": t.title, "instruction": t.instruction}
             for i, t in enumerate(suite.tasks)
@@ -115,8 +141,12 @@ def ccdata_metadata(config: DatasetSettings) -> dict:
         "render": config.render_settings.to_dict(),
         "cameras": {c: camera_key(c) for c in CAMERAS},
         "video": VIDEO_ENCODER,
-        "env": {"fps": FPS, "action_repeat": ACTION_REPEAT, "episode_steps": EPISODE_STEPS,
-                "max_steps": config.max_steps},
+        "env": {
+            "fps": FPS,
+            "action_repeat": ACTION_REPEAT,
+            "episode_steps": EPISODE_STEPS,
+            "max_steps": config.max_steps,
+        },
         "frame_convention": (
             "frames 0..T-1: obs_t, action_t, next.reward_t, next.done_t, next.success_t; "
             f"frame T ({FINAL_KEY}): obs_T after the last action, action 0, next.reward 0, "
@@ -144,11 +174,15 @@ def check_lerobot_info(root: Path) -> None:
     try:
         version = json.loads(path.read_text()).get("codebase_version")
     except (OSError, json.JSONDecodeError, AttributeError) as err:
-        raise InputError(f"{path} is missing or corrupt ({err}); `ccdata verify --root {root}` "
-                         "lists what is damaged; remove the dataset to regenerate it") from None
+        raise InputError(
+            f"{path} is missing or corrupt ({err}); `ccdata verify --root {root}` "
+            "lists what is damaged; remove the dataset to regenerate it"
+        ) from None
     if version != CODEBASE_VERSION:
-        raise InputError(f"{path} says LeRobot codebase {version!r}, not {CODEBASE_VERSION!r}; "
-                         "remove the dataset to regenerate it")
+        raise InputError(
+            f"{path} says LeRobot codebase {version!r}, not {CODEBASE_VERSION!r}; "
+            "remove the dataset to regenerate it"
+        )
 
 
 def write_json(path: Path, content: dict) -> None:
@@ -201,8 +235,10 @@ def existing_keys(root: Path) -> list[str]:
         try:
             table = pq.read_table(path, columns=cols).to_pydict()
         except (OSError, pa.ArrowException) as err:  # pyarrow's errors for a damaged file
-            raise InputError(f"{path} is corrupt ({err}); `ccdata verify --root {root}` lists "
-                             "what is damaged; remove the dataset to regenerate it") from None
+            raise InputError(
+                f"{path} is corrupt ({err}); `ccdata verify --root {root}` lists "
+                "what is damaged; remove the dataset to regenerate it"
+            ) from None
         for e, t, p, s in zip(*(table[c] for c in cols), strict=True):
             first.setdefault(int(e), f"{task_ids[int(t)]}__{policies[int(p)]}__{int(s)}")
     return [first[e] for e in sorted(first)]
@@ -216,18 +252,38 @@ def episode_table(root: Path) -> dict[str, np.ndarray]:
 
     from ccdata.scoring import discounted_return
 
-    cols = ["episode_index", "task_id_index", "policy_index", "episode_seed", "next.reward",
-            "next.success"]
+    cols = [
+        "episode_index",
+        "task_id_index",
+        "policy_index",
+        "episode_seed",
+        "next.reward",
+        "next.success",
+    ]
     paths = sorted((Path(root) / "data").rglob("*.parquet"))
     if FINAL_KEY in pq.read_schema(paths[0]).names:
         cols.append(FINAL_KEY)
     tables = [pq.read_table(p, columns=cols).to_pydict() for p in paths]
     merged = {c: np.concatenate([np.asarray(t[c]) for t in tables]) for c in cols}
-    final = (merged[FINAL_KEY].reshape(-1).astype(bool) if FINAL_KEY in merged
-             else np.zeros(len(merged["episode_index"]), dtype=bool))
+    final = (
+        merged[FINAL_KEY].reshape(-1).astype(bool)
+        if FINAL_KEY in merged
+        else np.zeros(len(merged["episode_index"]), dtype=bool)
+    )
     episodes = np.unique(merged["episode_index"])
-    out = {k: [] for k in ("episode_index", "task_id_index", "policy_index", "episode_seed",
-                           "frames", "steps", "success", "return")}
+    out = {
+        k: []
+        for k in (
+            "episode_index",
+            "task_id_index",
+            "policy_index",
+            "episode_seed",
+            "frames",
+            "steps",
+            "success",
+            "return",
+        )
+    }
     for e in episodes:
         m = merged["episode_index"] == e
         step = m & ~final
@@ -259,13 +315,18 @@ def measure_dataset(root: Path, task_ids: list[str]) -> dict:
                 norm = float(np.mean([normalize(task_id, r) for r in table["return"][m]]))
             except ValueError:
                 norm = None
-            rows.append({
-                "task": task_id, "policy": policy, "episodes": int(m.sum()),
-                "frames": int(table["frames"][m].sum()), "steps": int(table["steps"][m].sum()),
-                "success_rate": float(table["success"][m].mean()),
-                "mean_return": float(np.mean(table["return"][m])),
-                "mean_normalized_return": norm,
-            })
+            rows.append(
+                {
+                    "task": task_id,
+                    "policy": policy,
+                    "episodes": int(m.sum()),
+                    "frames": int(table["frames"][m].sum()),
+                    "steps": int(table["steps"][m].sum()),
+                    "success_rate": float(table["success"][m].mean()),
+                    "mean_return": float(np.mean(table["return"][m])),
+                    "mean_normalized_return": norm,
+                }
+            )
     frames = int(table["frames"].sum())
 
     def per_1000(sub: str) -> float:

@@ -108,11 +108,17 @@ class TaskEnv(gym.Env):
         velocity = (state[0:3] - self._last_hand) / AGENT_DT
         self._last_hand = state[0:3].copy()
         obs = self._observe(state, velocity)
-        return obs, reward, terminated, truncated, {
-            "success": success,
-            "task": self.task.id,
-            "raw_reward": raw,
-        }
+        return (
+            obs,
+            reward,
+            terminated,
+            truncated,
+            {
+                "success": success,
+                "task": self.task.id,
+                "raw_reward": raw,
+            },
+        )
 
     def _observe(self, state: np.ndarray, velocity: np.ndarray) -> dict[str, np.ndarray]:
         obs: dict[str, np.ndarray] = {}

@@ -101,24 +101,29 @@ def _recover(paths: JournalPaths) -> None:
 def finished_pieces(paths: JournalPaths) -> dict[str, Path]:
     if not paths.pieces.exists():
         return {}
-    return {p.name: p for p in paths.pieces.iterdir()
-            if p.is_dir() and not p.name.startswith(".") and (p / "piece.json").is_file()}
+    return {
+        p.name: p
+        for p in paths.pieces.iterdir()
+        if p.is_dir() and not p.name.startswith(".") and (p / "piece.json").is_file()
+    }
 
 
 def finished_batches(paths: JournalPaths) -> dict[tuple[str, ...], Path]:
     """Finished batches: their episode keys (in order) -> directory."""
     if not paths.batches.exists():
         return {}
-    return {tuple(json.loads((b / BATCH_RECORD).read_text())["keys"]): b
-            for b in paths.batches.iterdir()
-            if b.is_dir() and not b.name.startswith(".") and (b / BATCH_RECORD).is_file()}
+    return {
+        tuple(json.loads((b / BATCH_RECORD).read_text())["keys"]): b
+        for b in paths.batches.iterdir()
+        if b.is_dir() and not b.name.startswith(".") and (b / BATCH_RECORD).is_file()
+    }
 
 
 def chunks_of(keys: list[str]) -> list[list[str]]:
     """The batches a run's episodes (in plan order) are merged in: consecutive runs of `GROUP`;
     a shorter remainder is left to the final merge. Fixed by the run's episode list alone, so
     the merge tree, and with it every byte of the result, does not depend on timing."""
-    return [keys[i:i + GROUP] for i in range(0, len(keys) - GROUP + 1, GROUP)]
+    return [keys[i : i + GROUP] for i in range(0, len(keys) - GROUP + 1, GROUP)]
 
 
 def merge_batch(config: DatasetSettings, keys: list[str]) -> Path:
@@ -131,8 +136,12 @@ def merge_batch(config: DatasetSettings, keys: list[str]) -> Path:
     paths.batches.mkdir(parents=True, exist_ok=True)
     try:
         with faster_lerobot():
-            aggregate_datasets([config.repo_id] * len(keys), config.repo_id,
-                               roots=[paths.pieces / k for k in keys], aggr_root=tmp)
+            aggregate_datasets(
+                [config.repo_id] * len(keys),
+                config.repo_id,
+                roots=[paths.pieces / k for k in keys],
+                aggr_root=tmp,
+            )
         write_json(tmp / BATCH_RECORD, {"keys": list(keys)})
         os.replace(tmp, final)
     except BaseException:
@@ -159,8 +168,9 @@ def merge_chunks(config: DatasetSettings, chunks: list[list[str]], finished) -> 
         merge_batch(config, keys)
 
 
-def _merger_main(config: DatasetSettings, chunks: list[list[str]], order: list[str], finished,
-                 parent: int) -> None:
+def _merger_main(
+    config: DatasetSettings, chunks: list[list[str]], order: list[str], finished, parent: int
+) -> None:
     import signal
 
     die_with(parent)
@@ -179,7 +189,7 @@ def _aggregate(sources: list[Path], dst: Path, repo_id: str, scratch: Path) -> N
 
     level = 0
     while len(sources) > GROUP:
-        groups = [sources[i:i + GROUP] for i in range(0, len(sources), GROUP)]
+        groups = [sources[i : i + GROUP] for i in range(0, len(sources), GROUP)]
         merged = []
         for g, group in enumerate(groups):
             out = scratch / f"level{level}-{g:05d}"
@@ -266,8 +276,7 @@ def prepare(config: DatasetSettings) -> JournalPaths:
         if not any(paths.root.iterdir()):
             paths.root.rmdir()
         else:
-            check_identity(read_ccdata_metadata(paths.root).get("identity", {}), config,
-                            paths.root)
+            check_identity(read_ccdata_metadata(paths.root).get("identity", {}), config, paths.root)
             check_lerobot_info(paths.root)
     settings = paths.work / "settings.json"
     if settings.is_file():
@@ -282,12 +291,15 @@ class Merger:
     the end the final merge (`merge_pieces`), so that the rolling-out process never imports
     LeRobot (torch and LeRobot take seconds to import)."""
 
-    def __init__(self, config: DatasetSettings, chunks: list[list[str]], order: list[str]
-                 ) -> None:
+    def __init__(self, config: DatasetSettings, chunks: list[list[str]], order: list[str]) -> None:
         ctx = process_context()
         self.finished = ctx.Event()
-        self.process = ctx.Process(target=_merger_main, name="ccdata-merger", daemon=True,
-                                   args=(config, chunks, order, self.finished, os.getpid()))
+        self.process = ctx.Process(
+            target=_merger_main,
+            name="ccdata-merger",
+            daemon=True,
+            args=(config, chunks, order, self.finished, os.getpid()),
+        )
         self.starting = start_soon(self.process)
 
     def finish(self) -> None:

@@ -51,6 +51,7 @@ from ccdata.writer import write_shard
 SUBMISSION_RECORD = "slurm-submission.json"
 """In the journal: the last submission's job ids, code version and shards."""
 
+
 class MissingEpisodes(RuntimeError):
     """The merge job found planned episodes that no shard wrote."""
 
@@ -72,8 +73,11 @@ def _job_start(submitted: str) -> None:
     running = code_label(code_version())
     print(f"ccdata job: submitted with {submitted}; running {running}", flush=True)
     if running != submitted:
-        print(f"ccdata job: warning: the code changed since submission ({submitted} -> "
-              f"{running})", file=sys.stderr, flush=True)
+        print(
+            f"ccdata job: warning: the code changed since submission ({submitted} -> {running})",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 class ShardJob(submitit.helpers.Checkpointable):
@@ -116,14 +120,19 @@ def merge_journal(config: GenerateConfig) -> dict:
     paths = prepare(config)  # also repairs a swap that a killed merge left half-done
     missing = missing_episodes(config)
     if missing:
-        print(f"ccdata merge: {len(missing)} episode(s) missing:", *missing, sep="\n  ",
-              file=sys.stderr, flush=True)
+        print(
+            f"ccdata merge: {len(missing)} episode(s) missing:",
+            *missing,
+            sep="\n  ",
+            file=sys.stderr,
+            flush=True,
+        )
         shown = ", ".join(missing[:10]) + (", ..." if len(missing) > 10 else "")
         raise MissingEpisodes(
             f"{len(missing)} of {len(plan(config))} episodes have no piece ({shown}); nothing "
-            f"merged. Run the same `ccdata generate` command again to fill the gaps.")
-    records = [json.loads((p / "piece.json").read_text())
-               for p in finished_pieces(paths).values()]
+            f"merged. Run the same `ccdata generate` command again to fill the gaps."
+        )
+    records = [json.loads((p / "piece.json").read_text()) for p in finished_pieces(paths).values()]
     merge_pieces(config, [s.key for s in plan(config)])
     shutil.rmtree(paths.work, ignore_errors=True)
     summary = summarize(paths.root, records)
@@ -168,14 +177,23 @@ def submit_generation(config: GenerateConfig, slurm: SlurmSettings) -> Submissio
         previous = json.loads(record.read_text())
         running = active_jobs([j for j in (previous["array_job"], previous["merge_job"]) if j])
         if running:
-            raise LaunchError(f"jobs of the last submission for {paths.root} are still queued "
-                              f"or running ({', '.join(running)}): wait for them or scancel them")
+            raise LaunchError(
+                f"jobs of the last submission for {paths.root} are still queued "
+                f"or running ({', '.join(running)}): wait for them or scancel them"
+            )
     paths = prepare(config)
     present = set(existing_keys(paths.root)) if paths.root.exists() else set()
     todo = [s.key for s in plan(config) if s.key not in present]
     folder = log_folder(slurm, config)
-    sub = Submission(root=str(paths.root), log_dir=str(folder), code=code_label(code_version()),
-                     planned=len(todo), shards={}, array_job=None, merge_job=None)
+    sub = Submission(
+        root=str(paths.root),
+        log_dir=str(folder),
+        code=code_label(code_version()),
+        planned=len(todo),
+        shards={},
+        array_job=None,
+        merge_job=None,
+    )
     if not todo:
         shutil.rmtree(paths.work, ignore_errors=True)  # nothing left in it to merge
         return sub
@@ -193,13 +211,18 @@ def submit_generation(config: GenerateConfig, slurm: SlurmSettings) -> Submissio
     with submitting():
         if sub.shards:
             executor.update_parameters(job_name=f"ccdata-{config.suite}-shard")
-            jobs = executor.map_array(ShardJob(), [settings] * len(sub.shards),
-                                      list(sub.shards.values()), [sub.code] * len(sub.shards))
+            jobs = executor.map_array(
+                ShardJob(),
+                [settings] * len(sub.shards),
+                list(sub.shards.values()),
+                [sub.code] * len(sub.shards),
+            )
             sub.array_job = jobs[0].job_id.split("_")[0]
             write_json(record, asdict(sub))
         executor.update_parameters(
             job_name=f"ccdata-{config.suite}-merge",
-            dependency=f"afterany:{sub.array_job}" if sub.array_job else None)
+            dependency=f"afterany:{sub.array_job}" if sub.array_job else None,
+        )
         sub.merge_job = executor.submit(MergeJob(), settings, sub.code).job_id
     write_json(record, asdict(sub))
     return sub

@@ -70,8 +70,10 @@ def _load_episodes(local_dir: Path) -> EpisodeTable:
 
     paths = sorted((Path(local_dir) / "meta" / "episodes").glob("*/*.parquet"))
     if not paths:
-        raise FileNotFoundError(f"Provided directory does not contain any parquet file: "
-                                f"{Path(local_dir) / 'meta' / 'episodes'}")
+        raise FileNotFoundError(
+            f"Provided directory does not contain any parquet file: "
+            f"{Path(local_dir) / 'meta' / 'episodes'}"
+        )
     tables = []
     for path in paths:
         columns = [c for c in pq.read_schema(path).names if not c.startswith("stats/")]
@@ -119,18 +121,23 @@ def _batched_quantile_stats(original):
             instead of searching a bin for every pixel. The same min, max, count and
             histograms as `update`; mean and mean of squares summed exactly."""
             values = np.arange(256, dtype=np.float64)
-            counts = np.stack([np.bincount(batch[:, c], minlength=256)
-                               for c in range(batch.shape[1])]).astype(np.float64)
+            counts = np.stack(
+                [np.bincount(batch[:, c], minlength=256) for c in range(batch.shape[1])]
+            ).astype(np.float64)
             n = batch.shape[0]
             self._count = n
             self._mean = (counts @ values / n).astype(np.float32)
             self._mean_of_squares = (counts @ values**2 / n).astype(np.float32)
             self._min = batch.min(axis=0).astype(np.float32)
             self._max = batch.max(axis=0).astype(np.float32)
-            self._bin_edges = [np.linspace(lo - 1e-10, hi + 1e-10, self._num_quantile_bins + 1)
-                               for lo, hi in zip(self._min, self._max, strict=True)]
-            self._histograms = [np.histogram(values, bins=edges, weights=weights)[0]
-                                for edges, weights in zip(self._bin_edges, counts, strict=True)]
+            self._bin_edges = [
+                np.linspace(lo - 1e-10, hi + 1e-10, self._num_quantile_bins + 1)
+                for lo, hi in zip(self._min, self._max, strict=True)
+            ]
+            self._histograms = [
+                np.histogram(values, bins=edges, weights=weights)[0]
+                for edges, weights in zip(self._bin_edges, counts, strict=True)
+            ]
 
     return BatchedQuantileStats
 
@@ -166,11 +173,17 @@ def faster_lerobot():
     if callable(getattr(metadata_module, "load_episodes", None)):
         patches.append((metadata_module, "load_episodes", _load_episodes))
     if callable(getattr(writer_module, "embed_images", None)):
-        patches.append((writer_module, "embed_images",
-                        _embed_images_if_any(writer_module.embed_images)))
+        patches.append(
+            (writer_module, "embed_images", _embed_images_if_any(writer_module.embed_images))
+        )
     if isinstance(getattr(stats_module, "RunningQuantileStats", None), type):
-        patches.append((stats_module, "RunningQuantileStats",
-                        _batched_quantile_stats(stats_module.RunningQuantileStats)))
+        patches.append(
+            (
+                stats_module,
+                "RunningQuantileStats",
+                _batched_quantile_stats(stats_module.RunningQuantileStats),
+            )
+        )
     saved = [(module, name, getattr(module, name)) for module, name, _ in patches]
     try:
         for module, name, replacement in patches:

@@ -118,8 +118,12 @@ def generate(
     return paths.root, summarize(paths.root, new_records, wall)
 
 
-def _run_workers(config: GenerateConfig, todo: list[EpisodeSpec], paths: JournalPaths,
-                 done_one: Callable[[dict], None]) -> None:
+def _run_workers(
+    config: GenerateConfig,
+    todo: list[EpisodeSpec],
+    paths: JournalPaths,
+    done_one: Callable[[dict], None],
+) -> None:
     writers = Writers(config, paths.pieces, done_one, count=config.workers)
     # Spawned, not forked from the fork server: the server forks nothing before its imports are
     # done, and rolling out needs none of them. The writers are the server's, so its imports
@@ -160,8 +164,15 @@ def _raise_if_died(rollouts: list) -> None:
             raise GenerationError(f"{r.name} died (exit code {r.exitcode})")
 
 
-def _rollout_main(config: GenerateConfig, todo: list[EpisodeSpec], claimed, episodes,
-                  results, stop_file: Path, parent: int) -> None:
+def _rollout_main(
+    config: GenerateConfig,
+    todo: list[EpisodeSpec],
+    claimed,
+    episodes,
+    results,
+    stop_file: Path,
+    parent: int,
+) -> None:
     """A rollout process: roll out the next unclaimed episode of `todo` until none is left.
 
     Claimed one at a time in plan order, so that the workers finish together whatever the
@@ -191,8 +202,7 @@ def _rollout_main(config: GenerateConfig, todo: list[EpisodeSpec], claimed, epis
         raise SystemExit(1) from None
 
 
-def summarize(root: Path, new_records: Iterable[dict] = (), wall_time: float | None = None
-              ) -> dict:
+def summarize(root: Path, new_records: Iterable[dict] = (), wall_time: float | None = None) -> dict:
     """`measure_dataset` of the dataset at `root` (per task and policy: episodes, frames, steps,
     success rate, mean discounted and normalised return), plus this run's new episodes: count,
     seconds of work and frames per second per row, and the run's wall time."""
@@ -206,8 +216,9 @@ def summarize(root: Path, new_records: Iterable[dict] = (), wall_time: float | N
         agg[2] += r["seconds"]
     for row in measured["per_task_policy"]:
         n_new, f_new, s_new = new.get((row["task"], row["policy"]), [0, 0, 0.0])
-        row.update(new_episodes=n_new, wall_time_s=s_new,
-                   frames_per_s=f_new / s_new if s_new > 0 else None)
+        row.update(
+            new_episodes=n_new, wall_time_s=s_new, frames_per_s=f_new / s_new if s_new > 0 else None
+        )
     new_frames = sum(r["frames"] for r in new_records)
     new_steps = sum(r.get("steps", r["frames"]) for r in new_records)
     return {

@@ -73,8 +73,9 @@ def write_references(tasks=None, episodes: int = 50, path: Path | None = None) -
     for task_id in task_ids:
         r = oracle_rollouts(task_id, seeds)
         noise = get_task(task_id).exploration
-        noisy = noisy_oracle_rollouts(task_id, noise, [(s, s + NOISY_POLICY_SEED_OFFSET)
-                                                       for s in seeds])
+        noisy = noisy_oracle_rollouts(
+            task_id, noise, [(s, s + NOISY_POLICY_SEED_OFFSET) for s in seeds]
+        )
         data["tasks"][task_id] = {
             "mean_discounted_return": float(np.mean(r["returns"])),
             "std_discounted_return": float(np.std(r["returns"])),

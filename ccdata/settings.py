@@ -117,7 +117,8 @@ class DatasetSettings:
                 f"max_steps must be in [1, {EPISODE_STEPS}] or None, got {self.max_steps}"
             )
         if (self.noise_std is not None and not self.noise_std >= 0) or (
-                self.random_prob is not None and not 0.0 <= self.random_prob <= 1.0):
+            self.random_prob is not None and not 0.0 <= self.random_prob <= 1.0
+        ):
             raise InputError("noise_std must be >= 0 and random_prob in [0, 1] (or unset)")
         if self.repo_id is None:
             self.repo_id = default_repo_id(self.suite)

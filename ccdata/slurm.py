@@ -150,8 +150,9 @@ def add_options(group, default_time: str) -> None:
     group.add_argument("--cpus-per-job", "--cpus-per-task", type=int, help="CPUs per job (1)")
     group.add_argument("--gpus-per-job", type=int, help="GPUs per job (0)")
     group.add_argument("--mem", help="memory per job, e.g. 8G (default: the partition's)")
-    group.add_argument("--setup", action="append",
-                       help="shell line run in each job before Python (repeatable)")
+    group.add_argument(
+        "--setup", action="append", help="shell line run in each job before Python (repeatable)"
+    )
 
 
 def settings_from_options(args: argparse.Namespace, default_time: str,
@@ -207,8 +208,9 @@ def check_array_size(tasks: int, what: str) -> None:
     """Raise `LaunchError` when an array of `tasks` tasks exceeds the cluster's MaxArraySize;
     `what` names the option or count that made it so large."""
     if tasks > (limit := max_array_size()):
-        raise LaunchError(f"{what}: this cluster takes arrays of at most {limit} tasks "
-                          f"(MaxArraySize)")
+        raise LaunchError(
+            f"{what}: this cluster takes arrays of at most {limit} tasks (MaxArraySize)"
+        )
 
 
 def active_jobs(job_ids: list[str]) -> list[str]:

@@ -52,10 +52,19 @@ def _load_json(path: Path, findings: list[str]) -> dict | None:
 
 def _check_info(info: dict, ccmeta: dict | None, findings: list[str]) -> None:
     if info.get("codebase_version") != CODEBASE_VERSION:
-        findings.append(f"info.json codebase_version is {info.get('codebase_version')!r}, "
-                        f"expected {CODEBASE_VERSION!r}")
-    for key in ("fps", "features", "total_episodes", "total_frames", "total_tasks",
-                "data_path", "video_path"):
+        findings.append(
+            f"info.json codebase_version is {info.get('codebase_version')!r}, "
+            f"expected {CODEBASE_VERSION!r}"
+        )
+    for key in (
+        "fps",
+        "features",
+        "total_episodes",
+        "total_frames",
+        "total_tasks",
+        "data_path",
+        "video_path",
+    ):
         if key not in info:
             findings.append(f"info.json lacks {key!r}")
     if ccmeta is None:
@@ -65,9 +74,11 @@ def _check_info(info: dict, ccmeta: dict | None, findings: list[str]) -> None:
 
     identity = ccmeta.get("identity", {})
     if identity.get("format") != FORMAT_VERSION:
-        findings.append(f"generated in ccdata format {identity.get('format')}, this version "
-                        f"writes format {FORMAT_VERSION} (final observations recorded): "
-                        "regenerate it")
+        findings.append(
+            f"generated in ccdata format {identity.get('format')}, this version "
+            f"writes format {FORMAT_VERSION} (final observations recorded): "
+            "regenerate it"
+        )
     if info.get("fps") != identity.get("fps"):
         findings.append(f"info.json fps {info.get('fps')} != generation fps {identity.get('fps')}")
     size = identity.get("image_size")
@@ -79,17 +90,22 @@ def _check_info(info: dict, ccmeta: dict | None, findings: list[str]) -> None:
             if got is None:
                 findings.append(f"feature {name!r} missing from info.json")
             elif got.get("dtype") != spec["dtype"] or list(got.get("shape", [])) != list(
-                    spec["shape"]):
-                findings.append(f"feature {name!r} is {got.get('dtype')} {got.get('shape')}, "
-                                f"expected {spec['dtype']} {list(spec['shape'])}")
+                spec["shape"]
+            ):
+                findings.append(
+                    f"feature {name!r} is {got.get('dtype')} {got.get('shape')}, "
+                    f"expected {spec['dtype']} {list(spec['shape'])}"
+                )
     suite = ccmeta.get("suite")
     if suite not in SUITES:
         findings.append(f"ccdata.json suite {suite!r} is not a known suite")
     else:
         ids = [t.get("id") for t in ccmeta.get("tasks", [])]
         if ids != list(SUITES[suite].task_ids):
-            findings.append(f"ccdata.json tasks {ids} differ from suite {suite}'s "
-                            f"{list(SUITES[suite].task_ids)}")
+            findings.append(
+                f"ccdata.json tasks {ids} differ from suite {suite}'s "
+                f"{list(SUITES[suite].task_ids)}"
+            )
 
 
 def _read_parquets(paths: list[Path], what: str, findings: list[str]):
@@ -101,8 +117,9 @@ def _read_parquets(paths: list[Path], what: str, findings: list[str]):
         try:
             tables.append(pq.read_table(path))
         except Exception as e:  # noqa: BLE001 - any reader error is a finding
-            findings.append(f"unreadable {what} file {path.name} ({path.parent.name}): "
-                            f"{type(e).__name__}: {e}")
+            findings.append(
+                f"unreadable {what} file {path.name} ({path.parent.name}): {type(e).__name__}: {e}"
+            )
     if not tables:
         return None
     try:
@@ -127,8 +144,10 @@ def _read_tasks(root: Path, info: dict, findings: list[str]) -> dict[int, str] |
     names = df["task"] if "task" in df else df.index
     tasks = {int(i): str(t) for i, t in zip(df["task_index"], names, strict=True)}
     if len(tasks) != info.get("total_tasks"):
-        findings.append(f"info.json total_tasks {info.get('total_tasks')} != {len(tasks)} "
-                        "tasks in meta/tasks.parquet")
+        findings.append(
+            f"info.json total_tasks {info.get('total_tasks')} != {len(tasks)} "
+            "tasks in meta/tasks.parquet"
+        )
     return tasks
 
 
@@ -142,13 +161,17 @@ def _read_episodes(root: Path, info: dict, findings: list[str]):
         return None
     df = table.to_pandas().sort_values("episode_index").reset_index(drop=True)
     if len(df) != info.get("total_episodes"):
-        findings.append(f"info.json total_episodes {info.get('total_episodes')} != "
-                        f"{len(df)} episodes in meta/episodes")
+        findings.append(
+            f"info.json total_episodes {info.get('total_episodes')} != "
+            f"{len(df)} episodes in meta/episodes"
+        )
     if list(df["episode_index"]) != list(range(len(df))):
         findings.append("meta/episodes episode_index is not 0..N-1")
     if int(df["length"].sum()) != info.get("total_frames"):
-        findings.append(f"info.json total_frames {info.get('total_frames')} != sum of "
-                        f"episode lengths {int(df['length'].sum())}")
+        findings.append(
+            f"info.json total_frames {info.get('total_frames')} != sum of "
+            f"episode lengths {int(df['length'].sum())}"
+        )
     return df
 
 
@@ -167,8 +190,10 @@ def _read_data(root: Path, info: dict, findings: list[str]):
         findings.append(f"data files lack columns {missing}")
         return None
     if table.num_rows != info.get("total_frames"):
-        findings.append(f"data files hold {table.num_rows} frames, info.json total_frames is "
-                        f"{info.get('total_frames')}")
+        findings.append(
+            f"data files hold {table.num_rows} frames, info.json total_frames is "
+            f"{info.get('total_frames')}"
+        )
     data = {}
     for k in expected:
         col = table.column(k).to_pylist()
@@ -179,8 +204,14 @@ def _read_data(root: Path, info: dict, findings: list[str]):
     return data
 
 
-def _check_frames(data: dict, episodes, info: dict, ccmeta: dict | None,
-                  tasks: dict[int, str] | None, findings: list[str]) -> None:
+def _check_frames(
+    data: dict,
+    episodes,
+    info: dict,
+    ccmeta: dict | None,
+    tasks: dict[int, str] | None,
+    findings: list[str],
+) -> None:
     ep_col = data["episode_index"].reshape(-1)
     index = data["index"].reshape(-1)
     if not np.array_equal(np.sort(index), np.arange(len(index))):
@@ -188,8 +219,11 @@ def _check_frames(data: dict, episodes, info: dict, ccmeta: dict | None,
     task_ids = [t["id"] for t in ccmeta.get("tasks", [])] if ccmeta else None
     id_of_instruction = ccmeta.get("instruction_to_task_id", {}) if ccmeta else {}
     n_policies = len(ccmeta.get("policies", [])) if ccmeta else None
-    lengths = (dict(zip(episodes["episode_index"], episodes["length"], strict=True))
-               if episodes is not None else {})
+    lengths = (
+        dict(zip(episodes["episode_index"], episodes["length"], strict=True))
+        if episodes is not None
+        else {}
+    )
     for e in np.unique(ep_col):
         m = ep_col == e
         order = np.argsort(data["frame_index"].reshape(-1)[m])
@@ -198,15 +232,18 @@ def _check_frames(data: dict, episodes, info: dict, ccmeta: dict | None,
         if not np.array_equal(frame_index, np.arange(m.sum())):
             findings.append(f"{where}: frame_index is not contiguous from 0")
         if lengths and lengths.get(e) != m.sum():
-            findings.append(f"{where}: {m.sum()} frames in data, length {lengths.get(e)} in "
-                            "meta/episodes")
+            findings.append(
+                f"{where}: {m.sum()} frames in data, length {lengths.get(e)} in meta/episodes"
+            )
         if "next.done" in data:
             done = data["next.done"].reshape(-1)[m][order].astype(bool)
             if FINAL_KEY in data:  # format 2: the last frame is the final observation
                 final = data[FINAL_KEY].reshape(-1)[m][order].astype(bool)
                 if not final[-1] or final[:-1].any():
-                    findings.append(f"{where}: its last frame, and only it, must be its final "
-                                    f"observation ({FINAL_KEY})")
+                    findings.append(
+                        f"{where}: its last frame, and only it, must be its final "
+                        f"observation ({FINAL_KEY})"
+                    )
                 done = done[:-1] if final[-1] else done
             if len(done) and not done[-1]:
                 findings.append(f"{where}: last step is not done (truncated episode)")
@@ -216,8 +253,9 @@ def _check_frames(data: dict, episodes, info: dict, ccmeta: dict | None,
             continue
         tid = np.unique(data["task_id_index"].reshape(-1)[m])
         if len(tid) != 1 or not 0 <= tid[0] < len(task_ids):
-            findings.append(f"{where}: invalid task_id_index {tid.tolist()} for "
-                            f"{len(task_ids)} tasks")
+            findings.append(
+                f"{where}: invalid task_id_index {tid.tolist()} for {len(task_ids)} tasks"
+            )
             continue
         pid = np.unique(data["policy_index"].reshape(-1)[m])
         if len(pid) != 1 or not 0 <= pid[0] < n_policies:
@@ -228,11 +266,14 @@ def _check_frames(data: dict, episodes, info: dict, ccmeta: dict | None,
             instr = {tasks.get(int(t)) for t in np.unique(data["task_index"].reshape(-1)[m])}
             ids = {id_of_instruction.get(i) for i in instr}
             if ids != {task_ids[int(tid[0])]}:
-                findings.append(f"{where}: instruction {sorted(map(str, instr))} does not "
-                                f"match task {task_ids[int(tid[0])]!r}")
+                findings.append(
+                    f"{where}: instruction {sorted(map(str, instr))} does not "
+                    f"match task {task_ids[int(tid[0])]!r}"
+                )
     if episodes is not None and len(np.unique(ep_col)) != len(episodes):
-        findings.append(f"data files hold {len(np.unique(ep_col))} episodes, meta/episodes "
-                        f"{len(episodes)}")
+        findings.append(
+            f"data files hold {len(np.unique(ep_col))} episodes, meta/episodes {len(episodes)}"
+        )
 
 
 def _count_video_frames(path: Path) -> int:
@@ -247,14 +288,19 @@ def _check_videos(root: Path, info: dict, episodes, findings: list[str]) -> None
     fps = info.get("fps") or 1
     video_keys = [k for k, v in info.get("features", {}).items() if v.get("dtype") == "video"]
     for key in video_keys:
-        cols = [f"videos/{key}/chunk_index", f"videos/{key}/file_index",
-                f"videos/{key}/from_timestamp", f"videos/{key}/to_timestamp"]
+        cols = [
+            f"videos/{key}/chunk_index",
+            f"videos/{key}/file_index",
+            f"videos/{key}/from_timestamp",
+            f"videos/{key}/to_timestamp",
+        ]
         if any(c not in episodes for c in cols):
             findings.append(f"meta/episodes lacks video columns for {key}")
             continue
         for (chunk, file), group in episodes.groupby(cols[:2]):
-            rel = info["video_path"].format(video_key=key, chunk_index=int(chunk),
-                                            file_index=int(file))
+            rel = info["video_path"].format(
+                video_key=key, chunk_index=int(chunk), file_index=int(file)
+            )
             path = root / rel
             if not path.is_file():
                 findings.append(f"missing video {rel}")
@@ -265,13 +311,13 @@ def _check_videos(root: Path, info: dict, episodes, findings: list[str]) -> None
                 findings.append(f"unreadable video {rel}: {type(e).__name__}: {e}")
                 continue
             if n != int(group["length"].sum()):
-                findings.append(f"video {rel} has {n} frames, its episodes "
-                                f"{int(group['length'].sum())}")
+                findings.append(
+                    f"video {rel} has {n} frames, its episodes {int(group['length'].sum())}"
+                )
             span = (group[cols[3]] - group[cols[2]]) * fps
             bad = group["episode_index"][np.abs(span - group["length"]) > 0.5]
             if len(bad):
-                findings.append(f"{key}: timestamps span != length for episodes "
-                                f"{bad.tolist()[:5]}")
+                findings.append(f"{key}: timestamps span != length for episodes {bad.tolist()[:5]}")
 
 
 def _check_stats(root: Path, info: dict, findings: list[str]) -> None:

@@ -59,8 +59,13 @@ def rollout_episode(env, spec: EpisodeSpec, config: DatasetSettings) -> dict[str
     from ccdata.policies import make_policy
 
     noise = config.exploration(spec.task_id)
-    policy = make_policy(spec.policy, spec.task_id, seed=policy_seed(spec.seed),
-                         noise_std=noise.noise_std, random_prob=noise.random_prob)
+    policy = make_policy(
+        spec.policy,
+        spec.task_id,
+        seed=policy_seed(spec.seed),
+        noise_std=noise.noise_std,
+        random_prob=noise.random_prob,
+    )
     policy.reset()
     obs, _ = env.reset(seed=spec.seed)
     limit = config.max_steps or EPISODE_STEPS
@@ -77,18 +82,20 @@ def rollout_episode(env, spec: EpisodeSpec, config: DatasetSettings) -> dict[str
             break
     steps = len(actions)
     episode = {camera_key(c): np.stack([o[c] for o in observations]) for c in CAMERAS}
-    episode.update({
-        "observation.state": np.stack([o["proprio"] for o in observations]),
-        "observation.environment_state": np.stack([o["state"] for o in observations]),
-        "action": np.concatenate([np.stack(actions), np.zeros((1, 4), np.float32)]),
-        "next.reward": np.array([*rewards, 0.0], dtype=np.float32)[:, None],
-        "next.done": np.array([*dones, True])[:, None],
-        "next.success": np.array([*successes, successes[-1]])[:, None],
-        FINAL_KEY: (np.arange(steps + 1) == steps)[:, None],
-        "task_id_index": np.full((steps + 1, 1), spec.task_index, dtype=np.int64),
-        "policy_index": np.full((steps + 1, 1), spec.policy_index, dtype=np.int64),
-        "episode_seed": np.full((steps + 1, 1), spec.seed, dtype=np.int64),
-    })
+    episode.update(
+        {
+            "observation.state": np.stack([o["proprio"] for o in observations]),
+            "observation.environment_state": np.stack([o["state"] for o in observations]),
+            "action": np.concatenate([np.stack(actions), np.zeros((1, 4), np.float32)]),
+            "next.reward": np.array([*rewards, 0.0], dtype=np.float32)[:, None],
+            "next.done": np.array([*dones, True])[:, None],
+            "next.success": np.array([*successes, successes[-1]])[:, None],
+            FINAL_KEY: (np.arange(steps + 1) == steps)[:, None],
+            "task_id_index": np.full((steps + 1, 1), spec.task_index, dtype=np.int64),
+            "policy_index": np.full((steps + 1, 1), spec.policy_index, dtype=np.int64),
+            "episode_seed": np.full((steps + 1, 1), spec.seed, dtype=np.int64),
+        }
+    )
     return episode
 
 
@@ -98,8 +105,14 @@ def _video_encoder():
     return RGBEncoderConfig(**json.loads(json.dumps(VIDEO_ENCODER)))
 
 
-def write_piece(config: DatasetSettings, spec: EpisodeSpec, episode: dict[str, np.ndarray],
-                pieces_dir: Path, instruction: str, rollout_s: float = 0.0) -> dict:
+def write_piece(
+    config: DatasetSettings,
+    spec: EpisodeSpec,
+    episode: dict[str, np.ndarray],
+    pieces_dir: Path,
+    instruction: str,
+    rollout_s: float = 0.0,
+) -> dict:
     """Write one rolled-out episode as the finalized LeRobot dataset `pieces_dir/<key>`,
     atomically (built in `.tmp-<key>`, renamed when complete). Returns its record."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -109,8 +122,13 @@ def write_piece(config: DatasetSettings, spec: EpisodeSpec, episode: dict[str, n
     shutil.rmtree(tmp, ignore_errors=True)
     frames = len(episode["action"])
     ds = LeRobotDataset.create(
-        f"{config.repo_id}-piece", fps=FPS, features=features(config.image_size), root=tmp,
-        robot_type="sawyer", rgb_encoder=_video_encoder(), streaming_encoding=True,
+        f"{config.repo_id}-piece",
+        fps=FPS,
+        features=features(config.image_size),
+        root=tmp,
+        robot_type="sawyer",
+        rgb_encoder=_video_encoder(),
+        streaming_encoding=True,
         encoder_threads=1,
         # LeRobot's streaming encoder drops a frame (with a warning) when its queue is full;
         # a queue that holds the whole episode can never be.
@@ -125,9 +143,15 @@ def write_piece(config: DatasetSettings, spec: EpisodeSpec, episode: dict[str, n
         _abandon(ds, tmp)
         raise
     write_s = time.perf_counter() - start
-    record = {**dataclasses.asdict(spec), "key": spec.key, "steps": frames - 1,
-              "frames": frames, "rollout_s": rollout_s, "write_s": write_s,
-              "seconds": rollout_s + write_s}
+    record = {
+        **dataclasses.asdict(spec),
+        "key": spec.key,
+        "steps": frames - 1,
+        "frames": frames,
+        "rollout_s": rollout_s,
+        "write_s": write_s,
+        "seconds": rollout_s + write_s,
+    }
     write_json(tmp / PIECE_RECORD, record)
     os.replace(tmp, final)
     return record
@@ -157,8 +181,13 @@ class EpisodeQueue:
         self.waiting_bytes = ctx.Value("q", 0)
         self.stop = ctx.Event()
 
-    def put(self, spec: EpisodeSpec, episode: dict[str, np.ndarray], rollout_s: float,
-            wait: Callable[[], None]) -> bool:
+    def put(
+        self,
+        spec: EpisodeSpec,
+        episode: dict[str, np.ndarray],
+        rollout_s: float,
+        wait: Callable[[], None],
+    ) -> bool:
         """Queue an episode once the episodes waiting leave it room (an empty queue always
         does), calling `wait()` until then. False if writing stopped meanwhile: not queued."""
         nbytes = sum(a.nbytes for a in episode.values())
@@ -178,8 +207,9 @@ class EpisodeQueue:
             self.waiting_bytes.value -= nbytes
 
 
-def _writer_main(config: DatasetSettings, pieces_dir: Path, episodes: EpisodeQueue, results,
-                 parent: int) -> None:
+def _writer_main(
+    config: DatasetSettings, pieces_dir: Path, episodes: EpisodeQueue, results, parent: int
+) -> None:
     """A writer process: write each episode taken from `episodes` until it takes the sentinel
     None, or until writing is stopped (the episodes still queued are then dropped)."""
     die_with(parent)
@@ -196,8 +226,13 @@ def _writer_main(config: DatasetSettings, pieces_dir: Path, episodes: EpisodeQue
     results.put(("exit", None))
 
 
-def _write_jobs(config: DatasetSettings, pieces_dir: Path, episodes: EpisodeQueue, results,
-                instructions: dict[str, str]) -> None:
+def _write_jobs(
+    config: DatasetSettings,
+    pieces_dir: Path,
+    episodes: EpisodeQueue,
+    results,
+    instructions: dict[str, str],
+) -> None:
     while not episodes.stop.is_set():
         try:
             job = episodes.jobs.get(timeout=0.2)
@@ -207,8 +242,9 @@ def _write_jobs(config: DatasetSettings, pieces_dir: Path, episodes: EpisodeQueu
             return
         spec, episode, rollout_s, nbytes = job
         try:
-            record = write_piece(config, spec, episode, pieces_dir, instructions[spec.task_id],
-                                 rollout_s)
+            record = write_piece(
+                config, spec, episode, pieces_dir, instructions[spec.task_id], rollout_s
+            )
         finally:
             episodes.taken(nbytes)
         results.put(("piece", record))
@@ -225,8 +261,13 @@ class Writers:
     their failures: a record per written piece (handed to `on_piece` and kept in `records`),
     a writer's exit, or an error, raised here as `GenerationError`."""
 
-    def __init__(self, config: DatasetSettings, pieces_dir: Path,
-                 on_piece: Callable[[dict], None] | None, count: int = 1) -> None:
+    def __init__(
+        self,
+        config: DatasetSettings,
+        pieces_dir: Path,
+        on_piece: Callable[[dict], None] | None,
+        count: int = 1,
+    ) -> None:
         ctx = process_context()
         self.episodes = EpisodeQueue(ctx)
         self.results = ctx.Queue()
@@ -250,8 +291,9 @@ class Writers:
             self.starting.join()  # raises what starting the writers raised
             dead = [p for p in self.processes if not p.is_alive()]
             if len(dead) > self.exits:
-                raise GenerationError(f"a writer process died (exit code {dead[0].exitcode})"
-                                      ) from None
+                raise GenerationError(
+                    f"a writer process died (exit code {dead[0].exitcode})"
+                ) from None
             return False
         if kind == "error":
             raise GenerationError(payload)
@@ -299,8 +341,13 @@ class Writers:
             pass
 
 
-def roll_out(config: DatasetSettings, specs: Iterable[EpisodeSpec], episodes: EpisodeQueue,
-             stop_file: Path, poll: Callable[[], None] = lambda: None) -> None:
+def roll_out(
+    config: DatasetSettings,
+    specs: Iterable[EpisodeSpec],
+    episodes: EpisodeQueue,
+    stop_file: Path,
+    poll: Callable[[], None] = lambda: None,
+) -> None:
     """Roll out each episode of `specs` and queue it for the writers, calling `poll()` after
     each one and while it waits for room. Stops before the next episode when `stop_file` exists
     or writing stopped."""

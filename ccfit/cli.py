@@ -82,9 +82,11 @@ def cmd_train(argv: list[str]) -> None:
     cfg = parse_cli(TaskRunConfig, argv, prog="ccfit train")
     record = train_single(cfg, progress=not extra.get("quiet"))
     norm = record["normalized_return"]
-    print(f"{cfg.task} step {record['global_step']}: return {record['discounted_return']:.2f}, "
-          f"normalised {'n/a' if norm is None else f'{norm:.1f}'}, "
-          f"success {record['success_rate']:.2f}  ->  {cfg.out or default_out(cfg)}")
+    print(
+        f"{cfg.task} step {record['global_step']}: return {record['discounted_return']:.2f}, "
+        f"normalised {'n/a' if norm is None else f'{norm:.1f}'}, "
+        f"success {record['success_rate']:.2f}  ->  {cfg.out or default_out(cfg)}"
+    )
 
 
 def run_dir(cfg) -> Path:
@@ -105,10 +107,17 @@ def cmd_run(argv: list[str]) -> None:
     extra, argv = _split_flags(argv, {"quiet": False, "scratch_root": True})
     cfg = parse_cli(CurriculumConfig, argv, prog="ccfit run")
     out = run_dir(cfg)
-    result = Curriculum(cfg, out, extra.get("scratch_root") or None,
-                        progress=not extra.get("quiet"), callbacks=stage_callbacks(cfg)).run()
-    print(f"{cfg.suite} {cfg.model.type} {cfg.method.type} seed {cfg.seed}: "
-          f"BWT {_fmt(result['bwt'])}, FWT {_fmt(result['fwt'])}  ->  {out}")
+    result = Curriculum(
+        cfg,
+        out,
+        extra.get("scratch_root") or None,
+        progress=not extra.get("quiet"),
+        callbacks=stage_callbacks(cfg),
+    ).run()
+    print(
+        f"{cfg.suite} {cfg.model.type} {cfg.method.type} seed {cfg.seed}: "
+        f"BWT {_fmt(result['bwt'])}, FWT {_fmt(result['fwt'])}  ->  {out}"
+    )
 
 
 def cmd_fit(argv: list[str]) -> None:
@@ -121,9 +130,11 @@ def cmd_fit(argv: list[str]) -> None:
     out = Path(cfg.out) if cfg.out else default_out(cfg)
     result = OfflineCurriculum(cfg, out, extra.get("scratch_root") or None,
                                progress=not extra.get("quiet")).run()  # fmt: skip
-    print(f"{cfg.suite} {cfg.model.type} {cfg.method.type} seed {cfg.seed} offline "
-          f"({result['measurement_space']}): BWT {_fmt(result['bwt'])}, "
-          f"FWT {_fmt(result['fwt'])}  ->  {out}")
+    print(
+        f"{cfg.suite} {cfg.model.type} {cfg.method.type} seed {cfg.seed} offline "
+        f"({result['measurement_space']}): BWT {_fmt(result['bwt'])}, "
+        f"FWT {_fmt(result['fwt'])}  ->  {out}"
+    )
 
 
 def _cmd_report(args: argparse.Namespace) -> None:
@@ -157,8 +168,9 @@ def _cmd_probe_encoder(args: argparse.Namespace) -> None:
     if not tasks:
         raise CliError("--tasks names no task")
     if args.frames < 10:
-        raise CliError(f"--frames must be at least 10 (a held-out fifth to score), got "
-                       f"{args.frames}")
+        raise CliError(
+            f"--frames must be at least 10 (a held-out fifth to score), got {args.frames}"
+        )
     result = probe_encoder(args.encoder, tasks, frames=args.frames, seed=args.seed)
     print(markdown(result), end="")
     print("-> " + ", ".join(str(p) for p in write_probe(result, Path(args.out))))
@@ -174,8 +186,10 @@ def _cmd_ablate(args: argparse.Namespace) -> None:
         return "n/a" if x is None else f"{x:.2f}"
 
     for name, m in result["modes"].items():
-        print(f"{name:8s} return x{fmt(m['return_ratio'])} (normalised "
-              f"{fmt(m['normalized_return'])}), latent error x{fmt(m['latent_error_ratio'])}")
+        print(
+            f"{name:8s} return x{fmt(m['return_ratio'])} (normalised "
+            f"{fmt(m['normalized_return'])}), latent error x{fmt(m['latent_error_ratio'])}"
+        )
     print(f"-> {run / ABLATION_JSON}, {run / ABLATION_PNG}")
 
 

@@ -127,8 +127,10 @@ class TrainConfig:
                                       f"{self.device!r}")  # fmt: skip
         check(self.parallel in ("auto", "on", "off"),
               f"train.parallel must be auto, on or off, got {self.parallel!r}")  # fmt: skip
-        check(self.autocast in AUTOCAST_SETTINGS, f"train.autocast must be one of "
-                                                  f"{AUTOCAST_SETTINGS}, got {self.autocast!r}")
+        check(
+            self.autocast in AUTOCAST_SETTINGS,
+            f"train.autocast must be one of {AUTOCAST_SETTINGS}, got {self.autocast!r}",
+        )
         check(self.compile in COMPILE_SETTINGS,
               f"train.compile must be one of {COMPILE_SETTINGS}, got {self.compile!r}")  # fmt: skip
         from ccdata.env import EPISODE_STEPS
@@ -230,17 +232,23 @@ class BaseRunConfig:
         check(self.preset in PRESETS, f"unknown preset {self.preset!r}; valid: "
                                       f"{', '.join(PRESETS)}")  # fmt: skip
         check(self.image_size >= 32, f"image_size must be >= 32, got {self.image_size}")
-        check(self.model.obs_mode == self.obs,
-              f"model.obs_mode {self.model.obs_mode!r} != obs {self.obs!r}: set it with --obs")
+        check(
+            self.model.obs_mode == self.obs,
+            f"model.obs_mode {self.model.obs_mode!r} != obs {self.obs!r}: set it with --obs",
+        )
         check(self.model.image_size == self.image_size,
               f"model.image_size {self.model.image_size} != image_size {self.image_size}: "
               f"set it with --image_size")  # fmt: skip
         if self.encoder is not None:
-            check(self.encoder.startswith("frozen:"),
-                  f"encoder must be 'frozen:PATH', got {self.encoder!r}")
+            check(
+                self.encoder.startswith("frozen:"),
+                f"encoder must be 'frozen:PATH', got {self.encoder!r}",
+            )
             check(self.obs == "pixels", "a frozen pretrained encoder needs --obs pixels")
-            check(Path(self.encoder_path).is_file(),
-                  f"encoder checkpoint not found: {self.encoder_path}")
+            check(
+                Path(self.encoder_path).is_file(),
+                f"encoder checkpoint not found: {self.encoder_path}",
+            )
             self.model = _with_encoder(self.model, self.encoder_path, self.image_size)
 
     @property

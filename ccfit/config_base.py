@@ -172,5 +172,5 @@ def drop_legacy_values(config: dict, prefix: str = "") -> dict:
     `LEGACY_VALUES` settings that hold their legacy value; a copy, the input is unchanged."""
     for path, value in LEGACY_VALUES.items():
         if path.startswith(prefix):
-            config = without_setting(config, path[len(prefix):], only_if=value)
+            config = without_setting(config, path[len(prefix) :], only_if=value)
     return config

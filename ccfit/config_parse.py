@@ -89,8 +89,12 @@ def _preset_sections(cls: type, preset: str) -> dict[str, dict]:
     out = {}
     for f in dataclasses.fields(cls):
         section = hints.get(f.name)
-        if (isinstance(section, type) and dataclasses.is_dataclass(section)
-                and not issubclass(section, ChoiceConfig) and hasattr(section, "PRESETS")):
+        if (
+            isinstance(section, type)
+            and dataclasses.is_dataclass(section)
+            and not issubclass(section, ChoiceConfig)
+            and hasattr(section, "PRESETS")
+        ):
             out[f.name] = dict(section.PRESETS[preset])
     return out
 

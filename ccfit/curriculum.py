@@ -270,8 +270,9 @@ class Curriculum:
 # ======================================================================= loading a run
 
 
-def restore(cfg: CurriculumConfig, run_dir: Path, device: torch.device
-            ) -> tuple[WorldModel, ContinualMethod, list[torch.nn.Module], int, list[dict]]:
+def restore(
+    cfg: CurriculumConfig, run_dir: Path, device: torch.device
+) -> tuple[WorldModel, ContinualMethod, list[torch.nn.Module], int, list[dict]]:
     """Model, method, stored heads, finished task count and the evaluation requests in flight
     when it was saved, of `run_dir` (fresh ones when it has no saved state yet). Global RNGs
     are seeded, or restored from the saved state."""

@@ -82,8 +82,9 @@ def read_run_json(path: Path, lines: bool = False, leave_out: str = "the report"
         return [json.loads(x) for x in text.splitlines() if x.strip()] if lines else \
             json.loads(text)  # fmt: skip
     except (OSError, json.JSONDecodeError) as err:
-        raise InputError(f"{path}: missing or corrupt ({err}); rerun the run or leave it out "
-                         f"of {leave_out}") from None
+        raise InputError(
+            f"{path}: missing or corrupt ({err}); rerun the run or leave it out of {leave_out}"
+        ) from None
 
 
 def seed_everything(seed: int) -> None:

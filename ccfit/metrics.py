@@ -101,8 +101,9 @@ def average_curves(curves: Sequence[Curve]) -> tuple[np.ndarray, np.ndarray]:
     lo = max(s[0] for s, _ in parsed)
     hi = min(s[-1] for s, _ in parsed)
     if lo > hi:
-        raise ValueError(f"curves share no common step range (latest start {lo:g} > "
-                         f"earliest end {hi:g})")
+        raise ValueError(
+            f"curves share no common step range (latest start {lo:g} > earliest end {hi:g})"
+        )
     grid = np.unique(np.concatenate([s[(s >= lo) & (s <= hi)] for s, _ in parsed]))
     return grid, np.mean([np.interp(grid, s, y) for s, y in parsed], axis=0)
 
@@ -175,9 +176,7 @@ def bwt(curves: Sequence[Curve], task_ends: Sequence[float], floor: float = 0.0)
             continue
         s = _knots(steps, b_i, b_last)
         drop = np.maximum(0.0, c_i - np.interp(s, steps, scores))
-        per_task[i] = float(
-            100.0 * np.trapezoid(drop, s) / ((b_last - b_i) * (c_i - floor))
-        )
+        per_task[i] = float(100.0 * np.trapezoid(drop, s) / ((b_last - b_i) * (c_i - floor)))
     if per_task:
         return BWTResult(float(np.mean(list(per_task.values()))), per_task, learnt, excluded)
     reason = (
@@ -274,7 +273,10 @@ def cw_forgetting(curves: Sequence[Curve], task_ends: Sequence[float]) -> Forget
 
 
 def cw_forward_transfer(
-    seq_curve: Curve, scratch_curve: Curve, budget: float, scale: float = 100.0,
+    seq_curve: Curve,
+    scratch_curve: Curve,
+    budget: float,
+    scale: float = 100.0,
     clip: bool = True,
 ) -> float:
     """Continual World forward transfer FT = (AUC - AUC_b) / (1 - AUC_b) for one task.
@@ -333,8 +335,11 @@ def compute_metrics(records: list[dict], scratch: list[dict], num_tasks: int,
     records' `key` (see `task_curves`)."""
     curves = task_curves(records, num_tasks, key)
     if any(len(c[0]) == 0 for c in curves):
-        raise ValueError("normalised returns missing: run `ccdata references` first"
-                         if key == "normalized_return" else f"no {key!r} in some task's records")
+        raise ValueError(
+            "normalised returns missing: run `ccdata references` first"
+            if key == "normalized_return"
+            else f"no {key!r} in some task's records"
+        )
     ends = [(i + 1) * steps_per_task for i in range(num_tasks)]
     scratch_curve = task_curves(scratch, num_tasks, key)[-1]
     return metrics_from_curves(curves, ends, scratch_curve, steps_per_task)

@@ -48,7 +48,7 @@ def _rows_of(chunks: list[tuple[int, dict[str, torch.Tensor]]], first: int, end:
     for start, cols in sorted(chunks, key=lambda chunk: chunk[0]):
         a, b = max(row, start), min(end, start + cols["action"].shape[0])
         if a < b:
-            pieces.append({k: v[a - start:b - start] for k, v in cols.items()})
+            pieces.append({k: v[a - start : b - start] for k, v in cols.items()})
             row = b
     if row != end:
         raise ValueError(f"the checkpoint's rows lack rows {row}..{end} of a demonstration")
@@ -341,8 +341,12 @@ class ReplayBuffer:
                              f"start a window of {seq_len} on")  # fmt: skip
         picks = torch.randint(0, pool, (demos,), generator=self.generator)
         window = torch.arange(seq_len).unsqueeze(1)
-        return self._window([(self._demo_columns(), picks.unsqueeze(0) + window),
-                             (self._columns(), self._rows(starts[demos:].unsqueeze(0) + window))])
+        return self._window(
+            [
+                (self._demo_columns(), picks.unsqueeze(0) + window),
+                (self._columns(), self._rows(starts[demos:].unsqueeze(0) + window)),
+            ]
+        )
 
     def num_demo_starts(self, seq_len: int) -> int:
         """How many windows of `seq_len` rows the kept demonstrations hold (one after another,
@@ -387,6 +391,7 @@ class ReplayBuffer:
     def _window(self, parts: list[tuple[dict[str, torch.Tensor], torch.Tensor]]) -> Batch:
         """The windows of each (columns as `_columns` names them, storage rows (L, B_i)),
         side by side in the order given."""
+
         def take(name: str) -> torch.Tensor:
             outs = [cols[name][rows.to(self.storage)] for cols, rows in parts]
             out = outs[0] if len(outs) == 1 else torch.cat(outs, dim=1)
@@ -478,7 +483,11 @@ class ReplayBuffer:
         chunks = [(written - rows["action"].shape[0], rows)]
         offset = 0  # the kept demonstrations' rows, one span after another
         for first, end in state.get("demo_spans", torch.zeros(0, 2)).tolist():
-            chunks.append((first, {k: v[offset:offset + end - first]
-                                   for k, v in state["demo_rows"].items()}))
+            chunks.append(
+                (
+                    first,
+                    {k: v[offset : offset + end - first] for k, v in state["demo_rows"].items()},
+                )
+            )
             offset += end - first
         self.load_state(state, chunks)

@@ -28,17 +28,25 @@ def save_rows(buffer: ReplayBuffer, run_dir: Path, manifest: list[dict]
     """Write the rows added since `manifest` (the previous checkpoint's); returns the new
     manifest and the files it no longer needs (delete them once it is saved)."""
     directory = Path(run_dir) / ROWS_DIR
+
     def needed(f: dict) -> bool:
-        return f["end"] > buffer.oldest or any(f["start"] < end and first < f["end"]
-                                               for first, end in buffer.demo_spans)
+        return f["end"] > buffer.oldest or any(
+            f["start"] < end and first < f["end"] for first, end in buffer.demo_spans
+        )
 
     keep = [f for f in manifest if needed(f)]
     stale = [directory / f["file"] for f in manifest if not needed(f)]
     start = max(keep[-1]["end"] if keep else 0, buffer.oldest)
     if buffer.written > start:
         name = f"rows-{start:012d}-{buffer.written:012d}.pt"
-        atomic_torch_save({"kind": ROWS_KIND, "version": ROWS_VERSION,
-                           "rows": buffer.rows(start, buffer.written)}, directory / name)
+        atomic_torch_save(
+            {
+                "kind": ROWS_KIND,
+                "version": ROWS_VERSION,
+                "rows": buffer.rows(start, buffer.written),
+            },
+            directory / name,
+        )
         keep.append({"file": name, "start": start, "end": buffer.written})
     return keep, stale
 
@@ -48,8 +56,10 @@ def load_rows(buffer: ReplayBuffer, run_dir: Path, meta: dict, manifest: list[di
     the directory (written after the checkpoint by a process that then died) are deleted."""
     directory = Path(run_dir) / ROWS_DIR
     wanted = {f["file"] for f in manifest}
-    chunks = [(int(f["start"]), load_checkpoint(directory / f["file"], ROWS_KIND,
-                                                ROWS_VERSION)["rows"]) for f in manifest]
+    chunks = [
+        (int(f["start"]), load_checkpoint(directory / f["file"], ROWS_KIND, ROWS_VERSION)["rows"])
+        for f in manifest
+    ]
     buffer.load_state(meta, chunks)
     for path in directory.glob("rows-*.pt") if directory.is_dir() else ():
         if path.name not in wanted:

@@ -52,12 +52,34 @@ from ccfit.report_plots import (
 )
 from ccfit.train import CONFIG, METRICS
 
-__all__ = ["METHOD_ORDER", "PER_SEED", "Run", "find_runs", "flatten", "group_metrics",
-           "group_runs", "load_groups", "plot_bars", "plot_curves", "table_frame",
-           "write_report", "write_tables"]
+__all__ = [
+    "METHOD_ORDER",
+    "PER_SEED",
+    "Run",
+    "find_runs",
+    "flatten",
+    "group_metrics",
+    "group_runs",
+    "load_groups",
+    "plot_bars",
+    "plot_curves",
+    "table_frame",
+    "write_report",
+    "write_tables",
+]
 
-PER_SEED = ("seed", "*.seed", "*_seed", "*.*_seed", "out", "*.out", "*_dir", "*.*_dir",
-            "*_path", "*.*_path")
+PER_SEED = (
+    "seed",
+    "*.seed",
+    "*_seed",
+    "*.*_seed",
+    "out",
+    "*.out",
+    "*_dir",
+    "*.*_dir",
+    "*_path",
+    "*.*_path",
+)
 """Flattened config keys (fnmatch patterns) that differ between the seeds of one experiment
 and so do not split groups: the seed, seeds derived from it, where outputs went."""
 CURVE_KEYS = {"online": "normalized_return", TRACK: SCORE_KEY}
@@ -120,8 +142,9 @@ class Run:
     @property
     def seed(self) -> int:
         flat = flatten(self.config)
-        keys = sorted((k for k in flat if k == "seed" or k.endswith(".seed")),
-                      key=lambda k: (k.count("."), k))
+        keys = sorted(
+            (k for k in flat if k == "seed" or k.endswith(".seed")), key=lambda k: (k.count("."), k)
+        )
         return int(flat[keys[0]]) if keys else 0
 
     @property
@@ -166,10 +189,13 @@ def group_metrics(runs: list[Run]) -> dict:
     differ in anything but `PER_SEED` settings."""
     identities = [r.identity for r in runs]
     if any(i != identities[0] for i in identities[1:]):
-        differ = sorted(k for k in set().union(*identities)
-                        if len({repr(i.get(k)) for i in identities}) > 1)
-        raise InputError(f"refusing to average runs whose configs differ in {differ}: "
-                         + ", ".join(str(r.path) for r in runs))
+        differ = sorted(
+            k for k in set().union(*identities) if len({repr(i.get(k)) for i in identities}) > 1
+        )
+        raise InputError(
+            f"refusing to average runs whose configs differ in {differ}: "
+            + ", ".join(str(r.path) for r in runs)
+        )
     num_tasks = len(runs[0].metrics["task_ends"])
     budget = runs[0].metrics["budget"]
     ends = runs[0].metrics["task_ends"]
@@ -205,8 +231,9 @@ GROUP_VALUES = [f"{x}{end}" for x in METRICS_SHOWN for end in ("", "_min", "_max
 def _distinguishing_keys(identities: list[dict[str, Any]]) -> list[str]:
     """Few settings whose values tell `identities` apart: shallow keys first (`obs` before
     `train.obs`), each kept only if it separates groups the earlier ones did not."""
-    keys = sorted({k for i in identities for k in i if not _is_axis(k)},
-                  key=lambda k: (k.count("."), k))
+    keys = sorted(
+        {k for i in identities for k in i if not _is_axis(k)}, key=lambda k: (k.count("."), k)
+    )
 
     def classes(ks: list[str]) -> int:
         return len({tuple(repr(i.get(k, _MISSING)) for k in ks) for i in identities})
@@ -251,8 +278,12 @@ def group_runs(runs: list[Run]) -> dict[tuple[str, str, str, str], list[Run]]:
 
 def differing_settings(groups: dict, backbone: str) -> list[str]:
     """The settings the variants of `backbone`'s groups are named by."""
-    names = [part.split("=", 1)[0] for k in groups if k[0] == backbone and k[3]
-             for part in k[3].split(", ")]
+    names = [
+        part.split("=", 1)[0]
+        for k in groups
+        if k[0] == backbone and k[3]
+        for part in k[3].split(", ")
+    ]
     return list(dict.fromkeys(names))
 
 
@@ -280,11 +311,14 @@ def write_tables(groups: dict, out: Path) -> list[Path]:
                 g = groups.get((backbone, suite, m, variant))
                 row += [_cell(g, x) if g else "" for x in METRICS_SHOWN]
             rows.append(row)
-        lines = [f"# {backbone}: BWT and F (lower is better), FWT (higher is better)", "",
-                 "Mean over seeds of the seed-averaged curves' metric, [min, max] per seed. "
-                 "F: Continual World's forgetting, end-of-task minus final score in score "
-                 "points, averaged over every task but the last (defined where BWT leaves out "
-                 "a task never learnt above 0)."]
+        lines = [
+            f"# {backbone}: BWT and F (lower is better), FWT (higher is better)",
+            "",
+            "Mean over seeds of the seed-averaged curves' metric, [min, max] per seed. "
+            "F: Continual World's forgetting, end-of-task minus final score in score "
+            "points, averaged over every task but the last (defined where BWT leaves out "
+            "a task never learnt above 0).",
+        ]
         if any(g["track"] == TRACK for k, g in groups.items() if k[0] == backbone):
             lines += ["", "Offline track (`ccfit fit`): the curves are the open-loop prediction "
                       "score on held-out dataset episodes (0 = persistence, 100 = perfect "
@@ -293,8 +327,11 @@ def write_tables(groups: dict, out: Path) -> list[Path]:
                       "online."]  # fmt: skip
         differ = differing_settings(groups, backbone)
         if differ:
-            lines += ["", f"Runs differ in {', '.join(f'`{d}`' for d in differ)}: each row "
-                      "names its values, and only runs of one row and method are averaged."]
+            lines += [
+                "",
+                f"Runs differ in {', '.join(f'`{d}`' for d in differ)}: each row "
+                "names its values, and only runs of one row and method are averaged.",
+            ]
         lines += ["", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         lines += ["| " + " | ".join(r) + " |" for r in rows]
         md = out / f"table_{backbone}.md"

@@ -44,8 +44,9 @@ def plot_bars(groups: dict, out: Path) -> list[Path]:
     for backbone in sorted({k[0] for k in groups}):
         rows = sorted({(k[1], k[3]) for k in groups if k[0] == backbone})
         methods = method_columns(groups, backbone)
-        fig, axes = plt.subplots(1, 2, figsize=(4 + 1.6 * len(rows), 3.6 + 0.4 * any(
-            v for _, v in rows)))
+        fig, axes = plt.subplots(
+            1, 2, figsize=(4 + 1.6 * len(rows), 3.6 + 0.4 * any(v for _, v in rows))
+        )
         width = 0.8 / max(len(methods), 1)
         for ax, name, better in zip(axes, ("bwt", "fwt"), ("lower", "higher"), strict=True):
             for k, m in enumerate(methods):
@@ -61,8 +62,13 @@ def plot_bars(groups: dict, out: Path) -> list[Path]:
                     hi.append((g[name] if high is None else high) - g[name])
                 ax.bar(xs, ys, width, label=m, yerr=[np.maximum(lo, 0), np.maximum(hi, 0)],
                        capsize=2)  # fmt: skip
-            ax.set_xticks(range(len(rows)), [row_label(s, v) for s, v in rows], rotation=20,
-                          ha="right", fontsize=8)
+            ax.set_xticks(
+                range(len(rows)),
+                [row_label(s, v) for s, v in rows],
+                rotation=20,
+                ha="right",
+                fontsize=8,
+            )
             ax.set_title(f"{name.upper()} ({better} is better)")
             ax.axhline(0, color="k", lw=0.5)
         axes[1].legend(fontsize=8)
@@ -75,8 +81,16 @@ def plot_bars(groups: dict, out: Path) -> list[Path]:
     return written
 
 
-TASK_COLOURS = ("tab:blue", "tab:orange", "tab:purple", "tab:brown", "tab:pink", "tab:olive",
-                "tab:cyan", "tab:gray")
+TASK_COLOURS = (
+    "tab:blue",
+    "tab:orange",
+    "tab:purple",
+    "tab:brown",
+    "tab:pink",
+    "tab:olive",
+    "tab:cyan",
+    "tab:gray",
+)
 """Task curves and their forgetting shading; green and red are left to the FWT shading alone."""
 
 

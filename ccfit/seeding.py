@@ -73,8 +73,9 @@ def has_final_observation(episode: dict[str, np.ndarray]) -> bool:
         return False
     final = np.asarray(episode[FINAL_KEY]).reshape(-1).astype(bool)
     if final[:-1].any():
-        raise InputError(f"episode {episode.get('episode_index')}: {FINAL_KEY} is set before its "
-                         "last frame")
+        raise InputError(
+            f"episode {episode.get('episode_index')}: {FINAL_KEY} is set before its last frame"
+        )
     return bool(final[-1])
 
 

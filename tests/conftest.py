@@ -21,8 +21,10 @@ def hub_server(tmp_path_factory):
     It accepts one token with the "write" role and one with the "read" role:
     `hub_server.token("write")`, `hub_server.token("read")`.
     """
-    server = HubServer(tmp_path_factory.mktemp("hub"),
-                       {"hf_test_write_token": "write", "hf_test_read_token": "read"})
+    server = HubServer(
+        tmp_path_factory.mktemp("hub"),
+        {"hf_test_write_token": "write", "hf_test_read_token": "read"},
+    )
     try:
         yield server
     finally:

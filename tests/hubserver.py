@@ -36,8 +36,20 @@ _URL_PREFIX = {"model": "", "dataset": "datasets/", "space": "spaces/"}
 _GITATTRIBUTES = "".join(
     f"{pattern} filter=lfs diff=lfs merge=lfs -text\n"
     for pattern in (
-        "*.arrow", "*.bin", "*.gz", "*.mp4", "*.npy", "*.npz", "*.parquet", "*.pkl", "*.png",
-        "*.pt", "*.safetensors", "*.tar", "*.jpg", "*.zip",
+        "*.arrow",
+        "*.bin",
+        "*.gz",
+        "*.mp4",
+        "*.npy",
+        "*.npz",
+        "*.parquet",
+        "*.pkl",
+        "*.png",
+        "*.pt",
+        "*.safetensors",
+        "*.tar",
+        "*.jpg",
+        "*.zip",
     )
 )
 # Above this size the Hub always asks for LFS, whatever .gitattributes says.
@@ -209,7 +221,8 @@ class HubState:
         seg = [unquote(s) for s in parts.path.split("/")[1:]]
         with self._lock:
             self.requests.append(
-                {"method": method, "path": parts.path, "host": headers.get("Host")})
+                {"method": method, "path": parts.path, "host": headers.get("Host")}
+            )
         try:
             role = self._role(headers)
             with self._lock:
@@ -234,8 +247,11 @@ class HubState:
         if len(rest) >= 5 and rest[2] == "resolve" and method in ("GET", "HEAD"):
             repo = self._repo(rtype, f"{rest[0]}/{rest[1]}", role)
             return self._resolve_file(repo, rest[3], "/".join(rest[4:]), headers, method)
-        if len(rest) == 6 and rest[1].endswith(".git") and rest[2:] == ["info", "lfs", "objects",
-                                                                          "batch"]:
+        if (
+            len(rest) == 6
+            and rest[1].endswith(".git")
+            and rest[2:] == ["info", "lfs", "objects", "batch"]
+        ):
             repo_id = f"{rest[0]}/{rest[1].removesuffix('.git')}"
             return self._lfs_batch(self._repo(rtype, repo_id, role), json.loads(body), base, role)
         raise _HttpError(404, f"Not found: {method} /{'/'.join(seg)}")
@@ -248,8 +264,13 @@ class HubState:
         if seg == ["whoami-v2"] and method == "GET":
             if role is None:
                 raise _HttpError(401, "Invalid username or password.")
-            return _json({"type": "user", "name": "tester", "auth": {"type": "access_token",
-                                                                    "accessToken": {"role": role}}})
+            return _json(
+                {
+                    "type": "user",
+                    "name": "tester",
+                    "auth": {"type": "access_token", "accessToken": {"role": role}},
+                }
+            )
         if len(seg) < 3 or seg[0] not in _API_TYPES:
             raise _HttpError(404, f"Not found: /api/{'/'.join(seg)}")
         rtype, repo_id, op, args = _API_TYPES[seg[0]], f"{seg[1]}/{seg[2]}", seg[3:4], seg[4:]
@@ -320,23 +341,45 @@ class HubState:
             if blobs:
                 sib.update(size=entry.size, blobId=entry.oid)
                 if entry.sha256:
-                    sib["lfs"] = {"size": entry.size, "sha256": entry.sha256,
-                                  "pointerSize": len(_lfs_pointer(entry.sha256, entry.size))}
+                    sib["lfs"] = {
+                        "size": entry.size,
+                        "sha256": entry.sha256,
+                        "pointerSize": len(_lfs_pointer(entry.sha256, entry.size)),
+                    }
             siblings.append(sib)
-        return _json({
-            "_id": hashlib.sha1(repo.id.encode()).hexdigest()[:24], "id": repo.id,
-            "author": repo.id.split("/")[0], "sha": commit.oid, "private": repo.private,
-            "gated": False, "disabled": False, "downloads": 0, "likes": 0, "tags": [],
-            "createdAt": repo.created, "lastModified": commit.date, "siblings": siblings,
-        })
+        return _json(
+            {
+                "_id": hashlib.sha1(repo.id.encode()).hexdigest()[:24],
+                "id": repo.id,
+                "author": repo.id.split("/")[0],
+                "sha": commit.oid,
+                "private": repo.private,
+                "gated": False,
+                "disabled": False,
+                "downloads": 0,
+                "likes": 0,
+                "tags": [],
+                "createdAt": repo.created,
+                "lastModified": commit.date,
+                "siblings": siblings,
+            }
+        )
 
     def _refs(self, repo: Repo) -> Reply:
         def refs(kind, mapping):
-            return [{"name": n, "ref": f"refs/{kind}/{n}", "targetCommit": oid}
-                    for n, oid in sorted(mapping.items())]
+            return [
+                {"name": n, "ref": f"refs/{kind}/{n}", "targetCommit": oid}
+                for n, oid in sorted(mapping.items())
+            ]
 
-        return _json({"branches": refs("heads", repo.branches), "tags": refs("tags", repo.tags),
-                      "converts": [], "pullRequests": []})
+        return _json(
+            {
+                "branches": refs("heads", repo.branches),
+                "tags": refs("tags", repo.tags),
+                "converts": [],
+                "pullRequests": [],
+            }
+        )
 
     def _create_tag(self, repo: Repo, rev: str, payload: dict) -> Reply:
         commit = self._resolve(repo, rev)
@@ -353,8 +396,11 @@ class HubState:
     def _file_json(self, path: str, entry: Entry) -> dict:
         item = {"type": "file", "oid": entry.oid, "size": entry.size, "path": path}
         if entry.sha256:
-            item["lfs"] = {"oid": entry.sha256, "size": entry.size,
-                           "pointerSize": len(_lfs_pointer(entry.sha256, entry.size))}
+            item["lfs"] = {
+                "oid": entry.sha256,
+                "size": entry.size,
+                "pointerSize": len(_lfs_pointer(entry.sha256, entry.size)),
+            }
         return item
 
     @staticmethod
@@ -371,7 +417,7 @@ class HubState:
             raise _HttpError(404, f"{path} does not exist on {rev}", "EntryNotFound")
         items, dirs = [], set()
         for p, entry in sorted(files.items()):
-            rel = p[len(prefix):].split("/")
+            rel = p[len(prefix) :].split("/")
             # Every folder between `prefix` and the file; only the first level if not recursive.
             for depth in range(1, len(rel) if recursive else min(2, len(rel))):
                 dirs.add(prefix + "/".join(rel[:depth]))
@@ -409,8 +455,11 @@ class HubState:
             path, size = f["path"], int(f["size"])
             sample = base64.b64decode(f.get("sample", ""))
             name = path.rsplit("/", 1)[-1]
-            lfs = size >= _LFS_MIN_SIZE or b"\0" in sample or any(
-                fnmatch.fnmatch(path if "/" in pat else name, pat) for pat in patterns)
+            lfs = (
+                size >= _LFS_MIN_SIZE
+                or b"\0" in sample
+                or any(fnmatch.fnmatch(path if "/" in pat else name, pat) for pat in patterns)
+            )
             item = {"path": path, "uploadMode": "lfs" if lfs else "regular", "shouldIgnore": False}
             if path in commit.tree:
                 entry = commit.tree[path]
@@ -492,8 +541,15 @@ class HubState:
                 raise _HttpError(400, f"Unsupported commit operation {key!r}")
         commit = self._add_commit(repo, rev, tree, summary)
         url = f"{base}/{_URL_PREFIX[repo.type]}{repo.id}/commit/{commit.oid}"
-        return _json({"success": True, "commitOid": commit.oid, "commitUrl": url,
-                      "hookOutput": "", "pullRequestUrl": None})
+        return _json(
+            {
+                "success": True,
+                "commitOid": commit.oid,
+                "commitUrl": url,
+                "hookOutput": "",
+                "pullRequestUrl": None,
+            }
+        )
 
     @staticmethod
     def _validate_yaml(payload: dict) -> Reply:
@@ -517,21 +573,26 @@ class HubState:
         if entry is None:
             raise _HttpError(404, "Entry not found", "EntryNotFound", {"X-Repo-Commit": commit.oid})
         data = self.read(entry)
-        hdrs = {"X-Repo-Commit": commit.oid, "Content-Type": "application/octet-stream",
-                "Accept-Ranges": "bytes", "ETag": f'"{entry.sha256 or entry.oid}"'}
+        hdrs = {
+            "X-Repo-Commit": commit.oid,
+            "Content-Type": "application/octet-stream",
+            "Accept-Ranges": "bytes",
+            "ETag": f'"{entry.sha256 or entry.oid}"',
+        }
         if entry.sha256:
             hdrs.update({"X-Linked-Etag": f'"{entry.sha256}"', "X-Linked-Size": str(entry.size)})
         status = 200
         rng = headers.get("Range") or ""
         if method == "GET" and rng.startswith("bytes="):
-            start_s, _, end_s = rng[len("bytes="):].partition("-")
+            start_s, _, end_s = rng[len("bytes=") :].partition("-")
             start = int(start_s or 0)
             end = min(int(end_s), len(data) - 1) if end_s else len(data) - 1
             if start >= len(data):
-                raise _HttpError(416, "Range not satisfiable",
-                               headers={"Content-Range": f"bytes */{len(data)}"})
+                raise _HttpError(
+                    416, "Range not satisfiable", headers={"Content-Range": f"bytes */{len(data)}"}
+                )
             hdrs["Content-Range"] = f"bytes {start}-{end}/{len(data)}"
-            data, status = data[start:end + 1], 206
+            data, status = data[start : end + 1], 206
         return Reply(status, data, hdrs)
 
 
@@ -585,8 +646,9 @@ class HubServer:
         self._httpd.state = self.state
         self.port = self._httpd.server_address[1]
         self.url = f"http://127.0.0.1:{self.port}"
-        self._thread = threading.Thread(target=self._httpd.serve_forever, daemon=True,
-                                        kwargs={"poll_interval": 0.05})
+        self._thread = threading.Thread(
+            target=self._httpd.serve_forever, daemon=True, kwargs={"poll_interval": 0.05}
+        )
         self._thread.start()
 
     def token(self, role: str) -> str:

@@ -26,6 +26,8 @@ def shorter_episodes(steps: int = EPISODE_STEPS):
 
 def ccfit_command(argv: list[str], steps: int = EPISODE_STEPS) -> list[str]:
     """The command `ccfit *argv` in a fresh interpreter whose episodes last `steps` steps."""
-    code = (f"import sys, ccdata.env; ccdata.env.EPISODE_STEPS = {steps}; "
-            "from ccfit.cli import main; sys.exit(main(sys.argv[1:]))")
+    code = (
+        f"import sys, ccdata.env; ccdata.env.EPISODE_STEPS = {steps}; "
+        "from ccfit.cli import main; sys.exit(main(sys.argv[1:]))"
+    )
     return [sys.executable, "-c", code, *argv]

@@ -51,8 +51,13 @@ def pwm_run(tmp_path_factory):
         # Short episodes also end inside a 100-step task, so replay holds data and the heads
         # do get trained.
         with shorter_episodes():
-            Curriculum(smoke_config(), root / "run", root / "scratch", progress=False,
-                       callbacks=[routing_callback]).run()
+            Curriculum(
+                smoke_config(),
+                root / "run",
+                root / "scratch",
+                progress=False,
+                callbacks=[routing_callback],
+            ).run()
     finally:
         torch.set_num_threads(threads)
     return root / "run"
@@ -91,8 +96,13 @@ def test_routing_record_reproduces_from_saved_run(pwm_run, short_episodes):
 def test_resume_of_finished_run_keeps_routing(pwm_run):
     before = (pwm_run / ROUTING).read_bytes()
     with shorter_episodes():  # the run's config (its episode length) as the fixture made it
-        Curriculum(smoke_config(), pwm_run, pwm_run.parent / "scratch", progress=False,
-                   callbacks=[routing_callback]).run()
+        Curriculum(
+            smoke_config(),
+            pwm_run,
+            pwm_run.parent / "scratch",
+            progress=False,
+            callbacks=[routing_callback],
+        ).run()
     assert (pwm_run / ROUTING).read_bytes() == before
 
 

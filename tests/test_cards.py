@@ -15,8 +15,7 @@ from ccdata.cli import main
 from ccdata.dataset_format import episode_table, read_ccdata_metadata
 from ccdata.record import GenerateConfig, generate
 
-SETTINGS = dict(suite="Reach", episodes=2, explore_episodes=1, image_size=32, max_steps=10,
-                seed=3)
+SETTINGS = dict(suite="Reach", episodes=2, explore_episodes=1, image_size=32, max_steps=10, seed=3)
 
 
 @pytest.fixture(scope="module")
@@ -39,8 +38,10 @@ def test_a_32px_dataset_card_states_its_settings_and_real_counts(small):
     assert "Per task: 2 episodes of the scripted `oracle`" in card
     assert "1 episodes each of `noisy-oracle` and `random`" in card
     assert "cut after at most 10 steps" in card
-    assert ("ccdata generate --suite Reach --episodes 2 --explore-episodes 1 --image-size 32 "
-            "--seed 3 --max-steps 10") in card
+    assert (
+        "ccdata generate --suite Reach --episodes 2 --explore-episodes 1 --image-size 32 "
+        "--seed 3 --max-steps 10"
+    ) in card
     # The measured table is the dataset's own content, row by row.
     table = episode_table(root)
     meta = read_ccdata_metadata(root)
@@ -49,8 +50,10 @@ def test_a_32px_dataset_card_states_its_settings_and_real_counts(small):
     for t, task_id in enumerate(ids):
         for p, policy in enumerate(meta["policies"]):
             m = (table["task_id_index"] == t) & (table["policy_index"] == p)
-            row = (f"| `{task_id}` | {policy} | {int(m.sum())} | {int(table['steps'][m].sum())} "
-                   f"| {table['success'][m].mean():.2f} | {np.mean(table['return'][m]):.2f} |")
+            row = (
+                f"| `{task_id}` | {policy} | {int(m.sum())} | {int(table['steps'][m].sum())} "
+                f"| {table['success'][m].mean():.2f} | {np.mean(table['return'][m]):.2f} |"
+            )
             assert row in card, row
     assert f"{summary['episodes']} episodes, {summary['steps']} steps" in card
     videos = sum(p.stat().st_size for p in (root / "videos").rglob("*") if p.is_file())
@@ -95,16 +98,21 @@ def test_settings_is_a_leaf_that_readers_import_instead_of_the_engine():
     import subprocess
     import sys
 
-    code = ("import sys, ccdata.settings; engine = ('record', 'journal', 'dataset_format', "
-            "'writer', 'cards'); print(sorted(m for m in sys.modules if m.startswith('ccdata.') "
-            "and m.split('.')[1] in engine)); import ccdata.cards, ccdata.journal, "
-            "ccdata.dataset_format, ccfit.data, ccfit.curriculum, ccfit.pretrain.data; "
-            "print(sorted(m for m in ('ccdata.record', 'ccdata.writer') if m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True).stdout.split("\n")
+    code = (
+        "import sys, ccdata.settings; engine = ('record', 'journal', 'dataset_format', "
+        "'writer', 'cards'); print(sorted(m for m in sys.modules if m.startswith('ccdata.') "
+        "and m.split('.')[1] in engine)); import ccdata.cards, ccdata.journal, "
+        "ccdata.dataset_format, ccfit.data, ccfit.curriculum, ccfit.pretrain.data; "
+        "print(sorted(m for m in ('ccdata.record', 'ccdata.writer') if m in sys.modules))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout.split("\n")
     assert out[:2] == ["[]", "[]"]
     from ccdata.record import GenerateConfig as Old
     from ccdata.settings import DatasetSettings
 
-    assert issubclass(Old, DatasetSettings) and Old("Reach").dataset_root == DatasetSettings(
-        "Reach").dataset_root
+    assert (
+        issubclass(Old, DatasetSettings)
+        and Old("Reach").dataset_root == DatasetSettings("Reach").dataset_root
+    )

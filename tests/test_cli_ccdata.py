@@ -53,9 +53,11 @@ def test_generate_runs_a_worker_per_available_core_by_default():
     assert generate_config(parse([*reach, "--workers", "3"])).workers == 3
     # The cores of the process's affinity mask (taskset, cpusets, SLURM), not the machine's.
     one_core = min(os.sched_getaffinity(0))
-    code = (f"import os; os.sched_setaffinity(0, {{{one_core}}}); "
-            "from ccdata.cli import build_parser, generate_config; "
-            f"print(generate_config(build_parser().parse_args({reach!r})).workers)")
+    code = (
+        f"import os; os.sched_setaffinity(0, {{{one_core}}}); "
+        "from ccdata.cli import build_parser, generate_config; "
+        f"print(generate_config(build_parser().parse_args({reach!r})).workers)"
+    )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.stdout.strip() == "1", done.stderr
     # Only a --workers the user gave is refused with slurm; the default is not.
@@ -63,7 +65,8 @@ def test_generate_runs_a_worker_per_available_core_by_default():
     with pytest.raises(CliError, match="--workers is for --launcher local"):
         generate_config(parse([*reach, "--launcher", "slurm", "--workers", "1"]))
     assert "identical with any number of workers" in " ".join(
-        run_cli("generate", "--help").stdout.split())
+        run_cli("generate", "--help").stdout.split()
+    )
 
 
 @pytest.mark.parametrize("command", [["verify"], ["card"], ["push", "--repo-id", "org/x"]])
@@ -72,21 +75,32 @@ def test_a_dataset_command_without_a_dataset_is_one_line(command, tmp_path, monk
     for root in (tmp_path / "absent", tmp_path):
         assert main([*command, "--root", str(root)]) == 2
         assert capsys.readouterr().err == (
-            f"ccdata {command[0]}: error: no dataset at {root} (no meta/info.json)\n")
+            f"ccdata {command[0]}: error: no dataset at {root} (no meta/info.json)\n"
+        )
     if command[0] == "card":  # --suite renders the suite's default card: no dataset needed
         return
     monkeypatch.setattr("lerobot.utils.constants.HF_LEROBOT_HOME", tmp_path)
     assert main([*command, "--suite", "Reach"]) == 2
     assert capsys.readouterr().err == (
         f"ccdata {command[0]}: error: no dataset at {tmp_path / 'ccdata/Reach'} (no "
-        "meta/info.json): run `ccdata generate --suite Reach` first\n")
+        "meta/info.json): run `ccdata generate --suite Reach` first\n"
+    )
 
 
 def test_render_writes_three_views_and_an_episode(tmp_path, capsys):
     png, mp4 = tmp_path / "views.png", tmp_path / "episode.mp4"
     code = main(
-        ["render", "--task", "reach-xy", "--out", str(png), "--video", str(mp4),
-         "--image-size", "48"]
+        [
+            "render",
+            "--task",
+            "reach-xy",
+            "--out",
+            str(png),
+            "--video",
+            str(mp4),
+            "--image-size",
+            "48",
+        ]
     )
     assert code == 0
     image = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)[..., ::-1]  # BGR -> RGB
@@ -112,8 +126,9 @@ def test_references_are_reproducible(tmp_path):
     assert -5.0 < ref["mean_discounted_return"] < 0.0
 
 
-@pytest.mark.parametrize("suite", ["Reach", "Grasp", "BinPnP", "PnPBlock", "DrawerPnP",
-                                   "PnPBoxClose"])
+@pytest.mark.parametrize(
+    "suite", ["Reach", "Grasp", "BinPnP", "PnPBlock", "DrawerPnP", "PnPBoxClose"]
+)
 def test_checked_in_cards_are_current(suite):
     from pathlib import Path
 
@@ -134,8 +149,14 @@ def test_card_has_lerobot_header_and_suite_yaml():
     assert header["configs"][0]["data_files"] == "data/*/*.parquet"
     assert header["ccdata"]["tasks"][-1] == "bin-yellow-purple"
     assert header["ccdata"]["composition_matrix"][3] == [0, 1, 1, 1]
-    for section in ("## Composition matrix", "## Oracle reference returns", "## Loading",
-                    "## Citation", "## Policies and counts", "## Rendering"):
+    for section in (
+        "## Composition matrix",
+        "## Oracle reference returns",
+        "## Loading",
+        "## Citation",
+        "## Policies and counts",
+        "## Rendering",
+    ):
         assert section in text
 
 

@@ -33,8 +33,9 @@ def _run(name: str, setting: str, device: str = "cpu", **overrides) -> dict:
     model = make_model(cfg, device)
     model.begin_task(0, 100)
     heads = model.new_heads()
-    assert compile_hot_paths(model, setting) == compiled_paths(type(model), setting,
-                                                               torch.device(device))
+    assert compile_hot_paths(model, setting) == compiled_paths(
+        type(model), setting, torch.device(device)
+    )
     opt, head_opts = model.world_model_optimizer(heads), model.head_optimizers(heads)
     batch = random_buffer(cfg, seed=1, steps=(10, 20)).sample(cfg.batch_size, cfg.seq_len)
     batch = batch.to(device)

@@ -49,8 +49,10 @@ def task_buffer(task: int, lengths: list[int]) -> ReplayBuffer:
     buffer = ReplayBuffer(capacity=None, seed=100 + task)
     row = 0
     for steps in lengths:
-        obs = {"state": torch.randn(steps + 1, STATE, generator=g) + 2.0 * task,
-               "id": torch.arange(row, row + steps + 1, dtype=torch.float32).view(-1, 1)}
+        obs = {
+            "state": torch.randn(steps + 1, STATE, generator=g) + 2.0 * task,
+            "id": torch.arange(row, row + steps + 1, dtype=torch.float32).view(-1, 1),
+        }
         buffer.add_episode(obs, torch.randn(steps, ACT, generator=g), -torch.ones(steps) / 2,
                            torch.zeros(steps), task=task)  # fmt: skip
         row += steps + 1
@@ -60,8 +62,13 @@ def task_buffer(task: int, lengths: list[int]) -> ReplayBuffer:
 def make_task_data(backbone: TinyBackbone, task: int, n: int, batch_size: int = 32,
                    seq_len: int = 2) -> TaskData:  # fmt: skip
     """A task whose replay holds n one-transition episodes (n real transitions)."""
-    return TaskData.from_buffer(task, task_buffer(task, [1] * n), batch_size=batch_size,
-                                seq_len=seq_len, backbone_loss=backbone.backbone_loss)
+    return TaskData.from_buffer(
+        task,
+        task_buffer(task, [1] * n),
+        batch_size=batch_size,
+        seq_len=seq_len,
+        backbone_loss=backbone.backbone_loss,
+    )
 
 
 def train(backbone, method, opt, data: TaskData, steps: int) -> None:
@@ -341,8 +348,10 @@ def test_packnet_state_machine_freezing_and_masks():
         assert torch.all(w.grad[pn.owner[name] == 0] == 0)
         assert w.grad[pn.owner[name] == FREE].abs().sum() > 0
     opt.step()
-    moved = [not torch.equal(w[pn.owner[n] == 0], task0[n][pn.owner[n] == 0])
-             for n, w in linear_weights(bb).items()]
+    moved = [
+        not torch.equal(w[pn.owner[n] == 0], task0[n][pn.owner[n] == 0])
+        for n, w in linear_weights(bb).items()
+    ]
     assert all(moved), "Adam's momentum alone should move frozen entries"
     pn.after_step(bb)  # ... and after_step writes them back exactly
     train(bb, pn, opt, data[1], 30)
@@ -440,8 +449,11 @@ def _task_data(model, buf, task):
 @pytest.mark.parametrize("name", ["ft", "er", "ewc", "packnet"])
 def test_methods_on_tdmpc2_backbone(name):
     cfg, model, buffers = _tdmpc2_setup()
-    kwargs = {"er": {"fraction": 0.25, "batch_size": 8}, "ewc": {"fisher_batches": 3},
-              "packnet": {"retrain_steps": 2}}.get(name, {})
+    kwargs = {
+        "er": {"fraction": 0.25, "batch_size": 8},
+        "ewc": {"fisher_batches": 3},
+        "packnet": {"retrain_steps": 2},
+    }.get(name, {})
     method_ = method(name, num_tasks=2, **kwargs)
     backbone = model.backbone
     penalties = []
@@ -475,7 +487,7 @@ def test_methods_on_tdmpc2_backbone(name):
                 assert all(torch.equal(v, task0[k]) for k, v in backbone.named_parameters())
 
     assert all(math.isfinite(p) for p in penalties)
-    later = penalties[4 + (2 if name == "packnet" else 0):]
+    later = penalties[4 + (2 if name == "packnet" else 0) :]
     if name in ("ft", "packnet"):
         assert all(p == 0.0 for p in penalties)
     else:  # ER replays task 0 and EWC penalises drift during task 1

@@ -443,8 +443,10 @@ def test_killed_run_resumes_to_the_uninterrupted_result(runs, tmp_path):
         (["--suite", SUITE, "--train.steps=abc"], "train.steps"),
         (["--suite", SUITE, "--model.lr=fast"], "model.lr"),
         (["--suite", "BinPnP", "--model.type=pwm", "--model.max_tasks=3"], "max_tasks=4"),
-        (["--suite", SUITE, "--method.type=packnet", "--method.keep_fraction=1.5"],
-         "keep_fraction"),
+        (
+            ["--suite", SUITE, "--method.type=packnet", "--method.keep_fraction=1.5"],
+            "keep_fraction",
+        ),
     ],
 )
 def test_cli_run_bad_input_exits_2_with_one_line(argv, needle, capsys, tmp_path):
@@ -544,8 +546,19 @@ def test_a_models_suite_budget_sets_the_training_settings_unless_given(monkeypat
     assert (grasp.demo_fraction, grasp.buffer_capacity) == (0.25, 80_000)
     reach = train("--suite", "Reach", "--preset", "cpu", suite="Reach", preset="cpu")
     assert (reach.demo_fraction, reach.buffer_capacity) == (0.0, 50_000)
-    assert train("--suite", "Grasp", "--preset", "cpu", "--train.demo_fraction=0",
-                 suite="Grasp", preset="cpu", train={"demo_fraction": 0.0}).demo_fraction == 0
+    assert (
+        train(
+            "--suite",
+            "Grasp",
+            "--preset",
+            "cpu",
+            "--train.demo_fraction=0",
+            suite="Grasp",
+            preset="cpu",
+            train={"demo_fraction": 0.0},
+        ).demo_fraction
+        == 0
+    )
 
     assert steps("--suite", "Grasp", "--preset", "cpu", suite="Grasp", preset="cpu") == 9_000
     assert steps("--suite", "Reach", "--preset", "cpu", suite="Reach", preset="cpu") == 6_000

@@ -27,8 +27,12 @@ TASK = "reach-xy"
 def reach(tmp_path_factory) -> Path:
     """Oracle and noisy-oracle reach episodes succeed within 40 steps; random ones are cut."""
     root = tmp_path_factory.mktemp("seed") / "Reach"
-    root, _ = generate(GenerateConfig("Reach", episodes=3, explore_episodes=2, image_size=32,
-                                      max_steps=40, root=root), progress=False)
+    root, _ = generate(
+        GenerateConfig(
+            "Reach", episodes=3, explore_episodes=2, image_size=32, max_steps=40, root=root
+        ),
+        progress=False,
+    )
     return root
 
 

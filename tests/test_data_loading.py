@@ -170,8 +170,9 @@ def test_seed_buffer_preloads_the_tasks_episodes(tiny_dataset):
         meta_path = root / "meta" / "ccdata.json"
         meta = json.loads(meta_path.read_text())
         try:
-            meta_path.write_text(json.dumps({**meta, "render": {**meta["render"],
-                                                                "shadows": True}}))
+            meta_path.write_text(
+                json.dumps({**meta, "render": {**meta["render"], "shadows": True}})
+            )
             seed_buffer(ReplayBuffer(1000), root, "reach-xyz", "pixels", RenderSettings(32))
         finally:
             meta_path.write_text(json.dumps(meta))
@@ -208,7 +209,7 @@ def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
     small = ["--train.buffer_capacity=251", "--train.steps=600", "--train.eval_interval=600"]
     assert main([*base, *small, "--task", "reach-xy", "--out", str(tmp_path / "ring")]) == 0
     meta = torch.load(tmp_path / "ring" / "checkpoint.pt", weights_only=False)["buffer"]
-    (first, end), = meta["demo_spans"].tolist()
+    ((first, end),) = meta["demo_spans"].tolist()
     assert first == 0 and meta["written"] - meta["capacity"] >= end  # every demo row overwritten
     assert main([*base, "--task", "reach-xyz", "--out", str(tmp_path / "xyz")]) == 2
     assert "holds no oracle episode of reach-xyz" in capsys.readouterr().err

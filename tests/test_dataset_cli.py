@@ -85,8 +85,10 @@ def test_the_projects_readers_print_no_torchcodec_traceback(tiny_reach, caplog):
     # Another test of this process may have quietened LeRobot (quiet_libraries).
     caplog.set_level(logging.WARNING, logger="lerobot.utils.import_utils")
     if get_safe_default_video_backend() != "pyav" or "torchcodec" not in caplog.text:
-        pytest.skip("torchcodec loads here (FFmpeg's shared libraries are present): LeRobot "
-                    "prints no traceback to hide")
+        pytest.skip(
+            "torchcodec loads here (FFmpeg's shared libraries are present): LeRobot "
+            "prints no traceback to hide"
+        )
 
     def stderr_of(code: str) -> str:
         done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
@@ -130,7 +132,6 @@ def test_explore_notebook_runs_on_the_dataset(tiny_reach):
     # Without FFmpeg's shared libraries LeRobot logs a page of torchcodec traceback here.
     stderr = "".join(o.get("text", "") for o in outputs if o.get("name") == "stderr")
     assert "torchcodec" not in stderr, stderr
-
 
 
 def test_ccfit_reads_a_pushed_dataset_by_repo_id_from_the_endpoint(

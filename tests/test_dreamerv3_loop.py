@@ -89,8 +89,10 @@ def test_curriculum_writes_metrics_and_evaluates_every_seen_task(runs, method):
     assert metrics["bwt_per_task"] == pytest.approx(per_task)
     assert set(metrics["bwt_excluded"]) == {"0", "1"} - set(per_task)
     # Each stage: its own task at its start; every task seen at its end.
-    expected = sorted([(s, s, s * STEPS) for s in range(3)]
-                      + [(j, s, (s + 1) * STEPS) for s in range(3) for j in range(s + 1)])
+    expected = sorted(
+        [(s, s, s * STEPS) for s in range(3)]
+        + [(j, s, (s + 1) * STEPS) for s in range(3) for j in range(s + 1)]
+    )
     assert sorted((r["task_index"], r["stage"], r["global_step"]) for r in recs) == expected
     assert all(r["task"] == TASKS[r["task_index"]] for r in recs)
     assert all(np.isfinite(r["normalized_return"]) for r in recs)

@@ -39,8 +39,11 @@ def _only_loopback(connections, port):
     for event, target in connections:
         if event == "socket.getaddrinfo" and target not in ("127.0.0.1", b"127.0.0.1"):
             bad.append(target)
-        if event == "socket.connect" and isinstance(target, tuple) and target[:2] != (
-            "127.0.0.1", port):
+        if (
+            event == "socket.connect"
+            and isinstance(target, tuple)
+            and target[:2] != ("127.0.0.1", port)
+        ):
             bad.append(target)
     return bad
 
@@ -56,21 +59,28 @@ def tiny_dataset(tmp_path_factory):
         "action": {"dtype": "float32", "shape": (4,), "names": None},
         CAMERA: {"dtype": "video", "shape": (32, 32, 3), "names": ["height", "width", "channels"]},
     }
-    ds = LeRobotDataset.create(REPO_ID, fps=10, features=features, root=root, use_videos=True,
-                               video_backend="pyav")
+    ds = LeRobotDataset.create(
+        REPO_ID, fps=10, features=features, root=root, use_videos=True, video_backend="pyav"
+    )
     rng = np.random.default_rng(0)
     ramp = np.linspace(0, 255, 32, dtype=np.float32)
     for ep, length in enumerate((6, 9)):
         for t in range(length):
             # Smooth moving gradients: content a lossy codec keeps recognizable frame to frame.
-            image = np.stack(np.broadcast_arrays(ramp[None, :], ramp[:, None],
-                                                 np.full((32, 32), 40.0 * t + 100 * ep)), -1)
-            ds.add_frame({
-                "observation.state": rng.standard_normal(4).astype(np.float32),
-                "action": rng.uniform(-1, 1, 4).astype(np.float32),
-                CAMERA: (image % 256).astype(np.uint8),
-                "task": f"task {ep}",
-            })
+            image = np.stack(
+                np.broadcast_arrays(
+                    ramp[None, :], ramp[:, None], np.full((32, 32), 40.0 * t + 100 * ep)
+                ),
+                -1,
+            )
+            ds.add_frame(
+                {
+                    "observation.state": rng.standard_normal(4).astype(np.float32),
+                    "action": rng.uniform(-1, 1, 4).astype(np.float32),
+                    CAMERA: (image % 256).astype(np.uint8),
+                    "task": f"task {ep}",
+                }
+            )
         ds.save_episode()
     ds.finalize()
     (root / "README.md").write_text(CARD)
@@ -80,8 +90,13 @@ def tiny_dataset(tmp_path_factory):
 @pytest.fixture
 def clean_hub_env(monkeypatch, tmp_path):
     """No token, endpoint or offline switch inherited from the machine running the tests."""
-    for var in ("HF_TOKEN", "HUGGING_FACE_HUB_TOKEN", "HF_ENDPOINT", "HF_HUB_OFFLINE",
-                "HF_OIDC_RESOURCE"):
+    for var in (
+        "HF_TOKEN",
+        "HUGGING_FACE_HUB_TOKEN",
+        "HF_ENDPOINT",
+        "HF_HUB_OFFLINE",
+        "HF_OIDC_RESOURCE",
+    ):
         monkeypatch.delenv(var, raising=False)
     monkeypatch.setattr(constants, "HF_TOKEN_PATH", str(tmp_path / "no-token"))
     monkeypatch.setattr(constants, "HF_HUB_OFFLINE", False)
@@ -89,8 +104,11 @@ def clean_hub_env(monkeypatch, tmp_path):
 
 
 def _local_files(root: Path) -> dict[str, bytes]:
-    return {p.relative_to(root).as_posix(): p.read_bytes()
-            for p in sorted(root.rglob("*")) if p.is_file() and ".cache" not in p.parts}
+    return {
+        p.relative_to(root).as_posix(): p.read_bytes()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and ".cache" not in p.parts
+    }
 
 
 def _remote(hub, rev="main"):
@@ -108,10 +126,17 @@ def test_validate_repo_id():
     for ok in ("org/name", "My_Org/data.set-v1", "a/b", "x" * 96 + "/" + "y" * 96):
         assert validate_repo_id(ok) == ok
     bad = {
-        "name-only": "ORG/NAME", "a/b/c": "ORG/NAME", "org/": "1 to 96",
+        "name-only": "ORG/NAME",
+        "a/b/c": "ORG/NAME",
+        "org/": "1 to 96",
         "org/" + "n" * 97: "1 to 96",
-        "org/na me": "letters, digits", "org/-name": "start and end", "org/name.": "start and end",
-        "org/na--me": "'--'", "org/na..me": "'..'", "org/name.git": ".git", "örg/name": "letters",
+        "org/na me": "letters, digits",
+        "org/-name": "start and end",
+        "org/name.": "start and end",
+        "org/na--me": "'--'",
+        "org/na..me": "'..'",
+        "org/name.git": ".git",
+        "örg/name": "letters",
     }
     for repo_id, words in bad.items():
         with pytest.raises(ValueError, match=words.replace(".", r"\.")) as err:
@@ -120,7 +145,8 @@ def test_validate_repo_id():
 
 
 def test_push_repush_then_lerobot_loads_from_empty_cache(
-        hub_server, tiny_dataset, clean_hub_env, monkeypatch, tmp_path):
+    hub_server, tiny_dataset, clean_hub_env, monkeypatch, tmp_path
+):
     global _CONNECTIONS
     # Simulate a process that imported huggingface_hub before ccdata.hub, with Xet and telemetry
     # on: the push must still talk only to the endpoint.
@@ -190,11 +216,16 @@ def test_push_repush_then_lerobot_loads_from_empty_cache(
                           "revision": ds.revision, "seen": seen}}))
     """)
     env = {k: v for k, v in os.environ.items() if not k.startswith(("HF_", "HUGGING_FACE"))}
-    env.update(HF_ENDPOINT=hub_server.url, HF_HOME=str(tmp_path / "hf-home"),
-               HF_LEROBOT_HOME=str(tmp_path / "lerobot-home"), HF_HUB_DISABLE_TELEMETRY="1",
-               HF_HUB_DISABLE_XET="1")
-    proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
-                          text=True, timeout=120)
+    env.update(
+        HF_ENDPOINT=hub_server.url,
+        HF_HOME=str(tmp_path / "hf-home"),
+        HF_LEROBOT_HOME=str(tmp_path / "lerobot-home"),
+        HF_HUB_DISABLE_TELEMETRY="1",
+        HF_HUB_DISABLE_XET="1",
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert report["episodes"] == 2 and report["revision"] == CODEBASE_TAG
@@ -216,8 +247,9 @@ def test_push_repush_then_lerobot_loads_from_empty_cache(
     assert blue[6] > blue[0] + 0.2
 
 
-def test_download_dataset_to_root_and_cache(hub_server, tiny_dataset, clean_hub_env, monkeypatch,
-                                            tmp_path):
+def test_download_dataset_to_root_and_cache(
+    hub_server, tiny_dataset, clean_hub_env, monkeypatch, tmp_path
+):
     push_dataset(tiny_dataset, REPO_ID, endpoint=hub_server.url, token=hub_server.token("write"))
     got = download_dataset(REPO_ID, endpoint=hub_server.url, root=tmp_path / "copy")
     assert got == tmp_path / "copy"
@@ -236,7 +268,8 @@ def test_download_dataset_to_root_and_cache(hub_server, tiny_dataset, clean_hub_
     hub_server.state.repos[("dataset", REPO_ID)].tags.clear()
     again = download_dataset(REPO_ID, endpoint=hub_server.url, root=tmp_path / "untagged")
     assert (again / "meta" / "info.json").read_bytes() == (
-        tiny_dataset / "meta" / "info.json").read_bytes()
+        tiny_dataset / "meta" / "info.json"
+    ).read_bytes()
 
     with pytest.raises(HubError, match="not found on") as err:
         download_dataset("ccbench-test/missing", endpoint=hub_server.url, root=tmp_path / "m")
@@ -244,13 +277,19 @@ def test_download_dataset_to_root_and_cache(hub_server, tiny_dataset, clean_hub_
 
     # A private dataset is readable with a token only.
     private_id = "ccbench-test/private"
-    push_dataset(tiny_dataset, private_id, endpoint=hub_server.url, private=True,
-                 token=hub_server.token("write"))
+    push_dataset(
+        tiny_dataset,
+        private_id,
+        endpoint=hub_server.url,
+        private=True,
+        token=hub_server.token("write"),
+    )
     assert hub_server.state.repos[("dataset", private_id)].private
     with pytest.raises(HubError, match=r"not found on .* \(or it is private"):
         download_dataset(private_id, endpoint=hub_server.url, root=tmp_path / "p1")
-    got = download_dataset(private_id, endpoint=hub_server.url, root=tmp_path / "p2",
-                           token=hub_server.token("read"))
+    got = download_dataset(
+        private_id, endpoint=hub_server.url, root=tmp_path / "p2", token=hub_server.token("read")
+    )
     assert _local_files(got).items() >= _local_files(tiny_dataset).items()
 
 
@@ -264,8 +303,13 @@ def test_push_errors_are_one_clear_line(hub_server, tiny_dataset, clean_hub_env,
     write, read = hub_server.token("write"), hub_server.token("read")
 
     def push(**kwargs):
-        args = {"root": tiny_dataset, "repo_id": REPO_ID, "endpoint": hub_server.url,
-                "token": write, **kwargs}
+        args = {
+            "root": tiny_dataset,
+            "repo_id": REPO_ID,
+            "endpoint": hub_server.url,
+            "token": write,
+            **kwargs,
+        }
         with pytest.raises(HubError) as err:
             push_dataset(**args)
         message = str(err.value)
@@ -275,8 +319,10 @@ def test_push_errors_are_one_clear_line(hub_server, tiny_dataset, clean_hub_env,
         return message
 
     closed = f"http://127.0.0.1:{_free_port()}"
-    assert push(endpoint=closed) == f"cannot reach the hub endpoint {closed}: " \
-                                    "[Errno 111] Connection refused"
+    assert (
+        push(endpoint=closed) == f"cannot reach the hub endpoint {closed}: "
+        "[Errno 111] Connection refused"
+    )
     with socket.socket() as silent:  # accepts connections, never answers
         silent.bind(("127.0.0.1", 0))
         silent.listen(8)

@@ -84,7 +84,11 @@ def test_a_from_scratch_reference_is_a_row_of_its_task(tmp_path):
     (run / "done.json").write_text(json.dumps(records))
     row = read_run(run)
     assert (row["task"], row["suites"], row["steps_to_50"], row["steps_to_80"]) == (
-        "reach-xyz", ["Reach"], 2000, 2000)
+        "reach-xyz",
+        ["Reach"],
+        2000,
+        2000,
+    )
     assert row["cpu_hours"] is None  # not 0: no cost was recorded
 
 
@@ -92,9 +96,27 @@ def test_cli_on_a_real_smoke_run(tmp_path, capsys, short_episodes):
     from ccfit.cli import main
 
     run = tmp_path / "runs" / "reach"
-    assert main(["train", "--task", "reach-xy", "--preset", "smoke", "--seed_dataset", "null",
-                 "--out", str(run), "--quiet", "--train.steps=100", "--train.seed_steps=50",
-                 "--train.eval_interval=50", "--train.checkpoint_interval=50"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--task",
+                "reach-xy",
+                "--preset",
+                "smoke",
+                "--seed_dataset",
+                "null",
+                "--out",
+                str(run),
+                "--quiet",
+                "--train.steps=100",
+                "--train.seed_steps=50",
+                "--train.eval_interval=50",
+                "--train.checkpoint_interval=50",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     assert main(["learnability", str(tmp_path / "runs"), "--out", str(tmp_path / "out")]) == 0
     printed = capsys.readouterr().out.split()

@@ -107,8 +107,10 @@ def test_load_task_run_reads_a_finished_run_back(tmp_path):
     with pytest.raises(InputError, match="not a run directory"):
         load_task_run(tmp_path / "nothing")
     (out / "config.json").write_text('{"task": "reach-xy",')  # cut short
-    for read in (lambda: load_task_run(out),
-                 lambda: parse_cli(TaskRunConfig, ["--config_path", str(out / "config.json")])):
+    for read in (
+        lambda: load_task_run(out),
+        lambda: parse_cli(TaskRunConfig, ["--config_path", str(out / "config.json")]),
+    ):
         with pytest.raises(ConfigError, match="is not a JSON config"):
             read()
     with pytest.raises(ConfigError, match="config file not found"):
@@ -122,9 +124,18 @@ def test_stop_score_ends_a_single_task_run_early_and_resumed_it_stays_ended(para
 
     out = tmp_path / "run"
     cfg = _run_config(out, steps=600)
-    cfg = resolve(TaskRunConfig, {**cfg.to_dict(), "train": {
-        **cfg.to_dict()["train"], "stop_score": -1e9, "stop_evals": 2,  # every score reaches it
-        "parallel": parallel}})  # evaluations in a worker: the same step ends the task
+    cfg = resolve(
+        TaskRunConfig,
+        {
+            **cfg.to_dict(),
+            "train": {
+                **cfg.to_dict()["train"],
+                "stop_score": -1e9,
+                "stop_evals": 2,  # every score reaches it
+                "parallel": parallel,
+            },
+        },
+    )  # evaluations in a worker: the same step ends the task
     train_single(cfg, progress=False)
     records = (out / "metrics.jsonl").read_text()
     # decided at step 120 on the evaluations at 0 and 60; the task's final evaluation at 120
@@ -160,8 +171,22 @@ def test_wall_clock_checkpoints_do_not_change_the_run(tmp_path):
 
 def test_cli_smoke_run_writes_config_metrics_checkpoint(tmp_path):
     out = tmp_path / "run"
-    cmd = ccfit_command(["train", "--task", "reach-xy", "--obs", "state", "--preset", "smoke",
-                         "--seed_dataset", "null", "--out", str(out), "--quiet"])
+    cmd = ccfit_command(
+        [
+            "train",
+            "--task",
+            "reach-xy",
+            "--obs",
+            "state",
+            "--preset",
+            "smoke",
+            "--seed_dataset",
+            "null",
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     cfg = json.loads((out / "config.json").read_text())
@@ -197,8 +222,10 @@ def test_preset_fills_defaults_and_flags_override_them():
                                     "32"])  # fmt: skip
     assert cfg.model.type == "pwm" and cfg.model.router == "state"
     assert cfg.model.obs_mode == "pixels" and cfg.model.image_size == 32
-    assert cfg.train.steps == 900 and cfg.train.seed_steps == TrainConfig.PRESETS["smoke"][
-        "seed_steps"]
+    assert (
+        cfg.train.steps == 900
+        and cfg.train.seed_steps == TrainConfig.PRESETS["smoke"]["seed_steps"]
+    )
     assert cfg.model.batch_size == 16  # the smoke preset's, not the class default
     back = resolve(TaskRunConfig, json.loads(json.dumps(cfg.to_dict())))
     assert back == cfg
@@ -218,8 +245,10 @@ def test_preset_fills_defaults_and_flags_override_them():
         (["run", "--suite", "Reach", "--method.type=experts"], "pwm"),
         (["run", "--suite", "Nowhere"], "Reach"),
         (["run", "--suite", "Reach", "--method.type=ewc", "--method.lam=-1"], "lam"),
-        (["train", "--task", "reach-xy", "--train.autocast=fp16"],
-         "train.autocast must be one of ('off', 'bf16', 'auto')"),
+        (
+            ["train", "--task", "reach-xy", "--train.autocast=fp16"],
+            "train.autocast must be one of ('off', 'bf16', 'auto')",
+        ),
         (["run", "--suite", "Reach", "--train.stop_score=80"], "single-task runs"),
         (["train", "--task", "reach-xy", "--train.stop_evals=0"], "train.stop_evals"),
         (["fly"], "invalid choice"),
@@ -349,10 +378,25 @@ def test_wandb_offline_logs_the_evaluations_and_resumes_the_same_run(tmp_path):
         from tests.wandb_records import config, history
 
     out = tmp_path / "run"
-    argv = ["train", "--task", "reach-xy", "--preset", "smoke", "--seed_dataset", "null",
-            "--out", str(out), "--quiet", "--train.steps=100", "--train.seed_steps=50",
-            "--train.eval_interval=50", "--train.checkpoint_interval=50",
-            "--log.wandb=true", "--log.wandb_mode=offline", "--log.tensorboard=false"]
+    argv = [
+        "train",
+        "--task",
+        "reach-xy",
+        "--preset",
+        "smoke",
+        "--seed_dataset",
+        "null",
+        "--out",
+        str(out),
+        "--quiet",
+        "--train.steps=100",
+        "--train.seed_steps=50",
+        "--train.eval_interval=50",
+        "--train.checkpoint_interval=50",
+        "--log.wandb=true",
+        "--log.wandb_mode=offline",
+        "--log.tensorboard=false",
+    ]
     env = {**__import__("os").environ, "WANDB_SILENT": "true"}
     proc = subprocess.run(ccfit_command(argv), capture_output=True, text=True, timeout=300,
                           env=env)  # fmt: skip
@@ -365,7 +409,8 @@ def test_wandb_offline_logs_the_evaluations_and_resumes_the_same_run(tmp_path):
     rows = [r for r in history(log) if "eval/reach-xy/discounted_return" in r]
     assert [r["_step"] for r in rows] == [r["global_step"] for r in records] == [0, 50, 100]
     assert [r["eval/reach-xy/discounted_return"] for r in rows] == pytest.approx(
-        [r["discounted_return"] for r in records])
+        [r["discounted_return"] for r in records]
+    )
     logged = config(log)
     assert logged["task"] == "reach-xy" and logged["train"]["steps"] == 100
     # Again, with W&B on or off: the same run (nothing left to train), no config error.
@@ -413,8 +458,22 @@ def test_a_replay_that_fits_nowhere_is_refused_before_the_run(tmp_path, capsys):
     from ccfit.train.resources import ReplayPlan, available_host_memory, check_disk
 
     out = tmp_path / "x"
-    code = main(["train", "--task", "reach-xy", "--preset", "paper", "--obs", "pixels",
-                 "--seed_dataset", "null", "--train.device=cpu", "--out", str(out)])
+    code = main(
+        [
+            "train",
+            "--task",
+            "reach-xy",
+            "--preset",
+            "paper",
+            "--obs",
+            "pixels",
+            "--seed_dataset",
+            "null",
+            "--train.device=cpu",
+            "--out",
+            str(out),
+        ]
+    )
     err = capsys.readouterr().err
     if 36.9e9 < 0.8 * available_host_memory():
         pytest.skip("this machine holds a paper-scale pixel replay")

@@ -137,8 +137,7 @@ def test_average_curves_same_and_different_grids():
 def test_lopez_paz_and_continual_world_forgetting():
     # b = 10, 20, 30. R[j, i] = R_i(b_j):
     # task 0: 80 at 10, 70 at 20, 50 at 30; task 1: 60 at 20, 66 at 30; task 2: 90 at 30.
-    curves = [([0, 10, 20, 30], [0, 80, 70, 50]), ([10, 20, 30], [0, 60, 66]),
-              ([20, 30], [0, 90])]
+    curves = [([0, 10, 20, 30], [0, 80, 70, 50]), ([10, 20, 30], [0, 60, 66]), ([20, 30], [0, 90])]
     r = M.performance_matrix(curves, [10, 20, 30])
     assert r[0, 0] == 80 and r[2, 0] == 50 and r[1, 1] == 60 and r[2, 1] == 66
     assert math.isnan(r[0, 2])  # task 2 had no curve at b_0

@@ -371,7 +371,6 @@ def test_cli_fits_pixels_and_the_report_keeps_the_track_apart(runs, dataset, tmp
     assert {r.backbone for r in found.values()} == {"dreamerv3-offline"}
 
 
-
 # ============================================================================ sweep
 
 

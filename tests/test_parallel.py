@@ -62,9 +62,23 @@ def test_parallel_run_equals_the_serial_one(serial, tmp_path):
 
 def test_killed_parallel_run_resumes_to_the_serial_result(serial, tmp_path):
     out = tmp_path / "run"
-    argv = ["run", "--suite", "Grasp", "--preset", "smoke", "--seed_dataset", "null",
-            "--method.type=packnet", "--method.retrain_steps=10", "--out", str(out),
-            "--scratch-root", str(tmp_path / "scratch"), "--quiet", "--train.parallel=on"]
+    argv = [
+        "run",
+        "--suite",
+        "Grasp",
+        "--preset",
+        "smoke",
+        "--seed_dataset",
+        "null",
+        "--method.type=packnet",
+        "--method.retrain_steps=10",
+        "--out",
+        str(out),
+        "--scratch-root",
+        str(tmp_path / "scratch"),
+        "--quiet",
+        "--train.parallel=on",
+    ]
     argv += [f"--train.{k}={v}" for k, v in TRAIN.items()]
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     ckpt = out / "tasks" / "1-place-cube" / "checkpoint.pt"

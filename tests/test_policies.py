@@ -101,8 +101,10 @@ def test_noisy_oracle_defaults_to_the_tasks_calibration():
         calibrated = ccdata.get_task(task_id).exploration
         policy = ccdata.make_policy("noisy-oracle", task_id, seed=0)
         assert policy.params() == calibrated.to_dict()
-    assert ccdata.make_policy("noisy-oracle", "reach-xy", noise_std=0.05).params()[
-        "random_prob"] == ccdata.get_task("reach-xy").exploration.random_prob
+    assert (
+        ccdata.make_policy("noisy-oracle", "reach-xy", noise_std=0.05).params()["random_prob"]
+        == ccdata.get_task("reach-xy").exploration.random_prob
+    )
 
 
 def test_calibration_search_reaches_the_target_and_is_reproducible():
@@ -111,8 +113,10 @@ def test_calibration_search_reaches_the_target_and_is_reproducible():
     noise, rate, history = calibrate("reach-xz", target=0.5, episodes=10, tolerance=0.15)
     assert abs(rate - 0.5) <= 0.15
     assert history[0]["level"] == 1.0 and history[-1]["success_rate"] == rate
-    assert (noise.noise_std, noise.random_prob) == (history[-1]["noise_std"],
-                                                     history[-1]["random_prob"])
+    assert (noise.noise_std, noise.random_prob) == (
+        history[-1]["noise_std"],
+        history[-1]["random_prob"],
+    )
     # More noise, fewer successes; the same seeds give the same rate.
     seeds = calibration_seeds(10)
     assert success_rate("reach-xz", noise, seeds) == rate
@@ -130,8 +134,10 @@ def test_calibrate_refine_starts_at_the_tasks_calibration_in_smaller_steps(capsy
           "0", "--episodes", "8", "--iterations", "2"])  # fmt: skip
     steps = [json.loads(x) for x in capsys.readouterr().err.splitlines() if x.startswith("{")]
     assert len(steps) == 2
-    assert (steps[0]["noise_std"], steps[0]["random_prob"]) == (stored.noise_std,
-                                                                stored.random_prob)
+    assert (steps[0]["noise_std"], steps[0]["random_prob"]) == (
+        stored.noise_std,
+        stored.random_prob,
+    )
     ratio = steps[1]["level"] / steps[0]["level"]
     assert ratio == pytest.approx(1.5, rel=1e-3) or ratio == pytest.approx(1 / 1.5, rel=1e-3)
     # More noise when the stored one succeeded too often, less when too rarely.
@@ -143,5 +149,12 @@ def test_a_task_must_declare_its_exploration_noise():
 
     reach = ccdata.get_task("reach-xy")
     with pytest.raises(ValueError, match="declare its calibrated exploration"):
-        TaskSpec(id="x", title="x", instruction="x", success="x", scene=reach.scene,
-                 oracle=reach.oracle, components={"action": ("reach",)})
+        TaskSpec(
+            id="x",
+            title="x",
+            instruction="x",
+            success="x",
+            scene=reach.scene,
+            oracle=reach.oracle,
+            components={"action": ("reach",)},
+        )

@@ -47,8 +47,13 @@ def model_of(name: str, obs_mode: str, frozen: bool):
     return model
 
 
-CASES = [("dreamerv3", "state", False), ("dreamerv3", "pixels", False),
-         ("dreamerv3", "pixels", True), ("tdmpc2", "pixels", True), ("pwm", "pixels", True)]
+CASES = [
+    ("dreamerv3", "state", False),
+    ("dreamerv3", "pixels", False),
+    ("dreamerv3", "pixels", True),
+    ("tdmpc2", "pixels", True),
+    ("pwm", "pixels", True),
+]
 
 
 @pytest.mark.parametrize("name, obs_mode, frozen", CASES)

@@ -15,7 +15,6 @@ SIZE = 32
 STEPS = 40
 
 
-
 @pytest.fixture(scope="module")
 def reach_root(tmp_path_factory):
     """A real Reach suite dataset: one 8-step oracle episode per task (4 episodes), 32 px."""
@@ -31,8 +30,16 @@ def reach_root(tmp_path_factory):
 
 
 def make_config(root, **overrides):
-    base = dict(suites="Reach", dataset_roots={"Reach": str(root)}, image_size=SIZE,
-                steps=STEPS, checkpoint_interval=10, log_interval=5, holdout=0.25, device="cpu")
+    base = dict(
+        suites="Reach",
+        dataset_roots={"Reach": str(root)},
+        image_size=SIZE,
+        steps=STEPS,
+        checkpoint_interval=10,
+        log_interval=5,
+        holdout=0.25,
+        device="cpu",
+    )
     return PretrainConfig.preset("smoke", **{**base, **overrides})
 
 
@@ -234,8 +241,9 @@ def test_bad_input_is_one_line_and_exit_2(args, message, tmp_path, monkeypatch, 
     assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
-def test_bad_datasets_and_outputs_are_one_line_and_exit_2(reach_root, tmp_path, monkeypatch,
-                                                          capsys):
+def test_bad_datasets_and_outputs_are_one_line_and_exit_2(
+    reach_root, tmp_path, monkeypatch, capsys
+):
     """A dataset of another image size or with a corrupt meta/ccdata.json in LeRobot's cache,
     and an --out whose sidecar is corrupt."""
     from ccfit.cli import main
@@ -254,11 +262,13 @@ def test_bad_datasets_and_outputs_are_one_line_and_exit_2(reach_root, tmp_path, 
 
     reach = str(home / "ccdata" / "Reach")
     assert f"dataset {reach} (Reach) has 32 px images but the encoder is for 64 px" in error(
-        "--suites", "Reach")
+        "--suites", "Reach"
+    )
     (home / "ccdata" / "Grasp" / "meta").mkdir(parents=True)
     (home / "ccdata" / "Grasp" / "meta" / "ccdata.json").write_text("{")
     assert f"cannot read dataset {home / 'ccdata/Grasp'} (Grasp)" in error(
-        "--suites", "Grasp", "--image-size", str(SIZE))
+        "--suites", "Grasp", "--image-size", str(SIZE)
+    )
     (tmp_path / "enc.safetensors").write_bytes(b"")
     (tmp_path / "enc.json").write_text("{")
     assert f"cannot read encoder sidecar {tmp_path / 'enc.json'}" in error("--suites", "Reach")
@@ -274,16 +284,24 @@ def test_shared_task_counted_once(reach_root, tmp_path):
     meta = json.loads(meta_path.read_text())
     meta_path.write_text(json.dumps({**meta, "suite": "Grasp"}))
     with pytest.raises(ValueError, match="holds suite 'Grasp', not 'BinPnP'"):
-        load_oracle_frames(make_config(reach_root, suites="BinPnP",
-                                       dataset_roots={"BinPnP": str(later)}))
-    config = make_config(reach_root, suites="Reach,Grasp",
-                         dataset_roots={"Reach": str(reach_root), "Grasp": str(later)})
+        load_oracle_frames(
+            make_config(reach_root, suites="BinPnP", dataset_roots={"BinPnP": str(later)})
+        )
+    config = make_config(
+        reach_root,
+        suites="Reach,Grasp",
+        dataset_roots={"Reach": str(reach_root), "Grasp": str(later)},
+    )
     store, manifest = load_oracle_frames(config)
     assert len(store.episodes) == 4 and {e["suite"] for e in store.episodes} == {"Reach"}
     assert [m["suite"] for m in manifest] == ["Reach", "Grasp"]
     assert manifest[1]["oracle_episodes"] == {}
     assert set(manifest[1]["shared_tasks_read_elsewhere"]) == {
-        "reach-xy", "reach-xz", "reach-yz", "reach-xyz"}
+        "reach-xy",
+        "reach-xz",
+        "reach-yz",
+        "reach-xyz",
+    }
 
 
 @pytest.mark.slow
@@ -339,7 +357,11 @@ def test_config_and_parser():
     assert config.suites == tuple(__import__("ccdata").SUITES) and config.model_preset == "cpu"
     enc, ref = config.encoder_config(), TDMPC2Config.preset("cpu", obs_mode="pixels")
     assert (enc.latent_dim, enc.enc_dim, enc.num_channels, enc.num_enc_layers) == (
-        ref.latent_dim, ref.enc_dim, ref.num_channels, ref.num_enc_layers)
+        ref.latent_dim,
+        ref.enc_dim,
+        ref.num_channels,
+        ref.num_enc_layers,
+    )
     with pytest.raises(ValueError, match="valid: Reach"):
         config_from_args(parser.parse_args(["pretrain-encoder", "--suites", "Nope"]))
     with pytest.raises(ValueError, match="valid: smoke, cpu, paper"):
@@ -392,5 +414,13 @@ def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeyp
     for name, value in frozen.state_dict().items():
         assert torch.equal(state["model"][f"backbone.encoder.{name}"], value), name
     with pytest.raises(ValueError, match="reads 32 px images but the run renders 48 px"):
-        resolve(CurriculumConfig, {"suite": "Reach", "obs": "pixels", "image_size": 48,
-                                   "preset": "smoke", "encoder": f"frozen:{path}"})
+        resolve(
+            CurriculumConfig,
+            {
+                "suite": "Reach",
+                "obs": "pixels",
+                "image_size": 48,
+                "preset": "smoke",
+                "encoder": f"frozen:{path}",
+            },
+        )

@@ -26,7 +26,6 @@ B = 8
 K = 3
 
 
-
 def new_method(name: str, num_tasks: int, **options):
     return make_method(method_config(name, **options), num_tasks)
 

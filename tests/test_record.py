@@ -96,7 +96,8 @@ def test_plan_is_deterministic_complete_and_distinct():
     assert [s.policy for s in specs[:7]] == ["oracle"] * 3 + ["noisy-oracle"] * 2 + ["random"] * 2
     # a different base seed gives different episodes; growing the counts keeps the old ones
     assert {s.seed for s in plan(GenerateConfig("Reach", seed=1, episodes=3))}.isdisjoint(
-        s.seed for s in specs)
+        s.seed for s in specs
+    )
     assert {s.key for s in specs} <= {s.key for s in plan(GenerateConfig("Reach", episodes=5))}
 
 
@@ -135,8 +136,9 @@ def test_dataset_features_metadata_and_loading(tiny):
     assert item["observation.state"].shape == (7,)
     assert item["observation.environment_state"].shape == (39,)
     assert item["action"].shape == (4,)
-    assert item["task"] == ccdata.get_task(meta["tasks"][int(item["task_id_index"])]["id"]
-                                           ).instruction
+    assert (
+        item["task"] == ccdata.get_task(meta["tasks"][int(item["task_id_index"])]["id"]).instruction
+    )
 
     cols = data_table(root)
     assert cols["action"].dtype == np.float32 and cols["next.done"].dtype == bool
@@ -155,10 +157,12 @@ def test_fidelity_and_replay_reproduce_live_steps(tiny):
     meta = json.loads((root / "meta/ccdata.json").read_text())
     worst = {c: 99.0 for c in ccdata.CAMERAS}
     for policy in ("oracle", "random"):
-        ep = next(e for e in np.unique(cols["episode_index"])
-                  if cols["policy_index"][cols["episode_index"] == e][0]
-                  == POLICY_ORDER.index(policy) and cols["task_id_index"][
-                      cols["episode_index"] == e][0] == 3)
+        ep = next(
+            e
+            for e in np.unique(cols["episode_index"])
+            if cols["policy_index"][cols["episode_index"] == e][0] == POLICY_ORDER.index(policy)
+            and cols["task_id_index"][cols["episode_index"] == e][0] == 3
+        )
         rows = np.flatnonzero(cols["episode_index"] == ep)
         task_id = meta["tasks"][3]["id"]
         env = ccdata.make_env(task_id, image_size=32)
@@ -248,8 +252,15 @@ def test_a_killed_rollout_process_fails_the_generation_without_a_hang(tmp_path):
 
     from ccdata.writer import GenerationError
 
-    cfg = GenerateConfig("Reach", episodes=2, explore_episodes=0, image_size=32, max_steps=60,
-                         workers=2, root=tmp_path / "Reach")
+    cfg = GenerateConfig(
+        "Reach",
+        episodes=2,
+        explore_episodes=0,
+        image_size=32,
+        max_steps=60,
+        workers=2,
+        root=tmp_path / "Reach",
+    )
 
     def kill_a_rollout() -> None:
         deadline = time.monotonic() + 60
@@ -288,16 +299,18 @@ def test_the_generating_process_imports_neither_torch_nor_lerobot(tmp_path):
         print(summary["episodes"], "torch" in sys.modules,
               any(m.split(".")[0] == "lerobot" for m in sys.modules))
     """)
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                          timeout=300)
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=300
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.split()[-3:] == ["4", "False", "False"]
     assert verify_dataset(tmp_path / "Reach") == []
 
 
 def test_keyboard_interrupt_leaves_valid_dataset_and_resume_completes(tmp_path):
-    cfg = GenerateConfig("Reach", episodes=1, explore_episodes=0, image_size=32, max_steps=8,
-                         root=tmp_path / "Reach")
+    cfg = GenerateConfig(
+        "Reach", episodes=1, explore_episodes=0, image_size=32, max_steps=8, root=tmp_path / "Reach"
+    )
     done = []
 
     def stop_after_two(record):
@@ -310,7 +323,7 @@ def test_keyboard_interrupt_leaves_valid_dataset_and_resume_completes(tmp_path):
     assert verify_dataset(cfg.dataset_root) == []
     # The two reported episodes, and any the writer was finishing meanwhile, in plan order.
     kept = existing_keys(cfg.dataset_root)
-    assert 2 <= len(kept) < 4 and kept == [s.key for s in plan(cfg)[:len(kept)]]
+    assert 2 <= len(kept) < 4 and kept == [s.key for s in plan(cfg)[: len(kept)]]
 
     _, summary = generate(cfg, progress=False)
     assert summary["new_episodes"] == 4 - len(kept)
@@ -330,19 +343,24 @@ def test_sigkill_loses_only_episodes_not_yet_written(tmp_path):
     """)
     log = tmp_path / "generate.log"
     with open(log, "wb") as out:
-        proc = subprocess.Popen([sys.executable, "-c", script], env={**os.environ},
-                                stdout=out, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(
+            [sys.executable, "-c", script], env={**os.environ}, stdout=out, stderr=subprocess.STDOUT
+        )
     pieces = tmp_path / ".Reach.ccdata-work" / "pieces"
     deadline = time.time() + 240  # spawned writer and merger import torch, LeRobot: slow
     try:
         while time.time() < deadline:
-            if pieces.exists() and len([p for p in pieces.iterdir()
-                                        if not p.name.startswith(".")]) >= 2:
+            if (
+                pieces.exists()
+                and len([p for p in pieces.iterdir() if not p.name.startswith(".")]) >= 2
+            ):
                 break
             time.sleep(0.05)
         else:
-            pytest.fail(f"the generating subprocess made no progress (exit {proc.poll()}): "
-                        f"{log.read_text()[-2000:]}")
+            pytest.fail(
+                f"the generating subprocess made no progress (exit {proc.poll()}): "
+                f"{log.read_text()[-2000:]}"
+            )
         children = descendants(proc.pid)
     finally:
         proc.send_signal(signal.SIGKILL)
@@ -408,7 +426,7 @@ def test_merger_batches_complete_chunks_only(tiny, tmp_path):
     specs = plan(cfg)
     paths = journal.prepare(cfg)
     record.write_shard(cfg, specs[:6], paths.pieces)  # chunk 2 of 4 incomplete
-    chunks = [[s.key for s in specs[i:i + 4]] for i in (0, 4)]
+    chunks = [[s.key for s in specs[i : i + 4]] for i in (0, 4)]
     stop = threading.Event()
 
     def stop_once_the_first_chunk_is_batched() -> None:  # the second chunk never completes
@@ -450,8 +468,12 @@ def test_batched_generation_is_byte_identical_across_workers(tmp_path, monkeypat
     # Same numbers to the last bit (LeRobot writes the stats' keys in no fixed order).
     stats = [json.loads((r / "meta/stats.json").read_text()) for r in roots]
     assert stats[0] == stats[1]
-    files = sorted(p for sub in ("data", "videos", "meta/episodes")
-                   for p in (roots[0] / sub).rglob("*") if p.is_file())
+    files = sorted(
+        p
+        for sub in ("data", "videos", "meta/episodes")
+        for p in (roots[0] / sub).rglob("*")
+        if p.is_file()
+    )
     assert files
     for path in files:
         rel = path.relative_to(roots[0])
@@ -468,15 +490,17 @@ def _assert_same_stats(a, b, where) -> None:
     for key in a:
         if isinstance(a[key], dict):
             _assert_same_stats(a[key], b[key], f"{where}:{key}")
-        elif "observation.images." not in f"{where}:{key}" or key.endswith(("min", "max",
-                                                                             "count")):
+        elif "observation.images." not in f"{where}:{key}" or key.endswith(("min", "max", "count")):
             assert a[key] == b[key], (where, key)
         else:
             quantile = "/q" in key or key.startswith("q")
-            np.testing.assert_allclose(np.asarray(a[key], dtype=float),
-                                       np.asarray(b[key], dtype=float), err_msg=key,
-                                       atol=2 / 5000 if quantile else 0, rtol=0 if quantile
-                                       else 1e-3)  # std = sqrt(E[x^2] - E[x]^2) in float32
+            np.testing.assert_allclose(
+                np.asarray(a[key], dtype=float),
+                np.asarray(b[key], dtype=float),
+                err_msg=key,
+                atol=2 / 5000 if quantile else 0,
+                rtol=0 if quantile else 1e-3,
+            )  # std = sqrt(E[x^2] - E[x]^2) in float32
 
 
 def test_faster_lerobot_writes_and_merges_the_same_bytes(tmp_path):
@@ -503,14 +527,24 @@ def test_faster_lerobot_writes_and_merges_the_same_bytes(tmp_path):
             for spec, episode in zip(specs, episodes, strict=True):
                 write_piece(cfg, spec, episode, pieces, instruction)
             roots[name] = tmp_path / name / "merged"
-            aggregate_datasets([cfg.repo_id] * 2, cfg.repo_id, aggr_root=roots[name],
-                               roots=[pieces / s.key for s in specs])
+            aggregate_datasets(
+                [cfg.repo_id] * 2,
+                cfg.repo_id,
+                aggr_root=roots[name],
+                roots=[pieces / s.key for s in specs],
+            )
     for sub in ("pieces", "merged"):
         a_root, b_root = tmp_path / "lerobot" / sub, tmp_path / "faster" / sub
-        files = sorted(p.relative_to(a_root) for p in a_root.rglob("*") if p.is_file()
-                       and p.name != "piece.json")  # piece.json holds timings
-        assert files == sorted(p.relative_to(b_root) for p in b_root.rglob("*") if p.is_file()
-                               and p.name != "piece.json")
+        files = sorted(
+            p.relative_to(a_root)
+            for p in a_root.rglob("*")
+            if p.is_file() and p.name != "piece.json"
+        )  # piece.json holds timings
+        assert files == sorted(
+            p.relative_to(b_root)
+            for p in b_root.rglob("*")
+            if p.is_file() and p.name != "piece.json"
+        )
         for rel in files:
             a, b = (a_root / rel).read_bytes(), (b_root / rel).read_bytes()
             if rel.name == "stats.json":  # LeRobot writes the stats' keys in no fixed order
@@ -548,8 +582,11 @@ def test_generating_into_a_damaged_dataset_is_one_line(damage, tiny, tmp_path, c
 
     root = tmp_path / "Reach"
     shutil.copytree(tiny[0], root)
-    path = root / "meta" / "info.json" if damage == "info.json" else next(
-        (root / "data").rglob("*.parquet"))
+    path = (
+        root / "meta" / "info.json"
+        if damage == "info.json"
+        else next((root / "data").rglob("*.parquet"))
+    )
     path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
     with pytest.raises(InputError, match=f"{path.name} is (missing or )?corrupt"):
         generate(GenerateConfig(**TINY, root=root), progress=False)

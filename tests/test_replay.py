@@ -45,9 +45,14 @@ def filled(lengths, capacity=1000, seed=0, successes=()) -> tuple[ReplayBuffer, 
 
 def columns(batch: Batch, pick: slice) -> Batch:
     """The windows `pick` of `batch`."""
-    return Batch(obs={k: v[:, pick] for k, v in batch.obs.items()}, action=batch.action[:, pick],
-                 reward=batch.reward[:, pick], terminated=batch.terminated[:, pick],
-                 is_first=batch.is_first[:, pick], task=batch.task[:, pick])
+    return Batch(
+        obs={k: v[:, pick] for k, v in batch.obs.items()},
+        action=batch.action[:, pick],
+        reward=batch.reward[:, pick],
+        terminated=batch.terminated[:, pick],
+        is_first=batch.is_first[:, pick],
+        task=batch.task[:, pick],
+    )
 
 
 def check_windows(batch, src: Source, oldest: int = 0) -> None:
@@ -123,9 +128,7 @@ def test_every_transition_is_equally_likely_terminal_ones_included():
     real[torch.as_tensor(ends)] = False
     assert torch.all(counts[~real] == 0)
     last_start = size - seq_len
-    expected = torch.tensor(
-        [min(r, last_start) - max(0, r - seq_len + 2) + 1 for r in range(size)]
-    )
+    expected = torch.tensor([min(r, last_start) - max(0, r - seq_len + 2) + 1 for r in range(size)])
     assert torch.equal(counts[real], expected[real])
     assert torch.all(expected[seq_len : size - seq_len] == seq_len - 1)
     terminal = torch.as_tensor(ends - 1)[sorted(successes)]
@@ -155,6 +158,7 @@ def test_demonstrations_are_oversampled_by_demo_fraction(tmp_path):
     them, and run through the demonstrations only; the rest stay uniform over replay;
     demo_fraction 0 draws exactly what it drew before demonstrations were marked. The
     demonstrations are kept whole when the ring overwrites them, and through a checkpoint."""
+
     def build(seed=5):
         buf, src = ReplayBuffer(26, seed=seed), Source()
         for i, steps in enumerate([6, 4, 7, 5, 8]):
@@ -162,8 +166,11 @@ def test_demonstrations_are_oversampled_by_demo_fraction(tmp_path):
         return buf, src
 
     buf, src = build()
-    demo_rows = [r for e in (1, 3) for r in range(sum(src.lengths[:e]) + e,
-                                                  sum(src.lengths[:e + 1]) + e + 1)]
+    demo_rows = [
+        r
+        for e in (1, 3)
+        for r in range(sum(src.lengths[:e]) + e, sum(src.lengths[: e + 1]) + e + 1)
+    ]
     assert len(demo_rows) == 5 + 6
     # A ring of 26 rows holding 35: episode 0 is gone and demo 1 lost its first 2 rows there.
     assert buf.oldest == 9 and demo_rows[0] == 7
@@ -174,9 +181,10 @@ def test_demonstrations_are_oversampled_by_demo_fraction(tmp_path):
         ids = batch.obs["id"][..., 2].long()
         for j in range(4):  # consecutive demonstration rows, is_first where one starts
             at = demo_rows.index(int(ids[0, j]))
-            assert ids[:, j].tolist() == demo_rows[at:at + 3]
-            assert batch.is_first[:, j, 0].tolist() == [float(batch.obs["id"][t, j, 1] == 0)
-                                                          for t in range(3)]
+            assert ids[:, j].tolist() == demo_rows[at : at + 3]
+            assert batch.is_first[:, j, 0].tolist() == [
+                float(batch.obs["id"][t, j, 1] == 0) for t in range(3)
+            ]
         firsts[0] += ids[0, :4].tolist()
         firsts[1] += ids[0, 4:].tolist()
     assert set(firsts[0]) == set(demo_rows[:-2])  # the overwritten rows 7, 8 included

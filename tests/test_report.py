@@ -24,8 +24,9 @@ def curve_records(task_scores: list[list[float]]) -> list[dict]:
     records = []
     for t, scores in enumerate(task_scores):
         for i, score in enumerate(scores):
-            records.append({"task_index": t, "global_step": t * STEPS + 50 * i,
-                            "normalized_return": score})
+            records.append(
+                {"task_index": t, "global_step": t * STEPS + 50 * i, "normalized_return": score}
+            )
     return records
 
 
@@ -36,13 +37,16 @@ def write_run(root: Path, name: str, config: dict, scale: float) -> Path:
     scores = []
     for t in range(TASKS):
         points = (TASKS - t) * 2 + 1
-        scores.append([min(80.0, 40.0 * i) * scale - (10.0 * t if i > 2 else 0.0)
-                       for i in range(points)])
+        scores.append(
+            [min(80.0, 40.0 * i) * scale - (10.0 * t if i > 2 else 0.0) for i in range(points)]
+        )
     records = curve_records(scores)
     scratch_dir = root / "scratch" / f"{name}-scratch"
     scratch_dir.mkdir(parents=True)
-    scratch = [{"task_index": TASKS - 1, "global_step": 50 * i, "normalized_return": 30.0 * i}
-               for i in range(3)]
+    scratch = [
+        {"task_index": TASKS - 1, "global_step": 50 * i, "normalized_return": 30.0 * i}
+        for i in range(3)
+    ]
     (scratch_dir / "done.json").write_text(json.dumps(scratch))
     metrics = compute_metrics(records, scratch, TASKS, STEPS)
     metrics["scratch_dir"] = str(scratch_dir)
@@ -53,10 +57,19 @@ def write_run(root: Path, name: str, config: dict, scale: float) -> Path:
 
 
 def config(obs: str = "state", seed: int = 0, **top) -> dict:
-    return {"suite": SUITE, "model": "tdmpc2", "method": "ft", "method_options": {},
-            "preset": "smoke", "obs": obs, "seed": seed, "encoder": None, **top,
-            "train": {"steps": STEPS, "seed": seed, "obs": obs, "buffer_capacity": 1000},
-            "model_config": {"latent_dim": 64, "obs_mode": obs}}
+    return {
+        "suite": SUITE,
+        "model": "tdmpc2",
+        "method": "ft",
+        "method_options": {},
+        "preset": "smoke",
+        "obs": obs,
+        "seed": seed,
+        "encoder": None,
+        **top,
+        "train": {"steps": STEPS, "seed": seed, "obs": obs, "buffer_capacity": 1000},
+        "model_config": {"latent_dim": 64, "obs_mode": obs},
+    }
 
 
 def test_flatten_makes_dotted_hashable_keys():
@@ -71,8 +84,11 @@ def test_report_refuses_to_average_runs_differing_in_obs_mode(tmp_path):
     pixels = write_run(root, "pixels-s0", config("pixels", 0), 0.25)
 
     runs = find_runs([root])
-    with pytest.raises(ValueError, match=r"refusing to average runs whose configs differ in "
-                                         r"\['model_config.obs_mode', 'obs', 'train.obs'\]"):
+    with pytest.raises(
+        ValueError,
+        match=r"refusing to average runs whose configs differ in "
+        r"\['model_config.obs_mode', 'obs', 'train.obs'\]",
+    ):
         group_metrics(runs)
     groups = group_runs(runs)
     # Seeds of the same config average; the other observation mode is a group of its own,
@@ -85,8 +101,7 @@ def test_report_refuses_to_average_runs_differing_in_obs_mode(tmp_path):
     pix = metrics[("tdmpc2", SUITE, "ft", "obs=pixels")]
     assert pix["seeds"] == [0] and pix["runs"] == [str(pixels)]
     single = json.loads((pixels / "metrics.json").read_text())
-    assert pix["bwt"] == pytest.approx(single["bwt"]) and pix["fwt"] == pytest.approx(
-        single["fwt"])
+    assert pix["bwt"] == pytest.approx(single["bwt"]) and pix["fwt"] == pytest.approx(single["fwt"])
     st = metrics[("tdmpc2", SUITE, "ft", "obs=state")]
     assert st["seeds"] == [0, 1] and sorted(st["runs"]) == sorted(map(str, (state0, state1)))
     per_seed = [json.loads((r / "metrics.json").read_text())["bwt"] for r in (state0, state1)]
@@ -100,22 +115,27 @@ def test_report_refuses_to_average_runs_differing_in_obs_mode(tmp_path):
                   for r in (state0, state1, mean_run)]  # fmt: skip
     assert forgetting == pytest.approx([10.0] * 3)  # every curve loses 10 points, any scale
     assert (st["forgetting"], st["forgetting_min"], st["forgetting_max"]) == pytest.approx(
-        (10.0, 10.0, 10.0))
+        (10.0, 10.0, 10.0)
+    )
 
     out = tmp_path / "report"
     written = {p.name for p in write_report([root], out)}
     md = (out / "table_tdmpc2.md").read_text()
     assert "Runs differ in `obs`" in md
     rows = [line for line in md.splitlines() if line.startswith(f"| {SUITE}")]
-    assert [r.split("|")[1].strip() for r in rows] == [f"{SUITE} [obs=pixels]",
-                                                       f"{SUITE} [obs=state]"]
+    assert [r.split("|")[1].strip() for r in rows] == [
+        f"{SUITE} [obs=pixels]",
+        f"{SUITE} [obs=state]",
+    ]
     with (out / "table_tdmpc2.csv").open() as f:
         table = {r["variant"]: r for r in csv.DictReader(f)}
     assert set(table) == {"obs=pixels", "obs=state"}
     assert table["obs=state"]["seeds"] == "2" and table["obs=pixels"]["seeds"] == "1"
     assert float(table["obs=pixels"]["bwt"]) == pytest.approx(single["bwt"])
-    assert {"curves_tdmpc2_Reach_ft_obs=pixels.png", "curves_tdmpc2_Reach_ft_obs=state.png"
-            } <= written
+    assert {
+        "curves_tdmpc2_Reach_ft_obs=pixels.png",
+        "curves_tdmpc2_Reach_ft_obs=state.png",
+    } <= written
     summary = json.loads((out / "summary.json").read_text())
     assert sorted(summary) == [f"tdmpc2/{SUITE}/ft [obs=pixels]", f"tdmpc2/{SUITE}/ft [obs=state]"]
 
@@ -168,11 +188,15 @@ def test_curve_plot_keeps_green_and_red_for_forward_transfer(tmp_path, monkeypat
     figures = []
     monkeypatch.setattr(plt, "close", lambda fig=None: figures.append(fig))
     write_report([root], tmp_path / "report")
-    (ax,) = [f for f in figures if f is not None and f.axes[0].get_xlabel() == "global step"
-             ][0].axes  # the curve plot (the bar plots have no step axis)
+    (ax,) = [f for f in figures if f is not None and f.axes[0].get_xlabel() == "global step"][
+        0
+    ].axes  # the curve plot (the bar plots have no step axis)
     fwt = {to_hex("tab:green"), to_hex("tab:red")}
-    tasks = [line for line in ax.lines  # '_' labels: the task boundaries
-             if not line.get_label().startswith("_") and "(scratch)" not in line.get_label()]
+    tasks = [
+        line
+        for line in ax.lines  # '_' labels: the task boundaries
+        if not line.get_label().startswith("_") and "(scratch)" not in line.get_label()
+    ]
     assert len(tasks) == TASKS
     task_colours = {to_hex(line.get_color()) for line in tasks}
     assert len(task_colours) == TASKS and not task_colours & fwt

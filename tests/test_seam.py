@@ -143,8 +143,9 @@ class Anchor(ContinualMethod):
 
     def penalty(self, backbone, losses) -> torch.Tensor:
         CALLS["penalty"] += 1
-        return self.cfg.strength * sum(((p - self.start[k]) ** 2).sum()
-                                       for k, p in backbone.named_parameters())
+        return self.cfg.strength * sum(
+            ((p - self.start[k]) ** 2).sum() for k, p in backbone.named_parameters()
+        )
 
     def after_task(self, task_index, backbone, task_data) -> None:
         CALLS["after_task"] += 1
@@ -188,14 +189,26 @@ def test_loop_calls_the_model_as_its_contract_says(tmp_path, monkeypatch):
     monkeypatch.setattr(ccfit.train.evaluate, "play_episodes", play_and_count)
 
     train = {**SMOKE_TRAIN, "eval_episodes": 3}
-    cfg = resolve(TaskRunConfig, {"task": "reach-xy", "preset": "smoke", "seed_dataset": None,
-                                  "model": {"type": "toy"}, "train": train})
+    cfg = resolve(
+        TaskRunConfig,
+        {
+            "task": "reach-xy",
+            "preset": "smoke",
+            "seed_dataset": None,
+            "model": {"type": "toy"},
+            "train": train,
+        },
+    )
     model = build_model(cfg, torch.device("cpu"))
     heads = model.new_heads()
     env = make_env("reach-xy", render=False)
     buffer = make_replay(cfg, model, "reach-xy", 0, None)
-    buffer.add_episode({"state": np.zeros((6, 39), np.float32)}, np.zeros((5, 4), np.float32),
-                       np.zeros(5, np.float32), np.zeros(5, np.float32))  # sampleable at once
+    buffer.add_episode(
+        {"state": np.zeros((6, 39), np.float32)},
+        np.zeros((5, 4), np.float32),
+        np.zeros(5, np.float32),
+        np.zeros(5, np.float32),
+    )  # sampleable at once
     evaluator = make_evaluator(cfg, model, {0: "reach-xy"})
     trainer = Trainer(env=env, model=model, heads=heads, config=cfg.train, seed=0,
                       obs_mode="state", task_id="reach-xy", buffer=buffer, evaluator=evaluator,

@@ -38,19 +38,35 @@ except ImportError:  # tests/ imported as a package
     from tests.slurm_helpers import JOB_WAIT_S, bin_with, wait_for, when
 
 TINY = dict(suite="Reach", episodes=1, explore_episodes=1, image_size=32, max_steps=12)
-TINY_ARGS = ["--suite", "Reach", "--episodes", "1", "--explore-episodes", "1",
-             "--image-size", "32", "--max-steps", "12"]
+TINY_ARGS = [
+    "--suite",
+    "Reach",
+    "--episodes",
+    "1",
+    "--explore-episodes",
+    "1",
+    "--image-size",
+    "32",
+    "--max-steps",
+    "12",
+]
 
 
 def generate_cli(*args: str, path: str | None = None) -> subprocess.CompletedProcess:
     env = {**os.environ, **({"PATH": path} if path is not None else {})}
-    return subprocess.run([sys.executable, "-m", "ccdata.cli", "generate", *args],
-                          capture_output=True, text=True, env=env, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "ccdata.cli", "generate", *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
 
 
 def submit(root: Path, *args: str) -> dict:
-    done = generate_cli(*TINY_ARGS, "--root", str(root), "--launcher", "slurm", "--time", "30",
-                        "--json", *args)
+    done = generate_cli(
+        *TINY_ARGS, "--root", str(root), "--launcher", "slurm", "--time", "30", "--json", *args
+    )
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout)
 
@@ -70,16 +86,18 @@ def assert_same_dataset(expected: Path, actual: Path) -> None:
     assert any(f.suffix == ".parquet" for f in files) and any(f.suffix == ".mp4" for f in files)
     for rel in files:
         if rel == Path("meta/stats.json"):
-            assert json.loads((expected / rel).read_text()) == \
-                json.loads((actual / rel).read_text())
+            assert json.loads((expected / rel).read_text()) == json.loads(
+                (actual / rel).read_text()
+            )
         else:
             assert (expected / rel).read_bytes() == (actual / rel).read_bytes(), rel
 
 
 @pytest.fixture(scope="module")
 def one_worker(tmp_path_factory) -> Path:
-    root, _ = generate(GenerateConfig(**TINY, root=tmp_path_factory.mktemp("w1") / "Reach"),
-                       progress=False)
+    root, _ = generate(
+        GenerateConfig(**TINY, root=tmp_path_factory.mktemp("w1") / "Reach"), progress=False
+    )
     return root
 
 
@@ -101,21 +119,35 @@ def test_parse_time_reads_slurm_time_limits():
 def test_no_slurm_is_one_line_and_exit_2(tmp_path):
     empty = tmp_path / "bin"
     empty.mkdir()
-    done = generate_cli(*TINY_ARGS, "--root", str(tmp_path / "Reach"), "--launcher", "slurm",
-                        "--shards", "2", path=str(empty))
+    done = generate_cli(
+        *TINY_ARGS,
+        "--root",
+        str(tmp_path / "Reach"),
+        "--launcher",
+        "slurm",
+        "--shards",
+        "2",
+        path=str(empty),
+    )
     assert done.returncode == 2
     assert done.stderr == "ccdata generate: error: no SLURM reachable: sbatch is not on PATH\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bin"]  # nothing written
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--shards", "2"], "--shards need --launcher slurm"),
-    (["--account", "a", "--cpus-per-task", "2"], "--account, --cpus-per-job need --launcher slurm"),
-    (["--launcher", "slurm", "--workers", "2"], "--workers is for --launcher local"),
-    (["--launcher", "slurm", "--time", "1h"], "--time '1h': expected minutes"),
-    (["--launcher", "slurm", "--mem", "8GB"], "--mem '8GB': expected a number"),
-    (["--launcher", "slurm", "--shards", "0"], "--shards must be >= 1"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--shards", "2"], "--shards need --launcher slurm"),
+        (
+            ["--account", "a", "--cpus-per-task", "2"],
+            "--account, --cpus-per-job need --launcher slurm",
+        ),
+        (["--launcher", "slurm", "--workers", "2"], "--workers is for --launcher local"),
+        (["--launcher", "slurm", "--time", "1h"], "--time '1h': expected minutes"),
+        (["--launcher", "slurm", "--mem", "8GB"], "--mem '8GB': expected a number"),
+        (["--launcher", "slurm", "--shards", "0"], "--shards must be >= 1"),
+    ],
+)
 def test_launch_options_are_checked(tmp_path, capsys, args, message):
     assert main(["generate", *TINY_ARGS, "--root", str(tmp_path / "Reach"), *args]) == 2
     err = capsys.readouterr().err
@@ -160,8 +192,9 @@ def test_arrays_beyond_max_array_size_are_refused():
     out = subprocess.run(["scontrol", "show", "config"], capture_output=True, text=True).stdout
     assert re.search(rf"(?m)^MaxArraySize\s*=\s*{limit}$", out)
     check_array_size(limit, "--shards")
-    with pytest.raises(LaunchError, match=f"--shards: this cluster takes arrays of at most "
-                                          f"{limit} tasks"):
+    with pytest.raises(
+        LaunchError, match=f"--shards: this cluster takes arrays of at most {limit} tasks"
+    ):
         check_array_size(limit + 1, "--shards")
 
 
@@ -169,11 +202,14 @@ def test_arrays_beyond_max_array_size_are_refused():
 def test_sacct_missing_is_one_line_and_exit_2(tmp_path):
     """The real sbatch and sinfo, but no sacct: refused before anything is submitted."""
     tools = bin_with(tmp_path / "bin", "sbatch", "sinfo", "squeue", "scancel")
-    done = generate_cli(*TINY_ARGS, "--root", str(tmp_path / "Reach"), "--launcher", "slurm",
-                        path=str(tools))
+    done = generate_cli(
+        *TINY_ARGS, "--root", str(tmp_path / "Reach"), "--launcher", "slurm", path=str(tools)
+    )
     assert done.returncode == 2
-    assert done.stderr == ("ccdata generate: error: sacct not available (sacct is not on PATH); "
-                           "submitit needs SLURM accounting\n")
+    assert done.stderr == (
+        "ccdata generate: error: sacct not available (sacct is not on PATH); "
+        "submitit needs SLURM accounting\n"
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bin"]
 
 
@@ -190,14 +226,17 @@ def test_unreachable_controller_is_one_line_and_exit_2(tmp_path, monkeypatch):
     root = tmp_path / "Reach"
     done = generate_cli(*TINY_ARGS, "--root", str(root), "--launcher", "slurm")
     assert done.returncode == 2
-    assert done.stderr == ("ccdata generate: error: no SLURM reachable: slurm_load_partitions: "
-                           "Unable to contact slurm controller (connect failure)\n")
+    assert done.stderr == (
+        "ccdata generate: error: no SLURM reachable: slurm_load_partitions: "
+        "Unable to contact slurm controller (connect failure)\n"
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["slurm.conf"]
 
 
 @pytest.mark.slurm
 def test_missing_shard_fails_the_merge_and_a_rerun_fills_it_to_the_one_worker_dataset(
-        one_worker, tmp_path):
+    one_worker, tmp_path
+):
     """One scenario (each submission of tiny shards costs tens of seconds): a sharded
     submission, a shard lost halfway, the merge refusing the gap, and a rerun that fills only
     the gap; the result is the dataset one local worker writes."""
@@ -236,20 +275,39 @@ def test_missing_shard_fails_the_merge_and_a_rerun_fills_it_to_the_one_worker_da
     assert not root.exists()  # nothing merged
     assert (JournalPaths(root).work / SUBMISSION_RECORD).is_file()
 
-    second = submit(root, "--shards", "2", "--partition", "low", "--cpus-per-task", "1",
-                    "--mem", "1G", "--setup", "echo ccdata-setup-ran")
+    second = submit(
+        root,
+        "--shards",
+        "2",
+        "--partition",
+        "low",
+        "--cpus-per-task",
+        "1",
+        "--mem",
+        "1G",
+        "--setup",
+        "echo ccdata-setup-ran",
+    )
     assert second["shards"] == {"1": missing}  # only the shard with gaps, only its gaps
     rows = wait_for([*shard_ids(second), second["merge_job"]])
-    assert {j: r["state"] for j, r in rows.items()} == \
-        {j: "COMPLETED" for j in [*shard_ids(second), second["merge_job"]]}
+    assert {j: r["state"] for j, r in rows.items()} == {
+        j: "COMPLETED" for j in [*shard_ids(second), second["merge_job"]]
+    }
     merge_start = when(rows[second["merge_job"]]["start"])
     assert all(merge_start >= when(rows[j]["end"]) for j in shard_ids(second))
     assert_same_dataset(one_worker, root)
     assert not JournalPaths(root).work.exists()  # the merge cleared its journal
     merge_dir = Path(second["log_dir"]) / second["merge_job"]
     script = (merge_dir / f"{second['merge_job']}_submission.sh").read_text()
-    for line in ("--partition=low", "--cpus-per-task=1", "--mem=1G", "--time=30", "--requeue",
-                 f"--dependency=afterany:{second['array_job']}", "\necho ccdata-setup-ran\n"):
+    for line in (
+        "--partition=low",
+        "--cpus-per-task=1",
+        "--mem=1G",
+        "--time=30",
+        "--requeue",
+        f"--dependency=afterany:{second['array_job']}",
+        "\necho ccdata-setup-ran\n",
+    ):
         assert line in script
     log = (merge_dir / f"{second['merge_job']}_0_log.out").read_text()
     assert "ccdata-setup-ran" in log and f"submitted with {second['code']}" in log

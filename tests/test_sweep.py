@@ -287,14 +287,31 @@ def test_a_local_sweep_finishes_seed_after_seed(tmp_path, capsys):
     """One job at a time, the jobs start seed-major, each reference just before its runs:
     stopped at any point, the sweep holds every method of the seeds it finished."""
     root = tmp_path / "runs"
-    code, _, err = sweep_cli(capsys, "--suites", "Reach", "--methods", "ft,er", "--seeds", "0,1",
-                             "--out", str(root), "--max-parallel", "1", *TOY)
+    code, _, err = sweep_cli(
+        capsys,
+        "--suites",
+        "Reach",
+        "--methods",
+        "ft,er",
+        "--seeds",
+        "0,1",
+        "--out",
+        str(root),
+        "--max-parallel",
+        "1",
+        *TOY,
+    )
     assert code == 0, err
     sweep, record = load_sweep(root)
     jobs = record["submissions"][0]["jobs"]
     started = sorted((j["start"], i, n) for i, (n, j) in enumerate(jobs.items()) if "start" in j)
-    order = [n.split(":")[0] + ":" + ("s0" if "-s0" in n else "s1") +
-             (":" + n.split("-")[2] if n.startswith("run:") else "") for _, _, n in started]
+    order = [
+        n.split(":")[0]
+        + ":"
+        + ("s0" if "-s0" in n else "s1")
+        + (":" + n.split("-")[2] if n.startswith("run:") else "")
+        for _, _, n in started
+    ]
     assert order[:6] == ["scratch:s0", "run:s0:ft", "run:s0:er", "scratch:s1", "run:s1:ft",
                          "run:s1:er"]  # fmt: skip
 
@@ -305,16 +322,27 @@ def test_status_reads_an_abandoned_local_record_as_interrupted(tmp_path):
     gone = subprocess.Popen([sys.executable, "-c", "pass"])
     gone.wait()
     name = f"run:{sweep.runs[0].name}"
-    write_record(sweep, [{"launcher": "local", "pid": gone.pid, "jobs": {
-        name: {"state": "RUNNING"}, f"scratch:{sweep.runs[0].scratch_key}": {"state": "FAILED",
-                                                                            "error": "boom"}}}])
+    write_record(
+        sweep,
+        [
+            {
+                "launcher": "local",
+                "pid": gone.pid,
+                "jobs": {
+                    name: {"state": "RUNNING"},
+                    f"scratch:{sweep.runs[0].scratch_key}": {"state": "FAILED", "error": "boom"},
+                },
+            }
+        ],
+    )
     status = sweep_status(tmp_path)
     assert status[name] == {"state": "failed", "job": f"local:{gone.pid}", "detail": "interrupted"}
     assert status[f"scratch:{sweep.runs[0].scratch_key}"]["detail"] == "boom"
     assert status["report"]["state"] == "not submitted"
     # a live launcher's record reads as it says
-    write_record(sweep, [{"launcher": "local", "pid": os.getpid(), "jobs": {
-        name: {"state": "RUNNING"}}}])
+    write_record(
+        sweep, [{"launcher": "local", "pid": os.getpid(), "jobs": {name: {"state": "RUNNING"}}}]
+    )
     assert sweep_status(tmp_path)[name]["state"] == "running"
 
 
@@ -326,17 +354,21 @@ def test_status_says_where_an_unfinished_run_is(tmp_path):
                    tmp_path)  # fmt: skip
     run = sweep.runs[0]
     name = f"run:{run.name}"
-    write_record(sweep, [{"launcher": "local", "pid": os.getpid(), "jobs": {
-        name: {"state": "RUNNING"}}}])
+    write_record(
+        sweep, [{"launcher": "local", "pid": os.getpid(), "jobs": {name: {"state": "RUNNING"}}}]
+    )
     assert sweep_status(tmp_path)[name]["detail"] == ""
     sweep.run_dir(run).mkdir(parents=True)
-    records = [{"task": t, "global_step": 5 * i} for i, t in enumerate(["reach-xy"] * 120
-                                                                         + ["reach-xz"])]
+    records = [
+        {"task": t, "global_step": 5 * i} for i, t in enumerate(["reach-xy"] * 120 + ["reach-xz"])
+    ]
     text = "".join(json.dumps(r) + "\n" for r in records) + '{"task": "reach-xz", "glo'
     (sweep.run_dir(run) / "metrics.jsonl").write_text(text)  # longer than the tail read
     assert sweep_status(tmp_path)[name] == {
-        "state": "running", "job": f"local:{os.getpid()}",
-        "detail": "last evaluated reach-xz at global step 600 of 800"}  # 200 x 4 tasks
+        "state": "running",
+        "job": f"local:{os.getpid()}",
+        "detail": "last evaluated reach-xz at global step 600 of 800",
+    }  # 200 x 4 tasks
 
 
 def test_a_failed_reference_fails_its_runs_unstarted(tmp_path, capsys):

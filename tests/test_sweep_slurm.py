@@ -90,8 +90,11 @@ def test_a_sweep_through_slurm_is_preempted_and_ends_as_an_uninterrupted_run(tmp
         time.sleep(0.5)
     status = sweep_status(root)
     # The controller's state, then where the run is (it has evaluated: it checkpointed).
-    assert status[f"run:{run.name}"] == {"state": "running", "job": job,
-                                         "detail": status[f"run:{run.name}"]["detail"]}
+    assert status[f"run:{run.name}"] == {
+        "state": "running",
+        "job": job,
+        "detail": status[f"run:{run.name}"]["detail"],
+    }
     assert status[f"run:{run.name}"]["detail"].startswith("RUNNING; last evaluated reach-")
     assert status[scratch]["state"] == "done"
     assert status["report"]["state"] == "pending"

@@ -92,6 +92,4 @@ def get_task(task_id: str) -> TaskSpec:
     try:
         return TASKS[task_id]
     except KeyError:
-        raise InputError(
-            f"unknown task {task_id!r}; known tasks: {', '.join(TASKS)}"
-        ) from None
+        raise InputError(f"unknown task {task_id!r}; known tasks: {', '.join(TASKS)}") from None

@@ -65,4 +65,3 @@ __all__ = [
     "plot_ablation", "plot_routing", "read_routing", "register_analysis", "report_routing",
     "routing_callback", "routing_record", "stage_callbacks", "top_statement",
 ]  # fmt: skip
-

@@ -82,14 +82,18 @@ def read_run(run: Path) -> dict | None:
     # evaluations before the last one, the task's final evaluation at the step it ended).
     train = cfg["train"]
     stopped = train.get("stop_score") is not None and stop_reached(
-        [r["normalized_return"] for r in records[:-1]], train["stop_score"], train["stop_evals"])
+        [r["normalized_return"] for r in records[:-1]], train["stop_score"], train["stop_evals"]
+    )
     if max(r["task_step"] for r in records) < steps and not stopped:
         return None
     scores = [r["normalized_return"] for r in records if r["normalized_return"] is not None]
     cost = read_cost(run)
     model = cfg["model"]["type"]
-    recipe = [f"{k}={cfg['train'][k]}" for k in RECIPE
-              if cfg["train"].get(k, _preset_value(cfg, k)) != _preset_value(cfg, k)]
+    recipe = [
+        f"{k}={cfg['train'][k]}"
+        for k in RECIPE
+        if cfg["train"].get(k, _preset_value(cfg, k)) != _preset_value(cfg, k)
+    ]
     if cfg.get("encoder"):  # through a frozen pretrained encoder: another problem to learn
         recipe.insert(0, "frozen encoder")
     if cfg.get("obs", "state") != "state":

@@ -81,9 +81,7 @@ class EWC(ContinualMethod):
         with torch.enable_grad():
             for _ in range(self.cfg.fisher_batches):
                 loss = task_data.backbone_loss(task_data.sample())
-                grads = torch.autograd.grad(
-                    loss, [params[n] for n in names], allow_unused=True
-                )
+                grads = torch.autograd.grad(loss, [params[n] for n in names], allow_unused=True)
                 for name, grad in zip(names, grads, strict=True):
                     if grad is not None:
                         fisher[name] += grad.detach() ** 2

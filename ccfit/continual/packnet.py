@@ -176,8 +176,11 @@ class PackNet(ContinualMethod):
             self._held.append(p)
             self._moving.append(moving)
             stored = self.stored.get(name)  # none yet while task 0 retrains
-            self._held_values.append(torch.zeros_like(p) if stored is None
-                                     else torch.where(fixed, stored, 0.0).to(p.dtype))
+            self._held_values.append(
+                torch.zeros_like(p)
+                if stored is None
+                else torch.where(fixed, stored, 0.0).to(p.dtype)
+            )
 
     @torch.no_grad()
     def _enforce(self) -> None:

@@ -93,6 +93,7 @@ class Batch:
     def to(self, device: torch.device | str) -> Batch:
         """This batch on `device` (no copy if it is there; from page-locked memory the copy
         does not block the host)."""
+
         def move(x: torch.Tensor) -> torch.Tensor:
             return x.to(device, non_blocking=True)
 

@@ -184,8 +184,14 @@ def build_encoder(cfg) -> nn.Module:
         )
     if cfg.obs_mode == "pixels":
         return PixelEncoder(
-            cfg.image_size, cfg.proprio_dim, cfg.num_channels, cfg.enc_dim, cfg.num_enc_layers,
-            cfg.latent_dim, cfg.simnorm_dim, cfg.image_shift,
+            cfg.image_size,
+            cfg.proprio_dim,
+            cfg.num_channels,
+            cfg.enc_dim,
+            cfg.num_enc_layers,
+            cfg.latent_dim,
+            cfg.simnorm_dim,
+            cfg.image_shift,
         )
     raise ValueError(f"unknown obs_mode {cfg.obs_mode!r}; valid: state, pixels")
 

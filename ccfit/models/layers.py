@@ -101,8 +101,11 @@ def mlp(
         NormedLinear(dims[i], dims[i + 1], dropout=dropout if i == 0 else 0.0)
         for i in range(len(dims) - 1)
     ]
-    layers.append(NormedLinear(dims[-1], out_dim, act=act) if act is not None
-                  else nn.Linear(dims[-1], out_dim))
+    layers.append(
+        NormedLinear(dims[-1], out_dim, act=act)
+        if act is not None
+        else nn.Linear(dims[-1], out_dim)
+    )
     return nn.Sequential(*layers)
 
 

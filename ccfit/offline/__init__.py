@@ -20,5 +20,12 @@ from ccfit.offline.config import FitConfig, OfflineConfig
 from ccfit.offline.fit import TRACK
 from ccfit.offline.run import OfflineCurriculum, default_out, run_scratch, scratch_key
 
-__all__ = ["TRACK", "FitConfig", "OfflineConfig", "OfflineCurriculum", "default_out",
-           "run_scratch", "scratch_key"]
+__all__ = [
+    "TRACK",
+    "FitConfig",
+    "OfflineConfig",
+    "OfflineCurriculum",
+    "default_out",
+    "run_scratch",
+    "scratch_key",
+]

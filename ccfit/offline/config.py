@@ -150,8 +150,11 @@ def check_prediction(model, frozen_encoder: bool) -> None:
     check(PREDICTION in cls.capabilities,
           f"model {model.type!r} offers no open-loop prediction (capability {PREDICTION!r}); "
           f"models that do: {', '.join(offering) or 'none'}")  # fmt: skip
-    decoding = [n for n in offering
-                if model_class(n).measurement_space(config_class(n)(), False) is not None]
+    decoding = [
+        n
+        for n in offering
+        if model_class(n).measurement_space(config_class(n)(), False) is not None
+    ]
     check(cls.measurement_space(model, frozen_encoder) is not None,
           f"model {model.type!r} predicts only in its own latent space here, which moves as it "
           "trains, so an error measured there means nothing: give it a frozen pretrained "

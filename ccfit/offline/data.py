@@ -97,8 +97,10 @@ def write_split(run_dir: Path, splits: dict[str, TaskSplit], source: str) -> Non
     path = Path(run_dir) / SPLIT
     if path.is_file():
         if json.loads(path.read_text())["tasks"] != data["tasks"]:
-            raise InputError(f"{path}: the dataset no longer gives this run's episode split "
-                             "(was it regenerated?); use another --out or delete the run")
+            raise InputError(
+                f"{path}: the dataset no longer gives this run's episode split "
+                "(was it regenerated?); use another --out or delete the run"
+            )
         return
     atomic_write_json(path, data)
 

@@ -75,8 +75,10 @@ class TaskFitter:
         self.global_offset, self.progress = global_offset, progress
         mcfg = model.cfg
         if not buffer.can_sample(mcfg.seq_len):
-            raise InputError(f"task {task_ids[task_index]}: its training episodes hold "
-                             f"{buffer.size} rows, fewer than a window of {mcfg.seq_len}")
+            raise InputError(
+                f"task {task_ids[task_index]}: its training episodes hold "
+                f"{buffer.size} rows, fewer than a window of {mcfg.seq_len}"
+            )
         self.optim = model.backbone_optimizer()
         self._params = [p for g in self.optim.param_groups for p in g["params"]]
         self.losses = ReplayLosses(model.backbone_loss)
@@ -161,8 +163,14 @@ class TaskFitter:
                 self.method.evaluating(i, self.model.backbone)  # fmt: skip
             rec = score_windows(self.model, self.scored[i], self.fit.context, self.fit.horizon,
                                 self.fit.score_batch, view)  # fmt: skip
-            rec.update(track=TRACK, task=self.task_ids[i], task_index=i, stage=self.task_index,
-                       global_step=self.global_offset + self.update, task_step=self.update)
+            rec.update(
+                track=TRACK,
+                task=self.task_ids[i],
+                task_index=i,
+                stage=self.task_index,
+                global_step=self.global_offset + self.update,
+                task_step=self.update,
+            )
             self.records.append(rec)
             if self.logger is not None:
                 self.logger.log_score(rec)
@@ -193,8 +201,11 @@ class TaskFitter:
             "records": self.records,
             "model": self.model.state_dict(),
             "optim": self.optim.state_dict(),
-            "replay": {"rows": self.buffer.size, "episodes": self.buffer.num_episodes,
-                       "generator": self.buffer.generator.get_state()},  # fmt: skip
+            "replay": {
+                "rows": self.buffer.size,
+                "episodes": self.buffer.num_episodes,
+                "generator": self.buffer.generator.get_state(),
+            },  # fmt: skip
             "rng": rng_state(),
         }
         if self.method is not None:

@@ -211,5 +211,13 @@ def restore(cfg: OfflineConfig, run_dir: Path, device: torch.device
     return model, method, int(state["completed"])
 
 
-__all__ = ["CONFIG", "METRICS_JSON", "STATE", "OfflineCurriculum", "default_out", "restore",
-           "run_scratch", "scratch_key"]
+__all__ = [
+    "CONFIG",
+    "METRICS_JSON",
+    "STATE",
+    "OfflineCurriculum",
+    "default_out",
+    "restore",
+    "run_scratch",
+    "scratch_key",
+]

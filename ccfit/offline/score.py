@@ -75,8 +75,9 @@ class Errors:
             "scores": per_key,
             "score_by_step": by_step,
             "mse": {k: float(self.model[k].sum()) / self.values[k] for k in keys},
-            "mse_persistence": {k: float(self.persistence[k].sum()) / self.values[k]
-                                for k in keys},  # fmt: skip
+            "mse_persistence": {
+                k: float(self.persistence[k].sum()) / self.values[k] for k in keys
+            },  # fmt: skip
         }
 
 

@@ -30,8 +30,11 @@ def add_pretrain_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--model", default=DEFAULT_MODEL,
                    help="the world model whose pixel encoder is pretrained (one offering "
                         "'pixel-encoder')")  # fmt: skip
-    p.add_argument("--out", default=None,
-                   help="weights file (default runs/encoders/encoder-PRESET-sSEED.safetensors)")
+    p.add_argument(
+        "--out",
+        default=None,
+        help="weights file (default runs/encoders/encoder-PRESET-sSEED.safetensors)",
+    )
     for name, kind in _TRAINING_OVERRIDES.items():
         p.add_argument(f"--{name.replace('_', '-')}", type=kind, default=None,
                        help=f"override the preset's {name}")  # fmt: skip
@@ -45,8 +48,13 @@ def add_pretrain_parser(subparsers) -> argparse.ArgumentParser:
 
 def config_from_args(args: argparse.Namespace) -> PretrainConfig:
     """The PretrainConfig of a parsed `pretrain-encoder` command line."""
-    overrides: dict[str, Any] = {"model": args.model, "suites": args.suites, "seed": args.seed,
-                                 "image_size": args.image_size, "device": args.device}
+    overrides: dict[str, Any] = {
+        "model": args.model,
+        "suites": args.suites,
+        "seed": args.seed,
+        "image_size": args.image_size,
+        "device": args.device,
+    }
     for name in _TRAINING_OVERRIDES:
         if getattr(args, name) is not None:
             overrides[name] = getattr(args, name)

@@ -55,7 +55,10 @@ class Autoencoder(nn.Module):
         super().__init__()
         self.encoder = build_encoder(enc_cfg)
         self.decoder = PixelDecoder(
-            enc_cfg.latent_dim, enc_cfg.image_size, enc_cfg.proprio_dim, decoder_channels,
+            enc_cfg.latent_dim,
+            enc_cfg.image_size,
+            enc_cfg.proprio_dim,
+            decoder_channels,
             enc_cfg.enc_dim,
         )
 
@@ -99,7 +102,7 @@ def evaluate_reconstruction(
     obj_img, obj_prop = 0.0, 0.0
     mean, std = proprio_norm
     for start in range(0, len(pairs), batch_size):
-        pix, prop = store.batch(pairs[start:start + batch_size])
+        pix, prop = store.batch(pairs[start : start + batch_size])
         pix, prop = torch.from_numpy(pix).to(device), torch.from_numpy(prop).to(device)
         target = pix.float() / 255.0
         rec, rec_prop = model(pix, prop)
@@ -113,8 +116,9 @@ def evaluate_reconstruction(
     per_cam = (sq / (n * 3 * s * s)).tolist()
     return {
         "frames": n,
-        "cameras": {c: {"mse": m, "psnr_db": _psnr(m)} for c, m in zip(CAMERAS, per_cam,
-                                                                      strict=True)},
+        "cameras": {
+            c: {"mse": m, "psnr_db": _psnr(m)} for c, m in zip(CAMERAS, per_cam, strict=True)
+        },
         "image_mse": obj_img / (n * 9 * s * s),
         "proprio_mse": obj_prop / (n * mean.numel()),
     }

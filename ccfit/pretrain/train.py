@@ -103,9 +103,7 @@ def pretrain_encoder(
         torch.set_num_threads(threads)
 
 
-def _pretrain(
-    config: PretrainConfig, out: Path, progress: bool, on_step: Callable | None
-) -> dict:
+def _pretrain(config: PretrainConfig, out: Path, progress: bool, on_step: Callable | None) -> dict:
     from tqdm.auto import tqdm
 
     from ccfit.config_base import resolve_device
@@ -122,8 +120,10 @@ def _pretrain(
         raise ValueError("no training frames: every episode was held out")
     if progress:
         gb = sum(p.nbytes for p in store.pixels) / 1e9
-        print(f"{len(store.episodes)} oracle episodes ({len(held_eps)} held out), "
-              f"{len(train_pairs)} training and {len(held_pairs)} held-out frames ({gb:.2f} GB)")
+        print(
+            f"{len(store.episodes)} oracle episodes ({len(held_eps)} held out), "
+            f"{len(train_pairs)} training and {len(held_pairs)} held-out frames ({gb:.2f} GB)"
+        )
     all_prop = np.concatenate([store.proprio[e] for e in train_eps])
     mean = torch.from_numpy(all_prop.mean(0)).to(device)
     std = torch.from_numpy(all_prop.std(0)).clamp_min(1e-3).to(device)

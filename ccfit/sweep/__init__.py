@@ -19,5 +19,13 @@ from ccfit.sweep.grid import Grid, Sweep, expand, load_sweep
 from ccfit.sweep.jobs import ReportJob, RunJob, ScratchJob
 from ccfit.sweep.status import sweep_status
 
-__all__ = ["Grid", "ReportJob", "RunJob", "ScratchJob", "Sweep", "expand", "load_sweep",
-           "sweep_status"]
+__all__ = [
+    "Grid",
+    "ReportJob",
+    "RunJob",
+    "ScratchJob",
+    "Sweep",
+    "expand",
+    "load_sweep",
+    "sweep_status",
+]

@@ -66,18 +66,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--models", type=_csv, default=None,
                    help=f"world models, comma-separated ({','.join(model_names())}; default "
                         f"{DEFAULT_MODEL}, offline {DEFAULT_OFFLINE_MODEL})")  # fmt: skip
-    p.add_argument("--methods", type=_csv, default=(DEFAULTS["method"],),
-                   help=f"continual methods, comma-separated ({','.join(method_names())})")
+    p.add_argument(
+        "--methods",
+        type=_csv,
+        default=(DEFAULTS["method"],),
+        help=f"continual methods, comma-separated ({','.join(method_names())})",
+    )
     p.add_argument("--seeds", type=_seeds, default=(0,), help="seeds (0,1,2)")
-    p.add_argument("--preset", default=DEFAULTS["preset"],
-                   help=f"size preset of every run ({', '.join(PRESETS)})")
+    p.add_argument(
+        "--preset",
+        default=DEFAULTS["preset"],
+        help=f"size preset of every run ({', '.join(PRESETS)})",
+    )
     p.add_argument("--out", help="sweep folder RUNS: runs, scratch/, report/, sweep.json")
     p.add_argument("--track", choices=TRACKS, default="online",
                    help="online: `ccfit run` curricula; offline: `ccfit fit` on the suite "
                         "datasets (models offering 'prediction')")  # fmt: skip
     p.add_argument("--launcher", choices=("local", "slurm"), default="local")
-    p.add_argument("--max-parallel", type=int, default=None,
-                   help="jobs at once (local default: CPU count; SLURM: array throttle)")
+    p.add_argument(
+        "--max-parallel",
+        type=int,
+        default=None,
+        help="jobs at once (local default: CPU count; SLURM: array throttle)",
+    )
     p.add_argument("--plugins", type=_csv, default=(),
                    help="modules to import first, here and in every job (they register models "
                         "or methods defined outside ccfit)")  # fmt: skip
@@ -100,8 +111,10 @@ def cmd_sweep(argv: list[str]) -> None:
     if args.launcher == "slurm":
         settings = settings_from_options(args, SLURM_TIME, max_parallel=args.max_parallel)
         if settings.time_min < REQUEUE_SAFE_MIN:
-            raise LaunchError(f"--time must be at least {REQUEUE_SAFE_MIN} minutes (shorter "
-                              f"limits break requeueing on preemption), got {settings.time_min}")
+            raise LaunchError(
+                f"--time must be at least {REQUEUE_SAFE_MIN} minutes (shorter "
+                f"limits break requeueing on preemption), got {settings.time_min}"
+            )
         check_slurm()
     elif args.max_parallel is not None and args.max_parallel < 1:
         raise InputError(f"--max-parallel must be >= 1, got {args.max_parallel}")
@@ -135,8 +148,10 @@ def cmd_sweep(argv: list[str]) -> None:
     entry = launch_slurm(sweep, work, submissions, settings)
     for name, job in entry["jobs"].items():
         print(f"  {job}  {name}")
-    print(f"submitted {len(entry['jobs'])} jobs; logs in {sweep.root / 'slurm'}; "
-          f"`ccfit sweep --status {args.out}` follows them")
+    print(
+        f"submitted {len(entry['jobs'])} jobs; logs in {sweep.root / 'slurm'}; "
+        f"`ccfit sweep --status {args.out}` follows them"
+    )
     if args.wait:
         from ccfit.sweep.launch import wait_report
 
@@ -146,18 +161,21 @@ def cmd_sweep(argv: list[str]) -> None:
 
 def _print_plan(sweep, work, dry_run: bool) -> None:
     verb = "would run" if dry_run else "to run"
-    print(f"{sweep.root / SWEEP_JSON}: {len(sweep.runs)} runs, {work.finished} finished, "
-          f"{len(work.active)} jobs still queued or running")
+    print(
+        f"{sweep.root / SWEEP_JSON}: {len(sweep.runs)} runs, {work.finished} finished, "
+        f"{len(work.active)} jobs still queued or running"
+    )
     if work.empty:
         print("nothing to submit: every run is done or queued" if work.active or work.finished
               else "nothing to submit")  # fmt: skip
         return
-    print(f"{verb}: {len(work.scratch)} from-scratch references, {len(work.runs)} runs"
-          f"{', then the report' if work.report else ''}")
+    print(
+        f"{verb}: {len(work.scratch)} from-scratch references, {len(work.runs)} runs"
+        f"{', then the report' if work.report else ''}"
+    )
     if dry_run:
         for key in work.scratch:
             print(f"  scratch/{key}")
         for run in work.runs:
             print(f"  {run.name}")
     sys.stdout.flush()
-

@@ -87,8 +87,10 @@ class Grid:
                 hint = "--preset" if flag == "preset" else f"--{plural}"
                 raise InputError(f"--{flag} is set by the sweep grid; use {hint}")
             if flag in REFUSED_FLAGS:
-                raise InputError(f"--{flag} is not a sweep option (runs go to RUNS/<name>; "
-                                 f"pass run options as flags)")
+                raise InputError(
+                    f"--{flag} is not a sweep option (runs go to RUNS/<name>; "
+                    f"pass run options as flags)"
+                )
 
     def to_dict(self) -> dict:
         return {k: list(v) if isinstance(v, tuple) else v
@@ -155,8 +157,15 @@ class Sweep:
             "version": SWEEP_VERSION,
             "grid": self.grid.to_dict(),
             "code": self.code,
-            "runs": [{"name": r.name, "dir": r.name, "scratch": f"{SCRATCH}/{r.scratch_key}",
-                      "config": r.config} for r in self.runs],  # fmt: skip
+            "runs": [
+                {
+                    "name": r.name,
+                    "dir": r.name,
+                    "scratch": f"{SCRATCH}/{r.scratch_key}",
+                    "config": r.config,
+                }
+                for r in self.runs
+            ],  # fmt: skip
         }
 
 
@@ -293,8 +302,15 @@ def check_same_sweep(sweep: Sweep, record: dict) -> None:
     where = sweep.root / SWEEP_JSON
     added, removed = sorted(set(ours) - set(theirs)), sorted(set(theirs) - set(ours))
     if added or removed:
-        what = "; ".join(filter(None, [added and f"new runs {', '.join(added[:3])}",
-                                       removed and f"missing runs {', '.join(removed[:3])}"]))
+        what = "; ".join(
+            filter(
+                None,
+                [
+                    added and f"new runs {', '.join(added[:3])}",
+                    removed and f"missing runs {', '.join(removed[:3])}",
+                ],
+            )
+        )
     else:
         name = next(n for n in ours if ours[n] != theirs[n])
         key, a, b = _first_difference(theirs[name], ours[name])
@@ -314,4 +330,3 @@ def _first_difference(a, b, prefix: str = "") -> tuple[str, object, object]:
 
 def write_record(sweep: Sweep, submissions: list[dict]) -> None:
     atomic_write_json(sweep.root / SWEEP_JSON, {**sweep.record(), "submissions": submissions})
-

@@ -106,8 +106,10 @@ class RunJob(_Job):
             return _summary(json.loads(metrics.read_text()))
         cfg = config_from_dict(config)
         if key_of(cfg) != scratch_key:  # e.g. seed_dataset 'auto' found another dataset here
-            raise RuntimeError(f"the run's from-scratch key is {key_of(cfg)} here but was "
-                               f"{scratch_key} at submission: run the sweep again")
+            raise RuntimeError(
+                f"the run's from-scratch key is {key_of(cfg)} here but was "
+                f"{scratch_key} at submission: run the sweep again"
+            )
         done = Path(scratch_root) / scratch_key / SCRATCH_DONE
         if not done.is_file():
             raise ScratchMissing(f"from-scratch reference {done.parent} did not finish (see its "
@@ -161,8 +163,15 @@ def write_status(root: str | Path, errors: dict[str, str]) -> dict:
 
     sweep, _ = load_sweep(root)
     done = [r.name for r in sweep.runs if sweep.run_done(r)]
-    missing = [{"name": r.name, "started": (sweep.run_dir(r) / "config.json").is_file(),
-                "error": errors.get(r.name)} for r in sweep.runs if not sweep.run_done(r)]
+    missing = [
+        {
+            "name": r.name,
+            "started": (sweep.run_dir(r) / "config.json").is_file(),
+            "error": errors.get(r.name),
+        }
+        for r in sweep.runs
+        if not sweep.run_done(r)
+    ]
     out = sweep.root / REPORT
     files, report_error = [], None
     if done:
@@ -171,8 +180,14 @@ def write_status(root: str | Path, errors: dict[str, str]) -> dict:
                      write_report([sweep.root / n for n in done], out)]  # fmt: skip
         except ValueError as e:  # e.g. a reference went missing: the status still lists runs
             report_error = str(e)
-    status = {"time": datetime.now(UTC).isoformat(timespec="seconds"), "runs": len(sweep.runs),
-              "done": done, "missing": missing, "report": files, "report_error": report_error}
+    status = {
+        "time": datetime.now(UTC).isoformat(timespec="seconds"),
+        "runs": len(sweep.runs),
+        "done": done,
+        "missing": missing,
+        "report": files,
+        "report_error": report_error,
+    }
     atomic_write_json(out / STATUS_JSON, status)
     print(f"ccfit sweep: {len(done)} of {len(sweep.runs)} runs done; report in {out}")
     for m in missing:

@@ -63,7 +63,8 @@ def plan_work(sweep: Sweep, active: dict[str, str]) -> Work:
     keys = dict.fromkeys(r.scratch_key for r in work.runs)
     work.scratch = [k for k in keys if not sweep.scratch_done(k) and f"scratch:{k}" not in active]
     work.report = bool(work.scratch or work.runs) or (
-        "report" not in active and not active and not report_current(sweep))
+        "report" not in active and not active and not report_current(sweep)
+    )
     return work
 
 
@@ -126,8 +127,12 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
     write_record(sweep, submissions)
 
     def ready() -> list[str]:
-        return [n for n, j in jobs.items() if j["state"] == "PENDING" and
-                jobs.get(waiting_on.get(n, ""), {"state": "COMPLETED"})["state"] == "COMPLETED"]
+        return [
+            n
+            for n, j in jobs.items()
+            if j["state"] == "PENDING"
+            and jobs.get(waiting_on.get(n, ""), {"state": "COMPLETED"})["state"] == "COMPLETED"
+        ]
 
     ctx = mp.get_context("spawn")
     pool = ProcessPoolExecutor(max_parallel, mp_context=ctx, max_tasks_per_child=1)
@@ -204,8 +209,11 @@ def launch_slurm(sweep: Sweep, work: Work, submissions: list[dict],
 
     try:
         with submitting():
-            scratch_ids = {k: work.active[f"scratch:{k}"] for k in
-                           {r.scratch_key for r in work.runs} if f"scratch:{k}" in work.active}
+            scratch_ids = {
+                k: work.active[f"scratch:{k}"]
+                for k in {r.scratch_key for r in work.runs}
+                if f"scratch:{k}" in work.active
+            }
             if work.scratch:
                 executor.update_parameters(job_name="ccfit-scratch", dependency=None)
                 configs = sweep.scratch_configs()
@@ -223,9 +231,15 @@ def launch_slurm(sweep: Sweep, work: Work, submissions: list[dict],
                 executor.update_parameters(job_name="ccfit-run", dependency=after(needed))
                 n = len(work.runs)
                 submitted = executor.map_array(
-                    RunJob(), [r.config for r in work.runs],
-                    [str(sweep.run_dir(r)) for r in work.runs], [str(sweep.root / SCRATCH)] * n,
-                    [r.scratch_key for r in work.runs], [plugins] * n, [code] * n, [None] * n)
+                    RunJob(),
+                    [r.config for r in work.runs],
+                    [str(sweep.run_dir(r)) for r in work.runs],
+                    [str(sweep.root / SCRATCH)] * n,
+                    [r.scratch_key for r in work.runs],
+                    [plugins] * n,
+                    [code] * n,
+                    [None] * n,
+                )
                 for run, job in zip(work.runs, submitted, strict=True):
                     jobs[f"run:{run.name}"] = job.job_id
                 write_record(sweep, submissions)
@@ -259,4 +273,3 @@ def wait_report(entry: dict, timeout_s: float) -> None:
         if time.monotonic() > deadline:
             raise TimeoutError(f"report job {job} still queued after {timeout_s} s")
         time.sleep(2)
-

@@ -116,8 +116,10 @@ def sweep_status(root: str | Path) -> dict[str, dict]:
             if state in ("PENDING", "RUNNING") and not _alive(entry["pid"]):
                 state = "INTERRUPTED"
             category = {"PENDING": "pending", "RUNNING": "running"}.get(state, "failed")
-            detail = job.get("error") or {"INTERRUPTED": "interrupted", "COMPLETED":
-                                          "completed without its output"}.get(state, "")
+            detail = job.get("error") or {
+                "INTERRUPTED": "interrupted",
+                "COMPLETED": "completed without its output",
+            }.get(state, "")
             out[name] = {"state": category, "job": _job_id(entry, job, name), "detail": detail}
         if out[name]["state"] != "done":
             where = progress(directory, total)

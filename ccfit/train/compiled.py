@@ -101,5 +101,6 @@ def resolve_autocast(setting: str, device: torch.device) -> str:
 def autocast(device: torch.device, setting: str):
     """The autocast context of `--train.autocast` on `device` (a no-op context for 'off')."""
     device = torch.device(device)
-    return torch.autocast(device.type, dtype=torch.bfloat16,
-                          enabled=resolve_autocast(setting, device) == "bf16")
+    return torch.autocast(
+        device.type, dtype=torch.bfloat16, enabled=resolve_autocast(setting, device) == "bf16"
+    )

@@ -105,6 +105,7 @@ def _evaluate(request: dict, weights: dict, heads: dict[int, dict]) -> list[dict
 
 def _copy(state: Mapping[str, Any]) -> dict:
     """A detached CPU copy (training goes on changing the originals in place)."""
+
     def one(v):
         if isinstance(v, torch.Tensor):
             return v.detach().to("cpu", copy=True)
@@ -134,8 +135,10 @@ class AsyncEvaluator:
                task_step: int | None) -> None:  # fmt: skip
         request = {"tasks": list(tasks), "stage": stage, "global_step": global_step,
                    "task_step": task_step}  # fmt: skip
-        weights = {"model": _copy(self.model.state_dict()),
-                   "method": _copy(self.method.state_dict()) if self.method else None}
+        weights = {
+            "model": _copy(self.model.state_dict()),
+            "method": _copy(self.method.state_dict()) if self.method else None,
+        }
         # The task being trained changes its heads; finished tasks' heads are sent once.
         send = {i: _copy(self.heads[i].state_dict()) for i in tasks
                 if i == stage or i not in self._sent}  # fmt: skip

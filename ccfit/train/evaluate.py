@@ -215,8 +215,11 @@ class Evaluator:
                 seeds = eval_seeds(self.seed, i, self.episodes)
                 envs = self.envs.get(self.task_ids[i], len(seeds))
                 noise = derived_seed(self.seed, EVAL_NOISE_TAG, global_step, i)
-                with self.view(i) if self.view is not None else nullcontext(), \
-                        seeded(noise, model.device), autocast(model.device, self.autocast):
+                with (
+                    self.view(i) if self.view is not None else nullcontext(),
+                    seeded(noise, model.device),
+                    autocast(model.device, self.autocast),
+                ):
                     eps = play_episodes(envs, model, self.heads[i], obs_mode=self.obs_mode,
                                         seeds=seeds)  # fmt: skip
                 records.append(eval_record(self.task_ids[i], i, stage, global_step,

@@ -55,8 +55,7 @@ def resolved_config(cfg: RunConfig, suite: str | None) -> dict:
         **cfg.to_dict(),
         "resolved_seed_dataset": source,
         "resolved_device": str(device),
-        "resolved_compile": compiled_paths(model_class(cfg.model.type), cfg.train.compile,
-                                           device),
+        "resolved_compile": compiled_paths(model_class(cfg.model.type), cfg.train.compile, device),
         "resolved_autocast": resolve_autocast(cfg.train.autocast, device),
         "render": render_settings(cfg).to_dict(),
     }
@@ -123,8 +122,10 @@ def make_replay(cfg: RunConfig, model: WorldModel, task_id: str, task_index: int
                             task_index=task_index, endpoint=cfg.dataset_endpoint,
                             demos=cfg.train.demo_fraction > 0)  # fmt: skip
         if cfg.train.demo_fraction > 0 and not added.get(DEMO_POLICY):
-            raise InputError(f"{source} holds no {DEMO_POLICY} episode of {task_id}: "
-                             "train.demo_fraction has no demonstrations to oversample")
+            raise InputError(
+                f"{source} holds no {DEMO_POLICY} episode of {task_id}: "
+                "train.demo_fraction has no demonstrations to oversample"
+            )
     return buffer
 
 

@@ -51,8 +51,10 @@ class UpdateStep:
         return {**out.logs, **head_logs, "total": total.detach(), "grad_norm": grad_norm}
 
     def state_dict(self) -> dict:
-        return {"optim": self.optim.state_dict(),
-                "head_optims": {k: o.state_dict() for k, o in self.head_optims.items()}}
+        return {
+            "optim": self.optim.state_dict(),
+            "head_optims": {k: o.state_dict() for k, o in self.head_optims.items()},
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.optim.load_state_dict(state["optim"])

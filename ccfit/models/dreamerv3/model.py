@@ -235,8 +235,9 @@ class DreamerV3(WorldModel, Prediction):
         batch = batch.to(self.device)
         seen = {k: v[:context] for k, v in batch.obs.items()}
         embed = self.backbone.encoder(seen)
-        deter, stoch, _, _ = self.rssm.observe(embed, batch.action[:context],
-                                               batch.is_first[:context], sample=False)
+        deter, stoch, _, _ = self.rssm.observe(
+            embed, batch.action[:context], batch.is_first[:context], sample=False
+        )
         deter, stoch, feats = deter[-1], stoch[-1], []
         for t in range(context - 1, context - 1 + horizon):
             deter, stoch = self.rssm.img_step(deter, stoch, batch.action[t], sample=False)

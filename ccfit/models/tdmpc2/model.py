@@ -38,7 +38,9 @@ class TDMPC2Backbone(nn.Module):
     def __init__(self, cfg: TDMPC2Config, encoder: FrozenEncoder | None = None) -> None:
         super().__init__()
         self.dynamics = mlp(
-            cfg.latent_dim + cfg.action_dim, [cfg.mlp_dim] * 2, cfg.latent_dim,
+            cfg.latent_dim + cfg.action_dim,
+            [cfg.mlp_dim] * 2,
+            cfg.latent_dim,
             act=SimNorm(cfg.simnorm_dim),
         )
         if encoder is None:
@@ -223,7 +225,9 @@ class TDMPC2(WorldModel, Prediction):
         log_prob = log_prob - torch.log(F.relu(1 - action.pow(2)) + 1e-6).sum(-1, keepdim=True)
         entropy = -log_prob
         info = {
-            "mean": mean, "log_std": log_std, "entropy": entropy,
+            "mean": mean,
+            "log_std": log_std,
+            "entropy": entropy,
             # As TD-MPC2: the entropy bonus scales with the action dimension.
             "scaled_entropy": entropy * eps.shape[-1],
         }
@@ -306,8 +310,10 @@ class TDMPC2(WorldModel, Prediction):
             + cfg.termination_coef * term_loss
         )
         logs = {
-            "consistency": consistency.detach(), "reward": reward_loss.detach(),
-            "value": value_loss.detach(), "termination": term_loss.detach(),
+            "consistency": consistency.detach(),
+            "reward": reward_loss.detach(),
+            "value": value_loss.detach(),
+            "termination": term_loss.detach(),
             "total": total.detach(),
         }
         # Latent t is meaningful when the rollout reached it inside row 0's episode.
