@@ -23,7 +23,7 @@ demo: install
 
 # One worker per core; a test file stays on one worker (its module fixtures run once).
 test: install
-	$(BIN)/ruff check .
+	$(BIN)/ruff check . && $(BIN)/ruff format --check .
 	$(BIN)/python -m pytest -q -n auto --dist loadfile --durations=20
 
 test-slow: install
