@@ -1,0 +1,135 @@
+"""The published diagnostics (`results/diagnostics/*.py`) still run against today's API.
+
+Each script reads finished runs and the Grasp dataset through the toolkit's internals (restore,
+the evaluator, the update step, the RSSM), so a renamed function or a changed signature would
+only show when someone reran a published result. Here each runs on smoke-size runs made here
+and a tiny Grasp dataset, with shorter episodes and fewer retraining updates; its output must
+have the published output's fields, with values in their ranges.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from ccdata.record import GenerateConfig, generate
+from ccfit.cli import main as ccfit
+
+try:
+    from short_episodes import shorter_episodes
+except ImportError:
+    from tests.short_episodes import shorter_episodes
+
+DIAGNOSTICS = Path(__file__).resolve().parents[1] / "results" / "diagnostics"
+EPISODE_STEPS = 20
+TRAIN = ["--train.steps=100", "--train.seed_steps=50", "--train.eval_interval=100",
+         "--train.checkpoint_interval=100"]  # fmt: skip
+
+
+def _script(name: str):
+    spec = importlib.util.spec_from_file_location(f"diagnostics_{name}", DIAGNOSTICS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory):
+    """A tiny Grasp dataset, a smoke Grasp curriculum per method the ER script compares, and
+    single-task pick-cube runs of TD-MPC2 and DreamerV3."""
+    root = tmp_path_factory.mktemp("diagnostics")
+    dataset, _ = generate(GenerateConfig("Grasp", episodes=2, explore_episodes=2, image_size=32,
+                                         max_steps=EPISODE_STEPS, root=root / "Grasp"),
+                          progress=False)  # fmt: skip
+    runs = {}
+    common = ["--preset", "smoke", "--seed_dataset", "null", "--quiet", *TRAIN]
+    with shorter_episodes(EPISODE_STEPS):
+        for method in ("ewc", "er"):
+            runs[method] = root / f"Grasp-tdmpc2-{method}"
+            argv = [
+                "run",
+                "--suite",
+                "Grasp",
+                f"--method.type={method}",
+                "--out",
+                str(runs[method]),
+            ]
+            assert ccfit([*argv, "--scratch-root", str(root / "scratch"), *common]) == 0
+        for model in ("tdmpc2", "dreamerv3"):
+            runs[model] = root / f"pick-cube-{model}"
+            argv = [
+                "train",
+                "--task",
+                "pick-cube",
+                f"--model.type={model}",
+                "--out",
+                str(runs[model]),
+            ]
+            assert ccfit([*argv, *common]) == 0
+    return SimpleNamespace(dataset=dataset, runs=runs)
+
+
+def _run(script, argv: list[str], monkeypatch, capsys) -> str:
+    monkeypatch.setattr(sys, "argv", [script.__file__, *argv])
+    capsys.readouterr()
+    with shorter_episodes(EPISODE_STEPS):
+        script.main()
+    return capsys.readouterr().out
+
+
+def _finite(x) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x)
+
+
+def test_grasp_er_pick(made, monkeypatch, capsys):
+    script = _script("grasp_er_pick")
+    monkeypatch.setattr(script, "DATASET", str(made.dataset))
+    runs = [made.runs["ewc"], made.runs["er"]]
+    lines = _run(script, [str(r) for r in runs], monkeypatch, capsys).splitlines()
+    assert [json.loads(line)["run"] for line in lines] == [r.name for r in runs]
+    for line in lines:
+        out = json.loads(line)
+        for task in ("pick-cube", "place-cube"):  # the tasks before the last
+            for policy in ("oracle", "random"):
+                reading = out[f"{task}/reading/{policy}"]
+                assert set(reading) == {"reward_abs_err", "Q_mean", "return_mean",
+                                        "dynamics_rel_err", "pi_vs_episode_action"}  # fmt: skip
+                assert all(_finite(v) for v in reading.values())
+                assert reading["reward_abs_err"] >= 0 and reading["dynamics_rel_err"] >= 0
+            acting = out[f"{task}/acting"]
+            assert set(acting) == {"mppi", "policy_mean"}
+            assert all(len(v) == 3 and all(_finite(s) for s in v) for v in acting.values())
+
+
+def test_packnet_prune(made, monkeypatch, capsys):
+    script = _script("packnet_prune")
+    monkeypatch.setattr(script, "RETRAINING", (0, 2, 5))
+    lines = _run(script, [str(made.runs["tdmpc2"])], monkeypatch, capsys).splitlines()
+    points = [json.loads(line) for line in lines]
+    assert [p["after"] for p in points] == [
+        "trained (before the prune)",
+        "prune + 0 retraining updates",
+        "prune + 2 retraining updates",
+        "prune + 5 retraining updates",
+    ]
+    for p in points:
+        assert len(p["normalized"]) == 3 and all(_finite(s) for s in p["normalized"])
+        assert all(0.0 <= s <= 1.0 for s in p["success"])
+
+
+def test_dreamerv3_pick(made, monkeypatch, capsys):
+    script = _script("dreamerv3_pick")
+    monkeypatch.setattr(script, "DATASET", str(made.dataset))
+    out = json.loads(_run(script, [str(made.runs["dreamerv3"])], monkeypatch, capsys))
+    assert out["run"] == "pick-cube-dreamerv3" and out["task_step"] == 100
+    for policy, episodes in (("oracle", 2), ("random", 2)):
+        assert out[policy]["episodes"] == episodes
+        numbers = {k: v for k, v in out[policy].items() if k != "corr_episode_reward_sums"}
+        assert all(_finite(v) for v in numbers.values())
+        assert out[policy]["reward_abs_err_per_step"] >= 0
