@@ -165,3 +165,19 @@ def test_acting_compiles_one_plan_per_mode_and_batch_kind(name):
             obs = {k: v[0, :n] for k, v in rows.items()}
             state = model.act(obs, heads, state, eval_mode=True)[1]
     assert counter.frame_count == 3
+
+
+def test_a_device_check_stays_inside_the_compiled_graph():
+    # Reading the check's value back broke PWM's compiled loss in three graphs on a CPU.
+    from ccfit.models.base import check_on_device
+
+    def checked(x):
+        check_on_device((x >= 0).all(), "negative input")
+        return x * 2
+
+    compiled = torch.compile(checked, fullgraph=True)  # a graph break fails here
+    assert torch.equal(compiled(torch.ones(3)), torch.full((3,), 2.0))
+    with pytest.raises(RuntimeError, match="negative input"):
+        compiled(-torch.ones(3))
+    with pytest.raises(ValueError, match="negative input"):  # eager on a CPU: the input's fault
+        checked(-torch.ones(3))
