@@ -47,31 +47,19 @@ def made(tmp_path_factory):
     dataset, _ = generate(GenerateConfig("Grasp", episodes=2, explore_episodes=2, image_size=32,
                                          max_steps=EPISODE_STEPS, root=root / "Grasp"),
                           progress=False)  # fmt: skip
-    runs = {}
+    scratch = ["--scratch-root", str(root / "scratch")]
+    commands = {  # key: (run directory, what makes it)
+        "ewc": ("Grasp-tdmpc2-ewc", ["run", "--suite", "Grasp", "--method.type=ewc", *scratch]),
+        "er": ("Grasp-tdmpc2-er", ["run", "--suite", "Grasp", "--method.type=er", *scratch]),
+        "tdmpc2": ("pick-cube-tdmpc2", ["train", "--task", "pick-cube", "--model.type=tdmpc2"]),
+        "dreamerv3": ("pick-cube-dreamerv3", ["train", "--task", "pick-cube",
+                                              "--model.type=dreamerv3"]),
+    }  # fmt: skip
     common = ["--preset", "smoke", "--seed_dataset", "null", "--quiet", *TRAIN]
+    runs = {key: root / name for key, (name, _) in commands.items()}
     with shorter_episodes(EPISODE_STEPS):
-        for method in ("ewc", "er"):
-            runs[method] = root / f"Grasp-tdmpc2-{method}"
-            argv = [
-                "run",
-                "--suite",
-                "Grasp",
-                f"--method.type={method}",
-                "--out",
-                str(runs[method]),
-            ]
-            assert ccfit([*argv, "--scratch-root", str(root / "scratch"), *common]) == 0
-        for model in ("tdmpc2", "dreamerv3"):
-            runs[model] = root / f"pick-cube-{model}"
-            argv = [
-                "train",
-                "--task",
-                "pick-cube",
-                f"--model.type={model}",
-                "--out",
-                str(runs[model]),
-            ]
-            assert ccfit([*argv, *common]) == 0
+        for key, (_, argv) in commands.items():
+            assert ccfit([*argv, "--out", str(runs[key]), *common]) == 0
     return SimpleNamespace(dataset=dataset, runs=runs)
 
 
