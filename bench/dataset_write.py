@@ -26,9 +26,9 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 from ccdata.env import EPISODE_STEPS, make_env  # noqa: E402
-from ccdata.episode_plan import plan, policy_seed  # noqa: E402
-from ccdata.policies import make_policy  # noqa: E402
+from ccdata.episode_plan import plan  # noqa: E402
 from ccdata.record import GenerateConfig  # noqa: E402
+from ccdata.writer import episode_policy  # noqa: E402
 
 
 def env_only_rate(config: GenerateConfig) -> tuple[float, int, float]:
@@ -45,15 +45,7 @@ def env_only_rate(config: GenerateConfig) -> tuple[float, int, float]:
                 make_env(spec.task_id, render_settings=config.render_settings),
                 spec.task_id,
             )
-        noise = config.exploration(spec.task_id)
-        policy = make_policy(
-            spec.policy,
-            spec.task_id,
-            seed=policy_seed(spec.seed),
-            noise_std=noise.noise_std,
-            random_prob=noise.random_prob,
-        )
-        policy.reset()
+        policy = episode_policy(spec, config)
         obs, _ = env.reset(seed=spec.seed)
         for _ in range(config.max_steps or EPISODE_STEPS):
             obs, _, terminated, truncated, _ = env.step(policy.act(obs))

@@ -51,22 +51,24 @@ is about 9 MB; one episode may always wait, whatever its size)."""
 PIECE_RECORD = "piece.json"
 
 
+def episode_policy(spec: EpisodeSpec, config: DatasetSettings):
+    """The policy that plays `spec`, reset: its kind and seed, with the dataset's exploration
+    noise for its task."""
+    from ccdata.policies import make_policy
+
+    noise = config.exploration(spec.task_id)
+    policy = make_policy(spec.policy, spec.task_id, seed=policy_seed(spec.seed),
+                         noise_std=noise.noise_std, random_prob=noise.random_prob)  # fmt: skip
+    policy.reset()
+    return policy
+
+
 def rollout_episode(env, spec: EpisodeSpec, config: DatasetSettings) -> dict[str, np.ndarray]:
     """Play `spec` in `env`. Returns the episode as stacked per-frame arrays keyed by dataset
     feature: one frame per step (obs_t, action_t, next.*), then the final observation (the
     observation the last action led to, a success state when the episode succeeded) as a frame
     of its own with no transition: action zeros, next.reward 0, `FINAL_KEY` true."""
-    from ccdata.policies import make_policy
-
-    noise = config.exploration(spec.task_id)
-    policy = make_policy(
-        spec.policy,
-        spec.task_id,
-        seed=policy_seed(spec.seed),
-        noise_std=noise.noise_std,
-        random_prob=noise.random_prob,
-    )
-    policy.reset()
+    policy = episode_policy(spec, config)
     obs, _ = env.reset(seed=spec.seed)
     limit = config.max_steps or EPISODE_STEPS
     observations, actions, rewards, dones, successes = [obs], [], [], [], []

@@ -31,3 +31,10 @@ def ccfit_command(argv: list[str], steps: int = EPISODE_STEPS) -> list[str]:
         "from ccfit.cli import main; sys.exit(main(sys.argv[1:]))"
     )
     return [sys.executable, "-c", code, *argv]
+
+
+def smoke_train_argv(out, *extra: str, task: str = "reach-xy") -> list[str]:
+    """`ccfit train` arguments: `task` at the smoke preset, no seed dataset, quiet, into `out`;
+    `extra` last."""
+    return ["train", "--task", task, "--preset", "smoke", "--seed_dataset", "null",
+            "--out", str(out), "--quiet", *extra]  # fmt: skip

@@ -8,6 +8,11 @@ from pathlib import Path
 
 from ccfit.analysis.learnability import budgets, first_step_at, read_run
 
+try:
+    from short_episodes import smoke_train_argv
+except ImportError:  # tests/ imported as a package
+    from tests.short_episodes import smoke_train_argv
+
 
 def _fake_run(root: Path, task: str, model: str, scores: list[float], interval: int = 1000,
               seed: int = 0, demo_fraction: float = 0.0,
@@ -96,27 +101,10 @@ def test_cli_on_a_real_smoke_run(tmp_path, capsys, short_episodes):
     from ccfit.cli import main
 
     run = tmp_path / "runs" / "reach"
-    assert (
-        main(
-            [
-                "train",
-                "--task",
-                "reach-xy",
-                "--preset",
-                "smoke",
-                "--seed_dataset",
-                "null",
-                "--out",
-                str(run),
-                "--quiet",
-                "--train.steps=100",
-                "--train.seed_steps=50",
-                "--train.eval_interval=50",
-                "--train.checkpoint_interval=50",
-            ]
-        )
-        == 0
-    )
+    schedule = ["--train.steps=100", "--train.seed_steps=50", "--train.eval_interval=50",
+                "--train.checkpoint_interval=50"]  # fmt: skip
+    train = smoke_train_argv(run, *schedule)
+    assert main(train) == 0
     capsys.readouterr()
     assert main(["learnability", str(tmp_path / "runs"), "--out", str(tmp_path / "out")]) == 0
     printed = capsys.readouterr().out.split()

@@ -17,9 +17,9 @@ from ccfit.config_parse import parse_cli, resolve
 from ccfit.replay import ReplayBuffer
 
 try:
-    from short_episodes import ccfit_command
+    from short_episodes import ccfit_command, smoke_train_argv
 except ImportError:  # tests/ imported as a package
-    from tests.short_episodes import ccfit_command
+    from tests.short_episodes import ccfit_command, smoke_train_argv
 
 pytestmark = pytest.mark.usefixtures("short_episodes")
 
@@ -171,22 +171,7 @@ def test_wall_clock_checkpoints_do_not_change_the_run(tmp_path):
 
 def test_cli_smoke_run_writes_config_metrics_checkpoint(tmp_path):
     out = tmp_path / "run"
-    cmd = ccfit_command(
-        [
-            "train",
-            "--task",
-            "reach-xy",
-            "--obs",
-            "state",
-            "--preset",
-            "smoke",
-            "--seed_dataset",
-            "null",
-            "--out",
-            str(out),
-            "--quiet",
-        ]
-    )
+    cmd = ccfit_command(smoke_train_argv(out, "--obs", "state"))
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     cfg = json.loads((out / "config.json").read_text())
@@ -378,17 +363,8 @@ def test_wandb_offline_logs_the_evaluations_and_resumes_the_same_run(tmp_path):
         from tests.wandb_records import config, history
 
     out = tmp_path / "run"
-    argv = [
-        "train",
-        "--task",
-        "reach-xy",
-        "--preset",
-        "smoke",
-        "--seed_dataset",
-        "null",
-        "--out",
-        str(out),
-        "--quiet",
+    argv = smoke_train_argv(
+        out,
         "--train.steps=100",
         "--train.seed_steps=50",
         "--train.eval_interval=50",
@@ -396,7 +372,7 @@ def test_wandb_offline_logs_the_evaluations_and_resumes_the_same_run(tmp_path):
         "--log.wandb=true",
         "--log.wandb_mode=offline",
         "--log.tensorboard=false",
-    ]
+    )
     env = {**__import__("os").environ, "WANDB_SILENT": "true"}
     proc = subprocess.run(ccfit_command(argv), capture_output=True, text=True, timeout=300,
                           env=env)  # fmt: skip
