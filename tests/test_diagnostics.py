@@ -121,3 +121,13 @@ def test_dreamerv3_pick(made, monkeypatch, capsys):
         numbers = {k: v for k, v in out[policy].items() if k != "corr_episode_reward_sums"}
         assert all(_finite(v) for v in numbers.values())
         assert out[policy]["reward_abs_err_per_step"] >= 0
+
+
+def test_stage_reached(made, monkeypatch, capsys):
+    script = _script("stage_reached")
+    out = json.loads(_run(script, [str(made.runs["tdmpc2"]), "3"], monkeypatch, capsys))
+    assert out["task"] == "pick-cube" and out["task_step"] == 100
+    assert len(out["success"]) == len(out["best_raw"]) == len(out["steps"]) == 3
+    assert all(0.0 <= r <= 10.0 for r in out["best_raw"])
+    pairs = zip(out["steps_at_5_or_more"], out["steps"], strict=True)
+    assert all(0 <= k <= n <= EPISODE_STEPS for k, n in pairs)

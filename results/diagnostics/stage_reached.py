@@ -1,0 +1,68 @@
+"""How far along its task's shaped reward a single-task run's policy gets.
+
+    python results/diagnostics/stage_reached.py RUNS/box-pnp-close-tdmpc2-s0-demo0.25 [LAYOUTS]
+
+The composition tasks score their stages on the scene's raw reward in [0, 10] (box-pnp-close:
+0-5 carrying the cube onto the box's floor, 5-10 with the cube inside while the lid is
+brought, 10 on success); the benchmark's reward rescales it to [-1, 0]. A normalised return
+near the floor hides which stage a policy reaches; the raw reward along its episodes shows it.
+With the run's last weights, acting as evaluation does (MPPI, eval mode) on the run's first
+LAYOUTS evaluation layouts (default 10): per layout, success, the best raw reward and the
+steps spent at 5 or more. One JSON line.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ccdata.env import make_env
+from ccfit.io import seeded
+from ccfit.train import load_task_run
+from ccfit.train.evaluate import eval_seeds, play_episodes
+
+NOISE_SEED = 1
+
+
+class RawRewards:
+    """An environment whose steps also keep the scene's raw reward (`info['raw_reward']`)."""
+
+    def __init__(self, env) -> None:
+        self.env, self.raw = env, []
+
+    def reset(self, **kwargs):
+        self.raw = []
+        return self.env.reset(**kwargs)
+
+    def step(self, action):
+        out = self.env.step(action)
+        self.raw.append(float(out[4]["raw_reward"]))
+        return out
+
+
+def main() -> None:
+    torch.set_num_threads(1)
+    run = Path(sys.argv[1])
+    layouts = int(sys.argv[2]) if len(sys.argv) > 2 else 10
+    loaded = load_task_run(run, "cpu")
+    cfg = loaded.cfg
+    envs = [RawRewards(make_env(cfg.task)) for _ in range(layouts)]
+    with seeded(NOISE_SEED, loaded.model.device):
+        episodes = play_episodes(envs, loaded.model, loaded.heads, obs_mode="state",
+                                 seeds=eval_seeds(cfg.seed, 0, layouts))  # fmt: skip
+    raw = [np.asarray(env.raw) for env in envs]
+    print(json.dumps({
+        "run": run.name, "task": cfg.task, "task_step": loaded.checkpoint["task_step"],
+        "success": [e.success for e in episodes],
+        "best_raw": [round(float(r.max()), 2) for r in raw],
+        "steps_at_5_or_more": [int((r >= 5).sum()) for r in raw],
+        "steps": [len(r) for r in raw],
+    }))  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
