@@ -579,7 +579,8 @@ def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
     out = tmp_path / "report"
     assert main(["report", str(runs.root), "--out", str(out)]) == 0
     printed = set(capsys.readouterr().out.split())
-    expected = {"table_tdmpc2.md", "table_tdmpc2.csv", "bars_tdmpc2.png", "summary.json"}
+    expected = {"table_tdmpc2.md", "table_tdmpc2.csv", "bars_tdmpc2.png", "summary.json",
+                "orderings.md"}  # fmt: skip
     expected |= {f"curves_tdmpc2_{SUITE}_{m}.png" for m in METHODS}
     assert {p.name for p in out.iterdir()} == expected
     assert printed == {str(out / name) for name in expected}
@@ -598,6 +599,9 @@ def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
     header = next(line for line in md if line.startswith("| suite"))
     assert all(f"| {m} BWT | {m} F | {m} FWT |" in header for m in METHODS)
     assert [line.split("|")[1].strip() for line in md if line.startswith(f"| {SUITE}")] == [SUITE]
+    orderings = (out / "orderings.md").read_text()
+    for ordering in ("PackNet forgets least, FT most", "ER transfers most"):
+        assert f"| {ordering} | tdmpc2 | {SUITE} |" in orderings
     summary = json.loads((out / "summary.json").read_text())
     assert sorted(summary) == sorted(f"tdmpc2/{SUITE}/{m}" for m in METHODS)
     assert all(summary[f"tdmpc2/{SUITE}/{m}"]["seeds"] == [0] for m in METHODS)
