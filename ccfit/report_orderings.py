@@ -119,22 +119,27 @@ def _less_bwt(groups: dict[Key, Group], lower: str, higher: str, pairs: Pairs) -
                 yield f"{a} vs {b}", label, verdict, "BWT " + evidence
 
 
+def _method_rank(m: str) -> tuple[int, str]:
+    return (METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER), m)
+
+
+def _same_methods(a: set[str], b: set[str]) -> list[tuple[str, str]]:
+    return [(m, m) for m in sorted(a & b, key=_method_rank)]
+
+
+def _experts_against_each(a: set[str], b: set[str]) -> list[tuple[str, str]]:
+    return [("experts", m) for m in sorted(b, key=_method_rank)] if "experts" in a else []
+
+
 def dreamerv3_forgets_less(groups: dict[Key, Group]) -> Iterator[Row]:
     """Under every method both backbones ran."""
-    same = lambda a, b: [(m, m) for m in sorted(a & b, key=_method_rank)]  # noqa: E731
-    yield from _less_bwt(groups, "dreamerv3", "tdmpc2", same)
+    yield from _less_bwt(groups, "dreamerv3", "tdmpc2", _same_methods)
 
 
 def pwm_experts_forgets_less(groups: dict[Key, Group]) -> Iterator[Row]:
     """PWM with experts against TD-MPC2 under each method it ran, both through a frozen
     encoder."""
-    experts = lambda a, b: [("experts", n) for n in sorted(b, key=_method_rank)  # noqa: E731
-                            if "experts" in a]  # fmt: skip
-    yield from _less_bwt(groups, "pwm+frozen-enc", "tdmpc2+frozen-enc", experts)
-
-
-def _method_rank(m: str) -> tuple[int, str]:
-    return (METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER), m)
+    yield from _less_bwt(groups, "pwm+frozen-enc", "tdmpc2+frozen-enc", _experts_against_each)
 
 
 ORDERINGS: dict[str, Callable[[dict[Key, Group]], Iterator[Row]]] = {
