@@ -39,7 +39,18 @@ def publish(runs: Path, out: Path) -> list[Path]:
         written += _copy(scratch, out / rel.parent / SCRATCH / scratch.name, SCRATCH_FILES)
     if (runs / SWEEP_JSON).is_file():
         written += _copy(runs, out, (SWEEP_JSON,))
-    return sorted(set(written)) + write_report([out], out / REPORT)
+    return sorted(set(written)) + _rewrite_report(out)
+
+
+def _rewrite_report(out: Path) -> list[Path]:
+    """`out/report` rebuilt whole: written beside it, then put in its place, so no file of an
+    earlier report (a figure of a group that no longer exists) outlives it."""
+    fresh, report = out / f".{REPORT}.new", out / REPORT
+    shutil.rmtree(fresh, ignore_errors=True)
+    written = write_report([out], fresh)
+    shutil.rmtree(report, ignore_errors=True)
+    fresh.rename(report)
+    return [report / p.relative_to(fresh) for p in written]
 
 
 def _copy(src: Path, dst: Path, names: tuple[str, ...]) -> list[Path]:

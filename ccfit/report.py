@@ -84,6 +84,11 @@ PER_SEED = (
 )
 """Flattened config keys (fnmatch patterns) that differ between the seeds of one experiment
 and so do not split groups: the seed, seeds derived from it, where outputs went."""
+AS_RUN = ("resolved_compile", "resolved_seed_dataset")
+"""Records of how a run was computed, not of what: which of the model's functions this code
+version compiled (eager and compiled compute the same within float tolerance), and where the
+seed dataset lay on the machine that ran it. Seeds run by two code versions or on two machines
+still average."""
 CURVE_KEYS = {"online": "normalized_return", TRACK: SCORE_KEY}
 """Per track, what a record's curve value is."""
 AXES = ("suite", "model", "method", "encoder", "track")
@@ -91,7 +96,7 @@ AXES = ("suite", "model", "method", "encoder", "track")
 
 
 def _is_per_seed(key: str) -> bool:
-    return any(fnmatch.fnmatchcase(key, p) for p in PER_SEED)
+    return key in AS_RUN or any(fnmatch.fnmatchcase(key, p) for p in PER_SEED)
 
 
 def _axis_name(config: dict, name: str) -> Any:
@@ -151,7 +156,7 @@ class Run:
 
     @property
     def identity(self) -> dict[str, Any]:
-        """The flattened config without what may differ between seeds (`PER_SEED`)."""
+        """The flattened config without what may differ between seeds (`PER_SEED`, `AS_RUN`)."""
         return {k: v for k, v in flatten(self.config).items() if not _is_per_seed(k)}
 
 

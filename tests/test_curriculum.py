@@ -622,6 +622,11 @@ def test_publish_keeps_small_files_and_its_report_rebuilds_from_them(runs, tmp_p
     assert not [p for p in files if p.suffix in (".pt", ".parquet", ".npz", ".mp4")]
     assert all(p.stat().st_size <= MAX_FILE_BYTES for p in files)
     assert {p.parent.name for p in published.glob("*/metrics.json")} == set(METHODS)
+    # published again, the report is rebuilt whole: a file of an earlier one does not survive
+    (published / "report" / "curves_of_a_group_gone.png").write_bytes(b"")
+    assert main(["publish", str(runs.root), "--out", str(published)]) == 0
+    assert not (published / "report" / "curves_of_a_group_gone.png").exists()
+    assert (published / "report" / "table_tdmpc2.md").is_file()
     # moved elsewhere, the copy alone rebuilds the same tables (scratch found beside the runs)
     moved = tmp_path / "moved"
     published.rename(moved)

@@ -140,10 +140,15 @@ def test_report_refuses_to_average_runs_differing_in_obs_mode(tmp_path):
     assert sorted(summary) == [f"tdmpc2/{SUITE}/ft [obs=pixels]", f"tdmpc2/{SUITE}/ft [obs=state]"]
 
 
-def test_step_budget_and_method_options_split_groups_but_output_paths_do_not(tmp_path):
+def test_step_budget_and_method_options_split_groups_but_output_paths_and_as_run_records_do_not(
+    tmp_path,
+):
     root = tmp_path / "runs"
-    write_run(root, "a", config(out="/x/a", derived_seed=11), 1.0)
-    write_run(root, "b", config(out="/y/b", derived_seed=12, seed=1), 1.0)
+    write_run(root, "a", config(out="/x/a", derived_seed=11, resolved_compile=["loss"],
+                                resolved_seed_dataset="/here/Reach"), 1.0)  # fmt: skip
+    write_run(root, "b", config(out="/y/b", derived_seed=12, seed=1, resolved_compile=["plan"],
+                                resolved_seed_dataset="/there/Reach"), 1.0)  # fmt: skip
+    write_run(root, "e", config(resolved_autocast="bf16"), 1.0)  # what it computed in: splits
     longer = config()
     longer["train"]["steps"] = 2 * STEPS
     write_run(root, "c", longer, 1.0)
@@ -154,6 +159,7 @@ def test_step_budget_and_method_options_split_groups_but_output_paths_do_not(tmp
         "train.steps=100": ["a", "b"],
         "train.steps=200": ["c"],
         "method_options.lam=10, train.steps=100": ["d"],
+        "resolved_autocast=bf16, train.steps=100": ["e"],
     }
     assert all(np.isfinite(g["bwt"]) for g in load_groups([root]).values())
 
