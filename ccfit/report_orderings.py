@@ -55,32 +55,35 @@ def _undefined(methods: dict[str, Group], metric: str) -> list[str]:
     return [m for m, g in methods.items() if g[metric] is None]
 
 
-def packnet_least_ft_most(groups: dict[Key, Group]) -> Iterator[Row]:
+def _within_backbones(groups: dict[Key, Group], metric: str, needs: set[str],
+                      holds: Callable[[dict[str, float]], bool], descending: bool
+                      ) -> Iterator[Row]:  # fmt: skip
+    """A row per (backbone, suite, variant) with the methods `needs` and one more at least:
+    whether `holds(metric per method)`, the methods ranked by `metric`."""
     for (backbone, suite, variant), methods in _scopes(groups).items():
-        if not {"ft", "packnet"} <= set(methods):
+        if not needs <= set(methods) or len(methods) < 2:
             continue
         label = row_label(suite, variant)
-        missing = _undefined(methods, "bwt")
+        missing = _undefined(methods, metric)
         if missing:
-            yield backbone, label, "n/a", f"BWT undefined for {', '.join(missing)}"
+            yield backbone, label, "n/a", f"{metric.upper()} undefined for {', '.join(missing)}"
             continue
-        bwt = {m: g["bwt"] for m, g in methods.items()}
-        holds = bwt["packnet"] == min(bwt.values()) and bwt["ft"] == max(bwt.values())
-        yield backbone, label, "yes" if holds else "no", _ranked(methods, "bwt", False)
+        verdict = holds({m: g[metric] for m, g in methods.items()})
+        yield backbone, label, "yes" if verdict else "no", _ranked(methods, metric, descending)
+
+
+def packnet_least_ft_most(groups: dict[Key, Group]) -> Iterator[Row]:
+    def holds(bwt: dict[str, float]) -> bool:
+        return bwt["packnet"] == min(bwt.values()) and bwt["ft"] == max(bwt.values())
+
+    yield from _within_backbones(groups, "bwt", {"ft", "packnet"}, holds, descending=False)
 
 
 def er_transfers_most(groups: dict[Key, Group]) -> Iterator[Row]:
-    for (backbone, suite, variant), methods in _scopes(groups).items():
-        if "er" not in methods or len(methods) < 2:
-            continue
-        label = row_label(suite, variant)
-        missing = _undefined(methods, "fwt")
-        if missing:
-            yield backbone, label, "n/a", f"FWT undefined for {', '.join(missing)}"
-            continue
-        fwt = {m: g["fwt"] for m, g in methods.items()}
-        holds = fwt["er"] == max(fwt.values())
-        yield backbone, label, "yes" if holds else "no", _ranked(methods, "fwt", True)
+    def holds(fwt: dict[str, float]) -> bool:
+        return fwt["er"] == max(fwt.values())
+
+    yield from _within_backbones(groups, "fwt", {"er"}, holds, descending=True)
 
 
 Pairs = Callable[[set[str], set[str]], list[tuple[str, str]]]
