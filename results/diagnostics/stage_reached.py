@@ -6,9 +6,9 @@ The composition tasks score their stages on the scene's raw reward in [0, 10] (b
 0-5 carrying the cube onto the box's floor, 5-10 with the cube inside while the lid is
 brought, 10 on success); the benchmark's reward rescales it to [-1, 0]. A normalised return
 near the floor hides which stage a policy reaches; the raw reward along its episodes shows it.
-With the run's last weights, acting as evaluation does (MPPI, eval mode) on the run's first
-LAYOUTS evaluation layouts (default 10): per layout, success, the best raw reward and the
-steps spent at 5 or more. One JSON line.
+With the run's last weights, acting as evaluation does (MPPI, eval mode, the run's
+observations) on the run's first LAYOUTS evaluation layouts (default 10): per layout,
+success, the best raw reward and the steps spent at 5 or more. One JSON line.
 """
 
 from __future__ import annotations
@@ -50,9 +50,11 @@ def main() -> None:
     layouts = int(sys.argv[2]) if len(sys.argv) > 2 else 10
     loaded = load_task_run(run, "cpu")
     cfg = loaded.cfg
-    envs = [RawRewards(make_env(cfg.task)) for _ in range(layouts)]
+    pixels = cfg.obs == "pixels"  # cameras only where the run observed through them
+    envs = [RawRewards(make_env(cfg.task, render=pixels, image_size=cfg.image_size))
+            for _ in range(layouts)]  # fmt: skip
     with seeded(NOISE_SEED, loaded.model.device):
-        episodes = play_episodes(envs, loaded.model, loaded.heads, obs_mode="state",
+        episodes = play_episodes(envs, loaded.model, loaded.heads, obs_mode=cfg.obs,
                                  seeds=eval_seeds(cfg.seed, 0, layouts))  # fmt: skip
     raw = [np.asarray(env.raw) for env in envs]
     print(json.dumps({
