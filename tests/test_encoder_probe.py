@@ -3,6 +3,7 @@ on real renders through a (random) frozen encoder."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 
 import numpy as np
@@ -58,6 +59,9 @@ def test_probe_reports_the_positions_each_task_varies(encoder_path, tmp_path, ca
     assert main(["probe-encoder", str(encoder_path), "--tasks", "reach-xy,reach-xyz",
                  "--frames", "30", "--out", str(out)]) == 0  # fmt: skip
     result = json.loads((out / "probe.json").read_text())
+    # the encoder by name and content: no path of the machine that probed it
+    assert result["encoder"] == "enc.safetensors" and str(tmp_path) not in json.dumps(result)
+    assert result["encoder_sha256"] == hashlib.sha256(encoder_path.read_bytes()).hexdigest()
     rows = {(r["task"], r["position"]): r for r in result["rows"]}
     # Reach has no object; reach-xy's goal moves in x and y only, reach-xyz's in all three.
     assert set(rows) == {(t, p) for t in ("reach-xy", "reach-xyz") for p in ("hand", "goal")}

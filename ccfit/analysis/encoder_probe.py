@@ -16,6 +16,7 @@ not is one the encoder dropped.
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -112,7 +113,11 @@ def probe_encoder(path: str | Path, task_ids: list[str], frames: int = 1000, wal
     for task_id in task_ids:
         data = collect(encoder, task_id, frames, int(spec["image_size"]), walk, seed)
         rows += probe_rows(task_id, data)
-    return {"encoder": str(Path(path).resolve()), "frames": frames, "walk": walk,
+    # The weights by name and content, not by where they lay on the machine that probed them.
+    weights = Path(path)
+    return {"encoder": weights.name,
+            "encoder_sha256": hashlib.sha256(weights.read_bytes()).hexdigest(),
+            "frames": frames, "walk": walk,
             "seed": seed, "ridge": RIDGE, "train_fraction": TRAIN_FRACTION, "pool": POOL,
             "rows": rows}  # fmt: skip
 
