@@ -47,6 +47,7 @@ from ccfit.report_orderings import write_orderings
 from ccfit.report_plots import (
     METHOD_ORDER,
     method_columns,
+    metric_cell,
     plot_bars,
     plot_curves,
     row_label,
@@ -294,14 +295,6 @@ def differing_settings(groups: dict, backbone: str) -> list[str]:
     return list(dict.fromkeys(names))
 
 
-def _cell(g: dict, name: str) -> str:
-    if g[name] is None:
-        return "n/a"
-    if len(g["seeds"]) == 1:
-        return f"{g[name]:.2f}"
-    return f"{g[name]:.2f} [{g[f'{name}_min']:.2f}, {g[f'{name}_max']:.2f}]"
-
-
 def _rows(groups: dict, backbone: str) -> list[tuple[str, str]]:
     return sorted({(k[1], k[3]) for k in groups if k[0] == backbone})
 
@@ -316,7 +309,7 @@ def write_tables(groups: dict, out: Path) -> list[Path]:
             row = [row_label(suite, variant)]
             for m in methods:
                 g = groups.get((backbone, suite, m, variant))
-                row += [_cell(g, x) if g else "" for x in METRICS_SHOWN]
+                row += [metric_cell(g, x) if g else "" for x in METRICS_SHOWN]
             rows.append(row)
         lines = [
             f"# {backbone}: BWT and F (lower is better), FWT (higher is better)",

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from ccfit.io import atomic_write_text
-from ccfit.report_plots import METHOD_ORDER, row_label
+from ccfit.report_plots import METHOD_ORDER, metric_cell, row_label
 
 Group = dict
 Key = tuple[str, str, str, str]  # backbone, suite, method, variant
@@ -26,15 +26,6 @@ ORDERINGS_MD = "orderings.md"
 TRACK_SUFFIXES = ("", "-offline")
 """Backbone label endings of the two tracks (`ccfit.report.Run.backbone`): a comparison
 across backbones stays inside one track."""
-
-
-def _value(g: Group, metric: str) -> str:
-    v = g[metric]
-    if v is None:
-        return "n/a"
-    if len(g["seeds"]) == 1:
-        return f"{v:.2f}"
-    return f"{v:.2f} [{g[f'{metric}_min']:.2f}, {g[f'{metric}_max']:.2f}]"
 
 
 def _scopes(groups: dict[Key, Group]) -> dict[tuple[str, str, str], dict[str, Group]]:
@@ -48,7 +39,7 @@ def _scopes(groups: dict[Key, Group]) -> dict[tuple[str, str, str], dict[str, Gr
 def _ranked(methods: dict[str, Group], metric: str, descending: bool) -> str:
     order = sorted(methods, key=lambda m: methods[m][metric], reverse=descending)
     sign = " > " if descending else " < "
-    return f"{metric.upper()} " + sign.join(f"{m} {_value(methods[m], metric)}" for m in order)
+    return f"{metric.upper()} " + sign.join(f"{m} {metric_cell(methods[m], metric)}" for m in order)
 
 
 def _undefined(methods: dict[str, Group], metric: str) -> list[str]:
@@ -109,8 +100,8 @@ def _less_bwt(groups: dict[Key, Group], lower: str, higher: str, pairs: Pairs) -
                 undefined = [f"{a} {m}" for m, _ in compared if ma[m]["bwt"] is None]
                 undefined += [f"{b} {n}" for _, n in compared if mb[n]["bwt"] is None]
                 evidence = "; ".join(
-                    f"{m} {_value(ma[m], 'bwt')} vs "
-                    + ", ".join(f"{n} {_value(mb[n], 'bwt')}" for k, n in compared if k == m)
+                    f"{m} {metric_cell(ma[m], 'bwt')} vs "
+                    + ", ".join(f"{n} {metric_cell(mb[n], 'bwt')}" for k, n in compared if k == m)
                     for m in dict.fromkeys(m for m, _ in compared)
                 )
                 if undefined:
@@ -168,7 +159,8 @@ def write_orderings(groups: dict[Key, Group], out: Path) -> Path:
         "",
         "Each finding of the paper checked on the metrics of the seed-averaged curves (BWT: "
         "lower forgets less; FWT: higher transfers more), where the runs it needs are here; "
-        "[min, max] over seeds beside each value.",
+        "[min, max] over seeds beside each value. A verdict is the order of the means: "
+        "'most', 'least' and 'far less' are checked as the strict order.",
         "",
         "| ordering | backbone | suite | holds | values |",
         "|---|---|---|---|---|",

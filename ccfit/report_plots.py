@@ -20,6 +20,16 @@ def row_label(suite: str, variant: str) -> str:
     return f"{suite} [{variant}]" if variant else suite
 
 
+def metric_cell(g: dict, name: str) -> str:
+    """A group's metric as tables print it: the seed-averaged value, [min, max] over seeds when
+    there are several, 'n/a' when undefined."""
+    if g[name] is None:
+        return "n/a"
+    if len(g["seeds"]) == 1:
+        return f"{g[name]:.2f}"
+    return f"{g[name]:.2f} [{g[f'{name}_min']:.2f}, {g[f'{name}_max']:.2f}]"
+
+
 def slug(variant: str) -> str:
     """A file-name-safe form of a variant label."""
     return re.sub(r"[^A-Za-z0-9.=+-]+", "_", variant).strip("_")

@@ -84,7 +84,8 @@ def read_run(run: Path) -> dict | None:
     stopped = train.get("stop_score") is not None and stop_reached(
         [r["normalized_return"] for r in records[:-1]], train["stop_score"], train["stop_evals"]
     )
-    if max(r["task_step"] for r in records) < steps and not stopped:
+    trained = max(int(r["task_step"]) for r in records)
+    if trained < steps and not stopped:
         return None
     scores = [r["normalized_return"] for r in records if r["normalized_return"] is not None]
     cost = read_cost(run)
@@ -104,7 +105,7 @@ def read_run(run: Path) -> dict | None:
         "suites": [s.name for s in SUITES.values() if task in s.task_ids],
         "task": task, "model": model, "seed": cfg["seed"],
         "preset": cfg["preset"], "obs": cfg["obs"], "budget": steps,
-        "trained": max(int(r["task_step"]) for r in records),
+        "trained": trained,
         "eval_interval": int(cfg["train"]["eval_interval"]),
         **{f"steps_to_{t}": first_step_at(records, t) for t in THRESHOLDS},
         "best": max(scores) if scores else None, "last": scores[-1] if scores else None,
