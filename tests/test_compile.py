@@ -181,3 +181,27 @@ def test_a_device_check_stays_inside_the_compiled_graph():
         compiled(-torch.ones(3))
     with pytest.raises(ValueError, match="negative input"):  # eager on a CPU: the input's fault
         checked(-torch.ones(3))
+
+
+def test_one_compiled_pwm_plan_and_loss_serve_every_task():
+    # PWM routes by the heads' task; read as a Python int it made Dynamo compile the plan and
+    # the loss again for every task of a curriculum (24 plans in a 4-task one, past the
+    # recompile limit, after which the plan ran eager).
+    from torch._dynamo.testing import CompileCounter
+
+    cfg = config_class("pwm").preset("smoke", max_tasks=4)
+    model = make_model(cfg, "cpu")
+    heads = []
+    for task in range(3):
+        model.begin_task(task, 1000)
+        heads.append(model.new_heads())
+    plans, losses = CompileCounter(), CompileCounter()
+    torch._dynamo.reset()
+    model.plan = types.MethodType(torch.compile(type(model).plan, backend=plans), model)
+    model.loss = types.MethodType(torch.compile(type(model).loss, backend=losses), model)
+    for task, h in enumerate(heads):
+        batch = random_buffer(cfg, seed=1, steps=(10, 20), task=task).sample(4, cfg.seq_len)
+        model.loss(batch, h)
+        with torch.no_grad():
+            model.act({k: v[0, :1] for k, v in batch.obs.items()}, h, None, eval_mode=True)
+    assert (plans.frame_count, losses.frame_count) == (1, 1)

@@ -132,12 +132,14 @@ class PWM(TDMPC2, Routing):
     def loss(self, batch: Batch, heads: nn.Module) -> LossOutput:
         h = _pwm_heads(heads)
         task = self._batch_task(batch)
-        own = h.task
+        # The heads' task as a tensor, never `h.task`: a compiled loss would specialise on the
+        # int and recompile for every task.
+        own = h.task_index
         if self.cfg.router == "task":
             check_on_device(
                 (task == own).all(),
-                f"PWM: heads of task {own} trained on a batch of other tasks; call "
-                "model.begin_task(i) before new_heads() and label the replay with the task index",
+                "PWM: heads trained on a batch of another task; call model.begin_task(i) "
+                "before new_heads() and label the replay with the task index",
             )
         with self.routing_task(task), self.dynamics.recording_entropy() as record:
             out = super().loss(batch, h)
@@ -145,7 +147,7 @@ class PWM(TDMPC2, Routing):
         # per update of the task being trained, never when ER replays stored heads.
         out.aux["routing_entropy"] = torch.stack(record).mean()
         out.logs["routing_entropy"] = out.aux["routing_entropy"]
-        out.logs["tau"] = self.dynamics.tau[own].detach().clone()
+        out.logs["tau"] = self.dynamics.tau[own.view(1)].squeeze(0)  # a copy, by a 1-d index
         return out
 
     def backbone_loss(self, batch: Batch) -> torch.Tensor:
@@ -189,7 +191,8 @@ class PWM(TDMPC2, Routing):
     ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
         """TD-MPC2's MPPI, routed with the task the heads belong to."""
         h = _pwm_heads(heads)
-        with self.routing_task(h.task):
+        # Routed by the heads' task tensor: one compiled plan serves every task.
+        with self.routing_task(h.task_index):
             return super().plan(z, h, prev_mean, eval_mode=eval_mode)
 
 
