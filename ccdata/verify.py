@@ -151,12 +151,17 @@ def _read_tasks(root: Path, info: dict, findings: list[str]) -> dict[int, str] |
     return tasks
 
 
-def _read_episodes(root: Path, info: dict, findings: list[str]):
-    paths = sorted((root / "meta/episodes").rglob("*.parquet"))
+def _read_folder(root: Path, folder: str, what: str, findings: list[str]):
+    """The parquet files under `folder` as one table, or None with a finding."""
+    paths = sorted((root / folder).rglob("*.parquet"))
     if not paths:
-        findings.append("no meta/episodes/*.parquet files")
+        findings.append(f"no {folder}/*.parquet files")
         return None
-    table = _read_parquets(paths, "episode metadata", findings)
+    return _read_parquets(paths, what, findings)
+
+
+def _read_episodes(root: Path, info: dict, findings: list[str]):
+    table = _read_folder(root, "meta/episodes", "episode metadata", findings)
     if table is None:
         return None
     df = table.to_pandas().sort_values("episode_index").reset_index(drop=True)
@@ -176,11 +181,7 @@ def _read_episodes(root: Path, info: dict, findings: list[str]):
 
 
 def _read_data(root: Path, info: dict, findings: list[str]):
-    paths = sorted((root / "data").rglob("*.parquet"))
-    if not paths:
-        findings.append("no data/*.parquet files")
-        return None
-    table = _read_parquets(paths, "data", findings)
+    table = _read_folder(root, "data", "data", findings)
     if table is None:
         return None
     feats = info.get("features", {})

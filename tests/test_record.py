@@ -414,6 +414,12 @@ def test_verify_reports_corruption(tiny, tmp_path):
     assert any("must be its final observation" in f for f in findings)
     assert any("frames in data" in f for f in findings)
 
+    no_episodes = tmp_path / "no-episodes"
+    shutil.copytree(root, no_episodes)
+    for path in (no_episodes / "meta/episodes").rglob("*.parquet"):
+        path.unlink()
+    assert "no meta/episodes/*.parquet files" in verify_dataset(no_episodes)
+
 
 def test_merger_batches_complete_chunks_only(tiny, tmp_path):
     """`merge_chunks` batches each chunk whose pieces are all written; the final merge puts
