@@ -114,6 +114,23 @@ def _open_metadata(source: str | Path, endpoint: str | None = None) -> tuple[_Me
     return _Metadata(info, episodes.set_index(EPISODE_INDEX), tasks), root
 
 
+def dataset_meta(source: str | Path, endpoint: str | None = None) -> dict:
+    """What a run records of a dataset beside its path, which alone does not say what lay
+    there: its size and, for a ccdata dataset (meta/ccdata.json), its repo id and the
+    `ccdata generate` settings and package versions that made it."""
+    meta, root = _open_metadata(source, endpoint)
+    out = {k: meta.info.get(k) for k in ("total_episodes", "total_frames")}
+    path = root / CCDATA_META
+    if path.is_file():
+        try:
+            made = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise InputError(f"cannot read {path}: {e}") from None
+        out |= {"repo_id": made.get("repo_id"), "generated_with": made.get("config"),
+                "versions": made.get("versions")}  # fmt: skip
+    return out
+
+
 def _id_maps(root: Path) -> tuple[dict[str, int], dict[str, int]]:
     """task id -> task_id_index and policy name -> policy_index, from meta/ccdata.json."""
     path = root / CCDATA_META

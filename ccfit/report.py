@@ -85,11 +85,13 @@ PER_SEED = (
 )
 """Flattened config keys (fnmatch patterns) that differ between the seeds of one experiment
 and so do not split groups: the seed, seeds derived from it, where outputs went."""
-AS_RUN = ("resolved_compile", "resolved_seed_dataset")
+AS_RUN = ("resolved_compile", "resolved_seed_dataset", "resolved_seed_dataset_meta",
+          "resolved_dataset_meta")  # fmt: skip
 """Records of how a run was computed, not of what: which of the model's functions this code
-version compiled (eager and compiled compute the same within float tolerance), and where the
-seed dataset lay on the machine that ran it. Seeds run by two code versions or on two machines
-still average."""
+version compiled (eager and compiled compute the same within float tolerance), where the seed
+dataset lay on the machine that ran it and what the run recorded of its datasets (runs made
+before that record existed have none). Seeds run by two code versions or on two machines still
+average."""
 CURVE_KEYS = {"online": "normalized_return", TRACK: SCORE_KEY}
 """Per track, what a record's curve value is."""
 AXES = ("suite", "model", "method", "encoder", "track")
@@ -97,7 +99,7 @@ AXES = ("suite", "model", "method", "encoder", "track")
 
 
 def _is_per_seed(key: str) -> bool:
-    return key in AS_RUN or any(fnmatch.fnmatchcase(key, p) for p in PER_SEED)
+    return key.partition(".")[0] in AS_RUN or any(fnmatch.fnmatchcase(key, p) for p in PER_SEED)
 
 
 def _axis_name(config: dict, name: str) -> Any:

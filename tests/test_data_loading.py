@@ -204,6 +204,10 @@ def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
     assert main([*base, "--task", "reach-xy", "--out", str(out)]) == 0
     saved = json.loads((out / "config.json").read_text())
     assert saved["train"]["demo_fraction"] == 0.25
+    # Beside the dataset's path, what lay there: its size and how ccdata made it.
+    recorded = saved["resolved_seed_dataset_meta"]
+    assert (recorded["total_episodes"], recorded["repo_id"]) == (2, "ccdata/Reach")
+    assert recorded["generated_with"]["suite"] == "Reach" and "lerobot" in recorded["versions"]
     assert len(fractions) >= 100 and set(fractions) == {0.25}  # smoke: 1 update per step
     # A ring of one episode's rows: the online episodes overwrite the oracle's (failed before).
     small = ["--train.buffer_capacity=251", "--train.steps=600", "--train.eval_interval=600"]

@@ -145,7 +145,8 @@ def test_step_budget_and_method_options_split_groups_but_output_paths_and_as_run
 ):
     root = tmp_path / "runs"
     write_run(root, "a", config(out="/x/a", derived_seed=11, resolved_compile=["loss"],
-                                resolved_seed_dataset="/here/Reach"), 1.0)  # fmt: skip
+                                resolved_seed_dataset="/here/Reach",
+                                resolved_seed_dataset_meta={"total_episodes": 8}), 1.0)  # fmt: skip
     write_run(root, "b", config(out="/y/b", derived_seed=12, seed=1, resolved_compile=["plan"],
                                 resolved_seed_dataset="/there/Reach"), 1.0)  # fmt: skip
     write_run(root, "e", config(resolved_autocast="bf16"), 1.0)  # what it computed in: splits

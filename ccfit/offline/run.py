@@ -33,6 +33,7 @@ from ccfit import metrics as M
 from ccfit.config_base import identity, resolve_device
 from ccfit.continual.base import ContinualMethod, make_method
 from ccfit.curriculum import METRICS_JSON, REFERENCE_DONE
+from ccfit.data import dataset_meta
 from ccfit.io import (
     atomic_torch_save,
     atomic_write_json,
@@ -65,6 +66,7 @@ def resolved_config(cfg: OfflineConfig, source: str) -> dict:
         **cfg.to_dict(),
         "track": TRACK,
         "resolved_dataset": source,
+        "resolved_dataset_meta": dataset_meta(source, cfg.dataset_endpoint),
         "resolved_device": str(resolve_device(cfg.fit.device)),
         "measurement_space": cfg.measurement_space,
         "render": render_settings(cfg).to_dict(),

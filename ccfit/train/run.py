@@ -18,6 +18,7 @@ from ccdata.render import RenderSettings
 from ccfit.config import BaseRunConfig, RunConfig, TaskRunConfig
 from ccfit.config_base import ConfigError, identity, resolve_device
 from ccfit.config_parse import flatten
+from ccfit.data import dataset_meta
 from ccfit.io import atomic_write_json, derived_seed, seed_everything
 from ccfit.models.base import WorldModel
 from ccfit.models.registry import make_model, model_class
@@ -41,8 +42,8 @@ def render_settings(cfg: BaseRunConfig) -> RenderSettings:
 
 def resolved_config(cfg: RunConfig, suite: str | None) -> dict:
     """config.json of a run: the config, plus what it resolved to where it runs: the seed
-    dataset ('auto'), the device ('auto'), the compiled methods, the precision and the render
-    settings."""
+    dataset ('auto') and what it holds, the device ('auto'), the compiled methods, the precision
+    and the render settings."""
     device = resolve_device(cfg.train.device)
     source = dataset_source(cfg, suite)
     if cfg.train.demo_fraction > 0 and source is None:
@@ -51,9 +52,11 @@ def resolved_config(cfg: RunConfig, suite: str | None) -> dict:
                           f"demonstrations, but --seed_dataset auto found no local dataset of "
                           f"suite {suite} (`ccdata generate --suite {suite}`, name one, or "
                           f"--train.demo_fraction=0)")  # fmt: skip
+    meta = None if source is None else dataset_meta(source, cfg.dataset_endpoint)
     return {
         **cfg.to_dict(),
         "resolved_seed_dataset": source,
+        "resolved_seed_dataset_meta": meta,
         "resolved_device": str(device),
         "resolved_compile": compiled_paths(model_class(cfg.model.type), cfg.train.compile, device),
         "resolved_autocast": resolve_autocast(cfg.train.autocast, device),
