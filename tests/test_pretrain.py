@@ -75,7 +75,8 @@ def test_loss_falls_split_and_sidecar(reach_root, tmp_path):
     assert data["frames"] == {"train": 27, "heldout": 9}  # 9 frames an episode: 8 + final
     suite = data["suites"][0]
     assert suite["repo_id"] == "ccdata/Reach" and suite["root"] == str(reach_root.resolve())
-    assert sum(suite["oracle_episodes"].values()) == 4
+    assert sum(suite["oracle_episodes"].values()) == 4 == suite["total_episodes"]
+    assert suite["generated_with"]["suite"] == "Reach"
     assert side["spec"]["latent_dim"] == make_config(reach_root).encoder_config().latent_dim
     assert side["seed"] == 0 and torch.__version__.startswith(side["versions"]["torch"])
     assert side["metrics"] == json.loads(json.dumps(metrics))

@@ -97,7 +97,7 @@ def load_oracle_frames(config: PretrainConfig, progress: bool = False) -> tuple[
 
     Returns (frames, per-suite manifest entries)."""
     from ccdata.dataset_format import read_ccdata_metadata
-    from ccfit.data import load_episodes
+    from ccfit.data import dataset_meta, load_episodes
 
     check_datasets(config)
     store = FrameStore([], [], [])
@@ -148,7 +148,7 @@ def load_oracle_frames(config: PretrainConfig, progress: bool = False) -> tuple[
         for t in wanted:
             taken[t] = suite
         manifest.append({
-            "suite": suite, "repo_id": meta.get("repo_id"), "root": str(root),
+            "suite": suite, "root": str(root), **dataset_meta(root),
             "render": meta.get("render"), "oracle_episodes": counts,
             "shared_tasks_read_elsewhere": {t: taken[t] for t in task_ids if t not in wanted},
         })  # fmt: skip
