@@ -50,7 +50,8 @@ def compile_hot_paths(model: WorldModel, setting: str,
         torch._functorch.config.donated_buffer = False
         # A plan specialises on batch 1 or more (an evaluation batch shrinks as its episodes
         # end), a warm start or none, eval_mode and the heads' train flag: 16 variants, twice
-        # Dynamo's default limit, past which it silently runs eager.
+        # Dynamo's default limit, past which it silently runs eager. A run meets 3 of them
+        # (test_compile); PWM's plan meets them once per number of active expert groups.
         torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 32)
     for name in names:
         # Compile the class's function, bound to the model: compiling the bound method would
