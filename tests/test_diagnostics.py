@@ -131,3 +131,4 @@ def test_stage_reached(made, monkeypatch, capsys):
     assert all(0.0 <= r <= 10.0 for r in out["best_raw"])
     pairs = zip(out["steps_at_5_or_more"], out["steps"], strict=True)
     assert all(0 <= k <= n <= EPISODE_STEPS for k, n in pairs)
+    assert "lid_to_closed_first_and_least_m" not in out  # pick-cube's scene has no lid
