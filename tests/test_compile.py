@@ -185,8 +185,8 @@ def test_a_device_check_stays_inside_the_compiled_graph():
 
 def test_one_compiled_pwm_plan_and_loss_serve_every_task():
     # PWM routes by the heads' task; read as a Python int it made Dynamo compile the plan and
-    # the loss again for every task of a curriculum (24 plans in a 4-task one, past the
-    # recompile limit, after which the plan ran eager).
+    # the loss again for every task of a curriculum (24 plans in a 4-task one; a fifth task
+    # passed the recompile limit, after which the plan ran eager).
     from torch._dynamo.testing import CompileCounter
 
     cfg = config_class("pwm").preset("smoke", max_tasks=4)
