@@ -124,8 +124,11 @@ def run_scratch(cfg: CurriculumConfig, out: Path, progress: bool = True) -> list
             if done.is_file():
                 return json.loads(done.read_text())
             n = len(cfg.tasks)
-            evals = train_task(cfg, out, task_id=cfg.tasks[-1], task_index=n - 1,
-                               saved=scratch_config(cfg), progress=progress)  # fmt: skip
+            # Its config.json also records what the seed dataset held (not part of the key).
+            meta = resolved_config(cfg, cfg.suite)["resolved_seed_dataset_meta"]
+            saved = {**scratch_config(cfg), "resolved_seed_dataset_meta": meta}
+            evals = train_task(cfg, out, task_id=cfg.tasks[-1], task_index=n - 1, saved=saved,
+                               progress=progress)  # fmt: skip
             atomic_write_json(done, evals)
             (out / "checkpoint.pt").unlink(missing_ok=True)
             shutil.rmtree(out / ROWS_DIR, ignore_errors=True)

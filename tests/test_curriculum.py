@@ -205,6 +205,9 @@ def test_each_method_writes_metrics_and_resolved_config(runs, method):
     assert cfg["model"]["batch_size"] == 16  # the smoke preset under the overrides
     assert cfg["model"]["latent_dim"] == 32 and cfg["resolved_seed_dataset"] is None
     assert cfg["method"] == {**cfg["method"], "type": method, **OPTIONS[method]}
+    # The reference records what its seed dataset held, as the run does (here: none).
+    reference = json.loads((Path(metrics["scratch_dir"]) / CONFIG).read_text())
+    assert reference["resolved_seed_dataset_meta"] is None is cfg["resolved_seed_dataset_meta"]
     # A finished run leaves no per-task trainer checkpoint behind.
     assert not list((run.dir / "tasks").glob("*/checkpoint.pt"))
 

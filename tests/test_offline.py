@@ -206,10 +206,12 @@ def test_the_split_is_by_episode_seeded_recorded_and_scored_inside_held_out_epis
             assert episode in s["heldout"] and start + 7 <= episodes[episode]
     other = OR.make_splits(_config(dataset, "ft", seed=1), str(dataset))
     assert any(other[t].heldout != rows[t]["heldout"] for t in TASKS)
-    config = json.loads((next(iter(runs.runs.values())).dir / "config.json").read_text())
-    assert config["resolved_dataset_meta"]["total_episodes"] == len(
-        load_episodes(dataset, images=False)
-    )
+    run = next(iter(runs.runs.values()))
+    for where in (run.dir, Path(run.result["scratch_dir"])):  # the reference records it too
+        config = json.loads((where / "config.json").read_text())
+        assert config["resolved_dataset_meta"]["total_episodes"] == len(
+            load_episodes(dataset, images=False)
+        )
 
 
 @pytest.mark.parametrize("method", METHODS)

@@ -109,7 +109,9 @@ def run_scratch(cfg: OfflineConfig, out: Path, progress: bool = True) -> list[di
             if (out / REFERENCE_DONE).is_file():
                 return json.loads((out / REFERENCE_DONE).read_text())
             source = dataset_source(cfg)
-            saved = scratch_config(cfg, source)
+            # Its config.json also records what the dataset held (not part of the key).
+            meta = dataset_meta(source, cfg.dataset_endpoint)
+            saved = {**scratch_config(cfg, source), "resolved_dataset_meta": meta}
             splits = _prepare(cfg, out, saved, source)
             n, tasks = len(cfg.tasks), cfg.tasks
             seed_everything(cfg.seed)
