@@ -95,7 +95,7 @@ StageCallback = Callable[[Stage], None]
 def scratch_config(cfg: CurriculumConfig) -> dict:
     """config.json of the from-scratch reference: the run's, less what it does not depend
     on (the method, the output directory, where the run logs)."""
-    resolved = identity(resolved_config(cfg, cfg.suite))
+    resolved = identity(resolved_config(cfg, cfg.suite, record_dataset=False))
     return {k: v for k, v in resolved.items() if k not in ("method", "out")}
 
 

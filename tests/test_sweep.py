@@ -160,6 +160,18 @@ def test_a_sweep_written_before_a_setting_existed_is_the_same_sweep(tmp_path):
         check_same_sweep(sweep, record)
 
 
+def test_planning_a_sweep_reads_no_dataset(tmp_path):
+    # The from-scratch key leaves out what the seed dataset holds, so planning never reads
+    # it: a Hub dataset is fetched by the jobs that train, not by the login node that plans
+    # (here no copy is cached and the endpoint refuses connections: reading it would be an
+    # InputError).
+    args = ("--seed_dataset", "nobody/absent", "--dataset_endpoint", "http://127.0.0.1:9",
+            *RUN_ARGS[2:])  # fmt: skip
+    grid = Grid(("Reach",), ("toy",), ("ft",), (0,), "smoke", args, ("test_seam",))
+    (run,) = expand(grid, tmp_path).runs
+    assert run.config["seed_dataset"] == "nobody/absent" and run.scratch_key
+
+
 def test_check_same_sweep_ignores_where_runs_are_stored(tmp_path):
     grid = Grid(("Reach",), ("toy",), ("ft",), (0,), "smoke", RUN_ARGS, ("test_seam",))
     a, b = expand(grid, tmp_path / "a"), expand(grid, tmp_path / "b")

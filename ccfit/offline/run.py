@@ -60,13 +60,15 @@ def default_out(cfg: OfflineConfig) -> Path:
                            f"{cfg.preset}-s{cfg.seed}-{TRACK}")  # fmt: skip
 
 
-def resolved_config(cfg: OfflineConfig, source: str) -> dict:
-    """config.json of an offline run: the config, plus what it resolved to where it runs."""
+def resolved_config(cfg: OfflineConfig, source: str, *, record_dataset: bool = True) -> dict:
+    """config.json of an offline run: the config, plus what it resolved to where it runs
+    (`record_dataset`: as for an online run's)."""
+    meta = dataset_meta(source, cfg.dataset_endpoint) if record_dataset else None
     return {
         **cfg.to_dict(),
         "track": TRACK,
         "resolved_dataset": source,
-        "resolved_dataset_meta": dataset_meta(source, cfg.dataset_endpoint),
+        "resolved_dataset_meta": meta,
         "resolved_device": str(resolve_device(cfg.fit.device)),
         "measurement_space": cfg.measurement_space,
         "render": render_settings(cfg).to_dict(),
@@ -75,7 +77,7 @@ def resolved_config(cfg: OfflineConfig, source: str) -> dict:
 
 def scratch_config(cfg: OfflineConfig, source: str) -> dict:
     """config.json of the from-scratch reference: the run's, less the method and `out`."""
-    resolved = identity(resolved_config(cfg, source))
+    resolved = identity(resolved_config(cfg, source, record_dataset=False))
     return {k: v for k, v in resolved.items() if k not in ("method", "out")}
 
 

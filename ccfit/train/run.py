@@ -40,10 +40,11 @@ def render_settings(cfg: BaseRunConfig) -> RenderSettings:
     return RenderSettings(image_size=cfg.image_size)
 
 
-def resolved_config(cfg: RunConfig, suite: str | None) -> dict:
+def resolved_config(cfg: RunConfig, suite: str | None, *, record_dataset: bool = True) -> dict:
     """config.json of a run: the config, plus what it resolved to where it runs: the seed
     dataset ('auto') and what it holds, the device ('auto'), the compiled methods, the precision
-    and the render settings."""
+    and the render settings. `record_dataset=False` leaves out what the dataset holds (None):
+    it is no part of the identity, and reading it may download a Hub dataset."""
     device = resolve_device(cfg.train.device)
     source = dataset_source(cfg, suite)
     if cfg.train.demo_fraction > 0 and source is None:
@@ -52,7 +53,7 @@ def resolved_config(cfg: RunConfig, suite: str | None) -> dict:
                           f"demonstrations, but --seed_dataset auto found no local dataset of "
                           f"suite {suite} (`ccdata generate --suite {suite}`, name one, or "
                           f"--train.demo_fraction=0)")  # fmt: skip
-    meta = None if source is None else dataset_meta(source, cfg.dataset_endpoint)
+    meta = dataset_meta(source, cfg.dataset_endpoint) if source and record_dataset else None
     return {
         **cfg.to_dict(),
         "resolved_seed_dataset": source,
