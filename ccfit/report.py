@@ -182,15 +182,15 @@ def find_runs(paths: list[Path]) -> list[Run]:
 
 
 def scratch_dir_of(run_dir: Path, metrics: dict) -> Path:
-    """The run's from-scratch reference: where the run wrote it or, when that path does not
-    resolve from here (a relative path from another working directory, a moved tree), the
-    default location beside the run (`<run>/../scratch/<key>`)."""
+    """The run's from-scratch reference: the one beside the run (`<run>/../scratch/<key>`,
+    where a sweep keeps it and `ccfit publish` copies it) or else where the run wrote it. The
+    copy beside comes first: a published tree is read from itself even on the machine whose
+    paths its metrics.json names."""
     stored = Path(metrics["scratch_dir"])
-    if (stored / REFERENCE_DONE).is_file():
-        return stored
     beside = run_dir.parent / "scratch" / stored.name
-    if (beside / REFERENCE_DONE).is_file():
-        return beside
+    for where in (beside, stored):
+        if (where / REFERENCE_DONE).is_file():
+            return where
     raise InputError(f"{run_dir}: its from-scratch reference {stored} is missing")
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -163,6 +164,19 @@ def test_step_budget_and_method_options_split_groups_but_output_paths_and_as_run
         "resolved_autocast=bf16, train.steps=100": ["e"],
     }
     assert all(np.isfinite(g["bwt"]) for g in load_groups([root]).values())
+
+
+def test_a_published_copy_reads_the_reference_beside_it(tmp_path):
+    # metrics.json names where the sweep wrote the reference; a copy of the tree (what
+    # `ccfit publish` makes) reads its own copy, even where the original still exists.
+    from ccfit.report import scratch_dir_of
+
+    write_run(tmp_path / "sweep", "a", config(), 1.0)
+    shutil.copytree(tmp_path / "sweep", tmp_path / "published")
+    metrics = json.loads((tmp_path / "published" / "a" / "metrics.json").read_text())
+    assert Path(metrics["scratch_dir"]).is_dir()  # the original is still here
+    found = scratch_dir_of(tmp_path / "published" / "a", metrics)
+    assert found == tmp_path / "published" / "scratch" / "a-scratch"
 
 
 @pytest.mark.parametrize("damage", ["corrupt metrics.json", "missing metrics.jsonl"])
