@@ -38,6 +38,7 @@ import numpy as np
 from ccdata.errors import InputError
 from ccfit import metrics as M
 from ccfit.analysis import report_routing
+from ccfit.config_base import DATASET_RECORDS
 from ccfit.config_parse import flatten
 from ccfit.curriculum import METRICS_JSON, REFERENCE_DONE
 from ccfit.io import atomic_write_text, read_run_json
@@ -85,8 +86,7 @@ PER_SEED = (
 )
 """Flattened config keys (fnmatch patterns) that differ between the seeds of one experiment
 and so do not split groups: the seed, seeds derived from it, where outputs went."""
-AS_RUN = ("resolved_compile", "resolved_seed_dataset", "resolved_seed_dataset_meta",
-          "resolved_dataset_meta")  # fmt: skip
+AS_RUN = ("resolved_compile", "resolved_seed_dataset", *DATASET_RECORDS)
 """Records of how a run was computed, not of what: which of the model's functions this code
 version compiled (eager and compiled compute the same within float tolerance), where the seed
 dataset lay on the machine that ran it and what the run recorded of its datasets (runs made

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from ccfit.io import atomic_write_text
-from ccfit.report_plots import METHOD_ORDER, metric_cell, row_label
+from ccfit.report_plots import metric_cell, ordered_methods, row_label
 
 Group = dict
 Key = tuple[str, str, str, str]  # backbone, suite, method, variant
@@ -113,16 +113,12 @@ def _less_bwt(groups: dict[Key, Group], lower: str, higher: str, pairs: Pairs) -
                 yield f"{a} vs {b}", label, verdict, "BWT " + evidence
 
 
-def _method_rank(m: str) -> tuple[int, str]:
-    return (METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER), m)
-
-
 def _same_methods(a: set[str], b: set[str]) -> list[tuple[str, str]]:
-    return [(m, m) for m in sorted(a & b, key=_method_rank)]
+    return [(m, m) for m in ordered_methods(a & b)]
 
 
 def _experts_against_each(a: set[str], b: set[str]) -> list[tuple[str, str]]:
-    return [("experts", m) for m in sorted(b, key=_method_rank)] if "experts" in a else []
+    return [("experts", m) for m in ordered_methods(b)] if "experts" in a else []
 
 
 def dreamerv3_forgets_less(groups: dict[Key, Group]) -> Iterator[Row]:

@@ -39,9 +39,14 @@ METHOD_ORDER = ("ft", "er", "ewc", "packnet", "experts")
 """Column order of methods in tables and plots (others follow, sorted)."""
 
 
-def method_columns(groups: dict, backbone: str) -> list[str]:
-    present = {k[2] for k in groups if k[0] == backbone}
+def ordered_methods(methods) -> list[str]:
+    """`methods` in `METHOD_ORDER`, others after it, sorted."""
+    present = set(methods)
     return [m for m in METHOD_ORDER if m in present] + sorted(present - set(METHOD_ORDER))
+
+
+def method_columns(groups: dict, backbone: str) -> list[str]:
+    return ordered_methods(k[2] for k in groups if k[0] == backbone)
 
 
 def plot_bars(groups: dict, out: Path) -> list[Path]:
