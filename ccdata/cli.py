@@ -23,11 +23,10 @@ import json
 import sys
 from pathlib import Path
 
-from ccdata.errors import InputError
+from ccdata.errors import EXIT_USAGE, InputError
 from ccdata.slurm import OPTIONS as SLURM_OPTIONS
 from ccdata.slurm import add_options as add_slurm_options
 
-EXIT_USAGE = 2
 EXIT_FINDINGS = 1
 
 

@@ -36,19 +36,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from ccdata.errors import InputError
-
-EXIT_USAGE = 2
+from ccdata.errors import EXIT_USAGE, InputError, OneLineParser
 
 
 class CliError(Exception):
     """A problem with the user's input: one line on stderr, exit 2."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, exit 2, no usage dump
-        print(f"{self.prog}: error: {message}", file=sys.stderr)
-        sys.exit(EXIT_USAGE)
 
 
 def _split_flags(argv: list[str], flags: dict[str, bool]) -> tuple[dict[str, str | bool], list]:
@@ -194,8 +186,8 @@ def _cmd_ablate(args: argparse.Namespace) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="ccfit", description=__doc__.split("\n\n")[0])
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    parser = OneLineParser(prog="ccfit", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     for name, fn in CONFIG_COMMANDS.items():  # listed in --help; parsed by draccus in main()
         sub.add_parser(name, help=fn.__doc__.split("  (")[0], add_help=False)
     from ccfit.pretrain import add_pretrain_parser

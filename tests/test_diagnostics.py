@@ -12,12 +12,12 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 
+from ccdata.errors import EXIT_USAGE, run_script
 from ccdata.record import GenerateConfig, generate
 from ccfit.cli import main as ccfit
 
@@ -41,8 +41,9 @@ def _script(name: str):
 
 @pytest.fixture(scope="module")
 def made(tmp_path_factory):
-    """A tiny Grasp dataset, a smoke Grasp curriculum per method the ER script compares, and
-    single-task pick-cube runs of TD-MPC2 and DreamerV3."""
+    """A tiny Grasp dataset, a smoke Grasp curriculum per method the ER script compares,
+    single-task pick-cube runs of TD-MPC2 and DreamerV3, and a box-close one (a scene with a
+    lid)."""
     root = tmp_path_factory.mktemp("diagnostics")
     dataset, _ = generate(GenerateConfig("Grasp", episodes=2, explore_episodes=2, image_size=32,
                                          max_steps=EPISODE_STEPS, root=root / "Grasp"),
@@ -54,6 +55,7 @@ def made(tmp_path_factory):
         "tdmpc2": ("pick-cube-tdmpc2", ["train", "--task", "pick-cube", "--model.type=tdmpc2"]),
         "dreamerv3": ("pick-cube-dreamerv3", ["train", "--task", "pick-cube",
                                               "--model.type=dreamerv3"]),
+        "box": ("box-close-tdmpc2", ["train", "--task", "box-close", "--model.type=tdmpc2"]),
     }  # fmt: skip
     common = ["--preset", "smoke", "--seed_dataset", "null", "--quiet", *TRAIN]
     runs = {key: root / name for key, (name, _) in commands.items()}
@@ -63,11 +65,10 @@ def made(tmp_path_factory):
     return SimpleNamespace(dataset=dataset, runs=runs)
 
 
-def _run(script, argv: list[str], monkeypatch, capsys) -> str:
-    monkeypatch.setattr(sys, "argv", [script.__file__, *argv])
+def _run(script, argv: list[str], capsys) -> str:
     capsys.readouterr()
     with shorter_episodes(EPISODE_STEPS):
-        script.main()
+        script.main(argv)
     return capsys.readouterr().out
 
 
@@ -79,7 +80,7 @@ def test_grasp_er_pick(made, monkeypatch, capsys):
     script = _script("grasp_er_pick")
     monkeypatch.setattr(script, "DATASET", str(made.dataset))
     runs = [made.runs["ewc"], made.runs["er"]]
-    lines = _run(script, [str(r) for r in runs], monkeypatch, capsys).splitlines()
+    lines = _run(script, [str(r) for r in runs], capsys).splitlines()
     assert [json.loads(line)["run"] for line in lines] == [r.name for r in runs]
     for line in lines:
         out = json.loads(line)
@@ -98,7 +99,7 @@ def test_grasp_er_pick(made, monkeypatch, capsys):
 def test_packnet_prune(made, monkeypatch, capsys):
     script = _script("packnet_prune")
     monkeypatch.setattr(script, "RETRAINING", (0, 2, 5))
-    lines = _run(script, [str(made.runs["tdmpc2"])], monkeypatch, capsys).splitlines()
+    lines = _run(script, [str(made.runs["tdmpc2"])], capsys).splitlines()
     points = [json.loads(line) for line in lines]
     assert [p["after"] for p in points] == [
         "trained (before the prune)",
@@ -114,7 +115,7 @@ def test_packnet_prune(made, monkeypatch, capsys):
 def test_dreamerv3_pick(made, monkeypatch, capsys):
     script = _script("dreamerv3_pick")
     monkeypatch.setattr(script, "DATASET", str(made.dataset))
-    out = json.loads(_run(script, [str(made.runs["dreamerv3"])], monkeypatch, capsys))
+    out = json.loads(_run(script, [str(made.runs["dreamerv3"])], capsys))
     assert out["run"] == "pick-cube-dreamerv3" and out["task_step"] == 100
     for policy, episodes in (("oracle", 2), ("random", 2)):
         assert out[policy]["episodes"] == episodes
@@ -123,12 +124,32 @@ def test_dreamerv3_pick(made, monkeypatch, capsys):
         assert out[policy]["reward_abs_err_per_step"] >= 0
 
 
-def test_stage_reached(made, monkeypatch, capsys):
+def test_stage_reached(made, capsys):
     script = _script("stage_reached")
-    out = json.loads(_run(script, [str(made.runs["tdmpc2"]), "3"], monkeypatch, capsys))
+    out = json.loads(_run(script, [str(made.runs["tdmpc2"]), "3"], capsys))
     assert out["task"] == "pick-cube" and out["task_step"] == 100
     assert len(out["success"]) == len(out["best_raw"]) == len(out["steps"]) == 3
     assert all(0.0 <= r <= 10.0 for r in out["best_raw"])
     pairs = zip(out["steps_at_5_or_more"], out["steps"], strict=True)
     assert all(0 <= k <= n <= EPISODE_STEPS for k, n in pairs)
     assert "lid_to_closed_first_and_least_m" not in out  # pick-cube's scene has no lid
+
+
+def test_stage_reached_follows_the_lid_where_the_scene_has_one(made, capsys):
+    out = json.loads(_run(_script("stage_reached"), [str(made.runs["box"]), "2"], capsys))
+    assert out["task"] == "box-close"
+    lid = out["lid_to_closed_first_and_least_m"]
+    assert len(lid) == 2
+    # the lid starts open, away from its closed pose; the least distance is along the episode
+    assert all(0.0 <= least <= first and first > 0.0 for first, least in lid)
+
+
+@pytest.mark.parametrize("name", ["grasp_er_pick", "packnet_prune", "dreamerv3_pick",
+                                  "stage_reached"])  # fmt: skip
+def test_a_diagnostic_refuses_a_missing_run_in_one_line(name, tmp_path, capsys):
+    script = _script(name)
+    capsys.readouterr()
+    assert run_script(script.main, f"{name}.py", [str(tmp_path / "absent")]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert err.startswith(f"{name}.py: error: ") and str(tmp_path / "absent") in err
+    assert err.count("\n") == 1

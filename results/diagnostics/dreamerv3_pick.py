@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ccdata.errors import OneLineParser, run_script
 from ccdata.settings import default_repo_id
 from ccfit.data import load_episodes
 from ccfit.seeding import episode_to_replay
@@ -29,9 +30,11 @@ DATASET = default_repo_id("Grasp")  # LeRobot's cache, where `ccdata generate` w
 EPISODES = 20
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    parser = OneLineParser(prog="dreamerv3_pick.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", type=Path, help="a finished DreamerV3 pick-cube `ccfit train` run")
+    run = parser.parse_args(argv).run
     torch.set_num_threads(1)
-    run = Path(sys.argv[1])
     loaded = load_task_run(run, "cpu")
     model, heads = loaded.model, loaded.heads
     out: dict = {"run": run.name, "task_step": loaded.checkpoint["task_step"]}
@@ -76,4 +79,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main, "dreamerv3_pick.py"))

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ccdata.errors import OneLineParser, run_script
 from ccdata.settings import default_repo_id
 from ccfit.config import CurriculumConfig
 from ccfit.config_parse import parse_cli
@@ -87,9 +88,12 @@ def acting(model, method, heads, index: int, task: str) -> dict:
     return out
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    parser = OneLineParser(prog="grasp_er_pick.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("runs", type=Path, nargs="+", help="finished Grasp curricula")
+    runs = parser.parse_args(argv).runs
     torch.set_num_threads(1)
-    for run in map(Path, sys.argv[1:]):
+    for run in runs:
         cfg = parse_cli(CurriculumConfig, ["--config_path", str(run / "config.json")])
         model, method, stored, _, _ = restore(cfg, run, torch.device("cpu"))
         model.eval()
@@ -104,4 +108,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main, "grasp_er_pick.py"))

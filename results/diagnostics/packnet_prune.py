@@ -18,6 +18,7 @@ from pathlib import Path
 
 import torch
 
+from ccdata.errors import OneLineParser, run_script
 from ccfit.continual.base import TaskData, make_method
 from ccfit.continual.packnet import PackNetConfig
 from ccfit.io import seed_everything
@@ -30,10 +31,12 @@ from ccfit.train.update import UpdateStep
 RETRAINING = (0, 1000, 3000, 6000)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    parser = OneLineParser(prog="packnet_prune.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", type=Path, help="a finished TD-MPC2 `ccfit train` run")
+    run = parser.parse_args(argv).run
     torch.set_num_threads(1)
     seed_everything(0)  # the updates' own noise (the replay samples with its seeded generator)
-    run = Path(sys.argv[1])
     loaded = load_task_run(run, "cpu")
     cfg, model, heads, state = loaded.cfg, loaded.model, loaded.heads, loaded.checkpoint
     heads.train()  # as the trainer's heads during updates (Q's dropout); acting sets eval
@@ -68,4 +71,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main, "packnet_prune.py"))

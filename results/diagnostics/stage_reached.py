@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from ccdata.env import make_env
+from ccdata.errors import OneLineParser, run_script
 from ccfit.io import seeded
 from ccfit.train import load_task_run
 from ccfit.train.evaluate import eval_seeds, play_episodes
@@ -48,10 +49,19 @@ class RawRewards:
         return out
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    parser = OneLineParser(prog="stage_reached.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", type=Path, help="a finished `ccfit train` run directory")
+    parser.add_argument(
+        "layouts",
+        type=int,
+        nargs="?",
+        default=10,
+        help="how many of the run's evaluation layouts to play (default 10)",
+    )
+    args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    run = Path(sys.argv[1])
-    layouts = int(sys.argv[2]) if len(sys.argv) > 2 else 10
+    run, layouts = args.run, args.layouts
     loaded = load_task_run(run, "cpu")
     cfg = loaded.cfg
     pixels = cfg.obs == "pixels"  # cameras only where the run observed through them
@@ -73,4 +83,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main, "stage_reached.py"))
