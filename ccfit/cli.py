@@ -4,7 +4,8 @@ Example:
     ccfit train --task reach-xy --preset smoke --out runs/smoke
 
 Commands:
-    train    online model-based RL on one task (resumes when --out holds its checkpoint)
+    train    online model-based RL on one task (resumes when --out holds its checkpoint;
+             a finished one with a larger --train.steps is extended)
     run      a suite's continual curriculum (Algorithm 1) with one method; writes metrics.json
     fit      the offline track: the backbone fitted on the suite's dataset task after task with
              one method, scored by open-loop prediction on held-out episodes; metrics.json

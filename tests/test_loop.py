@@ -14,6 +14,7 @@ import torch
 from ccfit.config import TaskRunConfig, TrainConfig
 from ccfit.config_base import ConfigError
 from ccfit.config_parse import parse_cli, resolve
+from ccfit.models.registry import model_class, model_names
 from ccfit.replay import ReplayBuffer
 
 try:
@@ -24,10 +25,10 @@ except ImportError:  # tests/ imported as a package
 pytestmark = pytest.mark.usefixtures("short_episodes")
 
 
-def _run_config(out: Path, steps=120, checkpoint_interval=60) -> TaskRunConfig:
+def _run_config(out: Path, steps=120, checkpoint_interval=60, model="tdmpc2") -> TaskRunConfig:
     return resolve(TaskRunConfig, {
         "task": "reach-xy", "preset": "smoke", "seed": 3, "seed_dataset": None,
-        "out": str(out), "model": {"type": "tdmpc2", "batch_size": 8},
+        "out": str(out), "model": {"type": model, "batch_size": 8},
         "train": dict(steps=steps, seed_steps=40, eval_interval=60, eval_episodes=1,
                       checkpoint_interval=checkpoint_interval, buffer_capacity=2_000,
                       device="cpu"),
@@ -87,7 +88,7 @@ def test_resume_after_interruption_matches_uninterrupted_run(tmp_path, monkeypat
     assert rec_a == rec_b and [json.loads(x)["task_step"] for x in rec_a] == [0, 60, 120]
     # A different config must not silently reuse the directory.
     with pytest.raises(ConfigError, match=r"different config \(differs in train\.steps\)"):
-        train_single(_run_config(broken, steps=180), progress=False)
+        train_single(_run_config(broken, steps=60), progress=False)  # fewer than it ran
 
 
 def test_load_task_run_reads_a_finished_run_back(tmp_path):
@@ -152,6 +153,46 @@ def test_stop_score_ends_a_single_task_run_early_and_resumed_it_stays_ended(para
     saved["train"]["stop_score"] = None
     (out / "config.json").write_text(json.dumps(saved))
     assert read_run(out) is None
+
+
+@pytest.mark.parametrize("model", model_names())
+def test_a_finished_run_extended_to_more_steps_ends_as_the_longer_run(model, tmp_path):
+    """`ccfit train` again with a larger --train.steps goes on from the finished run's end;
+    a model whose training reads the step budget (PWM's temperature hold) refuses."""
+    from ccfit.train import train_single
+
+    extended, full = tmp_path / "extended", tmp_path / "full"
+    train_single(_run_config(extended, steps=60, model=model), progress=False)
+    if model_class(model).reads_task_budget:
+        with pytest.raises(ConfigError, match="cannot be extended to more"):
+            train_single(_run_config(extended, steps=120, model=model), progress=False)
+        return
+    train_single(_run_config(extended, steps=120, model=model), progress=False)
+    train_single(_run_config(full, steps=120, model=model), progress=False)
+    a, b = _params(full), _params(extended)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), "extension diverged"
+    records = (extended / "metrics.jsonl").read_text()
+    assert records == (full / "metrics.jsonl").read_text()
+    assert [json.loads(x)["task_step"] for x in records.splitlines()] == [0, 60, 120]
+    assert json.loads((extended / "config.json").read_text())["train"]["steps"] == 120
+
+
+def test_an_extended_run_stops_where_the_longer_run_stops(tmp_path):
+    """A run that met stop_score only at its last step (where the rule is not tested) ends
+    there when extended, as the longer run does."""
+    from ccfit.train import train_single
+
+    def config(steps: int) -> TaskRunConfig:
+        cfg = _run_config(tmp_path / "run", steps=steps).to_dict()
+        train = {**cfg["train"], "stop_score": -1e9, "stop_evals": 2}  # every score meets it
+        return resolve(TaskRunConfig, {**cfg, "train": train})
+
+    train_single(config(120), progress=False)  # evaluated at 0 and 60, tested at 60 on one
+    records = (tmp_path / "run" / "metrics.jsonl").read_text()
+    train_single(config(600), progress=False)  # the 600-step run stops at 120 on 0 and 60
+    assert (tmp_path / "run" / "metrics.jsonl").read_text() == records
+    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    assert (state["task_step"], state["finished"]) == (120, True)
 
 
 @pytest.mark.slow  # two 300-step runs (~60 s); resume equality is covered by the tests below

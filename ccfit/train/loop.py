@@ -66,6 +66,9 @@ class Trainer:
     global_offset: global step at which this task starts in a curriculum.
     stored_heads_loss: the loss of a batch through an earlier task's stored heads, offered to
         the method's penalty (`ReplayLosses`); a curriculum provides it.
+    extendable: a checkpoint of fewer `config.steps` may be resumed (a single-task run
+        extended: `ccfit train` where the model's training never reads its step budget); one
+        that ran to its budget goes on as the longer run would have from there.
     """
 
     def __init__(
@@ -75,6 +78,7 @@ class Trainer:
         method: ContinualMethod | None = None, run_dir: str | Path | None = None,
         global_offset: int = 0, progress: bool = True,
         stored_heads_loss: Callable[[Batch, int], torch.Tensor] | None = None,
+        extendable: bool = False,
     ) -> None:  # fmt: skip
         self.env, self.model, self.heads, self.buffer = env, model, heads, buffer
         self.evaluator = evaluator
@@ -84,6 +88,7 @@ class Trainer:
         self.logger, self.method = logger, method
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.global_offset, self.progress = global_offset, progress
+        self.extendable = extendable
         self.device = model.device
         self.step = UpdateStep(model, heads, method, stored_heads_loss, config.autocast)
         self.action_rng = np.random.default_rng(derived_seed(seed, ACTION_TAG, 0, task_index))
@@ -181,7 +186,14 @@ class Trainer:
         if self.cfg.stop_score is None or self.task_step == 0:
             return False
         self._collect(until=self.global_step)
-        scores = [r["normalized_return"] for r in self._own_records()]
+        return self._stop_reached(before=self.global_step)
+
+    def _stop_reached(self, before: int) -> bool:
+        """Whether this task's evaluations before global step `before` meet `stop_score`."""
+        if self.cfg.stop_score is None:
+            return False
+        scores = [r["normalized_return"] for r in self._own_records()
+                  if r["global_step"] < before]  # fmt: skip
         return stop_reached(scores, self.cfg.stop_score, self.cfg.stop_evals)
 
     def _finish_task(self) -> None:
@@ -347,6 +359,9 @@ class Trainer:
         state = load_checkpoint(path, CHECKPOINT_KIND, CHECKPOINT_VERSION)
         saved = {k: state[k] for k in self._identity()}  # as written, by whichever version
         saved["train_config"] = drop_legacy_values(saved["train_config"], "train.")
+        budget = saved["train_config"]["steps"]
+        if self.extendable and budget < self.cfg.steps:
+            saved["train_config"]["steps"] = self.cfg.steps
         if saved != self._identity():
             raise InputError(f"{path} was written by another run (config, seed or task "
                              "differ); use another run directory or delete it")  # fmt: skip
@@ -362,6 +377,10 @@ class Trainer:
         self.update_credit = float(state["update_credit"])
         self.finished = bool(state["finished"])
         self.evals = list(state["evals"])
+        if self.finished and self.task_step == budget < self.cfg.steps:
+            # Ran out of its budget, where the longer run goes on unless stop_score ends it.
+            # The longer run evaluates at this step too; its stop test sees the ones before.
+            self.finished = self._stop_reached(before=self.global_step)
         self._episode = None
         set_rng_state(state["rng"], actions=self.action_rng)
         return list(state["pending_evals"])

@@ -155,16 +155,29 @@ def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
                      view=view, autocast=cfg.train.autocast)  # fmt: skip
 
 
-def check_saved_config(out: Path, resolved: dict) -> None:
+EXTENDABLE = "train.steps"
+"""The one setting a finished single-task run may raise on resume (`check_saved_config`)."""
+
+
+def check_saved_config(out: Path, resolved: dict, *, extends: type[WorldModel] | None = None
+                       ) -> None:  # fmt: skip
     """A run directory belongs to one config: refuse another one (settings outside
-    `NOT_IDENTITY`), write it if new or if only those settings changed."""
+    `NOT_IDENTITY`), write it if new or if only those settings changed. `extends`: the model
+    class of a single-task run, which may also raise `train.steps` (an extension) unless its
+    training reads the task's step budget (`WorldModel.reads_task_budget`)."""
     saved = out / CONFIG
     new = json.loads(json.dumps(resolved))
     if saved.exists():
         old = json.loads(saved.read_text())
         a, b = flatten(identity(old)), flatten(identity(new))
-        if a != b:
-            differ = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+        differ = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+        if differ == [EXTENDABLE] and extends is not None and b[EXTENDABLE] > a[EXTENDABLE]:
+            if extends.reads_task_budget:
+                raise ConfigError(f"{out} holds a run of {a[EXTENDABLE]} steps; a "
+                                  f"{extends.__name__} run cannot be extended to more, since "
+                                  "its training reads the task's step budget: use another "
+                                  "--out")  # fmt: skip
+        elif differ:
             raise ConfigError(f"{out} holds a run with a different config (differs in "
                               f"{', '.join(differ) or 'empty option groups'}); use another "
                               "--out or delete it")  # fmt: skip
@@ -178,17 +191,19 @@ def default_out(cfg: TaskRunConfig) -> Path:
 
 
 def train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, saved: dict,
-               progress: bool = True) -> list[dict]:  # fmt: skip
+               progress: bool = True, extendable: bool = False) -> list[dict]:  # fmt: skip
     """`task_id` learnt online from scratch into `out`, resuming from its checkpoint when it
     holds one of the same config (`saved`, what config.json holds). The task has index
     `task_index` in its curriculum (a curriculum's from-scratch reference of its composition
-    task keeps that task's index: the same seeds, routing and evaluation layouts). Returns
-    every evaluation record."""
+    task keeps that task's index: the same seeds, routing and evaluation layouts).
+    `extendable`: a run there of fewer `train.steps` goes on to `cfg.train.steps` where the
+    model allows it (`check_saved_config`). Returns every evaluation record."""
     from ccdata.env import make_env
 
     out = Path(out)
+    extends = model_class(cfg.model.type) if extendable else None
     if (out / CONFIG).exists():
-        check_saved_config(out, saved)
+        check_saved_config(out, saved, extends=extends)
     if cfg.train.torch_threads > 0:
         torch.set_num_threads(cfg.train.torch_threads)
     device = resolve_device(cfg.train.device)
@@ -202,7 +217,7 @@ def train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, save
     plan = plan_run_replay(cfg, model, [task_id], source)
     check_disk(plan, out)
     buffer = make_replay(cfg, model, task_id, task_index, source, plan)
-    check_saved_config(out, saved)
+    check_saved_config(out, saved, extends=extends)
     logger = RunLogger(out, cfg.log, saved)
     if not resumed:  # records of a run killed before its first checkpoint
         logger.keep(lambda r: False)
@@ -212,6 +227,7 @@ def train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, save
         env=env, model=model, heads=model.new_heads(), buffer=buffer, evaluator=evaluator,
         config=cfg.train, seed=cfg.seed, obs_mode=cfg.obs, task_id=task_id,
         task_index=task_index, logger=logger, run_dir=out, progress=progress,
+        extendable=extends is not None and not extends.reads_task_budget,
     )  # fmt: skip
     try:
         trainer.run()
@@ -254,10 +270,11 @@ def load_task_run(run_dir: str | Path, device: torch.device | str | None = None
 
 def train_single(cfg: TaskRunConfig, *, progress: bool = True) -> dict:
     """`ccfit train`: `cfg.task` learnt from scratch into `cfg.out`; its last record. What
-    it cost goes to `cost.json`."""
+    it cost goes to `cost.json`. A run there of fewer `--train.steps` is extended to these
+    (`train_task`)."""
     out = Path(cfg.out) if cfg.out else default_out(cfg)
     with RunCost(out):
         evals = train_task(cfg, out, task_id=cfg.task, task_index=0,
                            saved=resolved_config(cfg, suite_of(cfg.task)),
-                           progress=progress)  # fmt: skip
+                           progress=progress, extendable=True)  # fmt: skip
     return evals[-1]
