@@ -162,7 +162,7 @@ class WorldModel(nn.Module, ABC):
     reads_task_budget: ClassVar[bool] = False
     """Whether training reads the task's step budget (`begin_task`'s `task_steps`) before the
     task ends. Where it does not, a finished `ccfit train` run can be extended to more steps
-    and ends as a run of that many steps from the start would (test_train_run checks it per
+    and ends as a run of that many steps from the start would (test_loop checks it per
     model); where it does (PWM's temperature hold), an extension would not."""
 
     # ------------------------------------------------------------------ structure
