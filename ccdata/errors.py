@@ -1,6 +1,7 @@
 """The one exception type for bad user input (unknown names, missing or corrupt data, bad
 settings): command-line tools print its message on one line and exit 2. Anything else that
-escapes is a bug and keeps its traceback."""
+escapes is a bug and keeps its traceback. Also the pieces every command line shares for that:
+the exit status, a parser whose usage errors are one line, and a script entry point."""
 
 from __future__ import annotations
 

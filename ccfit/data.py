@@ -20,7 +20,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ccdata.dataset_format import CCDATA_META, camera_key
+from ccdata.dataset_format import CCDATA_META, camera_key, read_ccdata_metadata
 from ccdata.errors import InputError
 from ccdata.render import CAMERAS
 
@@ -122,7 +122,7 @@ def dataset_meta(source: str | Path, endpoint: str | None = None) -> dict:
     info = _read_json(root / "meta" / "info.json")
     out = {k: info.get(k) for k in ("total_episodes", "total_frames")}
     if (root / CCDATA_META).is_file():
-        made = _read_json(root / CCDATA_META)
+        made = read_ccdata_metadata(root)
         out |= {"repo_id": made.get("repo_id"), "generated_with": made.get("config"),
                 "versions": made.get("versions")}  # fmt: skip
     return out
@@ -137,10 +137,9 @@ def _read_json(path: Path) -> dict:
 
 def _id_maps(root: Path) -> tuple[dict[str, int], dict[str, int]]:
     """task id -> task_id_index and policy name -> policy_index, from meta/ccdata.json."""
-    path = root / CCDATA_META
-    if not path.is_file():
+    if not (root / CCDATA_META).is_file():
         return {}, {}
-    info = json.loads(path.read_text())
+    info = read_ccdata_metadata(root)
     tasks = {t["id"]: int(t["index"]) for t in info.get("tasks", [])}
     policies = {name: i for i, name in enumerate(info.get("policies", []))}
     return tasks, policies

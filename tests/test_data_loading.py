@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -243,3 +244,17 @@ def test_demonstrations_are_kept_only_for_demo_fraction_and_counted_before_seedi
     assert demonstration_rows(root, ["reach-xy", "reach-xyz"]) == rows
     with pytest.raises(InputError, match="task 'reach-zz' is not in this dataset"):
         episode_lengths(root, "reach-zz", "oracle")
+
+
+def test_a_corrupt_ccdata_json_is_one_input_error(tiny_dataset, tmp_path):
+    # Filtering by task name and recording the dataset both read meta/ccdata.json; damaged, it
+    # is bad input with the file named, not a JSONDecodeError traceback.
+    from ccfit.data import dataset_meta, load_episodes
+
+    root = tmp_path / "damaged"
+    shutil.copytree(tiny_dataset[0], root)
+    (root / "meta" / "ccdata.json").write_text('{"tasks": [')
+    for read in (lambda: load_episodes(root, task="reach-xy", images=False),
+                 lambda: dataset_meta(root)):  # fmt: skip
+        with pytest.raises(InputError, match=r"ccdata.json is corrupt"):
+            read()
