@@ -108,16 +108,15 @@ class TaskEnv(gym.Env):
         velocity = (state[0:3] - self._last_hand) / AGENT_DT
         self._last_hand = state[0:3].copy()
         obs = self._observe(state, velocity)
+        # The scene's own entries (stage flags, distances) of the last physics step, as
+        # Meta-World's info carries its reward terms.
+        scene_info = {k: v for k, v in info.items() if k != "success"}
         return (
             obs,
             reward,
             terminated,
             truncated,
-            {
-                "success": success,
-                "task": self.task.id,
-                "raw_reward": raw,
-            },
+            {**scene_info, "success": success, "task": self.task.id, "raw_reward": raw},
         )
 
     def _observe(self, state: np.ndarray, velocity: np.ndarray) -> dict[str, np.ndarray]:

@@ -42,8 +42,8 @@ def _script(name: str):
 @pytest.fixture(scope="module")
 def made(tmp_path_factory):
     """A tiny Grasp dataset, a smoke Grasp curriculum per method the ER script compares,
-    single-task pick-cube runs of TD-MPC2 and DreamerV3, and a box-close one (a scene with a
-    lid)."""
+    single-task pick-cube runs of TD-MPC2 and DreamerV3, and a box-pnp-close one (a scene with
+    a lid and stage flags)."""
     root = tmp_path_factory.mktemp("diagnostics")
     dataset, _ = generate(GenerateConfig("Grasp", episodes=2, explore_episodes=2, image_size=32,
                                          max_steps=EPISODE_STEPS, root=root / "Grasp"),
@@ -55,7 +55,8 @@ def made(tmp_path_factory):
         "tdmpc2": ("pick-cube-tdmpc2", ["train", "--task", "pick-cube", "--model.type=tdmpc2"]),
         "dreamerv3": ("pick-cube-dreamerv3", ["train", "--task", "pick-cube",
                                               "--model.type=dreamerv3"]),
-        "box": ("box-close-tdmpc2", ["train", "--task", "box-close", "--model.type=tdmpc2"]),
+        "box": ("box-pnp-close-tdmpc2", ["train", "--task", "box-pnp-close",
+                                         "--model.type=tdmpc2"]),
     }  # fmt: skip
     common = ["--preset", "smoke", "--seed_dataset", "null", "--quiet", *TRAIN]
     runs = {key: root / name for key, (name, _) in commands.items()}
@@ -133,15 +134,20 @@ def test_stage_reached(made, capsys):
     pairs = zip(out["steps_at_5_or_more"], out["steps"], strict=True)
     assert all(0 <= k <= n <= EPISODE_STEPS for k, n in pairs)
     assert "lid_to_closed_first_and_least_m" not in out  # pick-cube's scene has no lid
+    assert not [key for key in out if key.startswith("steps_") and key != "steps_at_5_or_more"]
 
 
-def test_stage_reached_follows_the_lid_where_the_scene_has_one(made, capsys):
+def test_stage_reached_follows_the_lid_and_stage_flags_where_the_scene_has_them(made, capsys):
     out = json.loads(_run(_script("stage_reached"), [str(made.runs["box"]), "2"], capsys))
-    assert out["task"] == "box-close"
+    assert out["task"] == "box-pnp-close"
     lid = out["lid_to_closed_first_and_least_m"]
     assert len(lid) == 2
     # the lid starts open, away from its closed pose; the least distance is along the episode
     assert all(0.0 <= least <= first and first > 0.0 for first, least in lid)
+    # the scene's stage flags, each counted over the episode's steps
+    for flag in ("steps_cube_in_box", "steps_lid_closed"):
+        assert len(out[flag]) == 2
+        assert all(0 <= k <= n for k, n in zip(out[flag], out["steps"], strict=True))
 
 
 @pytest.mark.parametrize("name", ["grasp_er_pick", "packnet_prune", "dreamerv3_pick",

@@ -67,6 +67,9 @@ def test_observation_spec_and_values(task_id):
         assert terminated == info["success"]
         if terminated or truncated:
             break
+    # the scene's own entries of its last physics step ride along (stage flags, distances)
+    _, _, scene_info = env.unwrapped.scene.sim_step(np.zeros(4))
+    assert set(scene_info) <= set(info) and info["task"] == task_id
     env.close()
 
 

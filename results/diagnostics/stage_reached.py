@@ -8,9 +8,11 @@ brought, 10 on success); the benchmark's reward rescales it to [-1, 0]. A normal
 near the floor hides which stage a policy reaches; the raw reward along its episodes shows it.
 With the run's last weights, acting as evaluation does (MPPI, eval mode, the run's
 observations) on the run's first LAYOUTS evaluation layouts (default 10): per layout,
-success, the best raw reward and the steps spent at 5 or more, and in a scene with a lid (the
-box tasks) the lid's distance to where it closes the box after the first step and its least
-along the episode: whether the policy moved the lid at all. One JSON line.
+success, the best raw reward and the steps spent at 5 or more; for each stage flag the scene
+reports in its step info (`drawer_open`, `cube_in_drawer`, `cube_in_box`, `holding`, ...),
+the steps it was true; and in a scene with a lid (the box tasks) the lid's distance to where
+it closes the box after the first step and its least along the episode: whether the policy
+moved the lid at all. One JSON line.
 """
 
 from __future__ import annotations
@@ -35,15 +37,19 @@ class RawRewards:
     """An environment whose steps also keep the scene's raw reward (`info['raw_reward']`)."""
 
     def __init__(self, env) -> None:
-        self.env, self.raw, self.lid = env, [], []
+        self.env, self.raw, self.lid, self.flags = env, [], [], {}
 
     def reset(self, **kwargs):
-        self.raw, self.lid = [], []
+        self.raw, self.lid, self.flags = [], [], {}
         return self.env.reset(**kwargs)
 
     def step(self, action):
         out = self.env.step(action)
-        self.raw.append(float(out[4]["raw_reward"]))
+        info = out[4]
+        self.raw.append(float(info["raw_reward"]))
+        for key, value in info.items():
+            if key != "success" and isinstance(value, (bool, np.bool_)):
+                self.flags[key] = self.flags.get(key, 0) + int(value)
         if hasattr(self.env.scene, "close_error"):
             self.lid.append(self.env.scene.close_error())
         return out
@@ -77,6 +83,7 @@ def main(argv: list[str] | None = None) -> None:
         "best_raw": [round(float(r.max()), 2) for r in raw],
         "steps_at_5_or_more": [int((r >= 5).sum()) for r in raw],
         "steps": [len(r) for r in raw],
+        **{f"steps_{flag}": [env.flags[flag] for env in envs] for flag in sorted(envs[0].flags)},
         **({"lid_to_closed_first_and_least_m": [[round(e.lid[0], 3), round(min(e.lid), 3)]
                                                 for e in envs]} if envs[0].lid else {}),
     }))  # fmt: skip
