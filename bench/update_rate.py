@@ -164,9 +164,25 @@ def _compiled_paths_of(mode: str) -> list[str] | None:
     return mode.removeprefix("compile:").split("+") if mode.startswith("compile:") else None
 
 
+def batch_act(model, heads, cfg, n: int, precision: str):
+    """One act on n observations from a warm acting state (what several training envs
+    stepping together would ask of the model per step)."""
+    many = dataclasses.replace(cfg, batch_size=n)
+    obs = {k: v[0, :n] for k, v in synthetic_batch(many, torch.Generator()).obs.items()}
+    with torch.no_grad(), autocast(model.device, precision):
+        state = model.act(obs, heads, model.initial_state(heads, n), eval_mode=False)[1]
+
+    def act() -> None:
+        with torch.no_grad(), autocast(model.device, precision):
+            model.act(obs, heads, state, eval_mode=False)
+
+    return act
+
+
 def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmup: int,
-               mode: str = "eager") -> dict:  # fmt: skip
-    """Times one update and one act of the model of `cfg`, run as `mode` says."""
+               mode: str = "eager", act_batches: list[int] = ()) -> dict:  # fmt: skip
+    """Times one update and one act of the model of `cfg`, run as `mode` says; and one act
+    on each batch of `act_batches` observations (episodes acting together)."""
     compile_setting, precision = MODES.get(mode, ("on", "off"))
     paths = _compiled_paths_of(mode)
     torch.manual_seed(0)
@@ -176,15 +192,8 @@ def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmu
     batch = synthetic_batch(cfg, torch.Generator().manual_seed(0))
     if cached:  # replay then holds latents, encoded once when the episode was stored
         batch = dataclasses.replace(batch, obs=model.replay_obs(batch.obs))
-    one = dataclasses.replace(cfg, batch_size=1)
-    obs = {k: v[0, :1] for k, v in synthetic_batch(one, torch.Generator()).obs.items()}
-    with torch.no_grad(), autocast(model.device, precision):  # a warm-started plan / a
-        # mid-episode recurrent state is timed
-        state = model.act(obs, heads, model.initial_state(heads), eval_mode=False)[1]
-
-    def act() -> None:
-        with torch.no_grad(), autocast(model.device, precision):
-            model.act(obs, heads, state, eval_mode=False)
+    # a warm-started plan / a mid-episode recurrent state is timed
+    act = batch_act(model, heads, cfg, 1, precision)
 
     # Counted eager, before compiling: the same arithmetic.
     gflop = {"update": matmul_gflop(lambda: UpdateStep(model, heads)(batch)),
@@ -207,6 +216,11 @@ def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmu
         t = _median_times(fn, repeats, warmup)
         result[f"{name}_s_median"] = t["wall"]
         result[f"{name}_cpu_s_median"] = t["cpu"]
+    if act_batches:
+        result["act_s_median_by_batch"] = {
+            n: _median_times(batch_act(model, heads, cfg, n, precision), repeats, warmup)["wall"]
+            for n in act_batches
+        }
     # The names run_tdmpc2.sh reads (an MPPI plan is TD-MPC2's act).
     result["plan_s_median"] = result["act_s_median"]
     result["updates_per_s"] = 1.0 / result["update_s_median"]
@@ -341,6 +355,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--warmup", type=int, default=1)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--act-batches", default="",
+                        help="also time one act on each of these numbers of observations at "
+                             "once, e.g. 1,2,4,8 (several envs acting together)")  # fmt: skip
     parser.add_argument(
         "--anchor-json", default=None, help="output of ../shared/tools/anchors/run_dreamerv3.sh"
     )
@@ -382,7 +399,8 @@ def main() -> None:
                 row.update(imag_last=cfg.imag_last, horizon=cfg.horizon)
             row.update(time_model(cfg, spec["preset"], spec["frozen_encoder"],
                                   spec["latents_cached"], args.repeats,
-                                  args.warmup + (mode != "eager"), mode))  # fmt: skip
+                                  args.warmup + (mode != "eager"), mode,
+                                  [int(n) for n in _names(args.act_batches)]))  # fmt: skip
             attach_references(row, anchor)
             for name in ("update", "act"):
                 row[f"{name}_fraction_of_matmul_peak"] = (row[f"{name}_gflop_per_s"]
