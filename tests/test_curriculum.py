@@ -703,3 +703,26 @@ def test_a_tasks_replay_is_freed_before_the_next_task_allocates_its_own(tmp_path
     with shorter_episodes():
         Curriculum(cfg, tmp_path / "run", tmp_path / "scratch", progress=False).run()
     assert alive_when_making == [0] * len(TASKS)
+
+
+def test_the_reference_records_what_the_seed_dataset_held(tmp_path):
+    """With a seed dataset, the from-scratch reference's config.json records the dataset's
+    contents as the run's does (its key leaves them out, its record keeps them)."""
+    from ccdata.record import GenerateConfig, generate
+    from ccfit.cli import main
+
+    root = tmp_path / SUITE
+    generate(GenerateConfig(SUITE, episodes=1, explore_episodes=1, image_size=32, max_steps=20,
+                            root=root), progress=False)  # fmt: skip
+    out = tmp_path / "run"
+    argv = ["run", "--suite", SUITE, "--preset", "smoke", "--seed_dataset", str(root), "--quiet",
+            "--out", str(out), *(f"--train.{k}={v}" for k, v in TRAIN.items())]  # fmt: skip
+    with shorter_episodes():
+        assert main(argv) == 0
+    run = json.loads((out / CONFIG).read_text())
+    reference_dir = json.loads((out / C.METRICS_JSON).read_text())["scratch_dir"]
+    reference = json.loads((Path(reference_dir) / CONFIG).read_text())
+    info = json.loads((root / "meta" / "info.json").read_text())
+    assert run["resolved_seed_dataset_meta"]["total_episodes"] == info["total_episodes"] > 0
+    assert reference["resolved_seed_dataset_meta"] == run["resolved_seed_dataset_meta"]
+    assert reference["resolved_seed_dataset"] == run["resolved_seed_dataset"]
