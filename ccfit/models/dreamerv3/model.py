@@ -312,9 +312,10 @@ class DreamerV3(WorldModel, Prediction):
 
     def _posterior(self, obs: dict[str, torch.Tensor], state: ActingState) -> ActingState:
         embed = self.backbone.encoder(obs)
-        not_first = torch.zeros(embed.shape[0], 1, device=self.device)
+        # No step is an episode's first here: `initial_state` already is the learned start.
+        is_first = torch.zeros(embed.shape[0], 1, device=self.device)
         deter, stoch, _ = self.rssm.obs_step(
-            state.deter, state.stoch, state.action, embed, not_first
+            state.deter, state.stoch, state.action, embed, is_first
         )
         return ActingState(deter, stoch, state.action)
 
