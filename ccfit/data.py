@@ -118,21 +118,13 @@ def dataset_meta(source: str | Path, endpoint: str | None = None) -> dict:
     """What a run records of a dataset beside its path, which alone does not say what lay
     there: its size and, for a ccdata dataset (meta/ccdata.json), its repo id and the
     `ccdata generate` settings and package versions that made it."""
-    root = resolve_source(source, endpoint)
-    info = _read_json(root / "meta" / "info.json")
-    out = {k: info.get(k) for k in ("total_episodes", "total_frames")}
+    meta, root = _open_metadata(source, endpoint)
+    out = {k: meta.info.get(k) for k in ("total_episodes", "total_frames")}
     if (root / CCDATA_META).is_file():
         made = read_ccdata_metadata(root)
         out |= {"repo_id": made.get("repo_id"), "generated_with": made.get("config"),
                 "versions": made.get("versions")}  # fmt: skip
     return out
-
-
-def _read_json(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise InputError(f"cannot read LeRobot dataset metadata {path}: {e}") from None
 
 
 def _id_maps(root: Path) -> tuple[dict[str, int], dict[str, int]]:

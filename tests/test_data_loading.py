@@ -258,3 +258,8 @@ def test_a_corrupt_ccdata_json_is_one_input_error(tiny_dataset, tmp_path):
                  lambda: dataset_meta(root)):  # fmt: skip
         with pytest.raises(InputError, match=r"ccdata.json is corrupt"):
             read()
+    # and a damaged meta/info.json, which recording the dataset reads for its size
+    (root / "meta" / "ccdata.json").unlink()
+    (root / "meta" / "info.json").write_text("{")
+    with pytest.raises(InputError, match=r"cannot read LeRobot dataset at"):
+        dataset_meta(root)
