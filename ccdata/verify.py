@@ -14,8 +14,6 @@ import numpy as np
 
 from ccdata.dataset_format import CODEBASE_VERSION, FINAL_KEY, FORMAT_VERSION
 
-LEROBOT_COLUMNS = ("timestamp", "frame_index", "episode_index", "index", "task_index")
-
 
 def verify_dataset(root: str | Path) -> list[str]:
     """Findings about the dataset at `root` (empty = OK)."""

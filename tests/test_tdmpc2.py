@@ -8,9 +8,10 @@ import torch
 
 from ccfit.config_base import ConfigError
 from ccfit.models.base import Batch
-from ccfit.models.encoders import preprocess_frames, random_shift
+from ccfit.models.encoders import random_shift
 from ccfit.models.layers import EnsembleMLP, SimNorm, TwoHot, mish, mlp, quantiles, symexp, symlog
 from ccfit.models.tdmpc2 import TDMPC2, TDMPC2_SIZES, TDMPC2Config, modules_in_eval
+from ccfit.obs import stack_cameras
 
 try:
     from replay_data import random_buffer
@@ -129,16 +130,16 @@ def test_simnorm_and_ensemble():
     assert xi.grad is not None and all(p.grad is None for p in ens.parameters())
 
 
-def test_preprocess_frames_channel_order():
+def test_stack_cameras_channel_order():
     cams = ("topview", "frontview", "gripperPOV")
     frames = {c: np.full((2, 8, 8, 3), 10 * (i + 1), dtype=np.uint8) for i, c in enumerate(cams)}
     frames["frontview"][..., 1] = 99
-    out = preprocess_frames(frames)
+    out = stack_cameras(frames)
     assert out.shape == (2, 9, 8, 8) and out.dtype == np.uint8
     assert out[:, 0:3].max() == 10 and out[:, 6:9].min() == 30
     assert (out[:, 4] == 99).all() and (out[:, 3] == 20).all()
     with pytest.raises(ValueError, match="gripperPOV"):
-        preprocess_frames({c: frames[c] for c in cams[:2]})
+        stack_cameras({c: frames[c] for c in cams[:2]})
 
 
 def test_random_shift_is_edge_replicating_translation():

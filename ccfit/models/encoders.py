@@ -2,7 +2,7 @@
 
 - `StateEncoder`: MLP on the 39-D 'state'.
 - `PixelEncoder`: the benchmark's fusion encoder. A TD-MPC2-style 4-conv branch reads the
-  9-channel 'pixels' (topview, frontview, gripperPOV stacked by `preprocess_frames`), an MLP
+  9-channel 'pixels' (topview, frontview, gripperPOV stacked by `ccfit.obs.stack_cameras`), an MLP
   branch reads the 7-D 'proprio', and a fusion MLP maps both to the latent.
 
 Inputs may carry any number of leading dims (e.g. time-major (T, B, ...) batches).
@@ -28,11 +28,6 @@ from torch import nn
 
 from ccdata.atomic import atomic_write
 from ccfit.models.layers import Mish, NormedLinear, SimNorm, mlp
-from ccfit.obs import stack_cameras
-
-preprocess_frames = stack_cameras
-"""Camera dict of uint8 (..., H, W, 3) -> uint8 (..., 9, H, W) in topview, frontview,
-gripperPOV order. One implementation (`ccfit.obs.stack_cameras`) for dataset and live frames."""
 
 
 class StateEncoder(nn.Module):
