@@ -426,6 +426,17 @@ class ReplayBuffer:
         idx = self._physical(torch.arange(start, end)).to(self.storage)
         return {k: v[idx].cpu() for k, v in self._columns().items()}
 
+    def demo_rows(self, start: int, end: int) -> dict[str, torch.Tensor]:
+        """Columns of rows start .. end - 1 (write numbers) of one kept demonstration, copied to
+        the CPU, whether or not the ring still stores them."""
+        cols, offset = self._demo_columns(), 0
+        for first, stop in self.demo_spans:
+            if first <= start <= end <= stop:
+                a = offset + start - first
+                return {k: v[a : a + end - start].cpu() for k, v in cols.items()}
+            offset += stop - first
+        raise ValueError(f"rows {start}..{end} are not within one kept demonstration")
+
     def meta_state(self) -> dict:
         """The state besides the rows (see `rows`): with the rows it restores the buffer."""
         return {

@@ -5,7 +5,9 @@ of GB) every checkpoint would rewrite all of it. Here each checkpoint writes onl
 added since the previous one, as one file `replay/rows-<first>-<end>.pt` (write numbers),
 and records the list of files it needs (its manifest) with the buffer's small state. A file
 whose rows have all been overwritten leaves the manifest, unless it holds rows of a
-demonstration (the buffer keeps those, `ReplayBuffer.demo_spans`); it is deleted only after the
+demonstration (the buffer keeps those, `ReplayBuffer.demo_spans`; rows of one that the ring
+overwrote before any checkpoint saved them get a file of their own, written from the buffer's
+copy of the demonstration); a file leaving the manifest is deleted only after the
 checkpoint that no longer needs it is written, so the previous checkpoint stays readable
 until then. Files a killed process wrote after its last checkpoint are not in any manifest
 and are deleted when the run resumes.
@@ -34,21 +36,35 @@ def save_rows(buffer: ReplayBuffer, run_dir: Path, manifest: list[dict]
             f["start"] < end and first < f["end"] for first, end in buffer.demo_spans
         )
 
+    def write(start: int, end: int, rows: dict) -> None:
+        name = f"rows-{start:012d}-{end:012d}.pt"
+        atomic_torch_save({"kind": ROWS_KIND, "version": ROWS_VERSION, "rows": rows},
+                          directory / name)  # fmt: skip
+        keep.append({"file": name, "start": start, "end": end})
+
     keep = [f for f in manifest if needed(f)]
     stale = [directory / f["file"] for f in manifest if not needed(f)]
-    start = max(keep[-1]["end"] if keep else 0, buffer.oldest)
+    start = max([f["end"] for f in keep] + [buffer.oldest])
     if buffer.written > start:
-        name = f"rows-{start:012d}-{buffer.written:012d}.pt"
-        atomic_torch_save(
-            {
-                "kind": ROWS_KIND,
-                "version": ROWS_VERSION,
-                "rows": buffer.rows(start, buffer.written),
-            },
-            directory / name,
-        )
-        keep.append({"file": name, "start": start, "end": buffer.written})
-    return keep, stale
+        write(start, buffer.written, buffer.rows(start, buffer.written))
+    for first, end in buffer.demo_spans:
+        for a, b in _uncovered(first, end, keep):
+            write(a, b, buffer.demo_rows(a, b))
+    return sorted(keep, key=lambda f: f["start"]), stale
+
+
+def _uncovered(first: int, end: int, files: list[dict]) -> list[tuple[int, int]]:
+    """The ranges of rows first .. end - 1 that none of `files` holds."""
+    gaps, row = [], first
+    for f in sorted(files, key=lambda f: f["start"]):
+        if f["start"] > row:
+            gaps.append((row, min(f["start"], end)))
+        row = max(row, f["end"])
+        if row >= end:
+            break
+    if row < end:
+        gaps.append((row, end))
+    return [(a, b) for a, b in gaps if a < b]
 
 
 def load_rows(buffer: ReplayBuffer, run_dir: Path, meta: dict, manifest: list[dict]) -> None:

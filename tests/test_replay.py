@@ -242,6 +242,32 @@ def test_checkpoints_keep_the_row_files_of_overwritten_demonstrations(tmp_path):
         assert set(a.obs["id"][:, :3, 2].flatten().tolist()) <= set(range(6))
 
 
+def test_a_demonstration_the_ring_overwrote_before_any_checkpoint_is_saved_from_its_copy(
+    tmp_path,
+):
+    """A seed dataset larger than the ring overwrites a demonstration before the first
+    checkpoint: the checkpoint writes its rows from the buffer's copy, and a resumed buffer
+    draws what the uninterrupted one draws."""
+    from ccfit.replay_store import load_rows, save_rows
+
+    buf, src = ReplayBuffer(12, seed=3), Source()
+    buf.add_episode(**src.episode(5), demo=True)  # rows 0..5
+    buf.add_episode(**src.episode(4), demo=True)  # rows 6..10
+    buf.add_episode(**src.episode(7))  # rows 11..18: rows 0..6 overwritten
+    assert buf.oldest == 7
+    manifest, _ = save_rows(buf, tmp_path, [])
+    assert [(f["start"], f["end"]) for f in manifest] == [(0, 6), (6, 7), (7, 19)]
+    buf.add_episode(**src.episode(3))  # rows 19..22
+    manifest, stale = save_rows(buf, tmp_path, manifest)
+    assert not stale and [(f["start"], f["end"]) for f in manifest][-1] == (19, 23)
+    other = ReplayBuffer(12, seed=0)
+    load_rows(other, tmp_path, buf.meta_state(), manifest)
+    for _ in range(3):
+        a, b = buf.sample(6, 3, demo_fraction=0.5), other.sample(6, 3, demo_fraction=0.5)
+        assert torch.equal(a.obs["id"], b.obs["id"]) and torch.equal(a.is_first, b.is_first)
+        assert torch.equal(a.action, b.action) and torch.equal(a.task, b.task)
+
+
 # ------------------------------------------------------------------------------ ring
 
 
