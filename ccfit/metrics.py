@@ -315,9 +315,8 @@ def cw_forward_transfer(
 def task_curves(records: list[dict], num_tasks: int, key: str = "normalized_return"
                 ) -> list[tuple[np.ndarray, np.ndarray]]:  # fmt: skip
     """Per task (steps, scores): the records' `key` (normalised returns online, the prediction
-    score offline); of several records at one global step the last logged wins (a task's end
-    record is superseded by the next stage's first evaluation, which sees e.g. PackNet's
-    pruned and retrained weights)."""
+    score offline). A task's record at its last step is taken after the method's end of task
+    (e.g. PackNet's prune and retraining); should one step be logged twice, the later stands."""
     curves = []
     for t in range(num_tasks):
         by_step: dict[int, float] = {}

@@ -206,6 +206,13 @@ def group_metrics(runs: list[Run]) -> dict:
             f"refusing to average runs whose configs differ in {differ}: "
             + ", ".join(str(r.path) for r in runs)
         )
+    seeds = [r.seed for r in runs]
+    twice = sorted({s for s in seeds if seeds.count(s) > 1})
+    if twice:
+        raise InputError(
+            f"refusing to average seed(s) {twice} more than once (the same run under two of "
+            "the paths given?): " + ", ".join(str(r.path) for r in runs if r.seed in twice)
+        )
     num_tasks = len(runs[0].metrics["task_ends"])
     budget = runs[0].metrics["budget"]
     ends = runs[0].metrics["task_ends"]
@@ -215,7 +222,7 @@ def group_metrics(runs: list[Run]) -> dict:
     curves = [M.average_curves([c[t] for c in per_seed]) for t in range(num_tasks)]
     scratch = M.average_curves([task_curves(r.scratch, num_tasks, key)[-1] for r in runs])
     mean = metrics_from_curves(curves, ends, scratch, budget)
-    out = {"seeds": sorted(r.seed for r in runs), "curves": curves, "scratch": scratch,
+    out = {"seeds": sorted(seeds), "curves": curves, "scratch": scratch,
            "ends": ends, "budget": budget, "runs": [str(r.path) for r in runs],
            "track": track}  # fmt: skip
     for name, source in METRICS_SHOWN.items():
@@ -223,6 +230,7 @@ def group_metrics(runs: list[Run]) -> dict:
         out[name] = mean[source]
         out[f"{name}_min"] = min(values) if values else None
         out[f"{name}_max"] = max(values) if values else None
+        out[f"{name}_seeds_defined"] = len(values)
     return out
 
 
@@ -316,7 +324,7 @@ def write_tables(groups: dict, out: Path) -> list[Path]:
         lines = [
             f"# {backbone}: BWT and F (lower is better), FWT (higher is better)",
             "",
-            "Mean over seeds of the seed-averaged curves' metric, [min, max] per seed. "
+            "The metric of the seed-averaged curves, [min, max] of the per-seed metrics. "
             "F: Continual World's forgetting, end-of-task minus final score in score "
             "points, averaged over every task but the last (defined where BWT leaves out "
             "a task never learnt above 0).",

@@ -22,12 +22,15 @@ def row_label(suite: str, variant: str) -> str:
 
 def metric_cell(g: dict, name: str) -> str:
     """A group's metric as tables print it: the seed-averaged value, [min, max] over seeds when
-    there are several, 'n/a' when undefined."""
+    there are several (naming how many where the metric is undefined for some), 'n/a' when
+    undefined."""
     if g[name] is None:
         return "n/a"
     if len(g["seeds"]) == 1:
         return f"{g[name]:.2f}"
-    return f"{g[name]:.2f} [{g[f'{name}_min']:.2f}, {g[f'{name}_max']:.2f}]"
+    defined = g[f"{name}_seeds_defined"]
+    of = "" if defined == len(g["seeds"]) else f"; {defined} of {len(g['seeds'])} seeds"
+    return f"{g[name]:.2f} [{g[f'{name}_min']:.2f}, {g[f'{name}_max']:.2f}{of}]"
 
 
 def slug(variant: str) -> str:
@@ -65,18 +68,21 @@ def plot_bars(groups: dict, out: Path) -> list[Path]:
         width = 0.8 / max(len(methods), 1)
         for ax, name, better in zip(axes, ("bwt", "fwt"), ("lower", "higher"), strict=True):
             for k, m in enumerate(methods):
-                xs, ys, lo, hi = [], [], [], []
+                xs, ys, lows, highs = [], [], [], []
                 for r, (suite, variant) in enumerate(rows):
                     g = groups.get((backbone, suite, m, variant))
                     if g is None or g[name] is None:
                         continue
                     xs.append(r + (k - (len(methods) - 1) / 2) * width)
                     ys.append(g[name])
-                    low, high = g[f"{name}_min"], g[f"{name}_max"]
-                    lo.append(g[name] - (g[name] if low is None else low))
-                    hi.append((g[name] if high is None else high) - g[name])
-                ax.bar(xs, ys, width, label=m, yerr=[np.maximum(lo, 0), np.maximum(hi, 0)],
-                       capsize=2)  # fmt: skip
+                    lows.append(g[f"{name}_min"])
+                    highs.append(g[f"{name}_max"])
+                ax.bar(xs, ys, width, label=m)
+                # The whisker spans the per-seed [min, max] wherever the bar's value (the
+                # seed-averaged curves' metric) lies, inside that range or not.
+                lows, highs = np.asarray(lows, dtype=float), np.asarray(highs, dtype=float)
+                ax.errorbar(xs, (lows + highs) / 2, yerr=(highs - lows) / 2, fmt="none",
+                            ecolor="k", elinewidth=0.8, capsize=2)  # fmt: skip
             ax.set_xticks(
                 range(len(rows)),
                 [row_label(s, v) for s, v in rows],

@@ -225,3 +225,54 @@ def test_curve_plot_keeps_green_and_red_for_forward_transfer(tmp_path, monkeypat
     assert {shading["FWT +"], shading["FWT -"]} == fwt
     forgetting = {v for k, v in shading.items() if not k.startswith("FWT")}
     assert forgetting and forgetting <= task_colours
+
+
+def test_a_seed_given_twice_is_one_line_and_exit_2(tmp_path, capsys):
+    """The same run under two of the paths given (a sweep and its published copy) would count
+    its seed twice in the mean: refused, naming both."""
+    from ccfit.cli import main
+
+    write_run(tmp_path / "sweep", "s0", config(), 1.0)
+    write_run(tmp_path / "sweep", "s1", config(seed=1), 0.5)
+    shutil.copytree(tmp_path / "sweep", tmp_path / "copy")
+    shutil.rmtree(tmp_path / "copy" / "s1")
+    assert main(["report", str(tmp_path / "sweep"), str(tmp_path / "copy"),
+                 "--out", str(tmp_path / "out")]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert err.startswith("ccfit: error: refusing to average seed(s) [0] more than once")
+    assert str(tmp_path / "sweep" / "s0") in err and str(tmp_path / "copy" / "s0") in err
+    assert err.count("\n") == 1
+
+
+def test_a_range_over_fewer_seeds_than_the_value_says_so():
+    from ccfit.report_plots import metric_cell
+
+    group = {"seeds": [0, 1], "bwt": 75.0, "bwt_min": 50.0, "bwt_max": 50.0}
+    assert (
+        metric_cell({**group, "bwt_seeds_defined": 1}, "bwt")
+        == "75.00 [50.00, 50.00; 1 of 2 seeds]"
+    )
+    assert metric_cell({**group, "bwt_seeds_defined": 2}, "bwt") == "75.00 [50.00, 50.00]"
+
+
+def test_bar_whiskers_span_the_per_seed_range_even_where_the_value_lies_outside_it(
+    tmp_path, monkeypatch
+):
+    """The bar is the seed-averaged curves' metric, which may fall outside the per-seed [min,
+    max] (BWT clips each curve's drop at 0 before averaging): the whisker still spans min..max."""
+    import matplotlib.pyplot as plt
+
+    from ccfit.report_plots import plot_bars
+
+    group = {"seeds": [0, 1, 2], "track": "online", "bwt": 0.04, "bwt_min": 0.07,
+             "bwt_max": 1.33, "fwt": 10.0, "fwt_min": 5.0, "fwt_max": 12.0}  # fmt: skip
+    figures = []
+    monkeypatch.setattr(plt, "close", lambda fig=None: figures.append(fig))
+    plot_bars({("tdmpc2", SUITE, "packnet", ""): group}, tmp_path)
+    (fig,) = figures
+    for ax, name in zip(fig.axes, ("bwt", "fwt"), strict=True):
+        (bar,) = ax.patches
+        assert bar.get_height() == pytest.approx(group[name])
+        (whisker,) = [c for c in ax.collections if len(c.get_segments()) == 1]
+        (segment,) = whisker.get_segments()
+        assert sorted(segment[:, 1]) == pytest.approx([group[f"{name}_min"], group[f"{name}_max"]])
