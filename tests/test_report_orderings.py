@@ -10,7 +10,8 @@ def _group(bwt: float | None, fwt: float = 10.0, seeds: int = 3) -> dict:
     lo = None if bwt is None else bwt - 1
     hi = None if bwt is None else bwt + 1
     return {"bwt": bwt, "bwt_min": lo, "bwt_max": hi, "fwt": fwt, "fwt_min": fwt - 1,
-            "fwt_max": fwt + 1, "seeds": list(range(seeds))}  # fmt: skip
+            "fwt_max": fwt + 1, "seeds": list(range(seeds)), "fwt_seeds_defined": seeds,
+            "bwt_seeds_defined": 0 if bwt is None else seeds}  # fmt: skip
 
 
 def _rows(groups: dict, ordering: str) -> list[tuple]:
