@@ -28,6 +28,14 @@ def atomic_write(path: str | Path, write: Callable[[str], object], mode: int = 0
         raise
 
 
+def remove_partial_writes(directory: str | Path, name: str = "*") -> None:
+    """Delete the temp files `atomic_write` was filling in `directory` for targets named
+    `name` (a glob) when its process was killed; only for a directory no live process writes
+    in (a run resuming its own)."""
+    for tmp in Path(directory).glob(f".{name}.*.tmp"):
+        tmp.unlink(missing_ok=True)
+
+
 def atomic_write_text(path: str | Path, text: str) -> None:
     """Write `text` to `path` atomically."""
     atomic_write(path, lambda tmp: Path(tmp).write_text(text))

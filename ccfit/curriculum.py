@@ -190,6 +190,8 @@ class Curriculum:
         check_disk(plan, self.out)
         self.out.mkdir(parents=True, exist_ok=True)
         check_saved_config(self.out, resolved)
+        for i in range(completed):  # a run killed between saving a task and removing its folder
+            shutil.rmtree(self.out / "tasks" / f"{i}-{tasks[i]}", ignore_errors=True)
         scratch_dir = (self.scratch_root / scratch_key(cfg)).resolve()
         # With compiled hot paths and tasks left after this one, the reference starts when this
         # process has trained its first task: the compiled graphs are then in Inductor's cache,

@@ -413,6 +413,10 @@ def test_killed_run_resumes_to_the_uninterrupted_result(runs, tmp_path):
         proc.communicate()
     state = torch.load(out / C.STATE, map_location="cpu", weights_only=False)
     assert state["completed"] == 1 and not (out / C.METRICS_JSON).exists()
+    # As if killed between saving task 0 and removing its folder: the resumed run removes it.
+    leftover = out / "tasks" / f"0-{TASKS[0]}"
+    leftover.mkdir()
+    (leftover / "checkpoint.pt").write_bytes(b"task 0's")
 
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
@@ -422,7 +426,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(runs, tmp_path):
         ours.pop("out", None), theirs.pop("out", None)  # the CLI run names its directory
         assert ours == theirs, name
     assert _records(out) == _records(ref)
-    assert not list((out / "tasks").glob("*/checkpoint.pt"))
+    assert not list((out / "tasks").glob("*/checkpoint.pt")) and not leftover.exists()
     assert len(set(runs.done_mtimes)) == 1
     done_json = Path(runs.runs[method].result["scratch_dir"]) / "done.json"
     assert done_json.stat().st_mtime_ns == runs.done_mtimes[0], "scratch retrained"

@@ -195,6 +195,65 @@ def test_an_extended_run_stops_where_the_longer_run_stops(tmp_path):
     assert (state["task_step"], state["finished"]) == (120, True)
 
 
+def test_a_run_killed_after_an_evaluation_resumes_without_logging_it_twice(tmp_path, monkeypatch):
+    """Wall-clock checkpoints due at every episode end (50-step episodes end at 50, 100, ...;
+    evaluations every 100 steps) and a kill right after the evaluation at step 100 was logged:
+    the resumed run logs no evaluation twice and ends as the uninterrupted one (a checkpoint
+    at step 100, before its evaluation, made the resumed run log it again). It resumes with
+    `--train.parallel` changed (a setting a resumed run may change) and past what the killed
+    process left half-written: a checkpoint and a replay file mid-write, a torn last line of
+    metrics.jsonl."""
+    from ccfit.train import train_single
+    from ccfit.train.loop import Trainer
+
+    def config(out: Path, parallel: str = "off") -> TaskRunConfig:
+        cfg = _run_config(out, steps=200, checkpoint_interval=1000).to_dict()
+        train = {**cfg["train"], "eval_interval": 100, "checkpoint_minutes": 1e-9,
+                 "parallel": parallel}  # fmt: skip
+        return resolve(TaskRunConfig, {**cfg, "train": train})
+
+    full, broken = tmp_path / "full", tmp_path / "broken"
+    train_single(config(full), progress=False)
+    original = Trainer._env_step
+
+    def dying(self):
+        if self.task_step == 110:
+            raise KeyboardInterrupt
+        return original(self)
+
+    monkeypatch.setattr(Trainer, "_env_step", dying)
+    with pytest.raises(KeyboardInterrupt):
+        train_single(config(broken), progress=False)
+    monkeypatch.setattr(Trainer, "_env_step", original)
+    records = broken / "metrics.jsonl"
+    assert [json.loads(x)["task_step"] for x in records.read_text().splitlines()][-1] == 100
+    with records.open("a") as f:
+        f.write('{"discounted_return": -1')
+    half = [broken / ".checkpoint.pt.x1.tmp", broken / "replay" / ".rows-x.pt.x2.tmp"]
+    for path in half:
+        path.write_bytes(b"half")
+    train_single(config(broken, parallel="on"), progress=False)
+    assert records.read_text() == (full / "metrics.jsonl").read_text()
+    a, b = _params(full), _params(broken)
+    assert all(torch.equal(a[k], b[k]) for k in a), "resumed run diverged"
+    assert not any(path.exists() for path in half)
+
+
+def test_a_run_whose_last_step_was_not_an_evaluation_step_is_not_extended(tmp_path, capsys):
+    """A 90-step run evaluated and cut its episode at 90, where a 120-step run (evaluations
+    every 60) does not: extending it would not give the longer run, so it is refused."""
+    from ccfit.cli import main
+
+    argv = smoke_train_argv(tmp_path / "run", "--train.eval_interval=60", "--train.seed_steps=40",
+                            "--train.eval_episodes=1", "--train.buffer_capacity=2000")  # fmt: skip
+    assert subprocess.run(ccfit_command([*argv, "--train.steps=90"])).returncode == 0
+    saved = (tmp_path / "run" / "config.json").read_text()
+    assert main([*argv, "--train.steps=120"]) == 2
+    err = capsys.readouterr().err
+    assert "holds a run of 90 steps" in err and "cannot be extended" in err and err.count("\n") == 1
+    assert (tmp_path / "run" / "config.json").read_text() == saved
+
+
 @pytest.mark.slow  # two 300-step runs (~60 s); resume equality is covered by the tests below
 def test_wall_clock_checkpoints_do_not_change_the_run(tmp_path):
     """A checkpoint written at an episode end (checkpoint_minutes) cuts nothing: the run's

@@ -29,16 +29,17 @@ import numpy as np
 import torch
 from torch import nn
 
+from ccdata.atomic import remove_partial_writes
 from ccdata.errors import InputError
 from ccdata.scoring import discounted_return
 from ccfit.config import TrainConfig, stop_reached
-from ccfit.config_base import drop_legacy_values
+from ccfit.config_base import NOT_IDENTITY, drop_legacy_values, without_setting
 from ccfit.continual.base import ContinualMethod, TaskData
 from ccfit.io import atomic_torch_save, derived_seed, load_checkpoint, rng_state, set_rng_state
 from ccfit.models.base import Batch, WorldModel
 from ccfit.obs import model_input, obs_to_arrays
 from ccfit.replay import ReplayBuffer
-from ccfit.replay_store import load_rows, save_rows
+from ccfit.replay_store import ROWS_DIR, load_rows, save_rows
 from ccfit.train.compiled import autocast
 from ccfit.train.evaluate import ACTION_TAG, TRAIN_TAG, Evaluator
 from ccfit.train.records import RunLogger
@@ -122,6 +123,9 @@ class Trainer:
         from tqdm.auto import tqdm
 
         cfg = self.cfg
+        if self.run_dir is not None:  # a killed process may have been writing these
+            remove_partial_writes(self.run_dir, CHECKPOINT)
+            remove_partial_writes(self.run_dir / ROWS_DIR, "rows-*.pt")
         if self.run_dir is not None and (self.run_dir / CHECKPOINT).exists():
             pending = self.load_checkpoint(self.run_dir / CHECKPOINT)
             if self.logger is not None:
@@ -162,8 +166,11 @@ class Trainer:
                 bar.update(1)
                 if self.task_step % TRAIN_LOG_EVERY == 0:
                     self._flush_train_logs()
-                if self._episode is None and self._wall_clock_due():
-                    self._checkpoint()  # at an episode end: nothing is cut
+                # At an episode end (nothing is cut), and not at a step still to be evaluated:
+                # a run resumed from there would evaluate and log that step a second time.
+                if (self._episode is None and self.task_step % cfg.eval_interval != 0
+                        and self._wall_clock_due()):  # fmt: skip
+                    self._checkpoint()
             if not self.finished:
                 self._cut_episode()
                 self._finish_task()
@@ -322,7 +329,7 @@ class Trainer:
     # ------------------------------------------------------------------------- checkpoints
 
     def _identity(self) -> dict:
-        return {"train_config": drop_legacy_values(dataclasses.asdict(self.cfg), "train."),
+        return {"train_config": _train_identity(dataclasses.asdict(self.cfg)),
                 "seed": self.seed,
                 "task_id": self.task_id, "global_offset": self.global_offset}  # fmt: skip
 
@@ -358,7 +365,7 @@ class Trainer:
         flight when it was written (all at its step: earlier ones were waited for)."""
         state = load_checkpoint(path, CHECKPOINT_KIND, CHECKPOINT_VERSION)
         saved = {k: state[k] for k in self._identity()}  # as written, by whichever version
-        saved["train_config"] = drop_legacy_values(saved["train_config"], "train.")
+        saved["train_config"] = _train_identity(saved["train_config"])
         budget = saved["train_config"]["steps"]
         if self.extendable and budget < self.cfg.steps:
             saved["train_config"]["steps"] = self.cfg.steps
@@ -384,3 +391,14 @@ class Trainer:
         self._episode = None
         set_rng_state(state["rng"], actions=self.action_rng)
         return list(state["pending_evals"])
+
+
+def _train_identity(train_config: dict) -> dict:
+    """A checkpoint's training settings as far as they decide what it computes: without the
+    ones a resumed run may change (`NOT_IDENTITY`, e.g. `train.parallel`) and those at their
+    legacy values."""
+    out = drop_legacy_values(train_config, "train.")
+    for path in NOT_IDENTITY:
+        if path.startswith("train."):
+            out = without_setting(out, path.removeprefix("train."))
+    return out

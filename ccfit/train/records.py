@@ -36,6 +36,11 @@ class RunLogger:
         self.config = config
         self._tb = None
         self._wandb = None
+        text = self.jsonl.read_text() if self.jsonl.exists() else ""
+        if text and not text.endswith("\n"):
+            # An append cut short (the machine went down mid-write): drop the partial record,
+            # which its resumed run logs again, before anything is appended after it.
+            atomic_write_text(self.jsonl, "".join(x + "\n" for x in text.splitlines()[:-1]))
 
     def _writer(self, purge_step: int | None = None):
         if self._tb is None and self.log.tensorboard:

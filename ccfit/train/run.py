@@ -156,7 +156,8 @@ def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
 
 
 EXTENDABLE = "train.steps"
-"""The one setting a finished single-task run may raise on resume (`check_saved_config`)."""
+"""The one setting a finished single-task run may raise on resume (`check_saved_config`), from
+a multiple of `train.eval_interval`."""
 
 
 def check_saved_config(out: Path, resolved: dict, *, extends: type[WorldModel] | None = None
@@ -177,6 +178,12 @@ def check_saved_config(out: Path, resolved: dict, *, extends: type[WorldModel] |
                                   f"{extends.__name__} run cannot be extended to more, since "
                                   "its training reads the task's step budget: use another "
                                   "--out")  # fmt: skip
+            interval = b["train.eval_interval"]
+            if a[EXTENDABLE] % interval:
+                raise ConfigError(f"{out} holds a run of {a[EXTENDABLE]} steps, which evaluated "
+                                  "and cut its episode at its last step; a longer run does not "
+                                  f"there (train.eval_interval {interval}), so it cannot be "
+                                  "extended: use another --out")  # fmt: skip
         elif differ:
             raise ConfigError(f"{out} holds a run with a different config (differs in "
                               f"{', '.join(differ) or 'empty option groups'}); use another "
