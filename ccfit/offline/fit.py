@@ -111,8 +111,11 @@ class TaskFitter:
                 self._step()
                 self.update += 1
                 bar.update(1)
+                # Not at an update still to be scored: a run resumed from there would score
+                # it and log it a second time.
                 minutes = fit.checkpoint_minutes
-                if minutes > 0 and time.monotonic() - self._last_save >= 60.0 * minutes:
+                if (minutes > 0 and self.update % fit.score_interval != 0
+                        and time.monotonic() - self._last_save >= 60.0 * minutes):  # fmt: skip
                     self._checkpoint()
             if not self.finished:
                 self._finish_task()
