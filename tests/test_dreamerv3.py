@@ -632,6 +632,23 @@ def test_option_actor_gradient_matches_its_estimator(actor_grad):
         )
 
 
+def test_replay_value_loss_averages_over_every_row_as_the_2025_code():
+    from ccfit.models.dreamerv3.behavior import replay_value_loss
+
+    model, heads = make(seed=0)
+    torch.manual_seed(3)
+    feat = torch.randn(6, 2, model.cfg.feat_dim)
+    logits = torch.randn(6, 2, model.cfg.reward_bins)
+    target = torch.randn(6, 2, 1)
+    mask = torch.ones(6, 2, 1)
+    mask[-1], mask[3:, 1] = 0, 0  # the last row and an episode boundary
+    per_row = heads.twohot.cross_entropy(logits, target) + model.cfg.slow_critic_reg * (
+        heads.twohot.cross_entropy(logits, heads.slow_value(feat))
+    )
+    expected = (per_row * mask).sum() / mask.numel()
+    assert torch.isclose(replay_value_loss(model.cfg, heads, logits, feat, target, mask), expected)
+
+
 def test_option_critic_replay_value_reaches_backbone_and_critic():
     outs, models = {}, {}
     for scale in (0.0, 0.3):

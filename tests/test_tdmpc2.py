@@ -212,6 +212,22 @@ def test_shapes_and_finiteness(mode):
         model.Q(z0, a0, heads, "max")
 
 
+def test_the_policy_samples_and_squashes_in_float32_under_bf16_autocast():
+    """Under bfloat16 autocast the policy's Gaussian, tanh and log-prob stay float32: in
+    bfloat16 a near-saturated action rounds to exactly +-1, where tanh passes no gradient."""
+    model, heads = build("state")
+    with torch.no_grad():
+        heads.pi[-1].bias[:4] = 4.0  # means near saturation: tanh(4) = 0.99933
+    z = model.encode(make_batch(model.cfg).obs)[0].detach()
+    torch.manual_seed(0)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        action, info = model.pi(z, heads)
+    assert action.dtype == info["entropy"].dtype == torch.float32
+    assert (action.abs() < 1).all()
+    action.sum().backward()
+    assert heads.pi[-1].bias.grad[:4].abs().min() > 0
+
+
 @pytest.mark.parametrize("mode", MODES)
 def test_overfit_one_batch(mode):
     model, heads = build(mode, lr=1e-3)

@@ -37,7 +37,9 @@ def mppi_plan(
 
     `prev_mean`: the previous step's final means; shifted by one step they warm-start this
     plan (None: start from zero, as at an episode's first step). Eval returns the first step of
-    the final mean; training samples an elite by score and adds the final std's noise.
+    the final mean (TD-MPC's rule; the official TD-MPC2 samples an elite by score there too, so
+    its evaluation also draws among diverging elites); training samples an elite by score and
+    adds the final std's noise. Every published run evaluated this way.
     """
     cfg = model.cfg
     hor, num, npi, d = cfg.horizon, cfg.num_samples, cfg.num_pi_trajs, cfg.action_dim

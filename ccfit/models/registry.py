@@ -58,7 +58,8 @@ class ModelConfig(ChoiceConfig, draccus.ChoiceRegistry):
     pretrain_updates: int = 0
     """Updates run in one burst when updates first become possible on a fresh model (the
     run's first task, right after the seed steps), before `train_ratio` takes over
-    (DreamerV3's recipe: 100). Later tasks of a curriculum do not repeat it."""
+    (DreamerV3's recipe: 100). Later tasks of a curriculum do not repeat it. TD-MPC2 runs
+    none, where the official one runs `seed_steps` updates at once when seeding ends."""
 
     def __post_init__(self) -> None:
         check_types(self)

@@ -14,9 +14,13 @@ Choices where the recipe leaves room (see DREAMERV3.md):
 - Prior/posterior logits pass through 1% unimix before sampling and KL; actions beyond
   [-1, 1] are clipped in value (scaled, gradient kept) before the dynamics, and the acting
   action is the clipped sample.
-- 2025 replay-value loss (`critic_replay_scale`): the critic predicts raw returns as in 2023
-  (2025 also normalises values); bootstrap targets come from a no-grad imagination inside
-  `loss`, before the world-model step, as in 2025's single joint update.
+- 2025 replay-value loss (`critic_replay_scale`): the critic predicts raw returns (as in 2023
+  and 2025, whose value normalisation is off); bootstrap targets come from a no-grad
+  imagination inside `loss`, before the world-model step, as in 2025's single joint update.
+- A window's first row starts imagination as a live state even when it is an episode's
+  terminal observation (the transition into it is not in the window); the authors' 2023 code
+  knows it is terminal. About 1/64 of the starts of terminal rows, themselves a few per
+  episode.
 """
 
 from ccfit.models.dreamerv3.config import DreamerV3Config

@@ -170,7 +170,8 @@ def replay_value_loss(
     target: torch.Tensor,
     mask: torch.Tensor,
 ) -> torch.Tensor:
-    """Mean over masked rows of CE(critic, target) + slow regulariser, unscaled."""
+    """CE(critic, target) + slow regulariser on the unmasked rows, averaged over all rows
+    (masked ones count 0, as in the 2025 code's plain mean), unscaled."""
     reg = heads.twohot.cross_entropy(critic_logits, heads.slow_value(feat.detach()))
     loss = heads.twohot.cross_entropy(critic_logits, target) + cfg.slow_critic_reg * reg
-    return (loss * mask).sum() / mask.sum().clamp(min=1.0)
+    return (loss * mask).mean()

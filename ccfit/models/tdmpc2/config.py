@@ -97,7 +97,8 @@ class TDMPC2Config(ModelConfig):
     dropout: float = 0.01
     """Dropout after the first layer of each Q member."""
     image_shift: int = 4
-    """Random-shift augmentation pad in pixels, training mode only (0 disables)."""
+    """Random-shift augmentation pad in pixels, training mode only (0 disables). DrQ's 4; the
+    official TD-MPC2 pads 3 and shifts when acting too."""
 
     num_bins: int = 101
     """Bins of the two-hot reward / value distributions."""

@@ -211,7 +211,10 @@ class TDMPC2(WorldModel, Prediction):
     def pi(self, z: torch.Tensor, heads: TDMPC2Heads) -> tuple[torch.Tensor, dict]:
         """Sample a tanh-squashed Gaussian action; info has mean, log_std, entropy terms."""
         cfg = self.cfg
-        mean, log_std = heads.pi(z).chunk(2, dim=-1)
+        # The squashed Gaussian in float32 under any autocast: in bfloat16, tanh rounds a
+        # near-saturated action to exactly +-1, where its gradient (and so Q's pull on the
+        # policy) is zero and the log-prob's squash correction is off.
+        mean, log_std = heads.pi(z).float().chunk(2, dim=-1)
         # Smoothly bound the log-std to [log_std_min, log_std_max].
         log_std = cfg.log_std_min + 0.5 * (cfg.log_std_max - cfg.log_std_min) * (
             torch.tanh(log_std) + 1
