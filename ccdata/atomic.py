@@ -28,7 +28,7 @@ def atomic_write(path: str | Path, write: Callable[[str], object], mode: int = 0
         raise
 
 
-def remove_partial_writes(directory: str | Path, name: str = "*") -> None:
+def remove_partial_writes(directory: str | Path, name: str) -> None:
     """Delete the temp files `atomic_write` was filling in `directory` for targets named
     `name` (a glob) when its process was killed; only for a directory no live process writes
     in (a run resuming its own)."""

@@ -246,7 +246,7 @@ def test_a_run_whose_last_step_was_not_an_evaluation_step_is_not_extended(tmp_pa
 
     argv = smoke_train_argv(tmp_path / "run", "--train.eval_interval=60", "--train.seed_steps=40",
                             "--train.eval_episodes=1", "--train.buffer_capacity=2000")  # fmt: skip
-    assert subprocess.run(ccfit_command([*argv, "--train.steps=90"])).returncode == 0
+    assert main([*argv, "--train.steps=90"]) == 0
     saved = (tmp_path / "run" / "config.json").read_text()
     assert main([*argv, "--train.steps=120"]) == 2
     err = capsys.readouterr().err

@@ -33,7 +33,7 @@ from ccdata.atomic import remove_partial_writes
 from ccdata.errors import InputError
 from ccdata.scoring import discounted_return
 from ccfit.config import TrainConfig, stop_reached
-from ccfit.config_base import NOT_IDENTITY, drop_legacy_values, without_setting
+from ccfit.config_base import identity
 from ccfit.continual.base import ContinualMethod, TaskData
 from ccfit.io import atomic_torch_save, derived_seed, load_checkpoint, rng_state, set_rng_state
 from ccfit.models.base import Batch, WorldModel
@@ -394,11 +394,7 @@ class Trainer:
 
 
 def _train_identity(train_config: dict) -> dict:
-    """A checkpoint's training settings as far as they decide what it computes: without the
-    ones a resumed run may change (`NOT_IDENTITY`, e.g. `train.parallel`) and those at their
-    legacy values."""
-    out = drop_legacy_values(train_config, "train.")
-    for path in NOT_IDENTITY:
-        if path.startswith("train."):
-            out = without_setting(out, path.removeprefix("train."))
-    return out
+    """A checkpoint's training settings as far as they decide what it computes, as a run's
+    config.json is judged (`config_base.identity`: without `train.parallel` and the other
+    settings a resumed run may change, and those at their legacy values)."""
+    return identity({"train": train_config})["train"]

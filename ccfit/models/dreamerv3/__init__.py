@@ -18,9 +18,9 @@ Choices where the recipe leaves room (see DREAMERV3.md):
   and 2025, whose value normalisation is off); bootstrap targets come from a no-grad
   imagination inside `loss`, before the world-model step, as in 2025's single joint update.
 - A window's first row starts imagination as a live state even when it is an episode's
-  terminal observation (the transition into it is not in the window); the authors' 2023 code
-  knows it is terminal. About 1/64 of the starts of terminal rows, themselves a few per
-  episode.
+  terminal observation (the transition into it is not in the window), where the authors' 2023
+  code knows it is terminal: only starts at row 0 (1 in `seq_len`) that fall on the one
+  terminal row of a successful episode.
 """
 
 from ccfit.models.dreamerv3.config import DreamerV3Config
