@@ -40,7 +40,7 @@ import torch
 from ccdata.env import make_env
 from ccfit import metrics as M
 from ccfit.config import CurriculumConfig
-from ccfit.config_base import identity, resolve_device
+from ccfit.config_base import identity, resolve_device, without_setting
 from ccfit.continual.base import ContinualMethod, make_method
 from ccfit.io import (
     atomic_torch_save,
@@ -67,6 +67,7 @@ from ccfit.train.run import (
     resolved_config,
     train_task,
 )
+from ccfit.train.update import backbone_optimizer_state
 
 STATE = "curriculum.pt"
 STATE_KIND = "ccfit-curriculum"
@@ -96,6 +97,8 @@ def scratch_config(cfg: CurriculumConfig) -> dict:
     """config.json of the from-scratch reference: the run's, less what it does not depend
     on (the method, the output directory, where the run logs)."""
     resolved = identity(resolved_config(cfg, cfg.suite, record_dataset=False))
+    # A single task has no optimiser state to carry over.
+    resolved = without_setting(resolved, "train.keep_backbone_optimizer")
     return {k: v for k, v in resolved.items() if k not in ("method", "out")}
 
 
@@ -183,7 +186,7 @@ class Curriculum:
         if train.torch_threads > 0:
             torch.set_num_threads(train.torch_threads)
         tasks = cfg.tasks
-        model, method, stored, completed, pending = restore(cfg, self.out, self.device)
+        model, method, stored, completed, pending, carried = restore(cfg, self.out, self.device)
         source = resolved["resolved_seed_dataset"]
         # What does not fit fails here, before anything runs.
         plan = plan_run_replay(cfg, model, list(tasks), source)
@@ -222,6 +225,7 @@ class Curriculum:
                     task_index=i, logger=logger, method=method, run_dir=task_dir,
                     global_offset=i * train.steps, progress=self.progress,
                     stored_heads_loss=lambda batch, j: model.loss(batch, stored[j]).total,
+                    backbone_optim=carried,
                 )  # fmt: skip
                 try:
                     # The task's last evaluation runs on while the next task trains.
@@ -230,12 +234,14 @@ class Curriculum:
                     env.close()
                 if defer_scratch:
                     scratch_job, defer_scratch = start_scratch(cfg, scratch_dir), False
+                if train.keep_backbone_optimizer:
+                    carried = backbone_optimizer_state(trainer.step.optim, model.backbone)
                 heads.requires_grad_(False)
                 heads.eval()
                 stored.append(heads)
                 for callback in self.callbacks:
                     callback(Stage(self.out, cfg, model, stored, method, self.device))
-                self._save(i + 1, model, method, stored, evaluator.pending)
+                self._save(i + 1, model, method, stored, evaluator.pending, carried)
                 shutil.rmtree(task_dir, ignore_errors=True)
                 # Release this task's replay before the next task allocates its own: held here,
                 # the two rings would coexist while the next one is seeded (twice the memory
@@ -257,9 +263,11 @@ class Curriculum:
         atomic_write_json(self.out / METRICS_JSON, result)
         return result
 
-    def _save(self, completed: int, model, method, stored, pending: list[dict]) -> None:
+    def _save(self, completed: int, model, method, stored, pending: list[dict],
+              backbone_optim: dict | None) -> None:  # fmt: skip
         """The state after `completed` tasks; `pending`: evaluation requests still running,
-        all submitted with these weights (the task's checkpoint waited for earlier ones)."""
+        all submitted with these weights (the task's checkpoint waited for earlier ones);
+        `backbone_optim`: the optimiser state the next task starts from (None: fresh)."""
         atomic_torch_save({
             "kind": STATE_KIND,
             "version": STATE_VERSION,
@@ -268,6 +276,7 @@ class Curriculum:
             "method": method.state_dict(),
             "heads": [h.state_dict() for h in stored],
             "pending_evals": pending,
+            "backbone_optim": backbone_optim,
             "rng": rng_state(),
         }, self.out / STATE)  # fmt: skip
 
@@ -277,17 +286,18 @@ class Curriculum:
 
 def restore(
     cfg: CurriculumConfig, run_dir: Path, device: torch.device
-) -> tuple[WorldModel, ContinualMethod, list[torch.nn.Module], int, list[dict]]:
-    """Model, method, stored heads, finished task count and the evaluation requests in flight
-    when it was saved, of `run_dir` (fresh ones when it has no saved state yet). Global RNGs
-    are seeded, or restored from the saved state."""
+) -> tuple[WorldModel, ContinualMethod, list[torch.nn.Module], int, list[dict], dict | None]:
+    """Model, method, stored heads, finished task count, the evaluation requests in flight
+    when it was saved and the backbone's optimiser state the next task starts from (None:
+    fresh), of `run_dir` (fresh ones when it has no saved state yet). Global RNGs are seeded,
+    or restored from the saved state."""
     seed_everything(cfg.seed)
     model = build_model(cfg, device)
     method = make_method(cfg.method, len(cfg.tasks), cfg.seed)
     stored: list[torch.nn.Module] = []
     path = Path(run_dir) / STATE
     if not path.exists():
-        return model, method, stored, 0, []
+        return model, method, stored, 0, [], None
     state = load_checkpoint(path, STATE_KIND, STATE_VERSION)
     # Model structure never changes shape (expert groups are allocated up front), so the
     # states load directly; the next task's before_task continues from them.
@@ -301,7 +311,14 @@ def restore(
         stored.append(heads)
     set_rng_state(state["rng"])
     # Older states were saved once their evaluations had finished.
-    return model, method, stored, int(state["completed"]), list(state.get("pending_evals", []))
+    return (
+        model,
+        method,
+        stored,
+        int(state["completed"]),
+        list(state.get("pending_evals", [])),
+        state.get("backbone_optim"),
+    )
 
 
 @dataclass
@@ -323,5 +340,5 @@ def load_run(run_dir: str | Path, device: torch.device | str | None = None) -> L
 
     cfg = saved_config(CurriculumConfig, run_dir, CONFIG)
     dev = resolve_device(device if device is not None else cfg.train.device)
-    model, method, stored, completed, _ = restore(cfg, run_dir, dev)
+    model, method, stored, completed, _, _ = restore(cfg, run_dir, dev)
     return LoadedRun(cfg, model, method, stored, completed, dev)

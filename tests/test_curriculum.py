@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import dataclasses
 import json
 import os
 import subprocess
@@ -32,6 +33,7 @@ from ccfit.config_parse import parse_cli, resolve
 from ccfit.curriculum import Curriculum
 from ccfit.io import derived_seed
 from ccfit.train import CONFIG, METRICS, build_model, resolved_config
+from ccfit.train.update import backbone_optimizer_state
 
 try:
     from metrics_by_hand import bwt_by_hand
@@ -730,3 +732,63 @@ def test_the_reference_records_what_the_seed_dataset_held(tmp_path):
     assert run["resolved_seed_dataset_meta"]["total_episodes"] == info["total_episodes"] > 0
     assert reference["resolved_seed_dataset_meta"] == run["resolved_seed_dataset_meta"]
     assert reference["resolved_seed_dataset"] == run["resolved_seed_dataset"]
+
+
+class _Stopped(Exception):
+    """Raised by the test's `_save` spy to stop a run between tasks."""
+
+
+def _same_state(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(
+        a[n].keys() == b[n].keys() and all(torch.equal(a[n][k], b[n][k]) for k in a[n]) for n in a
+    )
+
+
+def test_kept_backbone_optimiser_state_crosses_tasks_and_a_stop_between_them(tmp_path, monkeypatch):
+    """`--train.keep_backbone_optimizer`: each task's optimiser starts from the backbone's
+    state where the last task left it; curriculum.pt holds it between tasks, so a run stopped
+    there resumes to the uninterrupted result; the from-scratch reference (one task, nothing
+    to carry) is the one runs without the option share."""
+    train = {**TRAIN, "parallel": "off", "keep_backbone_optimizer": True}
+    cfg = resolve(CurriculumConfig, {"suite": SUITE, "preset": "smoke", "seed_dataset": None,
+                                     "train": train, "method": {"type": "ft"}})  # fmt: skip
+    started, ended = [], []
+
+    class SpyTrainer(C.Trainer):
+        def __init__(self, **kwargs) -> None:
+            super().__init__(**kwargs)
+            started.append(backbone_optimizer_state(self.step.optim, self.model.backbone))
+
+        def run(self, wait: bool = True) -> dict | None:
+            out = super().run(wait)
+            ended.append(backbone_optimizer_state(self.step.optim, self.model.backbone))
+            return out
+
+    real_save = Curriculum._save
+
+    def save_then_stop(self, completed, *args) -> None:
+        real_save(self, completed, *args)
+        if completed == 1:
+            raise _Stopped
+
+    monkeypatch.setattr(C, "Trainer", SpyTrainer)
+    scratch = tmp_path / "scratch"
+    with shorter_episodes():
+        whole = Curriculum(cfg, tmp_path / "whole", scratch, progress=False).run()
+        assert started[0] == {} and ended[0], "the first task starts fresh and trains"
+        assert all(_same_state(s, e) for s, e in zip(started[1:], ended[:-1], strict=True))
+        first_end = ended[0]
+        started.clear()
+        monkeypatch.setattr(Curriculum, "_save", save_then_stop)
+        with pytest.raises(_Stopped):
+            Curriculum(cfg, tmp_path / "stopped", scratch, progress=False).run()
+        monkeypatch.setattr(Curriculum, "_save", real_save)
+        started.clear()
+        resumed = Curriculum(cfg, tmp_path / "stopped", scratch, progress=False).run()
+    assert _same_state(started[0], first_end)
+    assert _records(tmp_path / "stopped") == _records(tmp_path / "whole")
+    assert resumed == whole
+    fresh = dataclasses.replace(
+        cfg, train=dataclasses.replace(cfg.train, keep_backbone_optimizer=False)
+    )
+    assert C.scratch_key(fresh) == C.scratch_key(cfg)

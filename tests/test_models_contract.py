@@ -18,6 +18,7 @@ from ccfit.config_base import PRESETS, ConfigError
 from ccfit.models import ModelConfig, WorldModel, make_model, model_names
 from ccfit.models.base import LossOutput, select_state
 from ccfit.models.registry import config_class, model_class
+from ccfit.train.update import UpdateStep, backbone_optimizer_state, load_backbone_optimizer_state
 
 try:
     from replay_data import random_buffer
@@ -183,6 +184,42 @@ def test_parameters_split_into_backbone_and_heads_and_optimisers(name):
     )
     for o in head_opts.values():
         assert not set(ids(optimiser_params(o))) & set(backbone)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_the_next_tasks_optimiser_continues_the_backbones_state(name):
+    """`keep_backbone_optimizer`: the next task's world-model optimiser starts with exactly
+    the backbone's Adam state (step counts, moments) of the last one; new heads start fresh."""
+    model, heads = build(name, "state")
+    step = UpdateStep(model, heads)
+    for seed in range(2):
+        step(batch_of(model, seed))
+    carried = backbone_optimizer_state(step.optim, model.backbone)
+    backbone = dict(model.backbone.named_parameters())
+    assert carried and set(carried) <= set(backbone)
+    model.begin_task(1, 1000)
+    new_heads = model.new_heads()
+    fresh = model.world_model_optimizer(new_heads)
+    load_backbone_optimizer_state(fresh, model.backbone, carried)
+    stepped = set(ids(optimiser_params(fresh)))
+    kept = [n for n, p in backbone.items() if id(p) in stepped and n in carried]
+    assert kept, "no backbone state carried over"
+    for name_, param in backbone.items():
+        if name_ in kept:
+            held = fresh.state[param]
+            assert held.keys() == carried[name_].keys()
+            assert all(torch.equal(held[k], v) for k, v in carried[name_].items())
+            assert held["exp_avg"] is not carried[name_]["exp_avg"]
+        else:
+            assert param not in fresh.state
+    assert not any(p in fresh.state for p in new_heads.parameters())
+    # The carried state steps as the optimiser's own (where Adam keeps each tensor).
+    fresh.zero_grad(set_to_none=True)
+    task1 = random_buffer(model.cfg, seed=2, task=1).sample(model.cfg.batch_size, model.cfg.seq_len)
+    model.loss(task1, new_heads).total.backward()
+    fresh.step()
+    first = backbone[kept[0]]
+    assert float(fresh.state[first]["step"]) == float(carried[kept[0]]["step"]) + 1
 
 
 @cases

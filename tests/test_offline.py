@@ -30,6 +30,7 @@ from ccfit.offline.data import SPLIT
 from ccfit.offline.fit import TaskFitter
 from ccfit.offline.score import normalised_score, score_windows
 from ccfit.train.cost import running_code
+from ccfit.train.update import backbone_optimizer_state
 
 SUITE = "Reach"
 TASKS = ("reach-xy", "reach-xz", "reach-yz", "reach-xyz")
@@ -313,6 +314,49 @@ def test_a_resumed_run_equals_an_uninterrupted_one(runs, dataset, tmp_path, monk
         expected = [r["global_step"] for r in _records(out)
                     if r["task"] == task and r["score"] is not None]  # fmt: skip
         assert sorted(steps) == sorted(expected), task
+
+
+class _Stopped(Exception):
+    """Raised by the test's `_save` spy to stop a run between tasks."""
+
+
+def test_kept_optimiser_state_crosses_tasks_and_a_stop_between_them(runs, dataset, tmp_path,
+                                                                    monkeypatch):  # fmt: skip
+    """`--fit.keep_backbone_optimizer`: each task's optimiser starts from the state where the
+    last task left it, and a run stopped between tasks resumes to the uninterrupted result
+    (the state is saved with the curriculum's); the from-scratch reference is unaffected."""
+    cfg = _config(dataset, "ewc", fit={"keep_backbone_optimizer": True})
+    started, ended = [], []
+    real_run, real_save = TaskFitter.run, OR.OfflineCurriculum._save
+
+    def run(self):
+        started.append(backbone_optimizer_state(self.optim, self.model.backbone))
+        records = real_run(self)
+        ended.append(backbone_optimizer_state(self.optim, self.model.backbone))
+        return records
+
+    def save_then_stop(self, completed, *args):
+        real_save(self, completed, *args)
+        if completed == 2:
+            raise _Stopped
+
+    monkeypatch.setattr(TaskFitter, "run", run)
+    scratch = runs.root / "scratch"
+    whole = OfflineCurriculum(cfg, tmp_path / "whole", scratch, progress=False).run()
+    assert len(started) == len(TASKS) and started[0] == {} and ended[0]
+    for before, after in zip(started[1:], ended[:-1], strict=True):
+        assert before.keys() == after.keys()
+        assert all(torch.equal(before[n][k], v) for n in after for k, v in after[n].items())
+    # What it changes: the run without it (the fixture's) differs from the first update of
+    # the second task on.
+    assert _records(tmp_path / "whole") != _records(runs.runs["ewc"].dir)
+    assert whole["scratch_dir"] == runs.runs["ewc"].result["scratch_dir"]
+    monkeypatch.setattr(OR.OfflineCurriculum, "_save", save_then_stop)
+    with pytest.raises(_Stopped):
+        OfflineCurriculum(cfg, tmp_path / "stopped", scratch, progress=False).run()
+    monkeypatch.setattr(OR.OfflineCurriculum, "_save", real_save)
+    assert OfflineCurriculum(cfg, tmp_path / "stopped", scratch, progress=False).run() == whole
+    assert _records(tmp_path / "stopped") == _records(tmp_path / "whole")
 
 
 # ============================================================================ bad input

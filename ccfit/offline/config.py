@@ -40,7 +40,8 @@ class FitConfig:
         "cpu": dict(updates=2_000, score_interval=250, checkpoint_interval=500, context=5,
                     horizon=15, windows=64),
         "paper": dict(updates=100_000, score_interval=5_000, checkpoint_interval=10_000,
-                      context=5, horizon=30, windows=512, score_batch=128, torch_threads=0),
+                      context=5, horizon=30, windows=512, score_batch=128, torch_threads=0,
+                      keep_backbone_optimizer=True),
     }  # fmt: skip
 
     updates: int = 10_000
@@ -67,6 +68,10 @@ class FitConfig:
     """'auto' (CUDA when available, else CPU), 'cpu' or 'cuda'."""
     torch_threads: int = 1
     """CPU threads for torch (0: torch's default)."""
+    keep_backbone_optimizer: bool = False
+    """Each task's optimiser starts from the state where the previous task left it (Adam's
+    step counts and moments), as `--train.keep_backbone_optimizer` online; False: fresh at
+    every task. On in the `paper` preset."""
 
     def __post_init__(self) -> None:
         check_types(self)

@@ -36,6 +36,7 @@ from ccfit.offline.config import FitConfig
 from ccfit.offline.score import score_windows
 from ccfit.replay import ReplayBuffer
 from ccfit.train.records import RunLogger
+from ccfit.train.update import load_backbone_optimizer_state
 
 CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_KIND = "ccfit-offline-task"
@@ -62,13 +63,15 @@ class TaskFitter:
 
     scored: held-out windows by task index (this task's and every earlier one's).
     task_ids: task id by index (what records name); method: None for plain fitting.
+    backbone_optim: the previous task's `backbone_optimizer_state`, which this task's
+        optimiser starts from (`fit.keep_backbone_optimizer`; None: fresh).
     """
 
     def __init__(self, *, model: WorldModel, buffer: ReplayBuffer, scored: dict[int, Batch],
                  fit: FitConfig, seed: int, task_ids: list[str], task_index: int,
                  method: ContinualMethod | None, logger: OfflineLogger | None,
-                 run_dir: Path | None, global_offset: int = 0,
-                 progress: bool = True) -> None:  # fmt: skip
+                 run_dir: Path | None, global_offset: int = 0, progress: bool = True,
+                 backbone_optim: dict | None = None) -> None:  # fmt: skip
         self.model, self.buffer, self.scored, self.fit = model, buffer, scored, fit
         self.seed, self.task_ids, self.task_index = seed, task_ids, task_index
         self.method, self.logger, self.run_dir = method, logger, run_dir
@@ -80,6 +83,8 @@ class TaskFitter:
                 f"{buffer.size} rows, fewer than a window of {mcfg.seq_len}"
             )
         self.optim = model.backbone_optimizer()
+        if backbone_optim is not None:
+            load_backbone_optimizer_state(self.optim, model.backbone, backbone_optim)
         self._params = [p for g in self.optim.param_groups for p in g["params"]]
         self.losses = ReplayLosses(model.backbone_loss)
         self.update = 0

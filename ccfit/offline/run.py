@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 
 from ccfit import metrics as M
-from ccfit.config_base import identity, resolve_device
+from ccfit.config_base import identity, resolve_device, without_setting
 from ccfit.continual.base import ContinualMethod, make_method
 from ccfit.curriculum import METRICS_JSON, REFERENCE_DONE
 from ccfit.data import dataset_meta
@@ -48,6 +48,7 @@ from ccfit.offline.data import dataset_source, load_task, make_splits, write_spl
 from ccfit.offline.fit import SCORE_KEY, TRACK, OfflineLogger, TaskFitter
 from ccfit.train.cost import RunCost
 from ccfit.train.run import CONFIG, check_saved_config, load_model, render_settings
+from ccfit.train.update import backbone_optimizer_state
 
 STATE = "fit.pt"
 STATE_KIND = "ccfit-offline"
@@ -78,6 +79,8 @@ def resolved_config(cfg: OfflineConfig, source: str, *, record_dataset: bool = T
 def scratch_config(cfg: OfflineConfig, source: str) -> dict:
     """config.json of the from-scratch reference: the run's, less the method and `out`."""
     resolved = identity(resolved_config(cfg, source, record_dataset=False))
+    # A single task has no optimiser state to carry over.
+    resolved = without_setting(resolved, "fit.keep_backbone_optimizer")
     return {k: v for k, v in resolved.items() if k not in ("method", "out")}
 
 
@@ -160,7 +163,7 @@ class OfflineCurriculum:
         source = dataset_source(cfg)
         resolved = resolved_config(cfg, source)
         splits = _prepare(cfg, self.out, resolved, source)
-        model, method, completed = restore(cfg, self.out, self.device)
+        model, method, completed, carried = restore(cfg, self.out, self.device)
         logger = OfflineLogger(self.out, cfg.log, resolved)
         scored = {j: load_task(cfg, source, model, j, splits[tasks[j]], train=False)[1]
                   for j in range(completed)}  # fmt: skip
@@ -173,13 +176,17 @@ class OfflineCurriculum:
                 method.before_task(i, model.backbone)
                 buffer, scored[i] = load_task(cfg, source, model, i, splits[tasks[i]])
                 task_dir.mkdir(parents=True, exist_ok=True)
-                TaskFitter(
+                fitter = TaskFitter(
                     model=model, buffer=buffer, scored=scored, fit=fit, seed=cfg.seed,
                     task_ids=tasks, task_index=i, method=method, logger=logger,
                     run_dir=task_dir, global_offset=i * fit.updates, progress=self.progress,
-                ).run()  # fmt: skip
-                del buffer
-                self._save(i + 1, model, method)
+                    backbone_optim=carried,
+                )  # fmt: skip
+                fitter.run()
+                if fit.keep_backbone_optimizer:
+                    carried = backbone_optimizer_state(fitter.optim, model.backbone)
+                del buffer, fitter
+                self._save(i + 1, model, method, carried)
                 shutil.rmtree(task_dir, ignore_errors=True)
         finally:
             logger.close()
@@ -194,27 +201,30 @@ class OfflineCurriculum:
         atomic_write_json(self.out / METRICS_JSON, result)
         return result
 
-    def _save(self, completed: int, model: WorldModel, method: ContinualMethod) -> None:
+    def _save(self, completed: int, model: WorldModel, method: ContinualMethod,
+              backbone_optim: dict | None) -> None:  # fmt: skip
         atomic_torch_save({"kind": STATE_KIND, "version": STATE_VERSION, "completed": completed,
                            "model": model.state_dict(), "method": method.state_dict(),
+                           "backbone_optim": backbone_optim,
                            "rng": rng_state()}, self.out / STATE)  # fmt: skip
 
 
 def restore(cfg: OfflineConfig, run_dir: Path, device: torch.device
-            ) -> tuple[WorldModel, ContinualMethod, int]:  # fmt: skip
-    """Model, method and finished task count of `run_dir` (fresh when it has no state yet);
-    global RNGs seeded, or restored from the saved state."""
+            ) -> tuple[WorldModel, ContinualMethod, int, dict | None]:  # fmt: skip
+    """Model, method, finished task count and the optimiser state the next task starts from
+    (None: fresh) of `run_dir` (fresh when it has no state yet); global RNGs seeded, or
+    restored from the saved state."""
     seed_everything(cfg.seed)
     model = load_model(cfg, device)
     method = make_method(cfg.method, len(cfg.tasks), cfg.seed)
     path = Path(run_dir) / STATE
     if not path.exists():
-        return model, method, 0
+        return model, method, 0, None
     state = load_checkpoint(path, STATE_KIND, STATE_VERSION)
     model.load_state_dict(state["model"])
     method.load_state_dict(state["method"])
     set_rng_state(state["rng"])
-    return model, method, int(state["completed"])
+    return model, method, int(state["completed"]), state.get("backbone_optim")
 
 
 __all__ = [

@@ -43,7 +43,7 @@ from ccfit.replay_store import ROWS_DIR, load_rows, save_rows
 from ccfit.train.compiled import autocast
 from ccfit.train.evaluate import ACTION_TAG, TRAIN_TAG, Evaluator
 from ccfit.train.records import RunLogger
-from ccfit.train.update import UpdateStep
+from ccfit.train.update import UpdateStep, load_backbone_optimizer_state
 
 CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_KIND = "ccfit-task"
@@ -70,6 +70,8 @@ class Trainer:
     extendable: a checkpoint of fewer `config.steps` may be resumed (a single-task run
         extended: `ccfit train` where the model's training never reads its step budget); one
         that ran to its budget goes on as the longer run would have from there.
+    backbone_optim: the previous task's `backbone_optimizer_state`, which this task's
+        world-model optimiser starts from (`keep_backbone_optimizer`; None: fresh).
     """
 
     def __init__(
@@ -79,7 +81,7 @@ class Trainer:
         method: ContinualMethod | None = None, run_dir: str | Path | None = None,
         global_offset: int = 0, progress: bool = True,
         stored_heads_loss: Callable[[Batch, int], torch.Tensor] | None = None,
-        extendable: bool = False,
+        extendable: bool = False, backbone_optim: dict | None = None,
     ) -> None:  # fmt: skip
         self.env, self.model, self.heads, self.buffer = env, model, heads, buffer
         self.evaluator = evaluator
@@ -92,6 +94,8 @@ class Trainer:
         self.extendable = extendable
         self.device = model.device
         self.step = UpdateStep(model, heads, method, stored_heads_loss, config.autocast)
+        if backbone_optim is not None:
+            load_backbone_optimizer_state(self.step.optim, model.backbone, backbone_optim)
         self.action_rng = np.random.default_rng(derived_seed(seed, ACTION_TAG, 0, task_index))
 
         self.task_step = 0

@@ -60,3 +60,31 @@ class UpdateStep:
         self.optim.load_state_dict(state["optim"])
         for k, o in self.head_optims.items():
             o.load_state_dict(state["head_optims"][k])
+
+
+def backbone_optimizer_state(optim: torch.optim.Optimizer, backbone: nn.Module) -> dict:
+    """The per-parameter state `optim` holds for `backbone`'s parameters (Adam: step count and
+    both moments), by parameter name: what a task hands the next when the backbone's optimiser
+    state is kept across tasks (`keep_backbone_optimizer`). Heads' state is left behind."""
+    names = {id(p): n for n, p in backbone.named_parameters()}
+    return {names[id(p)]: {k: v.detach().clone() for k, v in optim.state[p].items()}
+            for g in optim.param_groups for p in g["params"]
+            if id(p) in names and p in optim.state}  # fmt: skip
+
+
+def load_backbone_optimizer_state(optim: torch.optim.Optimizer, backbone: nn.Module,
+                                  state: dict) -> None:  # fmt: skip
+    """Give a fresh `optim` the `backbone_optimizer_state` of the previous task's optimiser,
+    for the backbone parameters both step. Parameters `optim` does not step (frozen since,
+    e.g. PackNet's biases or earlier experts) are skipped; those the previous optimiser did
+    not step (new experts) start fresh. Goes through `load_state_dict`, which puts each
+    tensor where this optimiser keeps it (device, dtype of the step count)."""
+    params = dict(backbone.named_parameters())
+    index = {id(p): i for i, p in enumerate(p for g in optim.param_groups for p in g["params"])}
+    full = optim.state_dict()
+    for name, param_state in state.items():
+        param = params.get(name)
+        if param is not None and id(param) in index:
+            # Copies: Adam steps its state in place, and `state` may be used again.
+            full["state"][index[id(param)]] = {k: v.clone() for k, v in param_state.items()}
+    optim.load_state_dict(full)

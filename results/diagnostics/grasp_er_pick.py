@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     for run in runs:
         cfg = parse_cli(CurriculumConfig, ["--config_path", str(run / "config.json")])
-        model, method, stored, _, _ = restore(cfg, run, torch.device("cpu"))
+        model, method, stored, _, _, _ = restore(cfg, run, torch.device("cpu"))
         model.eval()
         out: dict = {"run": run.name}
         for index, task in enumerate(cfg.tasks[:-1]):  # the earlier tasks
