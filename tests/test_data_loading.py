@@ -189,6 +189,7 @@ def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
     update's batch is drawn with it), also after online episodes overwrote them in the ring,
     and records the setting; without demonstrations to oversample it is one line, exit 2."""
     from ccfit.cli import main
+    from ccfit.seeding import demonstration_rows
 
     root, _ = tiny_dataset
     sample, fractions = ReplayBuffer.sample, []
@@ -218,6 +219,11 @@ def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
     assert first == 0 and meta["written"] - meta["capacity"] >= end  # every demo row overwritten
     assert main([*base, "--task", "reach-xyz", "--out", str(tmp_path / "xyz")]) == 2
     assert "holds no oracle episode of reach-xyz" in capsys.readouterr().err
+    # Demonstrations shorter than one window (`demonstration_rows`: an upper bound).
+    window = demonstration_rows(root, ["reach-xy"]) + 1
+    argv = [*base, "--task", "reach-xy", f"--model.seq_len={window}", "--out", str(tmp_path / "w")]
+    assert main(argv) == 2
+    assert f"fewer than a training window of {window}" in capsys.readouterr().err
     assert main([*base[:4], "null", *base[5:], "--task", "reach-xy"]) == 2
     err = capsys.readouterr().err
     assert "needs a seed dataset" in err and "or --train.demo_fraction=0" in err

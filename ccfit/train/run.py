@@ -130,6 +130,14 @@ def make_replay(cfg: RunConfig, model: WorldModel, task_id: str, task_index: int
                 f"{source} holds no {DEMO_POLICY} episode of {task_id}: "
                 "train.demo_fraction has no demonstrations to oversample"
             )
+        seq_len = model.cfg.seq_len
+        if cfg.train.demo_fraction > 0 and buffer.num_demo_starts(seq_len) == 0:
+            rows = sum(end - first for first, end in buffer.demo_spans)
+            raise InputError(
+                f"the {DEMO_POLICY} episodes of {task_id} in {source} hold {rows} rows, fewer "
+                f"than a training window of {seq_len} (model.seq_len): train.demo_fraction "
+                "has no window to oversample; generate more episodes or set it to 0"
+            )
     return buffer
 
 
