@@ -1,6 +1,8 @@
 """The one atomic file write of the project: a temp file beside the target, then rename.
 
-A reader (or a resumed run) sees the old file or the new one, never half of one. ccfit
+A reader (or a resumed run) sees the old file or the new one, never half of one, also after
+the machine itself went down: the temp file's data is flushed to disk before the rename, and
+the rename before returning (without, a crash may leave the new name on an empty file). ccfit
 imports this too (ccdata never imports ccfit).
 """
 
@@ -22,10 +24,20 @@ def atomic_write(path: str | Path, write: Callable[[str], object], mode: int = 0
     try:
         write(tmp)
         os.chmod(tmp, mode)  # mkstemp files are private; outputs are meant to be shared
+        _fsync(tmp, os.O_RDONLY)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    _fsync(path.parent, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+
+
+def _fsync(path: str | Path, flags: int) -> None:
+    fd = os.open(path, flags)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def remove_partial_writes(directory: str | Path, name: str) -> None:

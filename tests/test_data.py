@@ -97,3 +97,30 @@ def test_state_replay_keeps_every_transition_without_a_simulator(reach):
     assert added == dict(Counter(ep["policy"] for ep in episodes))
     batch = all_transitions(buffer)
     assert int(batch.terminated.sum()) == sum(bool(ep["next.success"].any()) for ep in episodes)
+
+
+def test_an_atomic_write_reaches_the_disk_before_and_after_its_rename(tmp_path, monkeypatch):
+    """The temp file is flushed before it is renamed over the target, and the directory after
+    (a machine that goes down in between keeps the old file or the whole new one)."""
+    import os
+    import stat
+
+    from ccdata import atomic
+
+    calls = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        calls.append("dir" if stat.S_ISDIR(os.fstat(fd).st_mode) else "file")
+        real_fsync(fd)
+
+    def replace(src, dst):
+        calls.append("rename")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(atomic.os, "fsync", fsync)
+    monkeypatch.setattr(atomic.os, "replace", replace)
+    atomic.atomic_write_text(tmp_path / "a.json", "{}")
+    assert calls == ["file", "rename", "dir"]
+    assert (tmp_path / "a.json").read_text() == "{}"
+    assert [p.name for p in tmp_path.iterdir()] == ["a.json"]
