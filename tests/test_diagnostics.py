@@ -159,3 +159,28 @@ def test_a_diagnostic_refuses_a_missing_run_in_one_line(name, tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith(f"{name}.py: error: ") and str(tmp_path / "absent") in err
     assert err.count("\n") == 1
+
+
+def test_optimizer_state_pairs_the_arms_by_seed(made, tmp_path, capsys):
+    """Two arms of one grid, with and without `keep_backbone_optimizer`: the first task agrees
+    exactly (it starts fresh either way), every seed gets its paired differences."""
+    keep = tmp_path / "keep" / "Grasp-tdmpc2-ewc"
+    argv = ["run", "--suite", "Grasp", "--method.type=ewc", "--train.keep_backbone_optimizer=true",
+            "--scratch-root", str(made.runs["ewc"].parent / "scratch"), "--out", str(keep),
+            "--preset", "smoke", "--seed_dataset", "null", "--quiet", *TRAIN]  # fmt: skip
+    with shorter_episodes(EPISODE_STEPS):
+        assert ccfit(argv) == 0
+    script = _script("optimizer_state")
+    (line,) = _run(script, [str(keep.parent), str(made.runs["ewc"].parent)], capsys).splitlines()
+    out = json.loads(line)
+    assert (out["model"], out["suite"], out["method"]) == ("tdmpc2", "Grasp", "ewc")
+    assert out["first_task_identical"] == {"0": True}
+    diff = out["keep_minus_fresh"]["0"]
+    assert set(diff) == {"bwt", "forgetting", "fwt", "mean_end_of_task", "mean_final"}
+    assert _finite(diff["mean_final"]) and _finite(diff["fwt"])
+    for arm in ("keep", "fresh"):
+        assert set(out[arm]) == {"bwt", "forgetting", "fwt", "per_seed"}
+    capsys.readouterr()
+    absent = str(tmp_path / "absent")
+    assert run_script(script.main, "optimizer_state.py", [absent, str(keep.parent)]) == EXIT_USAGE
+    assert absent in capsys.readouterr().err
