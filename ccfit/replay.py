@@ -465,6 +465,14 @@ class ReplayBuffer:
         self.demo_spans, self._demo_parts, self._demo = [], [], None
         for first, end in spans:
             self._keep_demo(first, _rows_of(chunks, first, end))
+        covered = oldest
+        for start, cols in sorted(chunks, key=lambda chunk: chunk[0]):
+            if start > covered:
+                break
+            covered = max(covered, start + cols["action"].shape[0])
+        if covered < self._written:
+            raise ValueError(f"the checkpoint's rows lack rows {covered}.. of the "
+                             f"{oldest}..{self._written} stored")  # fmt: skip
         for start, cols in chunks:
             keep = max(oldest, start) - start
             cols = {k: v[keep:] for k, v in cols.items()}

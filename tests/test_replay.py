@@ -365,6 +365,18 @@ def test_state_dict_round_trip_continues_identically(tmp_path):
     assert small.state_dict()["rows"]["obs.id"].shape[0] == 4
     with pytest.raises(ValueError, match="capacity"):
         ReplayBuffer(25).load_state_dict(state)
+    # Chunks that leave stored rows out (a manifest missing a file) are refused, not loaded
+    # as zeros.
+    meta = buf.meta_state()
+    first = buf.oldest
+    rows = buf.rows(first, buf.written)
+    head = {k: v[:10] for k, v in rows.items()}
+    tail = {k: v[12:] for k, v in rows.items()}
+    with pytest.raises(ValueError, match=f"lack rows {first + 10}.."):
+        ReplayBuffer(24).load_state(meta, [(first, head), (first + 12, tail)])
+    with pytest.raises(ValueError, match="lack rows"):
+        ReplayBuffer(24).load_state(meta, [(first, head)])
+    ReplayBuffer(24).load_state(meta, [(first + 12, tail), (first, rows)])  # overlaps are fine
 
 
 def test_obs_transform_applied_before_storing():
