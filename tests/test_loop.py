@@ -531,6 +531,7 @@ def test_a_replay_that_fits_nowhere_is_refused_before_the_run(tmp_path, capsys):
     import shutil
 
     from ccfit.cli import main
+    from ccfit.replay_store import disk_rows
     from ccfit.train.resources import ReplayPlan, available_host_memory, check_disk
 
     out = tmp_path / "x"
@@ -556,5 +557,11 @@ def test_a_replay_that_fits_nowhere_is_refused_before_the_run(tmp_path, capsys):
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert "lower --train.buffer_capacity to at most" in err and not out.exists()
     free = shutil.disk_usage(tmp_path).free
-    with pytest.raises(ConfigError, match="lower --train.buffer_capacity to at most"):
-        check_disk(ReplayPlan(1000, free + 10**9, torch.device("cpu"), False), tmp_path / "y")
+    row = 10**6
+    capacity = free // row  # the ring alone fits; with the file it partly overwrote it does not
+    plan = ReplayPlan(row, row * capacity, torch.device("cpu"), False, capacity)
+    with pytest.raises(ConfigError, match="lower --train.buffer_capacity to at most") as err:
+        check_disk(plan, tmp_path / "y")
+    most = int(str(err.value).split("at most ")[1].split()[0])
+    assert disk_rows(most) * row <= free < disk_rows(most + 1) * row
+    check_disk(ReplayPlan(row, row * most, torch.device("cpu"), False, most), tmp_path / "y")

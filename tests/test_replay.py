@@ -219,21 +219,31 @@ def test_demonstrations_are_oversampled_by_demo_fraction(tmp_path):
         filled([6])[0].sample(4, 2, demo_fraction=0.5)
 
 
-def test_checkpoints_keep_the_row_files_of_overwritten_demonstrations(tmp_path):
-    """A run longer than its ring oversamples its seed demonstrations to the end: the row file
-    holding them stays in the checkpoint's manifest after the ring overwrote them, and a
-    resumed buffer draws what the uninterrupted one draws."""
-    from ccfit.replay_store import load_rows, save_rows
+def test_checkpoints_keep_the_rows_of_overwritten_demonstrations(tmp_path):
+    """A run longer than its ring oversamples its seed demonstrations to the end: once the ring
+    overwrote the row file holding them, their rows alone stay on disk (a file of their own,
+    written from the buffer's copy; the rest of that file goes), and a resumed buffer draws
+    what the uninterrupted one draws."""
+    from ccfit.replay_store import ROWS_DIR, disk_rows, load_rows, save_rows
 
     buf, src = ReplayBuffer(24, seed=3), Source()
     buf.add_episode(**src.episode(5), demo=True)  # rows 0..5
     buf.add_episode(**src.episode(6))  # rows 6..12
     manifest, _ = save_rows(buf, tmp_path, [])
+    gone = []
     for steps in (9, 9, 9):  # 42 rows written: every row of the first file is overwritten
         buf.add_episode(**src.episode(steps))
         manifest, stale = save_rows(buf, tmp_path, manifest)
-        assert not stale
-    assert buf.oldest > 12 and manifest[0]["start"] == 0
+        gone += [p.name for p in stale]
+        for path in stale:
+            path.unlink()
+    assert buf.oldest > 12 and gone == ["rows-000000000000-000000000013.pt"]
+    assert manifest[0] == {"file": "rows-000000000000-000000000006-demo.pt", "start": 0,
+                           "end": 6, "demo": True}  # fmt: skip
+    assert sum(f["end"] - f["start"] for f in manifest) <= disk_rows(24, 6)
+    assert sorted(p.name for p in (tmp_path / ROWS_DIR).iterdir()) == sorted(
+        f["file"] for f in manifest
+    )
     other = ReplayBuffer(24, seed=0)
     load_rows(other, tmp_path, buf.meta_state(), manifest)
     for _ in range(3):
@@ -266,6 +276,33 @@ def test_a_demonstration_the_ring_overwrote_before_any_checkpoint_is_saved_from_
         a, b = buf.sample(6, 3, demo_fraction=0.5), other.sample(6, 3, demo_fraction=0.5)
         assert torch.equal(a.obs["id"], b.obs["id"]) and torch.equal(a.is_first, b.is_first)
         assert torch.equal(a.action, b.action) and torch.equal(a.task, b.task)
+
+
+def test_row_files_are_bounded_so_the_disk_holds_little_more_than_the_ring(tmp_path, monkeypatch):
+    """A checkpoint splits what it writes into files of at most `file_rows` rows, so the one
+    file the ring has partly overwritten (kept whole until it has overwritten all of it) adds
+    at most that to the disk: never more rows on disk than `disk_rows` says."""
+    from ccfit import replay_store
+    from ccfit.replay_store import disk_rows, file_rows, load_rows, save_rows
+
+    monkeypatch.setattr(replay_store, "MIN_FILE_ROWS", 4)
+    buf, src = ReplayBuffer(64, seed=1), Source()
+    assert file_rows(64) == 4 and file_rows(None) is None
+    buf.add_episode(**src.episode(40))  # a preloaded dataset: 41 rows at once
+    manifest, _ = save_rows(buf, tmp_path, [])
+    assert [f["end"] - f["start"] for f in manifest] == [4] * 10 + [1]
+    for steps in (20, 9, 30, 6):
+        buf.add_episode(**src.episode(steps))
+        manifest, stale = save_rows(buf, tmp_path, manifest)
+        for path in stale:
+            path.unlink()
+        assert all(f["end"] - f["start"] <= 4 for f in manifest)
+        assert manifest[0]["start"] <= buf.oldest < manifest[0]["end"]
+        assert sum(f["end"] - f["start"] for f in manifest) <= disk_rows(64)
+    other = ReplayBuffer(64, seed=0)
+    load_rows(other, tmp_path, buf.meta_state(), manifest)
+    a, b = buf.sample(8, 3), other.sample(8, 3)
+    assert torch.equal(a.obs["id"], b.obs["id"]) and torch.equal(a.is_first, b.is_first)
 
 
 # ------------------------------------------------------------------------------ ring

@@ -20,6 +20,7 @@ import torch
 from ccfit.config import RunConfig
 from ccfit.config_base import ConfigError
 from ccfit.models.base import WorldModel
+from ccfit.replay_store import disk_rows
 
 GPU_SHARE = 0.5
 """Replay goes on the GPU when it takes at most this share of the GPU's free memory."""
@@ -33,8 +34,11 @@ TRANSITION_BYTES = 4 * 4 + 4 + 4 + 1 + 8
 class ReplayPlan:
     row_bytes: int
     bytes: int
+    """Memory: the ring's rows and the demonstrations kept beside it."""
     storage: torch.device
     pin: bool
+    capacity: int
+    demo_rows: int = 0
 
 
 def row_bytes(cfg: RunConfig, model: WorldModel) -> int:
@@ -67,7 +71,7 @@ def plan_replay(cfg: RunConfig, model: WorldModel, demo_rows: int = 0) -> Replay
     total = row * (cfg.train.buffer_capacity + demo_rows)
     device = model.device
     if device.type == "cuda" and total <= GPU_SHARE * torch.cuda.mem_get_info(device)[0]:
-        return ReplayPlan(row, total, device, False)
+        return ReplayPlan(row, total, device, False, cfg.train.buffer_capacity, demo_rows)
     free = available_host_memory()
     if total > HOST_SHARE * free:
         demos = f" and {demo_rows} rows of demonstrations" if demo_rows else ""
@@ -78,21 +82,34 @@ def plan_replay(cfg: RunConfig, model: WorldModel, demo_rows: int = 0) -> Replay
             f"replay needs {_gb(total)} ({cfg.train.buffer_capacity} rows{demos} of {row} B) "
             f"but {_gb(free)} of memory is available: {fix}"
         )
-    return ReplayPlan(row, total, torch.device("cpu"), device.type == "cuda")
+    return ReplayPlan(row, total, torch.device("cpu"), device.type == "cuda",
+                      cfg.train.buffer_capacity, demo_rows)  # fmt: skip
 
 
 def check_disk(plan: ReplayPlan, out: Path) -> None:
-    """ConfigError unless the run directory's filesystem can hold replay's rows (what the
-    checkpoints of one task write)."""
+    """ConfigError unless the run directory's filesystem can hold replay's row files at their
+    largest (`replay_store.disk_rows`: what the checkpoints of one task keep at once)."""
     out = Path(out)
     probe = next(p for p in [out, *out.parents] if p.exists())
     free = shutil.disk_usage(probe).free
-    if plan.bytes > free:
-        raise ConfigError(
-            f"checkpoints of a task write up to {_gb(plan.bytes)} of replay to {out} but "
-            f"{_gb(free)} is free there: lower --train.buffer_capacity to at most "
-            f"{free // plan.row_bytes} or use another --out"
-        )
+    need = plan.row_bytes * disk_rows(plan.capacity, plan.demo_rows)
+    if need > free:
+        most = _largest(lambda c: plan.row_bytes * disk_rows(c, plan.demo_rows) <= free)
+        fix = (f"lower --train.buffer_capacity to at most {most} or use another --out"
+               if most >= 2 else "use another --out")  # fmt: skip
+        raise ConfigError(f"checkpoints of a task keep up to {_gb(need)} of replay in {out} "
+                          f"but {_gb(free)} is free there: {fix}")  # fmt: skip
+
+
+def _largest(fits) -> int:
+    """The largest n >= 0 with fits(n), for `fits` true up to some n and false after."""
+    low, high = 0, 1
+    while fits(high):
+        low, high = high, 2 * high
+    while high - low > 1:
+        mid = (low + high) // 2
+        low, high = (mid, high) if fits(mid) else (low, mid)
+    return low
 
 
 def _gb(n: int) -> str:
