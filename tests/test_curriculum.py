@@ -122,14 +122,14 @@ def runs(tmp_path_factory):
         current[-1].evals.append((envs[0].task_id, heads, trainable, heads.training))
         return real_play(envs, model, heads, **kwargs)
 
-    def spy_save(self, completed, model, method, stored, pending):
+    def spy_save(self, completed, model, method, stored, pending, backbone_optim):
         current[-1].saves.append({
             "completed": completed,
             "backbone": {n: p.detach().clone() for n, p in model.backbone.named_parameters()},
             "method": copy.deepcopy(method.state_dict()),
             "heads": [copy.deepcopy(h.state_dict()) for h in stored],
         })  # fmt: skip
-        real_save(self, completed, model, method, stored, pending)
+        real_save(self, completed, model, method, stored, pending, backbone_optim)
 
     out = {}
     done_mtimes = []
