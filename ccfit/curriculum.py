@@ -34,6 +34,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 
@@ -284,20 +285,30 @@ class Curriculum:
 # ======================================================================= loading a run
 
 
-def restore(
-    cfg: CurriculumConfig, run_dir: Path, device: torch.device
-) -> tuple[WorldModel, ContinualMethod, list[torch.nn.Module], int, list[dict], dict | None]:
-    """Model, method, stored heads, finished task count, the evaluation requests in flight
-    when it was saved and the backbone's optimiser state the next task starts from (None:
-    fresh), of `run_dir` (fresh ones when it has no saved state yet). Global RNGs are seeded,
-    or restored from the saved state."""
+class Restored(NamedTuple):
+    """A run directory's saved state after its finished tasks (`restore`)."""
+
+    model: WorldModel
+    method: ContinualMethod
+    stored_heads: list[torch.nn.Module]
+    completed: int
+    """Tasks finished."""
+    pending: list[dict]
+    """Evaluation requests in flight when the state was saved."""
+    backbone_optim: dict | None
+    """The backbone's optimiser state the next task starts from (None: fresh)."""
+
+
+def restore(cfg: CurriculumConfig, run_dir: Path, device: torch.device) -> Restored:
+    """The saved state of `run_dir` (fresh when it has none yet). Global RNGs are seeded, or
+    restored from the saved state."""
     seed_everything(cfg.seed)
     model = build_model(cfg, device)
     method = make_method(cfg.method, len(cfg.tasks), cfg.seed)
     stored: list[torch.nn.Module] = []
     path = Path(run_dir) / STATE
     if not path.exists():
-        return model, method, stored, 0, [], None
+        return Restored(model, method, stored, 0, [], None)
     state = load_checkpoint(path, STATE_KIND, STATE_VERSION)
     # Model structure never changes shape (expert groups are allocated up front), so the
     # states load directly; the next task's before_task continues from them.
@@ -311,7 +322,7 @@ def restore(
         stored.append(heads)
     set_rng_state(state["rng"])
     # Older states were saved once their evaluations had finished.
-    return (
+    return Restored(
         model,
         method,
         stored,
@@ -340,5 +351,5 @@ def load_run(run_dir: str | Path, device: torch.device | str | None = None) -> L
 
     cfg = saved_config(CurriculumConfig, run_dir, CONFIG)
     dev = resolve_device(device if device is not None else cfg.train.device)
-    model, method, stored, completed, _, _ = restore(cfg, run_dir, dev)
-    return LoadedRun(cfg, model, method, stored, completed, dev)
+    saved = restore(cfg, run_dir, dev)
+    return LoadedRun(cfg, saved.model, saved.method, saved.stored_heads, saved.completed, dev)

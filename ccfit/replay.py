@@ -40,6 +40,20 @@ def _tensor(x) -> torch.Tensor:
     return x if isinstance(x, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(x))
 
 
+def uncovered(first: int, end: int, spans: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The ranges of rows first .. end - 1 that none of the (start, end) `spans` holds."""
+    gaps, row = [], first
+    for start, stop in sorted(spans):
+        if start > row:
+            gaps.append((row, min(start, end)))
+        row = max(row, stop)
+        if row >= end:
+            break
+    if row < end:
+        gaps.append((row, end))
+    return [(a, b) for a, b in gaps if a < b]
+
+
 def _rows_of(chunks: list[tuple[int, dict[str, torch.Tensor]]], first: int, end: int
              ) -> dict[str, torch.Tensor]:  # fmt: skip
     """Rows first .. end - 1 (write numbers) out of (first write number, columns) chunks,
@@ -465,14 +479,14 @@ class ReplayBuffer:
         self.demo_spans, self._demo_parts, self._demo = [], [], None
         for first, end in spans:
             self._keep_demo(first, _rows_of(chunks, first, end))
-        covered = oldest
-        for start, cols in sorted(chunks, key=lambda chunk: chunk[0]):
-            if start > covered:
-                break
-            covered = max(covered, start + cols["action"].shape[0])
-        if covered < self._written:
-            raise ValueError(f"the checkpoint's rows lack rows {covered}.. of the "
-                             f"{oldest}..{self._written} stored")  # fmt: skip
+        gaps = uncovered(
+            oldest,
+            self._written,
+            [(start, start + cols["action"].shape[0]) for start, cols in chunks],
+        )
+        if gaps:
+            raise ValueError(f"the checkpoint's rows lack rows {gaps[0][0]}..{gaps[0][1]} of "
+                             f"the {oldest}..{self._written} stored")  # fmt: skip
         for start, cols in chunks:
             keep = max(oldest, start) - start
             cols = {k: v[keep:] for k, v in cols.items()}

@@ -19,7 +19,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ccfit.io import atomic_torch_save, load_checkpoint
-from ccfit.replay import ReplayBuffer
+from ccfit.replay import ReplayBuffer, uncovered
 
 ROWS_DIR = "replay"
 ROWS_KIND = "ccfit-replay-rows"
@@ -67,23 +67,9 @@ def save_rows(buffer: ReplayBuffer, run_dir: Path, manifest: list[dict]
         b = min(a + step, buffer.written)
         write(a, b, buffer.rows(a, b))
     for first, end in buffer.demo_spans:
-        for a, b in _uncovered(first, end, keep):
+        for a, b in uncovered(first, end, [(f["start"], f["end"]) for f in keep]):
             write(a, b, buffer.demo_rows(a, b), demo=True)
     return sorted(keep, key=lambda f: f["start"]), stale
-
-
-def _uncovered(first: int, end: int, files: list[dict]) -> list[tuple[int, int]]:
-    """The ranges of rows first .. end - 1 that none of `files` holds."""
-    gaps, row = [], first
-    for f in sorted(files, key=lambda f: f["start"]):
-        if f["start"] > row:
-            gaps.append((row, min(f["start"], end)))
-        row = max(row, f["end"])
-        if row >= end:
-            break
-    if row < end:
-        gaps.append((row, end))
-    return [(a, b) for a, b in gaps if a < b]
 
 
 def load_rows(buffer: ReplayBuffer, run_dir: Path, meta: dict, manifest: list[dict]) -> None:

@@ -559,9 +559,9 @@ def test_a_replay_that_fits_nowhere_is_refused_before_the_run(tmp_path, capsys):
     free = shutil.disk_usage(tmp_path).free
     row = 10**6
     capacity = free // row  # the ring alone fits; with the file it partly overwrote it does not
-    plan = ReplayPlan(row, row * capacity, torch.device("cpu"), False, capacity)
+    plan = ReplayPlan(row, capacity, 0, torch.device("cpu"), False)
     with pytest.raises(ConfigError, match="lower --train.buffer_capacity to at most") as err:
         check_disk(plan, tmp_path / "y")
     most = int(str(err.value).split("at most ")[1].split()[0])
     assert disk_rows(most) * row <= free < disk_rows(most + 1) * row
-    check_disk(ReplayPlan(row, row * most, torch.device("cpu"), False, most), tmp_path / "y")
+    check_disk(ReplayPlan(row, most, 0, torch.device("cpu"), False), tmp_path / "y")

@@ -33,12 +33,16 @@ TRANSITION_BYTES = 4 * 4 + 4 + 4 + 1 + 8
 @dataclass(frozen=True)
 class ReplayPlan:
     row_bytes: int
-    bytes: int
-    """Memory: the ring's rows and the demonstrations kept beside it."""
+    capacity: int
+    demo_rows: int
+    """Rows of demonstrations kept beside the ring (`--train.demo_fraction`)."""
     storage: torch.device
     pin: bool
-    capacity: int
-    demo_rows: int = 0
+
+    @property
+    def bytes(self) -> int:
+        """Memory: the ring's rows and the demonstrations kept beside it."""
+        return self.row_bytes * (self.capacity + self.demo_rows)
 
 
 def row_bytes(cfg: RunConfig, model: WorldModel) -> int:
@@ -71,7 +75,7 @@ def plan_replay(cfg: RunConfig, model: WorldModel, demo_rows: int = 0) -> Replay
     total = row * (cfg.train.buffer_capacity + demo_rows)
     device = model.device
     if device.type == "cuda" and total <= GPU_SHARE * torch.cuda.mem_get_info(device)[0]:
-        return ReplayPlan(row, total, device, False, cfg.train.buffer_capacity, demo_rows)
+        return ReplayPlan(row, cfg.train.buffer_capacity, demo_rows, device, False)
     free = available_host_memory()
     if total > HOST_SHARE * free:
         demos = f" and {demo_rows} rows of demonstrations" if demo_rows else ""
@@ -82,8 +86,8 @@ def plan_replay(cfg: RunConfig, model: WorldModel, demo_rows: int = 0) -> Replay
             f"replay needs {_gb(total)} ({cfg.train.buffer_capacity} rows{demos} of {row} B) "
             f"but {_gb(free)} of memory is available: {fix}"
         )
-    return ReplayPlan(row, total, torch.device("cpu"), device.type == "cuda",
-                      cfg.train.buffer_capacity, demo_rows)  # fmt: skip
+    return ReplayPlan(row, cfg.train.buffer_capacity, demo_rows, torch.device("cpu"),
+                      device.type == "cuda")  # fmt: skip
 
 
 def check_disk(plan: ReplayPlan, out: Path) -> None:

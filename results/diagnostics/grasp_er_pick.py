@@ -25,9 +25,7 @@ import torch
 
 from ccdata.errors import OneLineParser, run_script
 from ccdata.settings import default_repo_id
-from ccfit.config import CurriculumConfig
-from ccfit.config_parse import parse_cli
-from ccfit.curriculum import restore
+from ccfit.curriculum import load_run
 from ccfit.data import load_episodes
 from ccfit.seeding import episode_to_replay
 from ccfit.train.evaluate import Evaluator
@@ -94,8 +92,8 @@ def main(argv: list[str] | None = None) -> None:
     runs = parser.parse_args(argv).runs
     torch.set_num_threads(1)
     for run in runs:
-        cfg = parse_cli(CurriculumConfig, ["--config_path", str(run / "config.json")])
-        model, method, stored, _, _, _ = restore(cfg, run, torch.device("cpu"))
+        loaded = load_run(run, "cpu")
+        cfg, model, method, stored = loaded.cfg, loaded.model, loaded.method, loaded.stored_heads
         model.eval()
         out: dict = {"run": run.name}
         for index, task in enumerate(cfg.tasks[:-1]):  # the earlier tasks
