@@ -11,15 +11,22 @@ Each is the median of --repeats calls after --warmup calls, as wall time and as 
 this process (on a shared machine wall time inflates with other load; CPU time much less so).
 Every row is timed per --modes: `eager` (`--train.compile=off`), `compiled` (every hot path
 compiled, `--train.compile=on`), `auto` (what `--train.compile=auto` compiles on this device),
-`bf16` (eager under `--train.autocast=bf16`), `auto-bf16` (both) and `compile:PATH+PATH` (those
-hot paths compiled, the rest eager: what decides `compile_pays`); the first compiled call
-(the compilation) is part of the warmup, not of the median.
+`bf16` (eager under `--train.autocast=bf16`), `auto-bf16` (both), `compile:PATH+PATH` (those
+hot paths compiled, the rest eager: what decides `compile_pays`) and, on CUDA only, `graphs`
+and `graphs-bf16` (every hot path compiled with `mode="reduce-overhead"`, i.e. replayed as
+CUDA graphs, as the official TD-MPC2's `compile=true`; the loop does not offer it yet: this
+is the measurement that would decide it); the first compiled calls (the compilation, and for
+CUDA graphs the recording) are part of the warmup, not of the median.
+
+--device picks where (default `auto`: CUDA when available, as `--train.device`): the model,
+its optimisers and the synthetic batch live there, as replay on the GPU hands batches over.
+On CUDA each timed call ends with a synchronisation, so the wall time is the device's work.
 
 The roof: every row also counts the GFLOP of the matrix products in one update
 (`update_gflop`, forward and backward, by torch's FLOP formulas; `act_gflop` for one act) and
 divides it by the time (`update_gflop_per_s`) and by this machine's float32 matmul rate at the
 same thread count (`matmul_peak_gflop_per_s`, square products;
-`update_fraction_of_matmul_peak`). A speed-up
+`update_fraction_of_matmul_peak`; bf16 rows against the bf16 rate). A speed-up
 target is only reachable while that fraction has room: an update that is all matmuls cannot
 run faster than the peak. TD-MPC2 rows with an official reference time also give the official
 update's rate on the same arithmetic (`official_update_gflop_per_s`).
@@ -56,8 +63,9 @@ from pathlib import Path
 
 import torch
 
+from ccfit.config_base import resolve_device
 from ccfit.models import make_model
-from ccfit.models.base import Batch
+from ccfit.models.base import Batch, select_state
 from ccfit.models.encoders import load_frozen_encoder, save_encoder
 from ccfit.models.registry import config_class, model_class
 from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
@@ -65,6 +73,7 @@ from ccfit.train.compiled import autocast, compile_hot_paths
 from ccfit.train.update import UpdateStep
 
 MODELS = ("tdmpc2", "pwm", "dreamerv3")
+CPU = torch.device("cpu")
 DEFAULT_PRESETS = {"tdmpc2": ("cpu", "1M", "paper"), "pwm": ("cpu",), "dreamerv3": ("cpu",)}
 """Presets timed when --presets is not given (DreamerV3 `paper`, ~128M parameters, takes
 minutes per update on a CPU: ask for it)."""
@@ -140,13 +149,22 @@ def count_parameters(model, heads) -> dict[str, int]:
     return out
 
 
-def _median_times(fn, repeats: int, warmup: int) -> dict[str, float]:
-    for _ in range(warmup):  # allocator, first-call overheads
+def _median_times(fn, repeats: int, warmup: int,
+                  device: torch.device = CPU) -> dict[str, float]:  # fmt: skip
+    """Medians of `repeats` calls after `warmup`; on CUDA each call's time includes waiting
+    for the work it queued (a call returns before the device has done it)."""
+
+    def call() -> None:
         fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    for _ in range(warmup):  # allocator, first-call overheads
+        call()
     wall, cpu = [], []
     for _ in range(repeats):
         w0, c0 = time.perf_counter(), time.process_time()
-        fn()
+        call()
         wall.append(time.perf_counter() - w0)
         cpu.append(time.process_time() - c0)
     return {"wall": statistics.median(wall), "cpu": statistics.median(cpu)}
@@ -155,7 +173,10 @@ def _median_times(fn, repeats: int, warmup: int) -> dict[str, float]:
 MODES = {  # name -> (--train.compile, --train.autocast)
     "eager": ("off", "off"), "compiled": ("on", "off"), "auto": ("auto", "off"),
     "bf16": ("off", "bf16"), "auto-bf16": ("auto", "bf16"),
+    "graphs": ("on", "off"), "graphs-bf16": ("on", "bf16"),
 }  # fmt: skip
+GRAPH_MODES = ("graphs", "graphs-bf16")
+"""Modes compiled with `torch.compile(mode="reduce-overhead")`: CUDA graphs, CUDA only."""
 
 
 def _compiled_paths_of(mode: str) -> list[str] | None:
@@ -168,9 +189,13 @@ def batch_act(model, heads, cfg, n: int, precision: str):
     """One act on n observations from a warm acting state (what several training envs
     stepping together would ask of the model per step)."""
     many = dataclasses.replace(cfg, batch_size=n)
-    obs = {k: v[0, :n] for k, v in synthetic_batch(many, torch.Generator()).obs.items()}
+    obs = {k: v[0, :n].to(model.device)
+           for k, v in synthetic_batch(many, torch.Generator()).obs.items()}  # fmt: skip
     with torch.no_grad(), autocast(model.device, precision):
         state = model.act(obs, heads, model.initial_state(heads, n), eval_mode=False)[1]
+    # A copy (indexing copies): replayed as a CUDA graph, the next act overwrites this one's
+    # outputs.
+    state = select_state(state, torch.arange(n))
 
     def act() -> None:
         with torch.no_grad(), autocast(model.device, precision):
@@ -180,16 +205,17 @@ def batch_act(model, heads, cfg, n: int, precision: str):
 
 
 def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmup: int,
-               mode: str = "eager", act_batches: list[int] = ()) -> dict:  # fmt: skip
-    """Times one update and one act of the model of `cfg`, run as `mode` says; and one act
-    on each batch of `act_batches` observations (episodes acting together)."""
+               mode: str = "eager", act_batches: list[int] = (),
+               device: torch.device = CPU) -> dict:  # fmt: skip
+    """Times one update and one act of the model of `cfg` on `device`, run as `mode` says;
+    and one act on each batch of `act_batches` observations (episodes acting together)."""
     compile_setting, precision = MODES.get(mode, ("on", "off"))
     paths = _compiled_paths_of(mode)
     torch.manual_seed(0)
-    model = make_model(cfg, "cpu", encoder=frozen_encoder(cfg, preset) if frozen else None)
+    model = make_model(cfg, device, encoder=frozen_encoder(cfg, preset) if frozen else None)
     model.begin_task(0, 1000)
     heads = model.new_heads()
-    batch = synthetic_batch(cfg, torch.Generator().manual_seed(0))
+    batch = synthetic_batch(cfg, torch.Generator().manual_seed(0)).to(device)
     if cached:  # replay then holds latents, encoded once when the episode was stored
         batch = dataclasses.replace(batch, obs=model.replay_obs(batch.obs))
     # a warm-started plan / a mid-episode recurrent state is timed
@@ -198,10 +224,14 @@ def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmu
     # Counted eager, before compiling: the same arithmetic.
     gflop = {"update": matmul_gflop(lambda: UpdateStep(model, heads)(batch)),
              "act": matmul_gflop(act)}  # fmt: skip
-    compiled = compile_hot_paths(model, compile_setting, paths)
+    graphs = mode in GRAPH_MODES
+    compiled = compile_hot_paths(model, compile_setting, paths,
+                                 compile_mode="reduce-overhead" if graphs else None)  # fmt: skip
     step = UpdateStep(model, heads, autocast=precision)
 
     def update() -> None:
+        if graphs:  # the last step's graph outputs may be overwritten from here on
+            torch.compiler.cudagraph_mark_step_begin()
         step(batch)
 
     result = {
@@ -213,13 +243,13 @@ def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmu
         "act_gflop": gflop["act"],
     }
     for name, fn in (("update", update), ("act", act)):
-        t = _median_times(fn, repeats, warmup)
+        t = _median_times(fn, repeats, warmup, device)
         result[f"{name}_s_median"] = t["wall"]
         result[f"{name}_cpu_s_median"] = t["cpu"]
     if act_batches:
+        acts = {n: batch_act(model, heads, cfg, n, precision) for n in act_batches}
         result["act_s_median_by_batch"] = {
-            n: _median_times(batch_act(model, heads, cfg, n, precision), repeats, warmup)["wall"]
-            for n in act_batches
+            n: _median_times(act_n, repeats, warmup, device)["wall"] for n, act_n in acts.items()
         }
     # The names run_tdmpc2.sh reads (an MPPI plan is TD-MPC2's act).
     result["plan_s_median"] = result["act_s_median"]
@@ -252,13 +282,17 @@ def matmul_gflop(fn) -> float:
     return counter.flop / 1e9
 
 
-def matmul_peak_gflop_per_s(repeats: int = 20) -> dict[str, float]:
-    """This machine's float32 matmul rate at the current thread count, for square products of
-    a few sizes: the roof an update made of matmuls cannot pass (median per size)."""
+def matmul_peak_gflop_per_s(device: torch.device = CPU,
+                            dtype: torch.dtype = torch.float32,
+                            repeats: int = 20) -> dict[str, float]:  # fmt: skip
+    """`device`'s matmul rate in `dtype` (on a CPU at the current thread count), for square
+    products of a few sizes: the roof an update made of matmuls cannot pass (median per
+    size). Random operands: zeros multiply faster on some hardware."""
     rates = {}
-    for n in (256, 512, 1024):
-        a, b = torch.randn(n, n), torch.randn(n, n)
-        t = _median_times(lambda a=a, b=b: torch.mm(a, b), repeats, warmup=3)["wall"]
+    sizes = (1024, 4096, 8192) if device.type == "cuda" else (256, 512, 1024)
+    for n in sizes:
+        a, b = (torch.randn(n, n, device=device, dtype=dtype) for _ in range(2))
+        t = _median_times(lambda a=a, b=b: torch.mm(a, b), repeats, 3, device)["wall"]
         rates[str(n)] = 2 * n**3 / t / 1e9
     return rates
 
@@ -323,6 +357,15 @@ def attach_references(row: dict, anchor: dict | None) -> None:
             row["ratio_anchor_over_ours"] = ref["train_step"]["s_median"] / row["update_s_median"]
 
 
+def device_name(device: torch.device) -> str:
+    """The GPU's name, or this CPU's model name (what the figures were measured on)."""
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    cpuinfo = Path("/proc/cpuinfo")
+    lines = cpuinfo.read_text().splitlines() if cpuinfo.exists() else []
+    return next((x.partition(":")[2].strip() for x in lines if x.startswith("model name")), "cpu")
+
+
 def _names(text: str) -> list[str]:
     return [] if text in ("", "none") else text.split(",")
 
@@ -355,6 +398,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--warmup", type=int, default=1)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--device", default="auto",
+                        help="auto (CUDA when available), cpu, cuda or cuda:N")  # fmt: skip
     parser.add_argument("--act-batches", default="",
                         help="also time one act on each of these numbers of observations at "
                              "once, e.g. 1,2,4,8 (several envs acting together)")  # fmt: skip
@@ -385,11 +430,16 @@ def main() -> None:
             if unknown:
                 parser.error(f"{mode}: {unknown} are not hot paths of {m} "
                              f"({', '.join(model_class(m).hot_paths)})")  # fmt: skip
+    device = resolve_device(args.device)
+    if device.type != "cuda" and any(m in GRAPH_MODES for m in args.modes):
+        parser.error(f"modes {list(GRAPH_MODES)} replay CUDA graphs: they need --device cuda")
     anchor = None
     if args.anchor_json:
         anchor = {r["config"]: r for r in json.loads(Path(args.anchor_json).read_text())["results"]}
     torch.set_num_threads(args.threads)
-    peak = matmul_peak_gflop_per_s()
+    peak = {"off": matmul_peak_gflop_per_s(device)}
+    if any(MODES.get(m, ("on", "off"))[1] == "bf16" for m in args.modes):
+        peak["bf16"] = matmul_peak_gflop_per_s(device, torch.bfloat16)
     results = []
     for spec in rows_to_time(args):
         cfg = spec.pop("cfg")
@@ -399,18 +449,22 @@ def main() -> None:
                 row.update(imag_last=cfg.imag_last, horizon=cfg.horizon)
             row.update(time_model(cfg, spec["preset"], spec["frozen_encoder"],
                                   spec["latents_cached"], args.repeats,
-                                  args.warmup + (mode != "eager"), mode,
-                                  [int(n) for n in _names(args.act_batches)]))  # fmt: skip
+                                  args.warmup + (mode != "eager") + 2 * (mode in GRAPH_MODES),
+                                  mode, [int(n) for n in _names(args.act_batches)],
+                                  device))  # fmt: skip
             attach_references(row, anchor)
+            roof = max(peak[row["autocast"]].values())
             for name in ("update", "act"):
-                row[f"{name}_fraction_of_matmul_peak"] = (row[f"{name}_gflop_per_s"]
-                                                          / max(peak.values()))  # fmt: skip
+                row[f"{name}_fraction_of_matmul_peak"] = row[f"{name}_gflop_per_s"] / roof
             results.append(row)
     print(json.dumps({
         "batch_size": args.batch_size, "threads": args.threads, "repeats": args.repeats,
         "warmup": args.warmup, "image_size": args.image_size, "cpu_count": os.cpu_count(),
         "loadavg": Path("/proc/loadavg").read_text().split()[:3], "torch": torch.__version__,
-        "matmul_peak_gflop_per_s": peak, "results": results,
+        "device": str(device), "device_name": device_name(device),
+        "matmul_peak_gflop_per_s": peak["off"],
+        **({"matmul_peak_bf16_gflop_per_s": peak["bf16"]} if "bf16" in peak else {}),
+        "results": results,
     }, indent=2))  # fmt: skip
 
 

@@ -1,6 +1,7 @@
 """On a CUDA device (skipped without one): every model's smoke curriculum, a run killed and
 resumed under EWC and PackNet (whose state is saved from the GPU and loaded on the CPU first),
-and compiled hot paths equal to eager ones."""
+compiled hot paths (also as CUDA graphs) equal to eager ones, and `bench/update_rate.py` on
+the GPU. `bench/device_check.sh` runs these on a lent GPU machine."""
 
 from __future__ import annotations
 
@@ -19,9 +20,11 @@ from ccfit.models.registry import model_class
 
 try:
     from short_episodes import ccfit_command, shorter_episodes
+    from test_bench import update_rate
     from test_compile import test_compiled_hot_paths_compute_what_the_eager_ones_do as compiled
 except ImportError:  # tests/ imported as a package
     from tests.short_episodes import ccfit_command, shorter_episodes
+    from tests.test_bench import update_rate
     from tests.test_compile import (
         test_compiled_hot_paths_compute_what_the_eager_ones_do as compiled,
     )
@@ -78,3 +81,21 @@ def test_killed_cuda_run_resumes_to_the_uninterrupted_result(method, tmp_path):
 @pytest.mark.parametrize("name", model_names())
 def test_compiled_equals_eager_on_cuda(name):
     compiled(name, device="cuda")
+
+
+@pytest.mark.parametrize("name", model_names())
+def test_cuda_graphs_equal_eager(name):
+    # What `bench/update_rate.py --modes graphs` times must compute the same function.
+    compiled(name, device="cuda", compile_mode="reduce-overhead")
+
+
+def test_update_rate_bench_on_cuda():
+    modes = ("eager", "compiled", "graphs", "auto-bf16")
+    done = update_rate("--presets", "smoke", "--variants", "state", "--modes", ",".join(modes),
+                       "--repeats", "2", "--device", "cuda", timeout=900)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(done.stdout)
+    assert report["device"].startswith("cuda") and report["device_name"]
+    rows = {(r["model"], r["mode"]): r for r in report["results"]}
+    assert set(rows) == {(m, x) for m in model_names() for x in modes}
+    assert all(r["update_s_median"] > 0 and r["act_s_median"] > 0 for r in rows.values())

@@ -32,11 +32,12 @@ def compiled_paths(model_class: type[WorldModel], setting: str, device: torch.de
     return list(model_class.compile_pays.get(torch.device(device).type, ()))
 
 
-def compile_hot_paths(model: WorldModel, setting: str,
-                      paths: list[str] | None = None) -> list[str]:  # fmt: skip
+def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None = None,
+                      compile_mode: str | None = None) -> list[str]:  # fmt: skip
     """Replace `model`'s hot methods by compiled ones (on the instance); returns their names.
     `paths`: these methods instead of those `setting` names (`bench/update_rate.py` times
-    them one by one to decide `compile_pays`)."""
+    them one by one to decide `compile_pays`); `compile_mode`: torch.compile's `mode`
+    (None: its default; the bench times "reduce-overhead", CUDA graphs, on a GPU)."""
     names = compiled_paths(type(model), setting, model.device) if paths is None else paths
     if names:
         import torch._dynamo.config
@@ -56,7 +57,7 @@ def compile_hot_paths(model: WorldModel, setting: str,
     for name in names:
         # Compile the class's function, bound to the model: compiling the bound method would
         # wrap every method in one shared code object, so all of them would share one limit.
-        fn = torch.compile(getattr(type(model), name))
+        fn = torch.compile(getattr(type(model), name), mode=compile_mode)
         setattr(model, name, types.MethodType(fn, model))
     return names
 

@@ -1,0 +1,98 @@
+#!/usr/bin/env bash
+# The GPU checks of this toolkit as one call on a lent GPU machine (the workplace's `device`
+# tool: one H100 or H200, 16 cores, torch with CUDA, none of our other dependencies, no
+# network, ~15 minutes of device time per task). Two steps:
+#
+#   bash bench/device_check.sh prepare     # here: wheels into .whl/, EGL libraries into .gl/
+#   bash bench/device_check.sh run         # there: device.run(command="bash bench/device_check.sh run",
+#                                          #                   carry=[".whl", ".gl"], timeout_s=570)
+#
+# `run` installs the carried wheels, then, each phase under its own time limit so that one
+# call ends inside the tool's 10 minutes and leaves what it measured under $OUT:
+#   1. the tests marked `gpu` (tests/test_gpu.py): a smoke curriculum per model on CUDA, a run
+#      killed and resumed under EWC and PackNet, compiled hot paths and CUDA graphs equal to
+#      eager, bench/update_rate.py on CUDA;
+#   2. bench/update_rate.py at `paper` for every model, state, on the GPU: eager, compiled,
+#      CUDA graphs, each in float32 and bf16 (TD-MPC2 and PWM first; DreamerV3, whose paper
+#      size compiles for minutes, last).
+# Each phase writes its log or JSON to $OUT and the last lines printed are a summary.
+# The official TD-MPC2 with compile=true on the same GPU (issue 19's anchor) is not part of
+# this script: its code is not ours to carry in the repository.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+WHEELS=(draccus mergedeep toml typing-inspect mujoco metaworld gymnasium farama-notifications
+        glfw pyopengl dill pytz)
+GL_DEBS=(libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
+
+prepare() {
+    local py=.venv/bin/python freeze pins=()
+    test -x "$py" || { echo "device_check: no .venv here (make install first)" >&2; exit 2; }
+    freeze=$(.venv/bin/uv pip freeze --python "$py" 2>/dev/null || "$py" -m pip freeze)
+    for name in "${WHEELS[@]}"; do  # the versions this checkout's tests pass with
+        pin=$(grep -i "^${name//-/[-_]}==" <<<"$freeze" || true)
+        [ -n "$pin" ] || { echo "device_check: $name is not installed in .venv" >&2; exit 2; }
+        pins+=("$pin")
+    done
+    for d in .whl .gl; do grep -qx "/$d/" .git/info/exclude 2>/dev/null || echo "/$d/" >>.git/info/exclude; done
+    rm -rf .whl && mkdir -p .whl
+    "$py" -m pip download --quiet --no-deps --only-binary=:all: --python-version 3.12 \
+        --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 \
+        --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
+        --platform manylinux1_x86_64 -d .whl "${pins[@]}" || exit 2
+    local apt_opts=(-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64)
+    rm -rf .gl && mkdir -p .gl /tmp/amd64/partial
+    apt-get "${apt_opts[@]}" update -qq && (cd .gl && apt-get "${apt_opts[@]}" download -qq "${GL_DEBS[@]}") || exit 2
+    du -sh .whl .gl
+    echo "device_check: the working tree travels with them; the tool's limit is 64 MiB in all:"
+    echo "  $(( $(git ls-files -z | xargs -0 du -cb | tail -1 | cut -f1) / 1048576 )) MiB tracked + .whl + .gl"
+}
+
+run() {
+    : "${OUT:?run on the device machine, where \$OUT is set}"
+    for f in .gl/*.deb; do dpkg -x "$f" /; done
+    ldconfig
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+        --target /tmp/site .whl/*.whl || exit 2
+    export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl PYTHONUNBUFFERED=1
+    nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.max.sm --format=csv | tee "$OUT/gpu.csv"
+    python3 -c 'import torch; print("torch", torch.__version__, torch.cuda.get_device_name())'
+
+    echo "== 1. tests marked gpu"
+    timeout 240 python3 -m pytest -q -m gpu -p no:cacheprovider -n 6 --dist load \
+        tests/test_gpu.py 2>&1 | tee "$OUT/gpu_tests.log" | tail -25
+
+    echo "== 2. bench/update_rate.py at paper on the GPU"
+    local modes=eager,compiled,graphs,bf16,auto-bf16,graphs-bf16
+    timeout 150 python3 bench/update_rate.py --models tdmpc2,pwm --presets paper --variants state \
+        --modes "$modes" --repeats 20 --warmup 3 --device cuda >"$OUT/update_rate_tdmpc2_pwm.json" \
+        2>"$OUT/update_rate_tdmpc2_pwm.err"
+    timeout 120 python3 bench/update_rate.py --models dreamerv3 --presets paper --variants state \
+        --modes eager,bf16,auto-bf16 --repeats 10 --warmup 2 --device cuda \
+        >"$OUT/update_rate_dreamerv3.json" 2>"$OUT/update_rate_dreamerv3.err"
+    summary
+}
+
+summary() {
+    echo "== summary (ms per update / per act; full JSON in \$OUT)"
+    grep -E "passed|failed|error" "$OUT/gpu_tests.log" | tail -1
+    python3 - "$OUT" <<'EOF'
+import json, sys
+from pathlib import Path
+for path in sorted(Path(sys.argv[1]).glob("update_rate_*.json")):
+    try:
+        report = json.loads(path.read_text())
+    except ValueError:
+        err = path.with_suffix(".err").read_text().strip().splitlines()
+        print(f"{path.name}: no result ({err[-1] if err else 'killed by its time limit'})")
+        continue
+    for r in report["results"]:
+        print(f"{r['model']:9} {r['preset']:6} {r['mode']:12} update {1e3 * r['update_s_median']:8.2f}"
+              f"  act {1e3 * r['act_s_median']:8.2f}")
+EOF
+}
+
+case "${1:-run}" in
+    prepare) prepare ;;
+    run) run ;;
+    *) echo "usage: bash bench/device_check.sh prepare|run" >&2; exit 2 ;;
+esac

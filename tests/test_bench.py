@@ -1,0 +1,45 @@
+"""The benchmark scripts still run and report what they say they report (their figures are
+quoted in the README; a script that rotted would leave those figures unreproducible)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def update_rate(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "bench" / "update_rate.py"), *args],
+                          capture_output=True, text=True, timeout=timeout, cwd=ROOT)  # fmt: skip
+
+
+def test_update_rate_times_every_model_and_mode_on_the_cpu():
+    done = update_rate("--models", "tdmpc2,dreamerv3", "--presets", "smoke", "--variants",
+                       "state", "--modes", "eager,bf16", "--repeats", "1", "--warmup", "0",
+                       "--threads", "1", "--device", "cpu")  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(done.stdout)
+    assert report["device"] == "cpu" and report["device_name"]
+    assert set(report["matmul_peak_bf16_gflop_per_s"]) == set(report["matmul_peak_gflop_per_s"])
+    rows = {(r["model"], r["mode"]): r for r in report["results"]}
+    assert set(rows) == {(m, x) for m in ("tdmpc2", "dreamerv3") for x in ("eager", "bf16")}
+    for (_, mode), row in rows.items():
+        assert row["autocast"] == ("bf16" if mode == "bf16" else "off")
+        assert row["update_s_median"] > 0 and row["act_s_median"] > 0
+        assert row["update_gflop"] > 0
+        # each row against the matmul rate of its own precision
+        peak = report["matmul_peak_bf16_gflop_per_s" if mode == "bf16"
+                      else "matmul_peak_gflop_per_s"]  # fmt: skip
+        expected = row["update_gflop_per_s"] / max(peak.values())
+        assert row["update_fraction_of_matmul_peak"] == pytest.approx(expected)
+
+
+def test_update_rate_refuses_cuda_graphs_off_cuda():
+    done = update_rate("--presets", "smoke", "--modes", "graphs", "--device", "cpu", timeout=60)
+    assert done.returncode == 2
+    assert "need --device cuda" in done.stderr.strip().splitlines()[-1]
