@@ -74,7 +74,7 @@ run() {
 
 summary() {
     echo "== summary (ms per update / per act; full JSON in \$OUT)"
-    grep -E "passed|failed|error" "$OUT/gpu_tests.log" | tail -1
+    grep -E "passed|failed|skipped|error" "$OUT/gpu_tests.log" | tail -1
     python3 - "$OUT" <<'EOF'
 import json, sys
 from pathlib import Path

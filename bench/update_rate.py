@@ -63,7 +63,7 @@ from pathlib import Path
 
 import torch
 
-from ccfit.config_base import resolve_device
+from ccfit.config_base import ConfigError, resolve_device
 from ccfit.models import make_model
 from ccfit.models.base import Batch, select_state
 from ccfit.models.encoders import load_frozen_encoder, save_encoder
@@ -430,7 +430,10 @@ def main() -> None:
             if unknown:
                 parser.error(f"{mode}: {unknown} are not hot paths of {m} "
                              f"({', '.join(model_class(m).hot_paths)})")  # fmt: skip
-    device = resolve_device(args.device)
+    try:
+        device = resolve_device(args.device)
+    except ConfigError as e:
+        parser.error(str(e))
     if device.type != "cuda" and any(m in GRAPH_MODES for m in args.modes):
         parser.error(f"modes {list(GRAPH_MODES)} replay CUDA graphs: they need --device cuda")
     anchor = None
