@@ -14,6 +14,7 @@ variant label naming those settings ("obs=pixels, preset=cpu"). Outputs:
   curriculum, the forgetting (BWT) region shaded after each task's end and the forward
   transfer (FWT) region between the composition curve and its from-scratch reference.
 - `orderings.md`: the paper's four orderings checked on these groups (`ccfit.report_orderings`);
+- `axes.md`: BWT and FWT by composition axis beside the paper's table (`ccfit.report_axes`);
 - `routing_<backbone>_<suite>_<method>_s<seed>.png`: the paper's Fig. 5 for every run with a
   `routing.jsonl` (`ccfit.analysis`); summary.json gets the top-expert statement per seed.
 
@@ -44,6 +45,7 @@ from ccfit.curriculum import METRICS_JSON, REFERENCE_DONE
 from ccfit.io import atomic_write_text, read_run_json
 from ccfit.metrics import metrics_from_curves, task_curves
 from ccfit.offline.fit import SCORE_KEY, TRACK
+from ccfit.report_axes import write_axes
 from ccfit.report_orderings import write_orderings
 from ccfit.report_plots import (
     METHOD_ORDER,
@@ -398,7 +400,8 @@ def write_report(paths: list[Path], out: Path) -> list[Path]:
     run_groups = group_runs(find_runs([Path(p) for p in paths]))
     groups = {k: group_metrics(v) for k, v in run_groups.items()}
     out.mkdir(parents=True, exist_ok=True)
-    written = write_tables(groups, out) + [write_orderings(groups, out)] + plot_bars(groups, out)
+    written = write_tables(groups, out) + [write_orderings(groups, out), write_axes(groups, out)]
+    written += plot_bars(groups, out)
     summary = {}
     for k, g in groups.items():
         written.append(plot_curves(k, g, _task_ids(k[1]), out))

@@ -1,7 +1,8 @@
 """The published numbers in `results/` agree with the runs committed beside them: every
 report's tables and orderings are rebuilt from the copied config.json / metrics files and
 compared byte for byte (`ccfit publish` wrote them; a hand edit or a stale table fails here), and
-so is `results/orderings.md`, the orderings over every published run."""
+so are `results/orderings.md` and `results/axes.md`, the orderings and the composition-axis
+table over every published run."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from ccfit.report import load_groups, write_report
+from ccfit.report_axes import AXES_MD, write_axes
 from ccfit.report_orderings import ORDERINGS_MD, write_orderings
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
@@ -25,12 +27,13 @@ def test_committed_tables_match_the_metrics_beside_them(report, tmp_path):
     write_report([report.parent], tmp_path)
     committed = sorted(p.name for p in report.glob("table_*"))
     assert committed, f"{report} has no tables"
-    for name in [*committed, ORDERINGS_MD]:
+    for name in [*committed, ORDERINGS_MD, AXES_MD]:
         assert (tmp_path / name).read_text() == (report / name).read_text(), name
 
 
 def test_the_orderings_over_all_results_match_them(tmp_path):
     # results/orderings.md: the paper's orderings over every published run at once, so that
     # comparisons across folders (DreamerV3 against TD-MPC2, PWM against TD-MPC2) are made.
-    written = write_orderings(load_groups([RESULTS]), tmp_path)
-    assert written.read_text() == (RESULTS / ORDERINGS_MD).read_text()
+    groups = load_groups([RESULTS])
+    for written in (write_orderings(groups, tmp_path), write_axes(groups, tmp_path)):
+        assert written.read_text() == (RESULTS / written.name).read_text(), written.name
