@@ -28,6 +28,7 @@ import torch
 import ccfit.curriculum as C
 import ccfit.train.evaluate as E
 import ccfit.train.run as R
+from ccdata.suites import get_suite
 from ccfit.config import CurriculumConfig
 from ccfit.config_parse import parse_cli, resolve
 from ccfit.curriculum import Curriculum
@@ -589,7 +590,7 @@ def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
     assert main(["report", str(runs.root), "--out", str(out)]) == 0
     printed = set(capsys.readouterr().out.split())
     expected = {"table_tdmpc2.md", "table_tdmpc2.csv", "bars_tdmpc2.png", "summary.json",
-                "orderings.md"}  # fmt: skip
+                "orderings.md", "axes.md"}  # fmt: skip
     expected |= {f"curves_tdmpc2_{SUITE}_{m}.png" for m in METHODS}
     assert {p.name for p in out.iterdir()} == expected
     assert printed == {str(out / name) for name in expected}
@@ -611,6 +612,8 @@ def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
     orderings = (out / "orderings.md").read_text()
     for ordering in ("PackNet forgets least, FT most", "ER transfers most"):
         assert f"| {ordering} | tdmpc2 | {SUITE} |" in orderings
+    axis = get_suite(SUITE).axis
+    assert f"| tdmpc2 | {axis} | " in (out / "axes.md").read_text()
     summary = json.loads((out / "summary.json").read_text())
     assert sorted(summary) == sorted(f"tdmpc2/{SUITE}/{m}" for m in METHODS)
     assert all(summary[f"tdmpc2/{SUITE}/{m}"]["seeds"] == [0] for m in METHODS)
