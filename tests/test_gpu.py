@@ -90,7 +90,7 @@ def test_cuda_graphs_equal_eager(name):
 
 
 def test_update_rate_bench_on_cuda():
-    modes = ("eager", "compiled", "graphs", "auto-bf16")
+    modes = ("eager", "graphs")  # the CUDA-only path; the others are the CPU test's
     done = update_rate("--presets", "smoke", "--variants", "state", "--modes", ",".join(modes),
                        "--repeats", "2", "--device", "cuda", timeout=900)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
