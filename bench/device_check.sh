@@ -52,7 +52,7 @@ prepare() {
 }
 
 run() {
-    : "${OUT:?run on the device machine, where \$OUT is set}"
+    [ -n "${OUT:-}" ] || { echo "device_check: run it on the device machine, where \$OUT is set" >&2; exit 2; }
     for f in .gl/*.deb; do dpkg -x "$f" /; done
     ldconfig
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \

@@ -69,7 +69,7 @@ from ccfit.models.base import Batch, select_state
 from ccfit.models.encoders import load_frozen_encoder, save_encoder
 from ccfit.models.registry import config_class, model_class
 from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
-from ccfit.train.compiled import autocast, compile_hot_paths
+from ccfit.train.compiled import autocast, compile_hot_paths, cpu_info
 from ccfit.train.update import UpdateStep
 
 MODELS = ("tdmpc2", "pwm", "dreamerv3")
@@ -342,7 +342,11 @@ def rows_to_time(args) -> list[dict]:
     return rows
 
 
-def attach_references(row: dict, anchor: dict | None) -> None:
+def attach_references(row: dict, anchor: dict | None, device: torch.device) -> None:
+    """The reference times measured on this 2-core CPU, on rows timed on a CPU only (a GPU
+    row against them would be a ratio of two machines)."""
+    if device.type != "cpu":
+        return
     official = OFFICIAL_TDMPC2_S.get((row["preset"], row["obs"]))
     if row["model"] == "tdmpc2" and official and not row["frozen_encoder"]:
         row["official_s"] = official
@@ -361,9 +365,7 @@ def device_name(device: torch.device) -> str:
     """The GPU's name, or this CPU's model name (what the figures were measured on)."""
     if device.type == "cuda":
         return torch.cuda.get_device_name(device)
-    cpuinfo = Path("/proc/cpuinfo")
-    lines = cpuinfo.read_text().splitlines() if cpuinfo.exists() else []
-    return next((x.partition(":")[2].strip() for x in lines if x.startswith("model name")), "cpu")
+    return cpu_info().get("model name", "cpu")
 
 
 def _names(text: str) -> list[str]:
@@ -455,7 +457,7 @@ def main() -> None:
                                   args.warmup + (mode != "eager") + 2 * (mode in GRAPH_MODES),
                                   mode, [int(n) for n in _names(args.act_batches)],
                                   device))  # fmt: skip
-            attach_references(row, anchor)
+            attach_references(row, anchor, device)
             roof = max(peak[row["autocast"]].values())
             for name in ("update", "act"):
                 row[f"{name}_fraction_of_matmul_peak"] = row[f"{name}_gflop_per_s"] / roof

@@ -43,3 +43,23 @@ def test_update_rate_refuses_cuda_graphs_off_cuda():
     done = update_rate("--presets", "smoke", "--modes", "graphs", "--device", "cpu", timeout=60)
     assert done.returncode == 2
     assert "need --device cuda" in done.stderr.strip().splitlines()[-1]
+
+
+def test_official_cpu_references_go_on_cpu_rows_only():
+    import importlib.util
+
+    import torch
+
+    spec = importlib.util.spec_from_file_location("update_rate", ROOT / "bench" / "update_rate.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+
+    def row() -> dict:
+        return {"model": "tdmpc2", "preset": "1M", "obs": "state", "frozen_encoder": False,
+                "update_s_median": 0.05, "act_s_median": 0.1, "update_gflop": 1.0}  # fmt: skip
+
+    on_cpu, on_gpu = row(), row()
+    bench.attach_references(on_cpu, None, torch.device("cpu"))
+    bench.attach_references(on_gpu, None, torch.device("cuda"))
+    assert on_cpu["speedup_vs_official"]["update"] == pytest.approx(0.1145 / 0.05)
+    assert "official_s" not in on_gpu and "speedup_vs_official" not in on_gpu

@@ -68,14 +68,25 @@ emulates bf16 matmuls and they are no faster than float32."""
 
 
 @functools.cache
-def cpu_flags() -> frozenset[str]:
-    """This machine's CPU feature flags (Linux /proc/cpuinfo; empty elsewhere), read once."""
+def cpu_info() -> dict[str, str]:
+    """The first processor's fields in Linux's /proc/cpuinfo ('model name', 'flags', ...),
+    read once; empty elsewhere."""
     try:
         text = Path("/proc/cpuinfo").read_text()
     except OSError:
-        return frozenset()
-    line = next((x for x in text.splitlines() if x.startswith(("flags", "Features"))), "")
-    return frozenset(line.partition(":")[2].split())
+        return {}
+    fields: dict[str, str] = {}
+    for line in text.splitlines():
+        key, sep, value = line.partition(":")
+        if sep:
+            fields.setdefault(key.strip(), value.strip())
+    return fields
+
+
+def cpu_flags() -> frozenset[str]:
+    """This machine's CPU feature flags (x86 'flags', Arm 'Features'; empty where unknown)."""
+    info = cpu_info()
+    return frozenset(info.get("flags", info.get("Features", "")).split())
 
 
 def native_bf16(device: torch.device, flags: frozenset[str] | None = None) -> bool:
