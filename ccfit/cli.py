@@ -23,6 +23,9 @@ Commands:
     ccfit run --suite Reach --preset cpu --seed 0 --method.type=ewc --method.lam=5000 \
         --train.steps=6000 [--model.type=NAME --model.FIELD=VALUE ...]
     ccfit run --config_path runs/X/config.json      # a saved config, run (or resumed) again
+    ccfit run --suite Grasp --method.type=er --keep-stages --out runs/er   # keeps each task's state
+    ccfit run --suite Grasp --method.type=er --method.replay_ratio=0 --out runs/er-off \
+        --branch-from runs/er --branch-after 2      # runs/er up to task 2, no replay after it
     ccfit report runs/ --out report/
 
 `train` and `run` take the typed config tree (`ccfit run --help` lists every field with its
@@ -97,7 +100,8 @@ def cmd_run(argv: list[str]) -> None:
     from ccfit.config_parse import parse_cli
     from ccfit.curriculum import Curriculum
 
-    extra, argv = _split_flags(argv, {"quiet": False, "scratch_root": True})
+    extra, argv = _split_flags(argv, {"quiet": False, "scratch_root": True, "keep_stages": False,
+                                      "branch_from": True, "branch_after": True})  # fmt: skip
     cfg = parse_cli(CurriculumConfig, argv, prog="ccfit run")
     out = run_dir(cfg)
     result = Curriculum(
@@ -106,11 +110,28 @@ def cmd_run(argv: list[str]) -> None:
         extra.get("scratch_root") or None,
         progress=not extra.get("quiet"),
         callbacks=stage_callbacks(cfg),
+        keep_stages=bool(extra.get("keep_stages")),
+        branch=_branch(extra),
     ).run()
     print(
         f"{cfg.suite} {cfg.model.type} {cfg.method.type} seed {cfg.seed}: "
         f"BWT {_fmt(result['bwt'])}, FWT {_fmt(result['fwt'])}  ->  {out}"
     )
+
+
+def _branch(extra: dict):
+    """`--branch-from RUN --branch-after K` of `ccfit run` (both or neither)."""
+    from ccfit.branch import Branch
+
+    source, after = extra.get("branch_from"), extra.get("branch_after")
+    if source is None and after is None:
+        return None
+    if not source or not after:
+        raise CliError("--branch-from RUN and --branch-after K go together")
+    try:
+        return Branch(Path(source), int(after))
+    except ValueError:
+        raise CliError(f"--branch-after takes a number of tasks, got {after!r}") from None
 
 
 def cmd_fit(argv: list[str]) -> None:

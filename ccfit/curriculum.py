@@ -19,6 +19,8 @@ Run directory:
                          global_step, task_step, discounted/normalised return, success rate
     tasks/<i>-<task>/    the trainer's checkpoint while task i trains (removed when it is done)
     curriculum.pt        state after the last finished task (model, stored heads, method, RNG)
+    stages/after-<k>.pt  with --keep-stages, that state after each task k (`ccfit.branch`)
+    branch.json          a run branched from another after its first tasks (`ccfit.branch`)
     metrics.json         BWT, FWT and the standard metrics of this run
 """
 
@@ -40,6 +42,8 @@ import torch
 
 from ccdata.env import make_env
 from ccfit import metrics as M
+from ccfit.branch import RECORD as BRANCH_RECORD
+from ccfit.branch import Branch, keep_stage, read_branch, start_branch
 from ccfit.config import CurriculumConfig
 from ccfit.config_base import identity, resolve_device, without_setting
 from ccfit.continual.base import ContinualMethod, make_method
@@ -167,12 +171,17 @@ class Curriculum:
     """Runs (or resumes) one continual run into `out`."""
 
     def __init__(self, cfg: CurriculumConfig, out: str | Path, scratch_root: str | Path | None,
-                 progress: bool = True, callbacks: list[StageCallback] = ()) -> None:  # fmt: skip
+                 progress: bool = True, callbacks: list[StageCallback] = (),
+                 keep_stages: bool = False, branch: Branch | None = None) -> None:  # fmt: skip
+        """`keep_stages`: keep the state after each task (`ccfit.branch`); `branch`: start `out`
+        as a branch of another run (a new `out`; a resumed branch needs no `branch`)."""
         self.cfg = cfg
         self.out = Path(out)
         self.scratch_root = Path(scratch_root) if scratch_root else self.out.parent / "scratch"
         self.progress = progress
         self.callbacks = list(callbacks)
+        self.keep_stages = keep_stages
+        self.branch = branch
         self.device = resolve_device(cfg.train.device)
 
     def run(self) -> dict:
@@ -187,6 +196,11 @@ class Curriculum:
         if train.torch_threads > 0:
             torch.set_num_threads(train.torch_threads)
         tasks = cfg.tasks
+        if self.branch is not None:
+            start_branch(self.branch, resolved, self.out, len(tasks), STATE)
+        known = read_branch(self.out)
+        if known is not None:
+            resolved[BRANCH_RECORD] = known
         model, method, stored, completed, pending, carried = restore(cfg, self.out, self.device)
         source = resolved["resolved_seed_dataset"]
         # What does not fit fails here, before anything runs.
@@ -280,6 +294,8 @@ class Curriculum:
             "backbone_optim": backbone_optim,
             "rng": rng_state(),
         }, self.out / STATE)  # fmt: skip
+        if self.keep_stages:
+            keep_stage(self.out, self.out / STATE, completed)
 
 
 # ======================================================================= loading a run

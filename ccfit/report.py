@@ -85,9 +85,12 @@ PER_SEED = (
     "*.*_dir",
     "*_path",
     "*.*_path",
+    "resolved_branch.source",
+    "resolved_branch.state_sha256",
 )
 """Flattened config keys (fnmatch patterns) that differ between the seeds of one experiment
-and so do not split groups: the seed, seeds derived from it, where outputs went."""
+and so do not split groups: the seed, seeds derived from it, where outputs went, the run (of
+that seed) a branch started from (its `resolved_branch.after` does split them)."""
 AS_RUN = ("resolved_compile", "resolved_seed_dataset", *DATASET_RECORDS)
 """Records of how a run was computed, not of what: which of the model's functions this code
 version compiled (eager and compiled compute the same within float tolerance), where the seed
