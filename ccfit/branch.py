@@ -84,7 +84,9 @@ def start_branch(branch: Branch, resolved: dict, out: Path, num_tasks: int, stat
             raise ConfigError(f"{out} is a branch of {known['source']} after {known['after']} "
                               "tasks, not of the one asked for; use another --out")  # fmt: skip
         return
-    if (out / state).exists() or (out / METRICS).exists():
+    # A run writes config.json before it trains; without it `out` holds at most a branch
+    # start that was killed before its branch.json, which starts again.
+    if (out / CONFIG).exists():
         raise ConfigError(f"{out} already holds a run; a branch starts in a new --out")
     if not 1 <= branch.after < num_tasks:
         raise ConfigError(f"--branch-after must be in 1..{num_tasks - 1} (the tasks taken "
@@ -108,8 +110,7 @@ def start_branch(branch: Branch, resolved: dict, out: Path, num_tasks: int, stat
     shutil.copyfile(stage, tmp)
     digest = hashlib.sha256(tmp.read_bytes()).hexdigest()
     os.replace(tmp, out / state)
-    # Written last: a branch killed before this line left no branch.json, and `out` is refused
-    # as holding a run; delete it and start again.
+    # Written last: what a branch killed before this line wrote is written again.
     atomic_write_json(out / BRANCH, {**branch.record(), "state_sha256": digest})
 
 

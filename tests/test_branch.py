@@ -152,3 +152,16 @@ def test_the_report_keeps_a_branch_apart_from_its_source(source, branches):
     variants = sorted(v for (_, _, method, v) in groups if method == "er")
     assert len(variants) == 3, variants  # the source, and the two branches
     assert any("resolved_branch.after=2" in v and "replay_ratio=0.0" in v for v in variants)
+
+
+def test_a_branch_start_killed_before_its_record_starts_again(source, branches, tmp_path):
+    """What a start writes before branch.json (the state, the records) is written again."""
+    out = tmp_path / "killed"
+    out.mkdir()
+    (out / C.STATE).write_bytes(b"half a copy")
+    (out / METRICS).write_text('{"half": ')
+    C.start_branch(Branch(source.dir, 1), json.loads((source.dir / CONFIG).read_text()), out,
+                   3, C.STATE)  # fmt: skip
+    assert (out / C.STATE).read_bytes() == stage_path(source.dir, 1).read_bytes()
+    assert _records(out) == _by_stage(_records(source.dir), 1)
+    assert json.loads((out / BRANCH).read_text())["after"] == 1
