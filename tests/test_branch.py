@@ -165,3 +165,19 @@ def test_a_branch_start_killed_before_its_record_starts_again(source, branches, 
     assert (out / C.STATE).read_bytes() == stage_path(source.dir, 1).read_bytes()
     assert _records(out) == _by_stage(_records(source.dir), 1)
     assert json.loads((out / BRANCH).read_text())["after"] == 1
+
+
+def test_er_without_replay_after_a_branch_trains_as_ft_does(source, tmp_path):
+    """What `results/diagnostics/grasp_er_branch.py` relies on: ER with `replay_ratio` 0 from
+    task K on is FT from there. ER's first task replays nothing, so a branch after it is FT."""
+    with shorter_episodes():
+        ft = Curriculum(resolve(CurriculumConfig, {
+            "suite": SUITE, "preset": "smoke", "seed_dataset": None, "train": dict(TRAIN),
+            "method": {"type": "ft"},
+        }), tmp_path / "ft", source.root / "scratch", progress=False).run()  # fmt: skip
+        branch = Curriculum(_config(replay_ratio=0.0), tmp_path / "er-off", source.root / "scratch",
+                            progress=False, branch=Branch(source.dir, 1)).run()  # fmt: skip
+    assert _records(tmp_path / "er-off") == _records(tmp_path / "ft")
+    assert {k: v for k, v in branch.items() if k != "method"} == {
+        k: v for k, v in ft.items() if k != "method"
+    }
