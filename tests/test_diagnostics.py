@@ -150,8 +150,30 @@ def test_stage_reached_follows_the_lid_and_stage_flags_where_the_scene_has_them(
         assert all(0 <= k <= n for k, n in zip(out[flag], out["steps"], strict=True))
 
 
+def test_grasp_er_branch(made, tmp_path, capsys):
+    """An ER run that kept its stages, its branch without replay after task 2, and FT's."""
+    source, branch = tmp_path / "er", tmp_path / "er-off"
+    common = ["run", "--suite", "Grasp", "--method.type=er", "--scratch-root",
+              str(made.runs["ewc"].parent / "scratch"), "--preset", "smoke", "--seed_dataset",
+              "null", "--quiet", *TRAIN]  # fmt: skip
+    with shorter_episodes(EPISODE_STEPS):
+        assert ccfit([*common, "--keep-stages", "--out", str(source)]) == 0
+        assert ccfit([*common, "--method.replay_ratio=0", "--out", str(branch),
+                      "--branch-from", str(source), "--branch-after", "2"]) == 0  # fmt: skip
+    runs = [source, branch, made.runs["ewc"]]
+    lines = [json.loads(x) for x in _run(_script("grasp_er_branch"), [str(r) for r in runs],
+                                         capsys).splitlines()]  # fmt: skip
+    assert [x["run"] for x in lines[:3]] == [r.name for r in runs]
+    assert len(lines) == 4 and lines[3]["reference"]  # the three share one reference
+    assert lines[1]["branch"]["after"] == 2 and lines[0]["branch"] is None
+    for x in lines:
+        assert x["task"] == "pnp-cube" if "task" in x else x["reference"]
+        assert x["evaluations"] >= 1 and _finite(x["mean_last_21"]) and _finite(x["end_of_task"])
+    assert set(lines[0]["earlier_while_it_trains"]) == {"pick-cube", "place-cube"}
+
+
 @pytest.mark.parametrize("name", ["grasp_er_pick", "packnet_prune", "dreamerv3_pick",
-                                  "stage_reached"])  # fmt: skip
+                                  "stage_reached", "grasp_er_branch"])  # fmt: skip
 def test_a_diagnostic_refuses_a_missing_run_in_one_line(name, tmp_path, capsys):
     script = _script(name)
     capsys.readouterr()
