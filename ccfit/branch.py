@@ -30,7 +30,7 @@ from pathlib import Path
 from ccdata.atomic import atomic_write_text
 from ccfit.config_base import ConfigError, identity
 from ccfit.config_parse import flatten
-from ccfit.io import atomic_write_json
+from ccfit.io import atomic_write_json, read_run_json
 from ccfit.train.records import METRICS
 from ccfit.train.run import CONFIG
 
@@ -69,7 +69,7 @@ class Branch:
 def read_branch(run_dir: Path) -> dict | None:
     """branch.json of `run_dir` (None: not a branch)."""
     path = Path(run_dir) / BRANCH
-    return json.loads(path.read_text()) if path.exists() else None
+    return read_run_json(path, leave_out="the run") if path.exists() else None
 
 
 def start_branch(branch: Branch, resolved: dict, out: Path, num_tasks: int, state: str) -> None:
@@ -95,7 +95,7 @@ def start_branch(branch: Branch, resolved: dict, out: Path, num_tasks: int, stat
     saved = branch.source / CONFIG
     if not saved.exists():
         raise ConfigError(f"--branch-from {branch.source}: no run there ({CONFIG} missing)")
-    _check_same_run(json.loads(saved.read_text()), resolved, branch.source)
+    _check_same_run(read_run_json(saved, leave_out="--branch-from"), resolved, branch.source)
     stage = stage_path(branch.source, branch.after)
     if not stage.exists():
         raise ConfigError(f"--branch-from {branch.source}: it kept no state after {branch.after}"
@@ -103,9 +103,9 @@ def start_branch(branch: Branch, resolved: dict, out: Path, num_tasks: int, stat
                           "they are finished)")  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     source_metrics = branch.source / METRICS
-    lines = source_metrics.read_text().splitlines() if source_metrics.exists() else []
-    kept = [x for x in lines if _stage(json.loads(x)) < branch.after]
-    atomic_write_text(out / METRICS, "".join(x + "\n" for x in kept))
+    records = read_run_json(source_metrics, lines=True) if source_metrics.exists() else []
+    kept = [r for r in records if _stage(r) < branch.after]
+    atomic_write_text(out / METRICS, "".join(json.dumps(r, sort_keys=True) + "\n" for r in kept))
     tmp = out / (state + ".tmp")
     shutil.copyfile(stage, tmp)
     digest = hashlib.sha256(tmp.read_bytes()).hexdigest()

@@ -143,6 +143,9 @@ def test_a_branch_needs_a_source_that_kept_its_stages_and_a_new_out(source, tmp_
     assert "no run there" in capsys.readouterr().err
     assert _main(_cli(source.dir, source.dir, "--branch-after", "1")) == 2
     assert "already holds a run" in capsys.readouterr().err
+    (plain / CONFIG).write_text('{"suite": ')
+    assert _main(_cli(plain, tmp_path / "c", "--branch-after", "1")) == 2
+    assert "missing or corrupt" in capsys.readouterr().err
 
 
 def test_the_report_keeps_a_branch_apart_from_its_source(source, branches):
