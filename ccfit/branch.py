@@ -31,7 +31,7 @@ from ccdata.atomic import atomic_write_text
 from ccfit.config_base import ConfigError, identity
 from ccfit.config_parse import flatten
 from ccfit.io import atomic_write_json, read_run_json
-from ccfit.train.records import METRICS
+from ccfit.train.records import METRICS, record_stage
 from ccfit.train.run import CONFIG
 
 STAGES = "stages"
@@ -104,7 +104,7 @@ def start_branch(branch: Branch, resolved: dict, out: Path, num_tasks: int, stat
     out.mkdir(parents=True, exist_ok=True)
     source_metrics = branch.source / METRICS
     records = read_run_json(source_metrics, lines=True) if source_metrics.exists() else []
-    kept = [r for r in records if _stage(r) < branch.after]
+    kept = [r for r in records if record_stage(r) < branch.after]
     atomic_write_text(out / METRICS, "".join(json.dumps(r, sort_keys=True) + "\n" for r in kept))
     tmp = out / (state + ".tmp")
     shutil.copyfile(stage, tmp)
@@ -112,10 +112,6 @@ def start_branch(branch: Branch, resolved: dict, out: Path, num_tasks: int, stat
     os.replace(tmp, out / state)
     # Written last: what a branch killed before this line wrote is written again.
     atomic_write_json(out / BRANCH, {**branch.record(), "state_sha256": digest})
-
-
-def _stage(record: dict) -> int:
-    return int(record.get("stage", record["task_index"]))
 
 
 def _check_same_run(source: dict, branch: dict, where: Path) -> None:

@@ -60,7 +60,7 @@ from ccfit.replay_store import ROWS_DIR
 from ccfit.train.cost import RunCost
 from ccfit.train.eval_worker import parallel_on
 from ccfit.train.loop import Trainer
-from ccfit.train.records import RunLogger
+from ccfit.train.records import RunLogger, record_stage
 from ccfit.train.resources import check_disk
 from ccfit.train.run import (
     CONFIG,
@@ -228,7 +228,7 @@ class Curriculum:
                 task_dir = self.out / "tasks" / f"{i}-{tasks[i]}"
                 resumed = (task_dir / "checkpoint.pt").exists()
                 if not resumed:  # forget stages a killed run had started but not checkpointed
-                    logger.keep(lambda r, i=i: r.get("stage", r["task_index"]) < i)
+                    logger.keep(lambda r, i=i: record_stage(r) < i)
                 model.begin_task(i, train.steps)
                 method.before_task(i, model.backbone)
                 heads = model.new_heads()

@@ -134,6 +134,12 @@ class RunLogger:
             self._wandb = None
 
 
+def record_stage(record: dict) -> int:
+    """The task being trained when `record` was evaluated (records older than the field: its
+    own task's)."""
+    return int(record.get("stage", record["task_index"]))
+
+
 def _key(record: dict) -> tuple[int, int, int]:
     """An evaluation record's identity: global step, stage (task being trained), task."""
-    return record["global_step"], record.get("stage", record["task_index"]), record["task_index"]
+    return record["global_step"], record_stage(record), record["task_index"]
