@@ -17,6 +17,7 @@ import sys
 import pytest
 
 from ccdata.errors import InputError
+from ccfit.branch import stage_path
 from ccfit.cli import main
 from ccfit.config_base import ConfigError
 from ccfit.sweep.grid import (
@@ -235,6 +236,28 @@ def test_a_run_without_its_reference_does_not_start(tmp_path):
         RunJob()(run.config, str(sweep.run_dir(run)), str(tmp_path / "scratch"), run.scratch_key,
                  ["test_seam"], sweep.code)  # fmt: skip
     assert not sweep.run_dir(run).exists()
+
+
+def test_keep_stages_reaches_every_run_of_a_sweep(tmp_path, capsys):
+    root = tmp_path / "runs"
+    code, _, err = sweep_cli(capsys, "--suites", "Reach", "--methods", "ft", "--seeds", "0",
+                             "--out", str(root), "--max-parallel", "1", "--keep-stages",
+                             *TOY)  # fmt: skip
+    assert code == 0, err
+    sweep, _ = load_sweep(root)
+    [run] = sweep.runs
+    tasks = len(json.loads((sweep.run_dir(run) / "metrics.json").read_text())["end_of_task"])
+    kept = sorted(p.name for p in (sweep.run_dir(run) / "stages").iterdir())
+    assert kept == [stage_path(sweep.run_dir(run), k).name for k in range(1, tasks + 1)]
+    # the sweep's references keep nothing: nothing branches from them
+    assert not list((root / "scratch").rglob("after-*.pt"))
+
+
+def test_keep_stages_is_refused_on_the_offline_track(tmp_path, capsys):
+    code, _, err = sweep_cli(capsys, "--track", "offline", "--suites", "Reach", "--out",
+                             str(tmp_path / "r"), "--keep-stages", *TOY)  # fmt: skip
+    assert "the offline track has none to branch from" in one_line_error(code, err)
+    assert not (tmp_path / "r").exists()
 
 
 def _mtimes(paths) -> list[int]:

@@ -2,7 +2,7 @@
 
     ccfit sweep --suites Reach,Grasp --methods ft,er,ewc,packnet --seeds 0,1,2 --preset cpu \
         --out runs/sweep1 [--models M1,M2] [--launcher slurm] [--max-parallel 4] \
-        [--obs pixels --train.steps=2000 --model.FIELD=VALUE ...]
+        [--obs pixels --train.steps=2000 --model.FIELD=VALUE ...] [--keep-stages]
     ccfit sweep --track offline --suites Reach --methods ft,ewc \
         --out runs/offline1                    # `ccfit fit` runs on the suite datasets
     ccfit sweep --status runs/sweep1
@@ -92,6 +92,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plugins", type=_csv, default=(),
                    help="modules to import first, here and in every job (they register models "
                         "or methods defined outside ccfit)")  # fmt: skip
+    p.add_argument("--keep-stages", action="store_true",
+                   help="online runs keep their state after each task (stages/after-K.pt), to "
+                        "branch from (`ccfit run --branch-from`); not part of a run's identity, "
+                        "so give it again when resuming")  # fmt: skip
     p.add_argument("--dry-run", action="store_true", help="print what would run; write nothing")
     p.add_argument("--status", metavar="RUNS", help="show the state of the sweep in RUNS")
     p.add_argument("--wait", action="store_true", help="SLURM: block until the report job ended")
@@ -118,6 +122,9 @@ def cmd_sweep(argv: list[str]) -> None:
         check_slurm()
     elif args.max_parallel is not None and args.max_parallel < 1:
         raise InputError(f"--max-parallel must be >= 1, got {args.max_parallel}")
+    if args.keep_stages and args.track == "offline":
+        raise InputError("--keep-stages keeps online runs' states after each task; the offline "
+                         "track has none to branch from")  # fmt: skip
     if args.models is None:
         args.models = (DEFAULT_OFFLINE_MODEL if args.track == "offline" else DEFAULT_MODEL,)
     grid = Grid(args.suites, args.models, args.methods, args.seeds, args.preset,
@@ -143,9 +150,9 @@ def cmd_sweep(argv: list[str]) -> None:
         # a config asking for torch's default thread count shares the cores among the jobs
         threads = max(1, cores // parallel)
         with sweep_lock(sweep):
-            launch_local(sweep, work, submissions, parallel, threads)
+            launch_local(sweep, work, submissions, parallel, threads, args.keep_stages)
         return
-    entry = launch_slurm(sweep, work, submissions, settings)
+    entry = launch_slurm(sweep, work, submissions, settings, args.keep_stages)
     for name, job in entry["jobs"].items():
         print(f"  {job}  {name}")
     print(

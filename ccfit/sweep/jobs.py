@@ -91,7 +91,11 @@ class ScratchJob(_Job):
 
 class RunJob(_Job):
     """Train (or resume) one continual run; its from-scratch reference must exist already (on
-    SLURM the run's job waits for the reference's with `afterany`, then checks here)."""
+    SLURM the run's job waits for the reference's with `afterany`, then checks here).
+    keep_stages: an online run keeps its state after each task (`ccfit run --keep-stages`)."""
+
+    def __init__(self, keep_stages: bool = False) -> None:
+        self.keep_stages = keep_stages
 
     def __call__(self, config: dict, run_dir: str, scratch_root: str, scratch_key: str,
                  plugins: list[str], code: dict, threads: int | None = None) -> dict:  # fmt: skip
@@ -123,7 +127,8 @@ class RunJob(_Job):
         from ccfit.curriculum import Curriculum
 
         result = Curriculum(cfg, run_dir, scratch_root, progress=False,
-                            callbacks=stage_callbacks(cfg)).run()  # fmt: skip
+                            callbacks=stage_callbacks(cfg),
+                            keep_stages=self.keep_stages).run()  # fmt: skip
         return _summary(result)
 
 

@@ -88,8 +88,9 @@ def sweep_lock(sweep: Sweep):
 
 
 def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel: int,
-                 threads: int | None = None) -> dict:  # fmt: skip
-    """Run `work` here, at most `max_parallel` jobs at once; returns the report's status."""
+                 threads: int | None = None, keep_stages: bool = False) -> dict:  # fmt: skip
+    """Run `work` here, at most `max_parallel` jobs at once; returns the report's status.
+    keep_stages: the runs keep their state after each task (`RunJob`)."""
     entry = {"launcher": "local", "time": _now(), "code": sweep.code, "pid": os.getpid(),
              "jobs": {}}  # fmt: skip
     submissions.append(entry)
@@ -114,9 +115,9 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
     for run in work.runs:
         if run.scratch_key in work.scratch and f"scratch:{run.scratch_key}" not in calls:
             calls[f"scratch:{run.scratch_key}"] = scratch_call(run.scratch_key)
-        calls[f"run:{run.name}"] = (RunJob(), alone(run.config), str(sweep.run_dir(run)),
-                                    str(sweep.root / SCRATCH), run.scratch_key, plugins, code,
-                                    threads)  # fmt: skip
+        calls[f"run:{run.name}"] = (RunJob(keep_stages), alone(run.config),
+                                    str(sweep.run_dir(run)), str(sweep.root / SCRATCH),
+                                    run.scratch_key, plugins, code, threads)  # fmt: skip
     for name in calls:
         jobs[name] = {"state": "PENDING"}
     waiting_on = {f"run:{r.name}": f"scratch:{r.scratch_key}" for r in work.runs
@@ -190,9 +191,10 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
 # ================================================================================== SLURM
 
 
-def launch_slurm(sweep: Sweep, work: Work, submissions: list[dict],
-                 settings: SlurmSettings) -> dict:  # fmt: skip
-    """Submit `work` as SLURM jobs and return at once; returns the submission entry."""
+def launch_slurm(sweep: Sweep, work: Work, submissions: list[dict], settings: SlurmSettings,
+                 keep_stages: bool = False) -> dict:  # fmt: skip
+    """Submit `work` as SLURM jobs and return at once; returns the submission entry.
+    keep_stages: the runs keep their state after each task (`RunJob`)."""
     for tasks, what in ((len(work.scratch), "from-scratch references"), (len(work.runs), "runs")):
         check_array_size(tasks, f"{tasks} {what} to submit")
     folder = sweep.root / "slurm"
@@ -231,7 +233,7 @@ def launch_slurm(sweep: Sweep, work: Work, submissions: list[dict],
                 executor.update_parameters(job_name="ccfit-run", dependency=after(needed))
                 n = len(work.runs)
                 submitted = executor.map_array(
-                    RunJob(),
+                    RunJob(keep_stages),
                     [r.config for r in work.runs],
                     [str(sweep.run_dir(r)) for r in work.runs],
                     [str(sweep.root / SCRATCH)] * n,
