@@ -172,6 +172,11 @@ def parse_cli[C: BaseRunConfig](cls: type[C], argv: Sequence[str], prog: str | N
         })  # fmt: skip
     for nested, top in (("model.obs_mode", "obs"), ("model.image_size", "image_size")):
         check(nested not in pre, f"--{nested} follows the run's --{top}; set that instead")
+    if "--help" in args or "-h" in args:
+        # draccus converts every value even when asked for help, and fails on optional fields
+        # (`--out DIR --help`); the help depends only on the chosen model and method.
+        args = [f"--{k}={pre[k]}" for k in ("model.type", "method.type") if k in pre]
+        args.append("--help")
     with tempfile.NamedTemporaryFile("w", suffix=".json") as f:
         json.dump(defaults, f)
         f.flush()

@@ -526,6 +526,17 @@ class _Exploit:
         return (os.system, (f"touch {self.path}",))
 
 
+@pytest.mark.parametrize("flag", ["--help", "-h"])
+def test_help_is_printed_whatever_values_the_other_options_have(flag, capsys):
+    # draccus converted the values even for help and failed on optional fields (`--out`)
+    with pytest.raises(SystemExit) as stop:
+        parse_cli(CurriculumConfig, ["--out", "runs/x", "--encoder", "frozen:enc.safetensors",
+                                     "--model.type=pwm", flag])  # fmt: skip
+    assert stop.value.code == 0
+    out = capsys.readouterr().out
+    assert "--out" in out and "--model.experts_per_task" in out
+
+
 def test_cli_run_model_and_method_options_reach_the_config():
     def config(*extra):
         return parse_cli(CurriculumConfig, ["--suite", SUITE, "--model.type=pwm",
