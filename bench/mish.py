@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from ccfit.models.layers import mish
+from ccfit.train.compiled import pin_inductor_threads
 
 SHAPES = ((64, 128), (256, 128), (2, 256, 128))
 
@@ -42,6 +43,7 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=20)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    pin_inductor_threads()
     gen = torch.Generator().manual_seed(0)
     rows = []
     for shape in SHAPES:

@@ -7,6 +7,9 @@ actions, compiled or eager, within floating-point tolerance (Inductor reassociat
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import types
 
 import numpy as np
@@ -15,7 +18,7 @@ import torch
 
 from ccfit.models import make_model, model_names
 from ccfit.models.registry import config_class, model_class
-from ccfit.train.compiled import compile_hot_paths, compiled_paths
+from ccfit.train.compiled import compile_hot_paths, compiled_paths, pin_inductor_threads
 
 try:
     from replay_data import random_buffer
@@ -88,6 +91,29 @@ def test_one_process_compiles_models_of_two_sizes(name):
     for batch_size in (size, size + 2):
         _assert_same(_run(name, "on", batch_size=batch_size),
                      _run(name, "off", batch_size=batch_size))  # fmt: skip
+
+
+_COMPILE_AT = """
+import sys, torch
+from torch._dynamo.utils import counters
+from ccfit.train.compiled import pin_inductor_threads
+torch.set_num_threads(int(sys.argv[1]))
+pin_inductor_threads()
+torch.compile(lambda x: (x.sin() * 2).sum(0))(torch.randn(256, 256))
+print(counters["inductor"]["fxgraph_cache_hit"])
+"""
+
+
+def test_a_kernel_compiled_for_one_thread_count_is_not_served_to_another(tmp_path):
+    # torch 2.11 leaves the thread count its CPU kernels are written for out of its on-disk
+    # cache key; without the pin the 1-thread process below loads the 2-thread kernels
+    env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(tmp_path)}
+    hits = [subprocess.run([sys.executable, "-c", _COMPILE_AT, str(threads)], env=env,
+                           capture_output=True, text=True, check=True).stdout.split()[-1]
+            for threads in (2, 1, 2)]  # fmt: skip
+    assert hits == ["0", "0", "1"]  # the cache still serves the same thread count
+    torch.set_num_threads(1)
+    assert pin_inductor_threads() == 1
 
 
 def test_auto_compiles_only_what_was_measured_to_pay():

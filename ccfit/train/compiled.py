@@ -45,6 +45,7 @@ def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None =
         import torch._inductor.config
 
         torch._inductor.config.fallback_random = True
+        pin_inductor_threads()
         # DreamerV3's actor step differentiates with retain_graph (its critic pass serves the
         # critic's loss too), which a compiled backward that donates its saved buffers
         # refuses; Inductor compiles such a backward when it meets a second model size.
@@ -60,6 +61,22 @@ def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None =
         fn = torch.compile(getattr(type(model), name), mode=compile_mode)
         setattr(model, name, types.MethodType(fn, model))
     return names
+
+
+def pin_inductor_threads() -> int:
+    """Compile CPU kernels for this process's thread count, named in Inductor's cache key.
+
+    Inductor writes the thread count into its CPU kernels (`#pragma omp ... num_threads(N)`),
+    by default `torch.get_num_threads()` at compile time, but torch 2.11 leaves that count out
+    of its on-disk cache key (pytorch#160812): a run with `--train.torch_threads 1` then loads
+    the kernels a 2-thread process compiled, and two such runs on two cores spin four OpenMP
+    threads (found in a 1-thread TD-MPC2 run at 1M, 42% of its time in libgomp's spin-wait),
+    and a kernel's sums may be split otherwise than a same-seed run compiled afresh. The count
+    set explicitly is part of the key. Returns it."""
+    import torch._inductor.config
+
+    torch._inductor.config.cpp.threads = torch.get_num_threads()
+    return torch._inductor.config.cpp.threads
 
 
 _BF16_CPU_FLAGS = frozenset({"avx512_bf16", "amx_bf16"})
