@@ -63,3 +63,14 @@ def test_official_cpu_references_go_on_cpu_rows_only():
     bench.attach_references(on_gpu, None, torch.device("cuda"))
     assert on_cpu["speedup_vs_official"]["update"] == pytest.approx(0.1145 / 0.05)
     assert "official_s" not in on_gpu and "speedup_vs_official" not in on_gpu
+
+
+@pytest.mark.slow  # compiles TD-MPC2's update in four processes (~2 min)
+def test_inductor_threads_times_jobs_with_and_without_the_pin():
+    done = subprocess.run([sys.executable, str(ROOT / "bench" / "inductor_threads.py"), "--jobs",
+                           "1", "--rounds", "1", "--updates", "3"],
+                          capture_output=True, text=True, timeout=600, cwd=ROOT)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(done.stdout)
+    assert [len(v) for v in report["update_ms"].values()] == [1, 1]
+    assert report["ratio_default_over_pinned"] > 0
