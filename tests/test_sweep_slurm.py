@@ -68,7 +68,7 @@ def test_a_sweep_through_slurm_is_preempted_and_ends_as_an_uninterrupted_run(tmp
     root = tmp_path / "runs"
     args = toy_args(root, "ft,er", "--partition", "low", "--train.steps=300",
                     "--train.seed_steps=100", "--train.eval_interval=300",
-                    "--train.checkpoint_interval=100")  # fmt: skip
+                    "--train.checkpoint_interval=100", "--keep-stages")  # fmt: skip
     # submitted with --wait: it returns once the report job ended, with the status
     waited = []
     submitter = threading.Thread(target=lambda: waited.append(main([*args, "--wait"])))
@@ -118,6 +118,9 @@ def test_a_sweep_through_slurm_is_preempted_and_ends_as_an_uninterrupted_run(tmp
                             capture_output=True, text=True).stdout.split()  # fmt: skip
     assert "PREEMPTED" in states or "REQUEUED" in states, states
     result = json.loads((sweep.run_dir(run) / "metrics.json").read_text())
+    # --keep-stages reached the job and its requeued continuation: a stage after every task
+    stages = sorted(p.name for p in (sweep.run_dir(run) / "stages").iterdir())
+    assert stages == [f"after-{k}.pt" for k in range(1, len(result["end_of_task"]) + 1)]
     result.pop("scratch_dir")
     reference = json.loads(json.dumps(reference))
     reference.pop("scratch_dir")
