@@ -7,10 +7,8 @@ actions, compiled or eager, within floating-point tolerance (Inductor reassociat
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 import types
+import uuid
 
 import numpy as np
 import pytest
@@ -93,27 +91,28 @@ def test_one_process_compiles_models_of_two_sizes(name):
                      _run(name, "off", batch_size=batch_size))  # fmt: skip
 
 
-_COMPILE_AT = """
-import sys, torch
-from torch._dynamo.utils import counters
-from ccfit.train.compiled import pin_inductor_threads
-torch.set_num_threads(int(sys.argv[1]))
-pin_inductor_threads()
-torch.compile(lambda x: (x.sin() * 2).sum(0))(torch.randn(256, 256))
-print(counters["inductor"]["fxgraph_cache_hit"])
-"""
-
-
-def test_a_kernel_compiled_for_one_thread_count_is_not_served_to_another(tmp_path):
+def test_a_kernel_compiled_for_one_thread_count_is_not_served_to_another():
     # torch 2.11 leaves the thread count its CPU kernels are written for out of its on-disk
-    # cache key; without the pin the 1-thread process below loads the 2-thread kernels
-    env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(tmp_path)}
-    hits = [subprocess.run([sys.executable, "-c", _COMPILE_AT, str(threads)], env=env,
-                           capture_output=True, text=True, check=True).stdout.split()[-1]
-            for threads in (2, 1, 2)]  # fmt: skip
-    assert hits == ["0", "0", "1"]  # the cache still serves the same thread count
-    torch.set_num_threads(1)
-    assert pin_inductor_threads() == 1
+    # cache key: unpinned, the 1-thread compile below loads the 2-thread kernels (0, 1, 1)
+    import torch._inductor.config
+    from torch._dynamo.utils import counters
+
+    scale = 1.0 + uuid.uuid4().int % 10**6 / 10**7  # a graph no cache holds yet
+    threads, pinned = torch.get_num_threads(), torch._inductor.config.cpp.threads
+    hits = []
+    try:
+        for count in (2, 1, 2):
+            torch._dynamo.reset()
+            torch.set_num_threads(count)
+            assert pin_inductor_threads() == count
+            before = counters["inductor"]["fxgraph_cache_hit"]
+            torch.compile(lambda x: (x.sin() * scale).sum(0))(torch.randn(256, 256))
+            hits.append(counters["inductor"]["fxgraph_cache_hit"] - before)
+    finally:
+        torch.set_num_threads(threads)
+        torch._inductor.config.cpp.threads = pinned
+        torch._dynamo.reset()
+    assert hits == [0, 0, 1]  # the cache still serves the same thread count
 
 
 def test_auto_compiles_only_what_was_measured_to_pay():
