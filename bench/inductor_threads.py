@@ -58,12 +58,13 @@ def run_jobs(script: str, env: dict, threads: int, pin: bool, updates: int, jobs
     """Median update (ms) of each of `jobs` processes started together."""
     mode = "pin" if pin else "default"
     procs = [subprocess.Popen([sys.executable, "-c", script, str(threads), mode, str(updates)],
-                              env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                              env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                               text=True) for _ in range(jobs)]  # fmt: skip
-    out = [p.communicate()[0] for p in procs]
-    if any(p.returncode for p in procs):
-        raise RuntimeError(f"a job failed: {out}")
-    return [round(json.loads(o.strip().splitlines()[-1]), 2) for o in out]
+    done = [p.communicate() for p in procs]
+    for p, (_, err) in zip(procs, done, strict=True):
+        if p.returncode:  # a bug in the job: its own traceback
+            raise RuntimeError(f"a job exited with {p.returncode}:\n{err[-3000:]}")
+    return [round(json.loads(out.strip().splitlines()[-1]), 2) for out, _ in done]
 
 
 def main() -> None:
