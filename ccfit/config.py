@@ -79,6 +79,12 @@ class TrainConfig:
     training process; 'auto': on when this process may use 2 or more cores. The records are
     the same either way (evaluating is a function of the weights); not part of a run's
     identity."""
+    env_workers: str = "auto"
+    """Processes the evaluation environments step and render in, so the episodes of an
+    evaluation render side by side (`ccfit.train.env_workers`): a count (0: in the evaluating
+    process), or 'auto': with pixel observations and `parallel` on, one per core the run leaves
+    free, at most `eval_episodes`; otherwise 0. The records are the same either way; not part
+    of a run's identity."""
     autocast: str = "off"
     """'bf16': the model's updates and acting run under bfloat16 autocast (matmuls in bf16,
     parameters, optimiser state and reductions in float32); 'off': float32; 'auto': bf16
@@ -112,6 +118,8 @@ class TrainConfig:
     the `paper` preset; the `cpu` preset's published runs were made without it."""
 
     def __post_init__(self) -> None:
+        if isinstance(self.env_workers, int) and not isinstance(self.env_workers, bool):
+            self.env_workers = str(self.env_workers)  # a count given from Python
         for name in ("parallel", "compile", "autocast"):
             # draccus reads `--train.parallel=on` as YAML, where on/off are booleans, and
             # hands a str field their str(): the switch's own words again.
@@ -133,6 +141,9 @@ class TrainConfig:
                                       f"{self.device!r}")  # fmt: skip
         check(self.parallel in ("auto", "on", "off"),
               f"train.parallel must be auto, on or off, got {self.parallel!r}")  # fmt: skip
+        check(self.env_workers == "auto" or self.env_workers.isdigit(),
+              f"train.env_workers must be 'auto' or a count >= 0, got "
+              f"{self.env_workers!r}")  # fmt: skip
         check(
             self.autocast in AUTOCAST_SETTINGS,
             f"train.autocast must be one of {AUTOCAST_SETTINGS}, got {self.autocast!r}",

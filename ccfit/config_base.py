@@ -156,7 +156,7 @@ def without_setting(config: dict, path: str, only_if: Any = ...) -> dict:
 DATASET_RECORDS = ("resolved_seed_dataset_meta", "resolved_dataset_meta")
 """config.json keys of what a run's dataset held (online: the seed dataset; offline: the
 fitted one), recorded for the reader."""
-NOT_IDENTITY = ("log", "train.parallel", "out", *DATASET_RECORDS)
+NOT_IDENTITY = ("log", "train.parallel", "train.env_workers", "out", *DATASET_RECORDS)
 """config.json settings a run may change when it is resumed (where it logs, how it spreads
 over processes, where its directory now is: not what it computes), and what it records of its
 datasets for the reader (runs made before that record existed resume)."""

@@ -74,3 +74,15 @@ def test_inductor_threads_times_jobs_with_and_without_the_pin():
     report = json.loads(done.stdout)
     assert [len(v) for v in report["update_ms"].values()] == [1, 1]
     assert report["ratio_default_over_pinned"] > 0
+
+
+def test_eval_workers_times_evaluations_here_and_in_workers():
+    done = subprocess.run([sys.executable, str(ROOT / "bench" / "eval_workers.py"), "--preset",
+                           "smoke", "--episodes", "2", "--workers", "0,1", "--repeats", "1",
+                           "--compile", "off", "--episode-steps", "20"],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(done.stdout)
+    assert 2 <= report["env_steps_per_evaluation"] <= 40 and report["compiled"] == []
+    assert [len(v) for v in report["evaluation_s"].values()] == [1, 1]
+    assert report["ratio_here_over_workers"]["1"] > 0

@@ -26,11 +26,13 @@ TRAIN = {"steps": 100, "seed_steps": 50, "eval_interval": 50, "checkpoint_interv
          "eval_episodes": 2}  # fmt: skip
 
 
-def _config(parallel: str, method: str = "packnet") -> CurriculumConfig:
+def _config(parallel: str, method: str = "packnet", env_workers: str = "auto"
+            ) -> CurriculumConfig:  # fmt: skip
     options = {"packnet": {"retrain_steps": 10}}.get(method, {})
     return resolve(CurriculumConfig, {
         "suite": "Grasp", "preset": "smoke", "seed_dataset": None,
-        "train": {**TRAIN, "parallel": parallel}, "method": {"type": method, **options},
+        "train": {**TRAIN, "parallel": parallel, "env_workers": env_workers},
+        "method": {"type": method, **options},
     })  # fmt: skip
 
 
@@ -49,15 +51,23 @@ def serial(tmp_path_factory):
     return root
 
 
-def test_parallel_run_equals_the_serial_one(serial, tmp_path):
+@pytest.mark.parametrize("env_workers", ["auto", "2"])
+def test_parallel_run_equals_the_serial_one(serial, tmp_path, env_workers):
+    """'2': the evaluator's environments step in two processes of their own (started by the
+    evaluation worker)."""
     torch.set_num_threads(1)
     with shorter_episodes():
-        Curriculum(_config("on"), tmp_path / "run", tmp_path / "scratch", progress=False).run()
+        Curriculum(
+            _config("on", env_workers=env_workers),
+            tmp_path / "run",
+            tmp_path / "scratch",
+            progress=False,
+        ).run()
     assert _outputs(tmp_path / "run") == _outputs(serial / "run")
     (ours,), (theirs,) = (list((r / "scratch").glob("*/done.json")) for r in (tmp_path, serial))
     assert ours.read_text() == theirs.read_text()
     saved = json.loads((tmp_path / "run" / "config.json").read_text())
-    assert saved["train"]["parallel"] == "on"
+    assert saved["train"]["parallel"] == "on" and saved["train"]["env_workers"] == env_workers
 
 
 def test_killed_parallel_run_resumes_to_the_serial_result(serial, tmp_path):

@@ -232,9 +232,11 @@ def test_loop_calls_the_model_as_its_contract_says(tmp_path, monkeypatch):
     assert CALLS["initial_state"] == trainer.episode_index + 3 * 3
 
 
-def test_batched_evaluation_plays_the_episodes_of_sequential_play(tmp_path):
+@pytest.mark.parametrize("workers", [0, 2])
+def test_batched_evaluation_plays_the_episodes_of_sequential_play(tmp_path, workers):
     """A deterministic policy plays the same episodes, bit for bit, whether the evaluation
-    layouts play side by side (what the loop does) or one after the other."""
+    layouts play side by side (what the loop does; `workers`: their environments in that many
+    processes) or one after the other, here."""
     from ccfit.train import EnvPool, eval_seeds, play_episodes
 
     cfg = resolve(TaskRunConfig, {"task": "reach-xy", "preset": "smoke", "seed_dataset": None,
@@ -249,12 +251,12 @@ def test_batched_evaluation_plays_the_episodes_of_sequential_play(tmp_path):
             enc.weight[i, 36 + i], enc.weight[i, i] = 1.0, -1.0
             pi.weight[i, i] = 50.0
     seeds = eval_seeds(0, 0, 6)
-    pool = EnvPool("state", 64)
+    pool, here = EnvPool("state", 64, workers), EnvPool("state", 64)
     together = play_episodes(pool.get("reach-xy", 6), model, heads, obs_mode="state",
                              seeds=seeds, record=True)  # fmt: skip
-    alone = [play_episodes(pool.get("reach-xy", 1), model, heads, obs_mode="state", seeds=[s],
+    alone = [play_episodes(here.get("reach-xy", 1), model, heads, obs_mode="state", seeds=[s],
                            record=True)[0] for s in seeds]  # fmt: skip
-    pool.close()
+    pool.close(), here.close()
     assert len({len(e.rewards) for e in together}) > 2, "episodes of one length test less"
     assert any(e.success for e in together)
     for a, b in zip(together, alone, strict=True):

@@ -99,10 +99,12 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
 
     def alone(config: dict) -> dict:
         # Jobs side by side already fill the cores: none spawns workers of its own
-        # (`train.parallel` changes how a run spreads over processes, not what it computes).
+        # (`train.parallel` and `train.env_workers` change how a run spreads over processes,
+        # not what it computes).
         if max_parallel < 2 or "train" not in config:  # an offline run spawns nothing
             return config
-        return {**config, "train": {**config.get("train", {}), "parallel": "off"}}
+        return {**config, "train": {**config.get("train", {}), "parallel": "off",
+                                    "env_workers": "0"}}  # fmt: skip
 
     def scratch_call(key: str) -> tuple:
         return (ScratchJob(), alone(sweep.scratch_configs()[key]), str(sweep.scratch_dir(key)),

@@ -52,6 +52,8 @@ class WorkerSpec:
     torch_threads: int
     episode_steps: int
     """The parent's `ccdata.env.EPISODE_STEPS` (a process-wide setting the worker shares)."""
+    env_workers: int = 0
+    """Processes the worker's evaluation environments run in (`EnvPool`)."""
 
 
 _WORKER: dict[str, Any] = {}
@@ -78,7 +80,7 @@ def _start(spec: WorkerSpec) -> None:
     _WORKER.update(model=model, method=method, heads={}, evaluator=Evaluator(
         model, spec.task_ids, seed=spec.seed, obs_mode=spec.obs_mode,
         image_size=spec.image_size, episodes=spec.episodes, view=view,
-        autocast=spec.autocast))  # fmt: skip
+        autocast=spec.autocast, env_workers=spec.env_workers))  # fmt: skip
 
 
 def _heads(task: int, state: dict) -> nn.Module:

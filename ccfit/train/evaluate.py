@@ -28,6 +28,7 @@ from ccfit.io import derived_seed, seeded
 from ccfit.models.base import WorldModel, select_state
 from ccfit.obs import model_input, obs_to_arrays
 from ccfit.train.compiled import autocast
+from ccfit.train.env_workers import EnvWorkers, step_all
 
 TRAIN_TAG, EVAL_TAG, ACTION_TAG, REPLAY_TAG, EVAL_NOISE_TAG = 0, 1, 2, 3, 4
 """Independent seed streams of a run (see `ccfit.io.derived_seed`)."""
@@ -88,7 +89,8 @@ def normalized_or_none(task_id: str, ret: float) -> float | None:
 def play_episodes(envs: Sequence, model: WorldModel, heads: nn.Module, *, obs_mode: str,
                   seeds: Sequence[int], record: bool = False) -> list[Episode]:  # fmt: skip
     """One eval-mode episode per layout: `envs[i]` plays `seeds[i]`. All episodes step
-    together; each step is one `model.act` on the batch of episodes still running."""
+    together; each step is one `model.act` on the batch of episodes still running, then one
+    `step_all` (environments in worker processes step side by side)."""
     if len(envs) != len(seeds):
         raise ValueError(f"{len(envs)} envs for {len(seeds)} seeds")
     frames = [[obs_to_arrays(env.reset(seed=int(s))[0], obs_mode)] for env, s in zip(
@@ -101,10 +103,11 @@ def play_episodes(envs: Sequence, model: WorldModel, heads: nn.Module, *, obs_mo
     while running:
         x = model_input([frames[i][-1] for i in running], model.device)
         batch_actions, state = model.act(x, heads, state, eval_mode=True)
+        moves = [np.asarray(batch_actions[row], np.float32) for row in range(len(running))]
+        outcomes = step_all([envs[i] for i in running], moves)
         still = []
-        for row, i in enumerate(running):
-            a = np.asarray(batch_actions[row], np.float32)
-            obs, reward, terminated, truncated, info = envs[i].step(a)
+        for row, (i, a, outcome) in enumerate(zip(running, moves, outcomes, strict=True)):
+            obs, reward, terminated, truncated, info = outcome
             frames[i].append(obs_to_arrays(obs, obs_mode))
             actions[i].append(a)
             rewards[i].append(float(reward))
@@ -126,19 +129,25 @@ def play_episodes(envs: Sequence, model: WorldModel, heads: nn.Module, *, obs_mo
 
 class EnvPool:
     """Environments per task, made when first needed and kept (episodes of one task play
-    side by side, each needs its own)."""
+    side by side, each needs its own). workers: 0, in this process; else in that many
+    `EnvWorkers` processes (started when the first environment is needed), a task's j-th
+    environment on worker j mod workers, so a task's episodes render in parallel."""
 
-    def __init__(self, obs_mode: str, image_size: int) -> None:
-        self.obs_mode, self.image_size = obs_mode, image_size
+    def __init__(self, obs_mode: str, image_size: int, workers: int = 0) -> None:
+        self.obs_mode, self.image_size, self.workers = obs_mode, image_size, workers
         self._envs: dict[str, list] = {}
+        self._remote: EnvWorkers | None = None
 
     def get(self, task_id: str, n: int) -> list:
         from ccdata.env import make_env
 
+        render = self.obs_mode == "pixels"
+        if self.workers and self._remote is None:
+            self._remote = EnvWorkers(self.workers, render=render, image_size=self.image_size)
         envs = self._envs.setdefault(task_id, [])
         while len(envs) < n:
-            envs.append(make_env(task_id, render=self.obs_mode == "pixels",
-                                 image_size=self.image_size))  # fmt: skip
+            envs.append(self._remote.make(task_id, worker=len(envs)) if self._remote else
+                        make_env(task_id, render=render, image_size=self.image_size))  # fmt: skip
         return envs[:n]
 
     def close(self) -> None:
@@ -146,6 +155,9 @@ class EnvPool:
             for env in envs:
                 env.close()
         self._envs.clear()
+        if self._remote is not None:
+            self._remote.close()
+            self._remote = None
 
 
 def eval_record(task_id: str, task_index: int, stage: int, global_step: int,
@@ -169,20 +181,21 @@ class Evaluator:
     model: the world model; task_ids: curriculum index -> task id of the tasks it may
     evaluate; seed, obs_mode, image_size, episodes: the run's. view: task index -> the
     context a task is evaluated in (the continual method's `evaluating`, e.g. PackNet's
-    masks); None: no view. autocast: `--train.autocast`.
+    masks); None: no view. autocast: `--train.autocast`. env_workers: processes the
+    environments step and render in (`EnvPool`; 0: this process).
     """
 
     def __init__(self, model: WorldModel, task_ids: Mapping[int, str], *, seed: int,
                  obs_mode: str, image_size: int, episodes: int,
                  view: Callable[[int], AbstractContextManager] | None = None,
-                 autocast: str = "off") -> None:  # fmt: skip
+                 autocast: str = "off", env_workers: int = 0) -> None:  # fmt: skip
         self.model, self.task_ids = model, dict(task_ids)
         self.seed, self.obs_mode, self.episodes = seed, obs_mode, episodes
         self.autocast = autocast
         self.view = view
         self.heads: dict[int, nn.Module] = {}
         """Heads each evaluable task is evaluated with (stored heads, and the current ones)."""
-        self.envs = EnvPool(obs_mode, image_size)
+        self.envs = EnvPool(obs_mode, image_size, env_workers)
         self._done: list[dict] = []
 
     def submit(self, tasks: Sequence[int], *, stage: int, global_step: int,

@@ -26,6 +26,7 @@ from ccfit.replay import ReplayBuffer
 from ccfit.seeding import DEMO_POLICY, demonstration_rows, seed_buffer
 from ccfit.train.compiled import compile_hot_paths, compiled_paths, resolve_autocast
 from ccfit.train.cost import RunCost
+from ccfit.train.env_workers import resolve_env_workers
 from ccfit.train.eval_worker import AsyncEvaluator, WorkerSpec, has_view, parallel_on
 from ccfit.train.evaluate import REPLAY_TAG, Evaluator
 from ccfit.train.loop import CHECKPOINT, Trainer
@@ -145,7 +146,10 @@ def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
                    method=None) -> Evaluator | AsyncEvaluator:  # fmt: skip
     """The run's evaluator: in this process, or in a worker beside training
     (`--train.parallel`); `method`: the continual method, whose view tasks are evaluated in."""
-    if parallel_on(cfg.train.parallel):
+    parallel = parallel_on(cfg.train.parallel)
+    env_workers = resolve_env_workers(cfg.train.env_workers, obs_mode=cfg.obs, parallel=parallel,
+                                      episodes=cfg.train.eval_episodes)  # fmt: skip
+    if parallel:
         import ccdata.env
 
         spec = WorkerSpec(
@@ -155,12 +159,14 @@ def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
             num_tasks=len(getattr(cfg, "tasks", task_ids)), task_ids=task_ids, seed=cfg.seed,
             obs_mode=cfg.obs, image_size=cfg.image_size, episodes=cfg.train.eval_episodes,
             torch_threads=cfg.train.torch_threads, episode_steps=ccdata.env.EPISODE_STEPS,
+            env_workers=env_workers,
         )  # fmt: skip
         return AsyncEvaluator(spec, model, method)
     view = (lambda i: method.evaluating(i, model.backbone)) if method is not None else None
     return Evaluator(model, task_ids, seed=cfg.seed, obs_mode=cfg.obs,
                      image_size=cfg.image_size, episodes=cfg.train.eval_episodes,
-                     view=view, autocast=cfg.train.autocast)  # fmt: skip
+                     view=view, autocast=cfg.train.autocast,
+                     env_workers=env_workers)  # fmt: skip
 
 
 EXTENDABLE = "train.steps"

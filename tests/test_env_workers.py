@@ -1,0 +1,102 @@
+"""Environments in worker processes (`ccfit.train.env_workers`) are the local ones: the same
+observations, camera images included, rewards and ends, stepped side by side; what fails in a
+worker fails in the evaluating process, with the worker's own traceback."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import numpy as np
+import pytest
+
+import ccdata
+from ccfit.config import TrainConfig
+from ccfit.config_base import ConfigError
+from ccfit.train import env_workers as ew
+from ccfit.train.env_workers import EnvWorkers, resolve_env_workers, step_all
+
+SIZE = 32
+
+
+def _play(envs, seeds, actions):
+    """Reset each env to its seed, then step all with `actions[t][i]` until every one ends."""
+    firsts = [env.reset(seed=s)[0] for env, s in zip(envs, seeds, strict=True)]
+    trace = [[first] for first in firsts]
+    running = list(range(len(envs)))
+    for moves in actions:
+        outcomes = step_all([envs[i] for i in running], [moves[i] for i in running])
+        still = []
+        for i, (obs, reward, terminated, truncated, info) in zip(running, outcomes, strict=True):
+            trace[i].append((obs, reward, terminated, truncated, info["success"]))
+            if not (terminated or truncated):
+                still.append(i)
+        running = still
+    return trace
+
+
+def test_remote_envs_render_and_step_as_local_ones(short_episodes):
+    seeds = [3, 4, 5]
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1, 1, (short_episodes, len(seeds), 4)).astype(np.float32)
+    local = [ccdata.make_env("reach-xy", image_size=SIZE) for _ in seeds]
+    pool = EnvWorkers(2, render=True, image_size=SIZE)
+    try:
+        remote = [pool.make("reach-xy", worker=j) for j in range(len(seeds))]
+        assert [env.worker for env in remote] == [0, 1, 0]
+        theirs = _play(remote, seeds, actions)
+    finally:
+        pool.close()
+    ours = _play(local, seeds, actions)
+    for env in local:
+        env.close()
+    assert len(ours[0]) == short_episodes + 1
+    for a, b in zip(ours, theirs, strict=True):
+        assert len(a) == len(b)
+        for obs_a, obs_b in zip([a[0]] + [x[0] for x in a[1:]], [b[0]] + [x[0] for x in b[1:]],
+                                strict=True):  # fmt: skip
+            assert obs_a.keys() == obs_b.keys() and "frontview" in obs_a
+            assert all(np.array_equal(obs_a[k], obs_b[k]) for k in obs_a)
+        assert [x[1:] for x in a[1:]] == [x[1:] for x in b[1:]]
+
+
+def test_what_fails_in_a_worker_fails_here_with_its_traceback():
+    pool = EnvWorkers(1, render=False, image_size=SIZE)
+    try:
+        with pytest.raises(RuntimeError, match="(?s)worker 0 raised.*no-such-task"):
+            pool.make("no-such-task", worker=0)
+        env = pool.make("reach-xy", worker=0)  # the worker serves on after an error
+        env.reset(seed=0)
+        with pytest.raises(RuntimeError, match="(?s)worker 0 raised.*Traceback"):
+            env.step(np.zeros(7, np.float32))  # not a 4-D action
+        obs, *_ = env.step(np.zeros(4, np.float32))
+        assert obs["state"].shape == (39,)
+    finally:
+        pool.close()
+
+
+def test_a_dead_worker_is_named():
+    pool = EnvWorkers(1, render=False, image_size=SIZE)
+    try:
+        env = pool.make("reach-xy", worker=0)
+        os.kill(pool._procs[0].pid, signal.SIGKILL)
+        pool._procs[0].join()
+        with pytest.raises(RuntimeError, match="worker 0 died"):
+            env.reset(seed=0)
+    finally:
+        pool.close()
+
+
+def test_env_workers_resolve(monkeypatch):
+    monkeypatch.setattr(ew, "available_cores", lambda: 16)
+    auto = dict(obs_mode="pixels", parallel=True, episodes=10)
+    assert resolve_env_workers("auto", **auto) == 10  # 13 free cores, 10 episodes
+    assert resolve_env_workers("auto", **{**auto, "episodes": 5}) == 5
+    assert resolve_env_workers("auto", **{**auto, "obs_mode": "state"}) == 0
+    assert resolve_env_workers("auto", **{**auto, "parallel": False}) == 0
+    assert resolve_env_workers("3", **{**auto, "obs_mode": "state"}) == 3
+    monkeypatch.setattr(ew, "available_cores", lambda: 4)  # one core free: not worth a process
+    assert resolve_env_workers("auto", **auto) == 0
+    assert TrainConfig(env_workers=2).env_workers == "2"
+    with pytest.raises(ConfigError, match="train.env_workers must be 'auto' or a count"):
+        TrainConfig(env_workers="many")
