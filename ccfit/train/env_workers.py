@@ -17,6 +17,7 @@ the evaluating process, with the worker's traceback.
 from __future__ import annotations
 
 import multiprocessing as mp
+import signal
 import traceback
 from collections import deque
 from collections.abc import Sequence
@@ -36,6 +37,8 @@ def _serve(conn: Connection, render: bool, image_size: int, episode_steps: int) 
     """A worker's loop: (command, env key, argument) in, (ok, result or traceback) out."""
     import ccdata.env
 
+    # Ctrl-C reaches the whole process group; the evaluating process handles it and ends us.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     ccdata.env.EPISODE_STEPS = episode_steps  # the evaluating process's (tests shorten it)
     envs: dict[int, Any] = {}
     try:
