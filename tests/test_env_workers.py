@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -100,3 +103,36 @@ def test_env_workers_resolve(monkeypatch):
     assert TrainConfig(env_workers=2).env_workers == "2"
     with pytest.raises(ConfigError, match="train.env_workers must be 'auto' or a count"):
         TrainConfig(env_workers="many")
+
+
+def test_workers_end_with_a_killed_evaluating_process():
+    """A run killed outright (SIGKILL: no cleanup) leaves no environment worker behind: each
+    sees its pipe close and exits."""
+    code = (
+        "import sys, time\n"
+        "from ccfit.train.env_workers import EnvWorkers\n"
+        "pool = EnvWorkers(2, render=False, image_size=32)\n"
+        "envs = [pool.make('reach-xy', worker=j) for j in range(2)]\n"
+        "print(*(p.pid for p in pool._procs), flush=True)\n"
+        "time.sleep(600)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        pids = [int(x) for x in proc.stdout.readline().split()]
+    finally:
+        proc.kill()
+        proc.wait()
+    assert len(pids) == 2
+    deadline = time.monotonic() + 30
+    while any(_alive(pid) for pid in pids) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(_alive(pid) for pid in pids)
+
+
+def _alive(pid: int) -> bool:
+    """Whether `pid` runs (a zombie, exited but not reaped by its dead parent's init, is not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
