@@ -43,7 +43,7 @@ import torch
 from ccdata.env import make_env
 from ccfit import metrics as M
 from ccfit.branch import RECORD as BRANCH_RECORD
-from ccfit.branch import Branch, keep_stage, read_branch, start_branch
+from ccfit.branch import STAGES, Branch, keep_stage, read_branch, start_branch
 from ccfit.config import CurriculumConfig
 from ccfit.config_base import identity, resolve_device, without_setting
 from ccfit.continual.base import ContinualMethod, make_method
@@ -173,14 +173,15 @@ class Curriculum:
     def __init__(self, cfg: CurriculumConfig, out: str | Path, scratch_root: str | Path | None,
                  progress: bool = True, callbacks: list[StageCallback] = (),
                  keep_stages: bool = False, branch: Branch | None = None) -> None:  # fmt: skip
-        """`keep_stages`: keep the state after each task (`ccfit.branch`); `branch`: start `out`
-        as a branch of another run (a new `out`; a resumed branch needs no `branch`)."""
+        """`keep_stages`: keep the state after each task (`ccfit.branch`; a run that kept some
+        keeps the rest when resumed without it); `branch`: start `out` as a branch of another
+        run (a new `out`; a resumed branch needs no `branch`)."""
         self.cfg = cfg
         self.out = Path(out)
         self.scratch_root = Path(scratch_root) if scratch_root else self.out.parent / "scratch"
         self.progress = progress
         self.callbacks = list(callbacks)
-        self.keep_stages = keep_stages
+        self.keep_stages = keep_stages or (self.out / STAGES).is_dir()
         self.branch = branch
         self.device = resolve_device(cfg.train.device)
 

@@ -63,6 +63,33 @@ def test_a_run_with_keep_stages_keeps_its_state_after_every_task(source):
     assert final["completed"] == 3
 
 
+def test_a_run_that_kept_stages_keeps_them_when_resumed_without_the_flag(source, tmp_path,
+                                                                          monkeypatch):  # fmt: skip
+    """Interrupted just after its first stage, then resumed without `keep_stages` (a sweep
+    or a command given without the flag), the run still keeps every stage, and they are the
+    uninterrupted run's."""
+    real = C.keep_stage
+
+    def keep_then_stop(run_dir, state, completed):
+        real(run_dir, state, completed)
+        raise KeyboardInterrupt  # stopped right after the stage of task 1
+
+    out = tmp_path / "run"
+    monkeypatch.setattr(C, "keep_stage", keep_then_stop)
+    with shorter_episodes(), pytest.raises(KeyboardInterrupt):
+        Curriculum(_config(), out, source.root / "scratch", progress=False,
+                   keep_stages=True).run()  # fmt: skip
+    monkeypatch.setattr(C, "keep_stage", real)
+    assert sorted(p.name for p in (out / "stages").iterdir()) == ["after-1.pt"]
+    with shorter_episodes():
+        Curriculum(_config(), out, source.root / "scratch", progress=False).run()
+    for k in (1, 2, 3):
+        ours = torch.load(stage_path(out, k), map_location="cpu", weights_only=False)
+        theirs = torch.load(stage_path(source.dir, k), map_location="cpu", weights_only=False)
+        assert ours["completed"] == theirs["completed"] == k
+        assert all(torch.equal(ours["model"][n], theirs["model"][n]) for n in theirs["model"])
+
+
 @pytest.fixture(scope="module")
 def branches(source):
     """Two branches of the source: its own config after task 1, no replay after task 2."""

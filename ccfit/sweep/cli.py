@@ -94,8 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "or methods defined outside ccfit)")  # fmt: skip
     p.add_argument("--keep-stages", action="store_true",
                    help="online runs keep their state after each task (stages/after-K.pt), to "
-                        "branch from (`ccfit run --branch-from`); not part of a run's identity, "
-                        "so give it again when resuming")  # fmt: skip
+                        "branch from (`ccfit run --branch-from`); not part of a run's identity; "
+                        "a run that kept stages keeps them when resumed without it")  # fmt: skip
     p.add_argument("--dry-run", action="store_true", help="print what would run; write nothing")
     p.add_argument("--status", metavar="RUNS", help="show the state of the sweep in RUNS")
     p.add_argument("--wait", action="store_true", help="SLURM: block until the report job ended")
