@@ -13,10 +13,9 @@ Every row is timed per --modes: `eager` (`--train.compile=off`), `compiled` (eve
 compiled, `--train.compile=on`), `auto` (what `--train.compile=auto` compiles on this device),
 `bf16` (eager under `--train.autocast=bf16`), `auto-bf16` (both), `compile:PATH+PATH` (those
 hot paths compiled, the rest eager: what decides `compile_pays`) and, on CUDA only, `graphs`
-and `graphs-bf16` (every hot path compiled with `mode="reduce-overhead"`, i.e. replayed as
-CUDA graphs, as the official TD-MPC2's `compile=true`; the loop does not offer it yet: this
-is the measurement that would decide it); the first compiled calls (the compilation, and for
-CUDA graphs the recording) are part of the warmup, not of the median.
+and `graphs-bf16` (`--train.compile=graphs`: every hot path replayed as CUDA graphs, as the
+official TD-MPC2's `compile=true`); the first compiled calls (the compilation, and for CUDA
+graphs the recording) are part of the warmup, not of the median.
 
 --device picks where (default `auto`: CUDA when available, as `--train.device`): the model,
 its optimisers and the synthetic batch live there, as replay on the GPU hands batches over.
@@ -173,10 +172,10 @@ def _median_times(fn, repeats: int, warmup: int,
 MODES = {  # name -> (--train.compile, --train.autocast)
     "eager": ("off", "off"), "compiled": ("on", "off"), "auto": ("auto", "off"),
     "bf16": ("off", "bf16"), "auto-bf16": ("auto", "bf16"),
-    "graphs": ("on", "off"), "graphs-bf16": ("on", "bf16"),
+    "graphs": ("graphs", "off"), "graphs-bf16": ("graphs", "bf16"),
 }  # fmt: skip
 GRAPH_MODES = ("graphs", "graphs-bf16")
-"""Modes compiled with `torch.compile(mode="reduce-overhead")`: CUDA graphs, CUDA only."""
+"""Modes replayed as CUDA graphs (`--train.compile=graphs`), CUDA only."""
 
 
 def _compiled_paths_of(mode: str) -> list[str] | None:
@@ -224,14 +223,10 @@ def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmu
     # Counted eager, before compiling: the same arithmetic.
     gflop = {"update": matmul_gflop(lambda: UpdateStep(model, heads)(batch)),
              "act": matmul_gflop(act)}  # fmt: skip
-    graphs = mode in GRAPH_MODES
-    compiled = compile_hot_paths(model, compile_setting, paths,
-                                 compile_mode="reduce-overhead" if graphs else None)  # fmt: skip
+    compiled = compile_hot_paths(model, compile_setting, paths)
     step = UpdateStep(model, heads, autocast=precision)
 
     def update() -> None:
-        if graphs:  # the last step's graph outputs may be overwritten from here on
-            torch.compiler.cudagraph_mark_step_begin()
         step(batch)
 
     result = {

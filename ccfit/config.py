@@ -94,9 +94,10 @@ class TrainConfig:
     cannot reach, and bf16 needs none. Changes the numbers: config.json records what it
     resolved to (`resolved_autocast`)."""
     compile: str = "auto"
-    """'off' (eager), 'on' (every hot path of the model through torch.compile) or 'auto' (the
-    hot paths measured faster compiled on this device type); see `ccfit.train.compiled`. The
-    paths compiled are recorded in config.json."""
+    """'off' (eager), 'on' (every hot path of the model through torch.compile), 'graphs' (every
+    hot path compiled and replayed as CUDA graphs; CUDA only) or 'auto' (the hot paths
+    measured faster compiled on this device type); see `ccfit.train.compiled`. The paths
+    compiled are recorded in config.json."""
     demo_fraction: float = 0.0
     """Fraction of each update's replay windows that start on the task's demonstrations (the
     seed dataset's oracle episodes of the task) instead of anywhere in replay: oversampling
@@ -163,7 +164,7 @@ class TrainConfig:
         return cls(**{**cls.PRESETS[name], **overrides})
 
 
-COMPILE_SETTINGS: tuple[str, ...] = ("auto", "on", "off")
+COMPILE_SETTINGS: tuple[str, ...] = ("auto", "on", "off", "graphs")
 """`--train.compile` values (`ccfit.train.compiled`)."""
 AUTOCAST_SETTINGS: tuple[str, ...] = ("off", "bf16", "auto")
 """`--train.autocast` values (`ccfit.train.compiled.resolve_autocast`)."""

@@ -24,9 +24,9 @@ except ImportError:  # tests/ imported as a package
     from tests.replay_data import random_buffer
 
 
-def _run(name: str, setting: str, device: str = "cpu", compile_mode: str | None = None,
-         **overrides) -> dict:  # fmt: skip
-    """Two updates and one act; `compile_mode` "reduce-overhead" replays CUDA graphs."""
+def _run(name: str, setting: str, device: str = "cpu", **overrides) -> dict:
+    """Two updates and two acts, the second warm-started from the first's state (setting
+    "graphs" replays CUDA graphs: what a call keeps from the last one must survive)."""
     cfg = config_class(name).preset("smoke", **overrides)
     if hasattr(cfg, "num_elites"):
         # Every sample an elite: the plan is then a continuous function of the values, not a
@@ -36,18 +36,15 @@ def _run(name: str, setting: str, device: str = "cpu", compile_mode: str | None 
     model = make_model(cfg, device)
     model.begin_task(0, 100)
     heads = model.new_heads()
-    assert compile_hot_paths(model, setting, compile_mode=compile_mode) == compiled_paths(
+    assert compile_hot_paths(model, setting) == compiled_paths(
         type(model), setting, torch.device(device)
     )
-    graphs = compile_mode == "reduce-overhead"
     opt, head_opts = model.world_model_optimizer(heads), model.head_optimizers(heads)
     batch = random_buffer(cfg, seed=1, steps=(10, 20)).sample(cfg.batch_size, cfg.seq_len)
     batch = batch.to(device)
     torch.manual_seed(1)
     losses = []
     for _ in range(2):
-        if graphs:  # the last update's graph outputs may be overwritten from here on
-            torch.compiler.cudagraph_mark_step_begin()
         out = model.loss(batch, heads)
         losses.append(float(out.total.detach()))
         opt.zero_grad(set_to_none=True)
@@ -57,7 +54,9 @@ def _run(name: str, setting: str, device: str = "cpu", compile_mode: str | None 
     obs = {k: v[0, :3] for k, v in batch.obs.items()}
     torch.manual_seed(2)
     with torch.no_grad():
-        action, _ = model.act(obs, heads, model.initial_state(heads, 3), eval_mode=True)
+        first, state = model.act(obs, heads, model.initial_state(heads, 3), eval_mode=True)
+        second, _ = model.act(obs, heads, state, eval_mode=True)
+    action = np.concatenate([first, second])
     params = {k: v.detach().cpu().clone() for k, v in [*model.state_dict().items(),
                                                        *heads.state_dict().items()]}  # fmt: skip
     return {"losses": losses, "action": action, "params": params}
@@ -71,10 +70,10 @@ def _assert_same(compiled: dict, eager: dict) -> None:
 
 
 @pytest.mark.parametrize("name", model_names())
-def test_compiled_hot_paths_compute_what_the_eager_ones_do(name, device="cpu", compile_mode=None):
+def test_compiled_hot_paths_compute_what_the_eager_ones_do(name, device="cpu", setting="on"):
     if not model_class(name).hot_paths:
         pytest.skip(f"{name} declares no hot path")
-    _assert_same(_run(name, "on", device, compile_mode), _run(name, "off", device))
+    _assert_same(_run(name, setting, device), _run(name, "off", device))
 
 
 @pytest.mark.parametrize("name", model_names())
@@ -235,3 +234,16 @@ def test_one_compiled_pwm_plan_and_loss_serve_every_task():
         with torch.no_grad():
             model.act({k: v[0, :1] for k, v in batch.obs.items()}, h, None, eval_mode=True)
     assert (plans.frame_count, losses.frame_count) == (1, 1)
+
+
+def test_cuda_graphs_are_refused_where_there_is_no_cuda(tmp_path, capsys):
+    # One line and exit 2 before anything is made: CUDA graphs need a CUDA device.
+    from ccfit.cli import main
+
+    out = tmp_path / "run"
+    code = main(["train", "--task", "reach-xy", "--preset", "smoke", "--seed_dataset", "null",
+                 "--train.device=cpu", "--train.compile=graphs", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "train.compile=graphs replays CUDA graphs" in err and "cpu" in err
+    assert not out.exists()

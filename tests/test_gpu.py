@@ -34,16 +34,20 @@ TRAIN = {"steps": 100, "seed_steps": 50, "eval_interval": 50, "checkpoint_interv
          "device": "cuda"}  # fmt: skip
 
 
+@pytest.mark.parametrize("compile", ["auto", "graphs"])
 @pytest.mark.parametrize("name", model_names())
-def test_smoke_curriculum_on_cuda(name, tmp_path):
+def test_smoke_curriculum_on_cuda(name, compile, tmp_path):
+    # graphs: the loop keeps what hot paths return (logs, warm starts, latents) across calls
     method = "experts" if "experts" in model_class(name).capabilities else "ewc"
     cfg = resolve(CurriculumConfig, {"suite": "Reach", "preset": "smoke", "seed_dataset": None,
                                      "model": {"type": name}, "method": {"type": method},
-                                     "train": TRAIN})  # fmt: skip
+                                     "train": {**TRAIN, "compile": compile}})  # fmt: skip
     with shorter_episodes():
         result = Curriculum(cfg, tmp_path / "run", tmp_path / "scratch", progress=False).run()
     saved = json.loads((tmp_path / "run" / "config.json").read_text())
     assert saved["resolved_device"].startswith("cuda")
+    if compile == "graphs":
+        assert saved["resolved_compile"] == list(model_class(name).hot_paths)
     assert result["fwt"] is not None and len(result["end_of_task"]) == 4
 
 
@@ -86,7 +90,7 @@ def test_compiled_equals_eager_on_cuda(name):
 @pytest.mark.parametrize("name", model_names())
 def test_cuda_graphs_equal_eager(name):
     # What `bench/update_rate.py --modes graphs` times must compute the same function.
-    compiled(name, device="cuda", compile_mode="reduce-overhead")
+    compiled(name, device="cuda", setting="graphs")
 
 
 def test_update_rate_bench_on_cuda():

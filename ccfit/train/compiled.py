@@ -1,10 +1,13 @@
 """How a model's hot paths run: `--train.compile` (`WorldModel.hot_paths` through
 `torch.compile`) and `--train.autocast` (`autocast`).
 
-    off   eager everywhere (the reference)
-    on    every hot path compiled
-    auto  the hot paths measured to pay on this device type (`WorldModel.compile_pays`);
-          nothing on a device type never measured
+    off     eager everywhere (the reference)
+    on      every hot path compiled
+    graphs  every hot path compiled and replayed as CUDA graphs (`mode="reduce-overhead"`, as
+            the official TD-MPC2's `compile=true`; CUDA only), its outputs copied out of the
+            graphs' memory (`outputs_copied`)
+    auto    the hot paths measured to pay on this device type (`WorldModel.compile_pays`);
+            nothing on a device type never measured
 
 The compiled functions are the model's own methods, traced by Dynamo and fused by Inductor;
 nothing is rewritten by hand. Random numbers inside compiled code come from torch's eager
@@ -14,6 +17,7 @@ compute the same losses up to floating-point reassociation (tested).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import types
 from pathlib import Path
@@ -27,18 +31,17 @@ def compiled_paths(model_class: type[WorldModel], setting: str, device: torch.de
     """The methods `setting` compiles for `model_class` on `device` (what a run records)."""
     if setting == "off":
         return []
-    if setting == "on":
+    if setting in ("on", "graphs"):
         return list(model_class.hot_paths)
     return list(model_class.compile_pays.get(torch.device(device).type, ()))
 
 
-def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None = None,
-                      compile_mode: str | None = None) -> list[str]:  # fmt: skip
+def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None = None) -> list[str]:
     """Replace `model`'s hot methods by compiled ones (on the instance); returns their names.
     `paths`: these methods instead of those `setting` names (`bench/update_rate.py` times
-    them one by one to decide `compile_pays`); `compile_mode`: torch.compile's `mode`
-    (None: its default; the bench times "reduce-overhead", CUDA graphs, on a GPU)."""
+    them one by one to decide `compile_pays`)."""
     names = compiled_paths(type(model), setting, model.device) if paths is None else paths
+    graphs = setting == "graphs"
     if names:
         import torch._dynamo.config
         import torch._functorch.config
@@ -58,9 +61,41 @@ def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None =
     for name in names:
         # Compile the class's function, bound to the model: compiling the bound method would
         # wrap every method in one shared code object, so all of them would share one limit.
-        fn = torch.compile(getattr(type(model), name), mode=compile_mode)
-        setattr(model, name, types.MethodType(fn, model))
+        fn = torch.compile(getattr(type(model), name), mode="reduce-overhead" if graphs else None)
+        setattr(model, name, types.MethodType(outputs_copied(fn) if graphs else fn, model))
     return names
+
+
+def outputs_copied(fn):
+    """`fn` (compiled as CUDA graphs) handing back copies of what it returns. A replay writes
+    its outputs into memory the graphs share, and CUDA-graph trees reuse that memory once a
+    later call starts a new generation (each new call does when no backward through the last
+    one is pending): whatever a caller kept (logs, a plan's warm start, the latents the heads'
+    update reads) would be overwritten. Copies may be kept; gradients flow through them. No
+    step is marked by hand (`cudagraph_mark_step_begin`): a forward whose backward is still
+    pending (ER's stored-heads loss beside the update's own) must stay in its generation."""
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        return copied(fn(*args, **kwargs))
+
+    return call
+
+
+def copied(value):
+    """`value` with each tensor in it (through dicts, lists, tuples and dataclasses) cloned;
+    gradients still flow through the clones."""
+    if isinstance(value, torch.Tensor):
+        return value.clone()
+    if isinstance(value, dict):
+        return {k: copied(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        items = [copied(v) for v in value]
+        return type(value)(*items) if hasattr(value, "_fields") else type(value)(items)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        fields = [f.name for f in dataclasses.fields(value) if f.init]
+        return dataclasses.replace(value, **{k: copied(getattr(value, k)) for k in fields})
+    return value
 
 
 def pin_inductor_threads() -> int:

@@ -47,6 +47,10 @@ def resolved_config(cfg: RunConfig, suite: str | None, *, record_dataset: bool =
     and the render settings. `record_dataset=False` leaves out what the dataset holds (None):
     it is no part of the identity, and reading it may download a Hub dataset."""
     device = resolve_device(cfg.train.device)
+    if cfg.train.compile == "graphs" and device.type != "cuda":
+        raise ConfigError(f"train.compile=graphs replays CUDA graphs: it needs a CUDA device, "
+                          f"and this run's is {device} (train.device={cfg.train.device}); "
+                          f"use --train.compile=auto or on")  # fmt: skip
     source = dataset_source(cfg, suite)
     if cfg.train.demo_fraction > 0 and source is None:
         raise ConfigError(f"train.demo_fraction {cfg.train.demo_fraction} (given, or the "
