@@ -156,10 +156,15 @@ def without_setting(config: dict, path: str, only_if: Any = ...) -> dict:
 DATASET_RECORDS = ("resolved_seed_dataset_meta", "resolved_dataset_meta")
 """config.json keys of what a run's dataset held (online: the seed dataset; offline: the
 fitted one), recorded for the reader."""
-NOT_IDENTITY = ("log", "train.parallel", "train.env_workers", "out", *DATASET_RECORDS)
+ENCODER_RECORD = "resolved_encoder_sha256"
+"""config.json key of the SHA-256 of a run's frozen encoder file (`--encoder frozen:PATH`). A
+resume checks it (`check_saved_config`): another file at the same path is another run."""
+NOT_IDENTITY = ("log", "train.parallel", "train.env_workers", "out", *DATASET_RECORDS,
+                ENCODER_RECORD)  # fmt: skip
 """config.json settings a run may change when it is resumed (where it logs, how it spreads
 over processes, where its directory now is: not what it computes), and what it records of its
-datasets for the reader (runs made before that record existed resume)."""
+datasets and encoder for the reader (runs made before those records existed resume; the
+encoder's is checked apart, where both configs hold it)."""
 
 
 def identity(resolved: dict) -> dict:

@@ -66,6 +66,7 @@ from ccfit.train.run import (
     CONFIG,
     build_model,
     check_saved_config,
+    encoder_record,
     make_evaluator,
     make_replay,
     plan_run_replay,
@@ -129,12 +130,15 @@ def run_scratch(cfg: CurriculumConfig, out: Path, progress: bool = True) -> list
     with open(out.parent / f".{out.name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
+            # Its config.json also records what the seed dataset and the encoder held (not
+            # part of the key); a finished reference made through another encoder is refused.
+            meta = resolved_config(cfg, cfg.suite)["resolved_seed_dataset_meta"]
+            saved = {**scratch_config(cfg), **encoder_record(cfg),
+                     "resolved_seed_dataset_meta": meta}  # fmt: skip
             if done.is_file():
+                check_saved_config(out, saved)
                 return json.loads(done.read_text())
             n = len(cfg.tasks)
-            # Its config.json also records what the seed dataset held (not part of the key).
-            meta = resolved_config(cfg, cfg.suite)["resolved_seed_dataset_meta"]
-            saved = {**scratch_config(cfg), "resolved_seed_dataset_meta": meta}
             evals = train_task(cfg, out, task_id=cfg.tasks[-1], task_index=n - 1, saved=saved,
                                progress=progress)  # fmt: skip
             atomic_write_json(done, evals)

@@ -1,6 +1,7 @@
 """Autoencoder pretraining of the frozen encoder (`ccfit.pretrain`) on a tiny real dataset."""
 
 import argparse
+import hashlib
 import json
 import shutil
 
@@ -8,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from ccfit.config_base import ENCODER_RECORD, ConfigError
 from ccfit.pretrain import PretrainConfig, add_pretrain_parser, config_from_args, pretrain_encoder
 from ccfit.pretrain.data import episode_arrays, load_oracle_frames, split_episodes
 
@@ -414,6 +416,19 @@ def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeyp
     frozen, _ = load_frozen_encoder(path)
     for name, value in frozen.state_dict().items():
         assert torch.equal(state["model"][f"backbone.encoder.{name}"], value), name
+    # The run and its reference record the encoder's bytes; another file at the same path is
+    # refused on resume, by the run and by its finished reference alike.
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    assert json.loads((tmp_path / "run" / "config.json").read_text())[ENCODER_RECORD] == digest
+    (reference,) = [p.parent for p in (tmp_path / "scratch").rglob("config.json")]
+    assert json.loads((reference / "config.json").read_text())[ENCODER_RECORD] == digest
+    torch.manual_seed(1)
+    save_encoder(build_encoder(enc_cfg), enc_cfg, path)
+    for run in (lambda: C.Curriculum(cfg, tmp_path / "run", tmp_path / "scratch",
+                                     progress=False).run(),
+                lambda: C.run_scratch(cfg, reference, progress=False)):  # fmt: skip
+        with pytest.raises(ConfigError, match="through another encoder file: .*enc.safetensors"):
+            run()
     with pytest.raises(ValueError, match="reads 32 px images but the run renders 48 px"):
         resolve(
             CurriculumConfig,

@@ -16,7 +16,6 @@ not is one the encoder dropped.
 
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -103,7 +102,7 @@ def probe_encoder(path: str | Path, task_ids: list[str], frames: int = 1000, wal
                   seed: int = 0) -> dict:  # fmt: skip
     """Probe the frozen encoder at `path` on each task (module docstring)."""
     from ccdata.errors import InputError
-    from ccfit.models.encoders import load_frozen_encoder
+    from ccfit.models.encoders import load_frozen_encoder, weights_sha256
 
     try:
         encoder, spec = load_frozen_encoder(path)
@@ -116,7 +115,7 @@ def probe_encoder(path: str | Path, task_ids: list[str], frames: int = 1000, wal
     # The weights by name and content, not by where they lay on the machine that probed them.
     weights = Path(path)
     return {"encoder": weights.name,
-            "encoder_sha256": hashlib.sha256(weights.read_bytes()).hexdigest(),
+            "encoder_sha256": weights_sha256(weights),
             "frames": frames, "walk": walk,
             "seed": seed, "ridge": RIDGE, "train_fraction": TRAIN_FRACTION, "pool": POOL,
             "rows": rows}  # fmt: skip

@@ -245,12 +245,17 @@ def save_encoder(encoder: nn.Module, cfg, path: str | Path, metadata: dict | Non
     sidecar = {
         "format": ENCODER_FORMAT,
         "weights": path.name,
-        "weights_sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+        "weights_sha256": weights_sha256(path),
         "spec": spec,
         **(metadata or {}),
     }
     text = json.dumps(sidecar, indent=2, sort_keys=True) + "\n"
     atomic_write(sidecar_path(path), lambda tmp: Path(tmp).write_text(text))
+
+
+def weights_sha256(path: str | Path) -> str:
+    """The SHA-256 of an encoder file's bytes: what names its weights wherever it lies."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def read_encoder_sidecar(path: str | Path) -> dict:

@@ -47,7 +47,7 @@ from ccfit.offline.config import OfflineConfig
 from ccfit.offline.data import dataset_source, load_task, make_splits, write_split
 from ccfit.offline.fit import SCORE_KEY, TRACK, OfflineLogger, TaskFitter
 from ccfit.train.cost import RunCost
-from ccfit.train.run import CONFIG, check_saved_config, load_model, render_settings
+from ccfit.train.run import CONFIG, check_saved_config, encoder_record, load_model, render_settings
 from ccfit.train.update import backbone_optimizer_state
 
 STATE = "fit.pt"
@@ -73,6 +73,7 @@ def resolved_config(cfg: OfflineConfig, source: str, *, record_dataset: bool = T
         "resolved_device": str(resolve_device(cfg.fit.device)),
         "measurement_space": cfg.measurement_space,
         "render": render_settings(cfg).to_dict(),
+        **encoder_record(cfg),
     }
 
 
@@ -111,12 +112,15 @@ def run_scratch(cfg: OfflineConfig, out: Path, progress: bool = True) -> list[di
     with open(out.parent / f".{out.name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
-            if (out / REFERENCE_DONE).is_file():
-                return json.loads((out / REFERENCE_DONE).read_text())
             source = dataset_source(cfg)
-            # Its config.json also records what the dataset held (not part of the key).
+            # Its config.json also records what the dataset and the encoder held (not part of
+            # the key); a finished reference made through another encoder is refused.
             meta = dataset_meta(source, cfg.dataset_endpoint)
-            saved = {**scratch_config(cfg, source), "resolved_dataset_meta": meta}
+            saved = {**scratch_config(cfg, source), **encoder_record(cfg),
+                     "resolved_dataset_meta": meta}  # fmt: skip
+            if (out / REFERENCE_DONE).is_file():
+                check_saved_config(out, saved)
+                return json.loads((out / REFERENCE_DONE).read_text())
             splits = _prepare(cfg, out, saved, source)
             n, tasks = len(cfg.tasks), cfg.tasks
             seed_everything(cfg.seed)

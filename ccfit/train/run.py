@@ -16,7 +16,7 @@ import torch
 from ccdata.errors import InputError
 from ccdata.render import RenderSettings
 from ccfit.config import BaseRunConfig, RunConfig, TaskRunConfig
-from ccfit.config_base import ConfigError, identity, resolve_device
+from ccfit.config_base import ENCODER_RECORD, ConfigError, identity, resolve_device
 from ccfit.config_parse import flatten
 from ccfit.data import dataset_meta
 from ccfit.io import atomic_write_json, derived_seed, seed_everything
@@ -67,7 +67,18 @@ def resolved_config(cfg: RunConfig, suite: str | None, *, record_dataset: bool =
         "resolved_compile": compiled_paths(model_class(cfg.model.type), cfg.train.compile, device),
         "resolved_autocast": resolve_autocast(cfg.train.autocast, device),
         "render": render_settings(cfg).to_dict(),
+        **encoder_record(cfg),
     }
+
+
+def encoder_record(cfg: BaseRunConfig) -> dict:
+    """What config.json records of a frozen encoder: its file's SHA-256 (`ENCODER_RECORD`);
+    nothing without one."""
+    if cfg.encoder_path is None:
+        return {}
+    from ccfit.models.encoders import weights_sha256
+
+    return {ENCODER_RECORD: weights_sha256(cfg.encoder_path)}
 
 
 def build_model(cfg: RunConfig, device: torch.device) -> WorldModel:
@@ -181,7 +192,8 @@ a multiple of `train.eval_interval`."""
 def check_saved_config(out: Path, resolved: dict, *, extends: type[WorldModel] | None = None
                        ) -> None:  # fmt: skip
     """A run directory belongs to one config: refuse another one (settings outside
-    `NOT_IDENTITY`), write it if new or if only those settings changed. `extends`: the model
+    `NOT_IDENTITY`, or another frozen encoder file where both record one: `ENCODER_RECORD`),
+    write it if new or if only those settings changed. `extends`: the model
     class of a single-task run, which may also raise `train.steps` (an extension) unless its
     training reads the task's step budget (`WorldModel.reads_task_budget`)."""
     saved = out / CONFIG
@@ -206,6 +218,11 @@ def check_saved_config(out: Path, resolved: dict, *, extends: type[WorldModel] |
             raise ConfigError(f"{out} holds a run with a different config (differs in "
                               f"{', '.join(differ) or 'empty option groups'}); use another "
                               "--out or delete it")  # fmt: skip
+        was, now = old.get(ENCODER_RECORD), new.get(ENCODER_RECORD)
+        if was is not None and now is not None and was != now:
+            raise ConfigError(f"{out} holds a run made through another encoder file: "
+                              f"{new['encoder']} has sha256 {now[:12]}..., the run's had "
+                              f"{was[:12]}...; use another --out or the run's encoder")  # fmt: skip
         if old == new:
             return
     atomic_write_json(saved, new)
