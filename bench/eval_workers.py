@@ -28,8 +28,10 @@ import torch  # noqa: E402
 
 import ccdata.env  # noqa: E402
 from ccdata.processes import available_cores  # noqa: E402
+from ccdata.tasks.registry import TASKS  # noqa: E402
+from ccfit.config_base import PRESETS  # noqa: E402
 from ccfit.io import seeded  # noqa: E402
-from ccfit.models import make_model  # noqa: E402
+from ccfit.models import make_model, model_names  # noqa: E402
 from ccfit.models.registry import config_class  # noqa: E402
 from ccfit.train import EnvPool, eval_seeds, play_episodes  # noqa: E402
 from ccfit.train.compiled import compile_hot_paths  # noqa: E402
@@ -52,7 +54,15 @@ def main() -> None:
         help="steps per episode (fewer: a quick check of the script)",
     )
     args = parser.parse_args()
-    counts = [int(x) for x in args.workers.split(",")]
+    counts = [int(x) for x in args.workers.split(",") if x.isdigit()]
+    if len(counts) != len(args.workers.split(",")):
+        parser.error(f"--workers takes comma-separated counts >= 0, got {args.workers!r}")
+    if args.model not in model_names():
+        parser.error(f"unknown model {args.model!r}; valid: {', '.join(model_names())}")
+    if args.preset not in PRESETS:
+        parser.error(f"unknown preset {args.preset!r}; valid: {', '.join(PRESETS)}")
+    if args.task not in TASKS:
+        parser.error(f"unknown task {args.task!r}; valid: {', '.join(TASKS)}")
     ccdata.env.EPISODE_STEPS = args.episode_steps  # read by the workers when they start
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)

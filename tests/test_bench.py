@@ -86,3 +86,15 @@ def test_eval_workers_times_evaluations_here_and_in_workers():
     assert 2 <= report["env_steps_per_evaluation"] <= 40 and report["compiled"] == []
     assert [len(v) for v in report["evaluation_s"].values()] == [1, 1]
     assert report["ratio_here_over_workers"]["1"] > 0
+
+
+BAD_EVAL_WORKERS = [(["--workers", "0,two"], "counts >= 0, got '0,two'"),
+                    (["--task", "reach-w"], "unknown task 'reach-w'"),
+                    (["--model", "dreamer"], "unknown model 'dreamer'")]  # fmt: skip
+
+
+@pytest.mark.parametrize("args, message", BAD_EVAL_WORKERS)
+def test_eval_workers_bad_input_is_one_line_and_exit_2(args, message):
+    done = subprocess.run([sys.executable, str(ROOT / "bench" / "eval_workers.py"), *args],
+                          capture_output=True, text=True, timeout=120, cwd=ROOT)  # fmt: skip
+    assert done.returncode == 2 and message in done.stderr.strip().splitlines()[-1]
