@@ -224,7 +224,7 @@ def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmu
     gflop = {"update": matmul_gflop(lambda: UpdateStep(model, heads)(batch)),
              "act": matmul_gflop(act)}  # fmt: skip
     compiled = compile_hot_paths(model, compile_setting, paths)
-    step = UpdateStep(model, heads, autocast=precision)
+    step = UpdateStep(model, heads, autocast=precision, graphs=mode in GRAPH_MODES)
 
     def update() -> None:
         step(batch)

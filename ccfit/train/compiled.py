@@ -69,11 +69,11 @@ def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None =
 def outputs_copied(fn):
     """`fn` (compiled as CUDA graphs) handing back copies of what it returns. A replay writes
     its outputs into memory the graphs share, and CUDA-graph trees reuse that memory once a
-    later call starts a new generation (each new call does when no backward through the last
-    one is pending): whatever a caller kept (logs, a plan's warm start, the latents the heads'
-    update reads) would be overwritten. Copies may be kept; gradients flow through them. No
-    step is marked by hand (`cudagraph_mark_step_begin`): a forward whose backward is still
-    pending (ER's stored-heads loss beside the update's own) must stay in its generation."""
+    new generation starts: whatever a caller kept (logs, a plan's warm start, the latents the
+    heads' update reads) would be overwritten. Copies may be kept; gradients flow through
+    them. A step is marked where an update begins (`UpdateStep`), not per call: a forward
+    whose backward is still pending (ER's stored-heads loss beside the update's own) must
+    stay in its generation."""
 
     @functools.wraps(fn)
     def call(*args, **kwargs):

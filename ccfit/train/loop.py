@@ -93,7 +93,8 @@ class Trainer:
         self.global_offset, self.progress = global_offset, progress
         self.extendable = extendable
         self.device = model.device
-        self.step = UpdateStep(model, heads, method, stored_heads_loss, config.autocast)
+        self.step = UpdateStep(model, heads, method, stored_heads_loss, config.autocast,
+                               graphs=config.compile == "graphs")  # fmt: skip
         if backbone_optim is not None:
             load_backbone_optimizer_state(self.step.optim, model.backbone, backbone_optim)
         self.action_rng = np.random.default_rng(derived_seed(seed, ACTION_TAG, 0, task_index))

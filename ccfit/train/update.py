@@ -19,12 +19,14 @@ class UpdateStep:
     """The optimisers of one task's training and what an update needs besides the batch.
 
     stored_heads_loss: the loss of a batch through an earlier task's stored heads, offered to
-    the method's penalty (`ReplayLosses`); autocast: `--train.autocast`."""
+    the method's penalty (`ReplayLosses`); autocast: `--train.autocast`; graphs: the hot paths
+    replay CUDA graphs (`--train.compile=graphs`)."""
 
     def __init__(self, model: WorldModel, heads: nn.Module, method: ContinualMethod | None = None,
                  stored_heads_loss: Callable[[Batch, int], torch.Tensor] | None = None,
-                 autocast: str = "off") -> None:  # fmt: skip
+                 autocast: str = "off", graphs: bool = False) -> None:  # fmt: skip
         self.model, self.heads, self.method, self.autocast = model, heads, method, autocast
+        self.graphs = graphs
         self.optim = model.world_model_optimizer(heads)
         self.clip_params = [p for g in self.optim.param_groups for p in g["params"]]
         self.head_optims = model.head_optimizers(heads)
@@ -34,6 +36,11 @@ class UpdateStep:
         """One update on `batch` (on the model's device); the logs, as tensors (reading them
         back would make the host wait for the device)."""
         model, method = self.model, self.method
+        if self.graphs:
+            # Every update a CUDA-graph step of its own, as the official TD-MPC2 marks them: a
+            # forward whose backward never ran (none in this loop; a method's may) would
+            # otherwise keep later calls in its generation.
+            torch.compiler.cudagraph_mark_step_begin()
         model.train()
         with autocast(model.device, self.autocast):
             out = model.loss(batch, self.heads)
