@@ -92,6 +92,29 @@ def test_closed_form_mish_equals_torch_mish_in_value_and_gradient():
                                rtol=2e-3, atol=2e-3)  # fmt: skip
 
 
+def test_mish_off_the_cpu_is_one_kernel():
+    # A GPU's eager step is launch-bound: off the CPU, mish dispatches torch's one Mish kernel,
+    # not the closed form's seven (seen on the meta device, which runs no arithmetic).
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Ops(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.names = []
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.names.append(func.overloadpacket.__name__)
+            return func(*args, **(kwargs or {}))
+
+    ops = {}
+    for device in ("meta", "cpu"):
+        x = torch.ones(4, device=device)
+        with Ops() as ops[device]:
+            mish(x)
+    assert ops["meta"].names == ["mish"]
+    assert len(ops["cpu"].names) == 7 and "mish" not in ops["cpu"].names
+
+
 def test_quantiles_are_torch_quantile_bit_for_bit():
     g = torch.Generator().manual_seed(0)
     for n in (1, 2, 3, 240, 3841):

@@ -1,6 +1,6 @@
 """Building blocks shared by the world models (TD-MPC2 style).
 
-- `mish` / `Mish`: Mish in closed form (one exp instead of exp, log1p and tanh).
+- `mish` / `Mish`: Mish, on a CPU in closed form (one exp instead of exp, log1p and tanh).
 - `NormedLinear` (Linear -> optional dropout -> LayerNorm -> activation) and `mlp`.
 - `SimNorm`: softmax over groups of features, which keeps latents bounded.
 - `symlog` / `symexp`, two-hot encoding in symlog space, soft cross-entropy.
@@ -38,8 +38,14 @@ class _Mish(torch.autograd.Function):
 
 
 def mish(x: torch.Tensor) -> torch.Tensor:
-    """`F.mish` (its values and gradients to float rounding), about twice as fast on a CPU."""
-    return _Mish.apply(x)
+    """`F.mish` (its values and gradients to float rounding): on a CPU in closed form, about
+    twice as fast; elsewhere torch's own kernel. A GPU's eager step is bound by kernel
+    launches, and the closed form takes seven where `F.mish` takes one: TD-MPC2's `paper` plan
+    calls Mish 143 times, and dispatches 1809 operations with `F.mish` against 2667 (the
+    official TD-MPC2's: 2050)."""
+    if x.device.type == "cpu":
+        return _Mish.apply(x)
+    return F.mish(x)
 
 
 class Mish(nn.Module):
