@@ -17,7 +17,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from ccdata.errors import EXIT_USAGE, run_script
+from ccdata.errors import EXIT_USAGE, InputError, run_script
 from ccdata.record import GenerateConfig, generate
 from ccfit.cli import main as ccfit
 
@@ -77,6 +77,11 @@ def _finite(x) -> bool:
     return isinstance(x, (int, float)) and math.isfinite(x)
 
 
+READING = {"reward_abs_err", "Q_mean", "Q_pi_mean", "return_mean", "dynamics_rel_err",
+           "pi_vs_episode_action"}  # fmt: skip
+"""What `ccfit.analysis.reading` gives per policy."""
+
+
 def test_grasp_er_pick(made, monkeypatch, capsys):
     script = _script("grasp_er_pick")
     monkeypatch.setattr(script, "DATASET", str(made.dataset))
@@ -88,13 +93,24 @@ def test_grasp_er_pick(made, monkeypatch, capsys):
         for task in ("pick-cube", "place-cube"):  # the tasks before the last
             for policy in ("oracle", "random"):
                 reading = out[f"{task}/reading/{policy}"]
-                assert set(reading) == {"reward_abs_err", "Q_mean", "return_mean",
-                                        "dynamics_rel_err", "pi_vs_episode_action"}  # fmt: skip
+                assert set(reading) == READING
                 assert all(_finite(v) for v in reading.values())
                 assert reading["reward_abs_err"] >= 0 and reading["dynamics_rel_err"] >= 0
             acting = out[f"{task}/acting"]
             assert set(acting) == {"mppi", "policy_mean"}
             assert all(len(v) == 3 and all(_finite(s) for s in v) for v in acting.values())
+
+
+def test_task_reading(made, capsys):
+    script = _script("task_reading")
+    out = json.loads(_run(script, [str(made.runs["tdmpc2"]), "--dataset", str(made.dataset)],
+                          capsys))  # fmt: skip
+    assert out["run"] == "pick-cube-tdmpc2" and out["task_step"] == 100
+    for policy in ("oracle", "noisy-oracle", "random"):
+        assert out[policy]["episodes"] == 2 and set(out[policy]) == READING | {"episodes"}
+        assert all(_finite(v) for v in out[policy].values())
+    with pytest.raises(InputError, match="this reads TD-MPC2-style models"):
+        script.main([str(made.runs["dreamerv3"]), "--dataset", str(made.dataset)])
 
 
 def test_packnet_prune(made, monkeypatch, capsys):
@@ -173,7 +189,7 @@ def test_grasp_er_branch(made, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("name", ["grasp_er_pick", "packnet_prune", "dreamerv3_pick",
-                                  "stage_reached", "grasp_er_branch"])  # fmt: skip
+                                  "stage_reached", "grasp_er_branch", "task_reading"])  # fmt: skip
 def test_a_diagnostic_refuses_a_missing_run_in_one_line(name, tmp_path, capsys):
     script = _script(name)
     capsys.readouterr()

@@ -20,49 +20,23 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from ccdata.errors import OneLineParser, run_script
 from ccdata.settings import default_repo_id
+from ccfit.analysis.reading import episode_reading
 from ccfit.curriculum import load_run
 from ccfit.data import load_episodes
-from ccfit.seeding import episode_to_replay
 from ccfit.train.evaluate import Evaluator
 
 DATASET = default_repo_id("Grasp")  # LeRobot's cache, where `ccdata generate` writes, or the Hub
 EPISODES = 20
 
 
-def discounted_returns(rewards: np.ndarray, discount: float) -> np.ndarray:
-    g = np.zeros(len(rewards) + 1)
-    for t in reversed(range(len(rewards))):
-        g[t] = rewards[t] + discount * g[t + 1]
-    return g[:-1]
-
-
 def reading(model, method, heads, index: int, task: str, policy: str) -> dict:
-    errors: dict[str, list[float]] = {"reward": [], "q": [], "ret": [], "dyn": [], "act": []}
-    for episode in load_episodes(DATASET, task=task, policy=policy, images=False)[:EPISODES]:
-        rows = episode_to_replay(episode, "state")
-        obs = {k: torch.as_tensor(v).float() for k, v in rows["obs"].items()}
-        actions = torch.as_tensor(rows["action"]).float()
-        rewards = np.asarray(rows["reward"], dtype=np.float64).reshape(-1)
-        with torch.no_grad(), method.evaluating(index, model.backbone):
-            z = model.encode(obs)
-            reward = model.two_hot.logits_to_scalar(model.reward(z[:-1], actions, heads))[:, 0]
-            q = model.Q(z[:-1], actions, heads, return_type="avg")[:, 0]
-            step = ((model.next(z[:-1], actions) - z[1:]) ** 2).sum(-1) / (z[1:] ** 2).sum(-1)
-            _, info = model.pi(z[:-1], heads)
-        errors["reward"].append(np.abs(reward.numpy() - rewards).mean())
-        errors["q"].append(q.numpy().mean())
-        errors["ret"].append(discounted_returns(rewards, model.cfg.discount).mean())
-        errors["dyn"].append(step.numpy().mean())
-        errors["act"].append(np.abs(info["mean"].numpy() - rows["action"]).mean())
-    mean = {k: float(np.mean(v)) for k, v in errors.items()}
-    return {"reward_abs_err": round(mean["reward"], 4), "Q_mean": round(mean["q"], 2),
-            "return_mean": round(mean["ret"], 2), "dynamics_rel_err": round(mean["dyn"], 4),
-            "pi_vs_episode_action": round(mean["act"], 3)}  # fmt: skip
+    episodes = load_episodes(DATASET, task=task, policy=policy, images=False)[:EPISODES]
+    return episode_reading(model, heads, episodes,
+                           lambda: method.evaluating(index, model.backbone))  # fmt: skip
 
 
 def acting(model, method, heads, index: int, task: str) -> dict:

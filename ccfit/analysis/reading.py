@@ -1,0 +1,59 @@
+"""What a TD-MPC2-style world model (`encode`, `next`, `reward`, `Q`, `pi`) reads along recorded
+episodes: the reward head's error per step, its Q at the episode's actions against the
+discounted return the episode obtained, its Q at the policy's mean actions in the same states
+(above the episode's where the value rates the policy's own choice higher), the latent
+dynamics' one-step error and the policy's mean action against the episode's. Oracle,
+noisy-oracle and random episodes of a suite's dataset give the contrast: a model that knows
+its task values the oracle's states above the random ones as their returns are ordered, and
+predicts their rewards."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from ccfit.seeding import episode_to_replay
+
+
+def discounted_returns(rewards: np.ndarray, discount: float) -> np.ndarray:
+    """The discounted return from every step of an episode's `rewards`."""
+    g = np.zeros(len(rewards) + 1)
+    for t in reversed(range(len(rewards))):
+        g[t] = rewards[t] + discount * g[t + 1]
+    return g[:-1]
+
+
+def episode_reading(model, heads, episodes: list[dict[str, np.ndarray]],
+                    view: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext
+                    ) -> dict:  # fmt: skip
+    """Means over `episodes` (state observations, `load_episodes(..., images=False)`) of what
+    the module docstring lists, read through `heads` inside `view()` (a continual method's
+    view of an earlier task, e.g. `method.evaluating(i, backbone)`)."""
+    keys = ("reward", "q", "q_pi", "ret", "dyn", "act")
+    errors: dict[str, list[float]] = {k: [] for k in keys}
+    for episode in episodes:
+        rows = episode_to_replay(episode, "state")
+        obs = {k: torch.as_tensor(v).float() for k, v in rows["obs"].items()}
+        actions = torch.as_tensor(rows["action"]).float()
+        rewards = np.asarray(rows["reward"], dtype=np.float64).reshape(-1)
+        with torch.no_grad(), view():
+            z = model.encode(obs)
+            reward = model.two_hot.logits_to_scalar(model.reward(z[:-1], actions, heads))[:, 0]
+            q = model.Q(z[:-1], actions, heads, return_type="avg")[:, 0]
+            step = ((model.next(z[:-1], actions) - z[1:]) ** 2).sum(-1) / (z[1:] ** 2).sum(-1)
+            _, info = model.pi(z[:-1], heads)
+            q_pi = model.Q(z[:-1], info["mean"], heads, return_type="avg")[:, 0]
+        errors["reward"].append(np.abs(reward.numpy() - rewards).mean())
+        errors["q"].append(q.numpy().mean())
+        errors["q_pi"].append(q_pi.numpy().mean())
+        errors["ret"].append(discounted_returns(rewards, model.cfg.discount).mean())
+        errors["dyn"].append(step.numpy().mean())
+        errors["act"].append(np.abs(info["mean"].numpy() - rows["action"]).mean())
+    mean = {k: float(np.mean(v)) for k, v in errors.items()}
+    return {"reward_abs_err": round(mean["reward"], 4), "Q_mean": round(mean["q"], 2),
+            "Q_pi_mean": round(mean["q_pi"], 2), "return_mean": round(mean["ret"], 2),
+            "dynamics_rel_err": round(mean["dyn"], 4),
+            "pi_vs_episode_action": round(mean["act"], 3)}  # fmt: skip
