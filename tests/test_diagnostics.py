@@ -109,6 +109,8 @@ def test_task_reading(made, capsys):
     for policy in ("oracle", "noisy-oracle", "random"):
         assert out[policy]["episodes"] == 2 and set(out[policy]) == READING | {"episodes"}
         assert all(_finite(v) for v in out[policy].values())
+    assert set(out["acting"]) == {"mppi", "policy_mean"}
+    assert all(len(v) == 3 and all(_finite(s) for s in v) for v in out["acting"].values())
     with pytest.raises(InputError, match="this reads TD-MPC2-style models"):
         script.main([str(made.runs["dreamerv3"]), "--dataset", str(made.dataset)])
 

@@ -5,7 +5,8 @@ discounted return the episode obtained, its Q at the policy's mean actions in th
 dynamics' one-step error and the policy's mean action against the episode's. Oracle,
 noisy-oracle and random episodes of a suite's dataset give the contrast: a model that knows
 its task values the oracle's states above the random ones as their returns are ordered, and
-predicts their rewards."""
+predicts their rewards. `acting` then says whether it acts on that knowledge: its task's
+normalised return through MPPI and through the policy's mean alone."""
 
 from __future__ import annotations
 
@@ -57,3 +58,34 @@ def episode_reading(model, heads, episodes: list[dict[str, np.ndarray]],
             "Q_pi_mean": round(mean["q_pi"], 2), "return_mean": round(mean["ret"], 2),
             "dynamics_rel_err": round(mean["dyn"], 4),
             "pi_vs_episode_action": round(mean["act"], 3)}  # fmt: skip
+
+
+View = Callable[[int], contextlib.AbstractContextManager]
+"""Task index -> a continual method's view of that task (`Evaluator`'s `view`)."""
+
+
+def acting(model, heads, index: int, task: str, view: View | None = None) -> dict:
+    """Task `task` (index `index` of its run) played as evaluation plays it, on 10 layouts x 3
+    noise seeds, through MPPI and through the policy's mean action alone: the normalised
+    return per noise seed for each. `view`: as `Evaluator`'s."""
+    from ccfit.train.evaluate import Evaluator
+
+    evaluator = Evaluator(model, {index: task}, seed=0, obs_mode="state", image_size=64,
+                          episodes=10, view=view)  # fmt: skip
+    evaluator.heads[index] = heads
+    mppi = model.plan
+
+    def policy_mean(z, heads, prev_mean, *, eval_mode):
+        _, info = model.pi(z, heads)
+        return info["mean"], prev_mean
+
+    out = {}
+    try:
+        for mode, plan in (("mppi", mppi), ("policy_mean", policy_mean)):
+            model.plan = plan
+            records = [evaluator.evaluate([index], stage=99, global_step=noise, task_step=None)[0]
+                       for noise in (1, 2, 3)]  # fmt: skip
+            out[mode] = [round(r["normalized_return"], 1) for r in records]
+    finally:
+        model.plan = mppi
+    return out

@@ -16,6 +16,7 @@ One JSON line per run.
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 from pathlib import Path
@@ -24,10 +25,9 @@ import torch
 
 from ccdata.errors import OneLineParser, run_script
 from ccdata.settings import default_repo_id
-from ccfit.analysis.reading import episode_reading
+from ccfit.analysis.reading import acting, episode_reading
 from ccfit.curriculum import load_run
 from ccfit.data import load_episodes
-from ccfit.train.evaluate import Evaluator
 
 DATASET = default_repo_id("Grasp")  # LeRobot's cache, where `ccdata generate` writes, or the Hub
 EPISODES = 20
@@ -39,27 +39,6 @@ def reading(model, method, heads, index: int, task: str, policy: str) -> dict:
                            lambda: method.evaluating(index, model.backbone))  # fmt: skip
 
 
-def acting(model, method, heads, index: int, task: str) -> dict:
-    view = lambda i: method.evaluating(i, model.backbone)  # noqa: E731
-    evaluator = Evaluator(model, {index: task}, seed=0, obs_mode="state", image_size=64,
-                          episodes=10, view=view)  # fmt: skip
-    evaluator.heads[index] = heads
-    mppi = model.plan
-
-    def policy_mean(z, heads, prev_mean, *, eval_mode):
-        _, info = model.pi(z, heads)
-        return info["mean"], prev_mean
-
-    out = {}
-    for mode, plan in (("mppi", mppi), ("policy_mean", policy_mean)):
-        model.plan = plan
-        records = [evaluator.evaluate([index], stage=99, global_step=noise, task_step=None)[0]
-                   for noise in (1, 2, 3)]  # fmt: skip
-        out[mode] = [round(r["normalized_return"], 1) for r in records]
-    model.plan = mppi
-    return out
-
-
 def main(argv: list[str] | None = None) -> None:
     parser = OneLineParser(prog="grasp_er_pick.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("runs", type=Path, nargs="+", help="finished Grasp curricula")
@@ -69,13 +48,14 @@ def main(argv: list[str] | None = None) -> None:
         loaded = load_run(run, "cpu")
         cfg, model, method, stored = loaded.cfg, loaded.model, loaded.method, loaded.stored_heads
         model.eval()
+        method_view = functools.partial(method.evaluating, backbone=model.backbone)
         out: dict = {"run": run.name}
         for index, task in enumerate(cfg.tasks[:-1]):  # the earlier tasks
             heads = stored[index].eval()
             for policy in ("oracle", "random"):
                 out[f"{task}/reading/{policy}"] = reading(model, method, heads, index, task,
                                                           policy)  # fmt: skip
-            out[f"{task}/acting"] = acting(model, method, heads, index, task)
+            out[f"{task}/acting"] = acting(model, heads, index, task, method_view)
         print(json.dumps(out), flush=True)
 
 
