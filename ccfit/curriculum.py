@@ -45,7 +45,7 @@ from ccfit import metrics as M
 from ccfit.branch import RECORD as BRANCH_RECORD
 from ccfit.branch import STAGES, Branch, keep_stage, read_branch, start_branch
 from ccfit.config import CurriculumConfig
-from ccfit.config_base import identity, resolve_device, without_setting
+from ccfit.config_base import ENCODER_RECORD, identity, resolve_device, without_setting
 from ccfit.continual.base import ContinualMethod, make_method
 from ccfit.io import (
     atomic_torch_save,
@@ -65,6 +65,7 @@ from ccfit.train.resources import check_disk
 from ccfit.train.run import (
     CONFIG,
     build_model,
+    check_same_encoder,
     check_saved_config,
     encoder_record,
     make_evaluator,
@@ -130,15 +131,16 @@ def run_scratch(cfg: CurriculumConfig, out: Path, progress: bool = True) -> list
     with open(out.parent / f".{out.name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
+            # A finished reference made through another encoder file is refused.
+            if done.is_file():
+                check_same_encoder(out, cfg.encoder, encoder_record(cfg).get(ENCODER_RECORD))
+                return json.loads(done.read_text())
+            n = len(cfg.tasks)
             # Its config.json also records what the seed dataset and the encoder held (not
-            # part of the key); a finished reference made through another encoder is refused.
+            # part of the key).
             meta = resolved_config(cfg, cfg.suite)["resolved_seed_dataset_meta"]
             saved = {**scratch_config(cfg), **encoder_record(cfg),
                      "resolved_seed_dataset_meta": meta}  # fmt: skip
-            if done.is_file():
-                check_saved_config(out, saved)
-                return json.loads(done.read_text())
-            n = len(cfg.tasks)
             evals = train_task(cfg, out, task_id=cfg.tasks[-1], task_index=n - 1, saved=saved,
                                progress=progress)  # fmt: skip
             atomic_write_json(done, evals)

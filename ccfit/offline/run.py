@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 
 from ccfit import metrics as M
-from ccfit.config_base import identity, resolve_device, without_setting
+from ccfit.config_base import ENCODER_RECORD, identity, resolve_device, without_setting
 from ccfit.continual.base import ContinualMethod, make_method
 from ccfit.curriculum import METRICS_JSON, REFERENCE_DONE
 from ccfit.data import dataset_meta
@@ -47,7 +47,14 @@ from ccfit.offline.config import OfflineConfig
 from ccfit.offline.data import dataset_source, load_task, make_splits, write_split
 from ccfit.offline.fit import SCORE_KEY, TRACK, OfflineLogger, TaskFitter
 from ccfit.train.cost import RunCost
-from ccfit.train.run import CONFIG, check_saved_config, encoder_record, load_model, render_settings
+from ccfit.train.run import (
+    CONFIG,
+    check_same_encoder,
+    check_saved_config,
+    encoder_record,
+    load_model,
+    render_settings,
+)
 from ccfit.train.update import backbone_optimizer_state
 
 STATE = "fit.pt"
@@ -112,15 +119,16 @@ def run_scratch(cfg: OfflineConfig, out: Path, progress: bool = True) -> list[di
     with open(out.parent / f".{out.name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
+            # A finished reference made through another encoder file is refused.
+            if (out / REFERENCE_DONE).is_file():
+                check_same_encoder(out, cfg.encoder, encoder_record(cfg).get(ENCODER_RECORD))
+                return json.loads((out / REFERENCE_DONE).read_text())
             source = dataset_source(cfg)
             # Its config.json also records what the dataset and the encoder held (not part of
-            # the key); a finished reference made through another encoder is refused.
+            # the key).
             meta = dataset_meta(source, cfg.dataset_endpoint)
             saved = {**scratch_config(cfg, source), **encoder_record(cfg),
                      "resolved_dataset_meta": meta}  # fmt: skip
-            if (out / REFERENCE_DONE).is_file():
-                check_saved_config(out, saved)
-                return json.loads((out / REFERENCE_DONE).read_text())
             splits = _prepare(cfg, out, saved, source)
             n, tasks = len(cfg.tasks), cfg.tasks
             seed_everything(cfg.seed)

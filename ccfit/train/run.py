@@ -218,14 +218,21 @@ def check_saved_config(out: Path, resolved: dict, *, extends: type[WorldModel] |
             raise ConfigError(f"{out} holds a run with a different config (differs in "
                               f"{', '.join(differ) or 'empty option groups'}); use another "
                               "--out or delete it")  # fmt: skip
-        was, now = old.get(ENCODER_RECORD), new.get(ENCODER_RECORD)
-        if was is not None and now is not None and was != now:
-            raise ConfigError(f"{out} holds a run made through another encoder file: "
-                              f"{new['encoder']} has sha256 {now[:12]}..., the run's had "
-                              f"{was[:12]}...; use another --out or the run's encoder")  # fmt: skip
+        check_same_encoder(out, new.get("encoder"), new.get(ENCODER_RECORD))
         if old == new:
             return
     atomic_write_json(saved, new)
+
+
+def check_same_encoder(out: Path, encoder: str | None, sha256: str | None) -> None:
+    """Refuse the run in `out` if it recorded a frozen encoder file's hash (`ENCODER_RECORD`)
+    and `encoder` (`--encoder`, whose file has `sha256`) is another file at the same path."""
+    saved = out / CONFIG
+    was = json.loads(saved.read_text()).get(ENCODER_RECORD) if saved.exists() else None
+    if was is not None and sha256 is not None and was != sha256:
+        raise ConfigError(f"{out} holds a run made through another encoder file: {encoder} "
+                          f"has sha256 {sha256[:12]}..., the run's had {was[:12]}...; use "
+                          "another --out or the run's encoder")  # fmt: skip
 
 
 def default_out(cfg: TaskRunConfig) -> Path:
