@@ -68,7 +68,7 @@ run() {
     echo "== 1. tests marked gpu"
     # One worker per test: on an H200 machine 12 took 194 s so, the longest (the bench's
     # CUDA-graph compile of every model) 180 s; six workers did not finish in 220 s.
-    timeout 240 python3 -m pytest -v -m gpu -p no:cacheprovider -n 15 --durations=5 \
+    timeout 240 python3 -m pytest -v -m gpu -p no:cacheprovider -n 16 --durations=5 \
         tests/test_gpu.py 2>&1 | tee "$OUT/gpu_tests.log" | grep -E "PASSED|FAILED|ERROR|passed|failed|s call"
 
     echo "== 2. bench/update_rate.py at paper on the GPU"
