@@ -7,6 +7,7 @@ actions, compiled or eager, within floating-point tolerance (Inductor reassociat
 
 from __future__ import annotations
 
+import json
 import types
 import uuid
 
@@ -247,3 +248,34 @@ def test_cuda_graphs_are_refused_where_there_is_no_cuda(tmp_path, capsys):
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert "train.compile=graphs replays CUDA graphs" in err and "cpu" in err
     assert not out.exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, method", [("tdmpc2", "er"), ("pwm", "experts"),
+                                          ("dreamerv3", "er")])  # fmt: skip
+def test_graphs_path_runs_a_curriculum_compiled_plainly(name, method, tmp_path, monkeypatch):
+    # On a CPU, mode="reduce-overhead" compiles without CUDA graphs, so the loop's graphs path
+    # (outputs copied, a step marked per update, ER's stored-heads losses beside the update's
+    # own) runs through every hot path's real return types here. What only CUDA shows, a
+    # replay overwriting what the loop kept, is test_gpu's.
+    import ccfit.train.run
+    from ccfit.config import CurriculumConfig
+    from ccfit.config_parse import resolve
+    from ccfit.curriculum import Curriculum
+
+    try:
+        from short_episodes import shorter_episodes
+    except ImportError:  # tests/ imported as a package
+        from tests.short_episodes import shorter_episodes
+
+    monkeypatch.setattr(ccfit.train.run, "check_compile_device", lambda setting, device: None)
+    train = {"steps": 100, "seed_steps": 50, "eval_interval": 50, "checkpoint_interval": 50,
+             "device": "cpu", "compile": "graphs", "parallel": "off"}  # fmt: skip
+    cfg = resolve(CurriculumConfig, {"suite": "Reach", "preset": "smoke", "seed_dataset": None,
+                                     "model": {"type": name}, "method": {"type": method},
+                                     "train": train})  # fmt: skip
+    with shorter_episodes():
+        result = Curriculum(cfg, tmp_path / "run", tmp_path / "scratch", progress=False).run()
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert saved["resolved_compile"] == list(model_class(name).hot_paths)
+    assert np.isfinite(result["bwt"]) and np.isfinite(result["fwt"])

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import torch
 
+from ccfit.config_base import ConfigError
 from ccfit.models.base import WorldModel
 
 
@@ -34,6 +35,14 @@ def compiled_paths(model_class: type[WorldModel], setting: str, device: torch.de
     if setting in ("on", "graphs"):
         return list(model_class.hot_paths)
     return list(model_class.compile_pays.get(torch.device(device).type, ()))
+
+
+def check_compile_device(setting: str, device: torch.device) -> None:
+    """Refuse `--train.compile=graphs` where there is no CUDA device to replay graphs on."""
+    if setting == "graphs" and torch.device(device).type != "cuda":
+        raise ConfigError(f"train.compile=graphs replays CUDA graphs: it needs a CUDA "
+                          f"device, and this run's is {device}; use --train.compile=auto or "
+                          "on")  # fmt: skip
 
 
 def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None = None) -> list[str]:

@@ -24,7 +24,12 @@ from ccfit.models.base import WorldModel
 from ccfit.models.registry import make_model, model_class
 from ccfit.replay import ReplayBuffer
 from ccfit.seeding import DEMO_POLICY, demonstration_rows, seed_buffer
-from ccfit.train.compiled import compile_hot_paths, compiled_paths, resolve_autocast
+from ccfit.train.compiled import (
+    check_compile_device,
+    compile_hot_paths,
+    compiled_paths,
+    resolve_autocast,
+)
 from ccfit.train.cost import RunCost
 from ccfit.train.env_workers import resolve_env_workers
 from ccfit.train.eval_worker import AsyncEvaluator, WorkerSpec, has_view, parallel_on
@@ -47,10 +52,7 @@ def resolved_config(cfg: RunConfig, suite: str | None, *, record_dataset: bool =
     and the render settings. `record_dataset=False` leaves out what the dataset holds (None):
     it is no part of the identity, and reading it may download a Hub dataset."""
     device = resolve_device(cfg.train.device)
-    if cfg.train.compile == "graphs" and device.type != "cuda":
-        raise ConfigError(f"train.compile=graphs replays CUDA graphs: it needs a CUDA device, "
-                          f"and this run's is {device} (train.device={cfg.train.device}); "
-                          f"use --train.compile=auto or on")  # fmt: skip
+    check_compile_device(cfg.train.compile, device)
     source = dataset_source(cfg, suite)
     if cfg.train.demo_fraction > 0 and source is None:
         raise ConfigError(f"train.demo_fraction {cfg.train.demo_fraction} (given, or the "
