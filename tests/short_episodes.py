@@ -38,3 +38,21 @@ def smoke_train_argv(out, *extra: str, task: str = "reach-xy") -> list[str]:
     `extra` last."""
     return ["train", "--task", task, "--preset", "smoke", "--seed_dataset", "null",
             "--out", str(out), "--quiet", *extra]  # fmt: skip
+
+
+def smoke_curriculum(where, model: str, method: str, train: dict) -> tuple[dict, dict]:
+    """A Reach curriculum of `model` under `method` at the smoke preset, no seed dataset,
+    `train` its `--train.*` settings, on shorter episodes, in `where`/run (its reference in
+    `where`/scratch): its result and its config.json."""
+    import json
+
+    from ccfit.config import CurriculumConfig
+    from ccfit.config_parse import resolve
+    from ccfit.curriculum import Curriculum
+
+    cfg = resolve(CurriculumConfig, {"suite": "Reach", "preset": "smoke", "seed_dataset": None,
+                                     "model": {"type": model}, "method": {"type": method},
+                                     "train": train})  # fmt: skip
+    with shorter_episodes():
+        result = Curriculum(cfg, where / "run", where / "scratch", progress=False).run()
+    return result, json.loads((where / "run" / "config.json").read_text())

@@ -7,7 +7,6 @@ actions, compiled or eager, within floating-point tolerance (Inductor reassociat
 
 from __future__ import annotations
 
-import json
 import types
 import uuid
 
@@ -259,23 +258,15 @@ def test_graphs_path_runs_a_curriculum_compiled_plainly(name, method, tmp_path, 
     # own) runs through every hot path's real return types here. What only CUDA shows, a
     # replay overwriting what the loop kept, is test_gpu's.
     import ccfit.train.run
-    from ccfit.config import CurriculumConfig
-    from ccfit.config_parse import resolve
-    from ccfit.curriculum import Curriculum
 
     try:
-        from short_episodes import shorter_episodes
+        from short_episodes import smoke_curriculum
     except ImportError:  # tests/ imported as a package
-        from tests.short_episodes import shorter_episodes
+        from tests.short_episodes import smoke_curriculum
 
     monkeypatch.setattr(ccfit.train.run, "check_compile_device", lambda setting, device: None)
     train = {"steps": 100, "seed_steps": 50, "eval_interval": 50, "checkpoint_interval": 50,
              "device": "cpu", "compile": "graphs", "parallel": "off"}  # fmt: skip
-    cfg = resolve(CurriculumConfig, {"suite": "Reach", "preset": "smoke", "seed_dataset": None,
-                                     "model": {"type": name}, "method": {"type": method},
-                                     "train": train})  # fmt: skip
-    with shorter_episodes():
-        result = Curriculum(cfg, tmp_path / "run", tmp_path / "scratch", progress=False).run()
-    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    result, saved = smoke_curriculum(tmp_path, name, method, train)
     assert saved["resolved_compile"] == list(model_class(name).hot_paths)
     assert np.isfinite(result["bwt"]) and np.isfinite(result["fwt"])

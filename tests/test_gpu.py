@@ -14,18 +14,15 @@ import time
 
 import pytest
 
-from ccfit.config import CurriculumConfig
-from ccfit.config_parse import resolve
-from ccfit.curriculum import Curriculum
 from ccfit.models import model_names
 from ccfit.models.registry import model_class
 
 try:
-    from short_episodes import ccfit_command, shorter_episodes
+    from short_episodes import ccfit_command, smoke_curriculum
     from test_bench import update_rate
     from test_compile import test_compiled_hot_paths_compute_what_the_eager_ones_do as compiled
 except ImportError:  # tests/ imported as a package
-    from tests.short_episodes import ccfit_command, shorter_episodes
+    from tests.short_episodes import ccfit_command, smoke_curriculum
     from tests.test_bench import update_rate
     from tests.test_compile import (
         test_compiled_hot_paths_compute_what_the_eager_ones_do as compiled,
@@ -44,12 +41,7 @@ def test_smoke_curriculum_on_cuda(name, compile, autocast, tmp_path):
     # bf16: what the `paper` preset's autocast=auto resolves to on a GPU
     method = "experts" if "experts" in model_class(name).capabilities else "ewc"
     train = {**TRAIN, "compile": compile, "autocast": autocast}
-    cfg = resolve(CurriculumConfig, {"suite": "Reach", "preset": "smoke", "seed_dataset": None,
-                                     "model": {"type": name}, "method": {"type": method},
-                                     "train": train})  # fmt: skip
-    with shorter_episodes():
-        result = Curriculum(cfg, tmp_path / "run", tmp_path / "scratch", progress=False).run()
-    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    result, saved = smoke_curriculum(tmp_path, name, method, train)
     assert saved["resolved_device"].startswith("cuda")
     assert saved["resolved_autocast"] == autocast
     if compile == "graphs":
