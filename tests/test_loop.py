@@ -565,3 +565,29 @@ def test_a_replay_that_fits_nowhere_is_refused_before_the_run(tmp_path, capsys):
     most = int(str(err.value).split("at most ")[1].split()[0])
     assert disk_rows(most) * row <= free < disk_rows(most + 1) * row
     check_disk(ReplayPlan(row, most, 0, torch.device("cpu"), False), tmp_path / "y")
+
+
+def test_a_second_process_on_the_same_run_directory_stops_in_one_line(tmp_path, capsys):
+    # Two `ccfit train` processes given one --out would write checkpoints and records over
+    # each other; the second stops at once instead, and the first goes on.
+    import time
+
+    from ccfit.cli import main
+
+    out = tmp_path / "run"
+    argv = smoke_train_argv(out, "--train.steps=3000", "--train.device=cpu")
+    first = subprocess.Popen(ccfit_command(argv), stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 300
+        while not (out / "config.json").exists() and time.monotonic() < deadline:
+            assert first.poll() is None, first.stderr.read()
+            time.sleep(0.05)
+        capsys.readouterr()
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and "is being trained by another process" in err, err
+        assert first.poll() is None
+    finally:
+        first.kill()
+        first.communicate()

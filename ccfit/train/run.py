@@ -7,7 +7,10 @@ model, replay, env and evaluator the same way: `build_model`, `make_replay`,
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -241,6 +244,21 @@ def default_out(cfg: TaskRunConfig) -> Path:
     return Path("runs") / f"{cfg.task}-{cfg.model.type}-{cfg.obs}-{cfg.preset}-s{cfg.seed}"
 
 
+@contextlib.contextmanager
+def training_lock(out: Path) -> Iterator[None]:
+    """Hold the lock of run directory `out` (a hidden file beside it) while the block trains
+    there: a second process given the same directory stops at once, in one line, instead of
+    writing its checkpoints and records over the first's."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out.parent / f".{out.name}.training.lock", "w") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ConfigError(f"{out} is being trained by another process; wait for it to end "
+                              "or use another --out") from None  # fmt: skip
+        yield
+
+
 def train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, saved: dict,
                progress: bool = True, extendable: bool = False) -> list[dict]:  # fmt: skip
     """`task_id` learnt online from scratch into `out`, resuming from its checkpoint when it
@@ -248,10 +266,18 @@ def train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, save
     `task_index` in its curriculum (a curriculum's from-scratch reference of its composition
     task keeps that task's index: the same seeds, routing and evaluation layouts).
     `extendable`: a run there of fewer `train.steps` goes on to `cfg.train.steps` where the
-    model allows it (`check_saved_config`). Returns every evaluation record."""
+    model allows it (`check_saved_config`). One process at a time (`training_lock`). Returns
+    every evaluation record."""
+    out = Path(out)
+    with training_lock(out):
+        return _train_task(cfg, out, task_id=task_id, task_index=task_index, saved=saved,
+                           progress=progress, extendable=extendable)  # fmt: skip
+
+
+def _train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, saved: dict,
+                progress: bool, extendable: bool) -> list[dict]:  # fmt: skip
     from ccdata.env import make_env
 
-    out = Path(out)
     extends = model_class(cfg.model.type) if extendable else None
     if (out / CONFIG).exists():
         check_saved_config(out, saved, extends=extends)
