@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import statistics
@@ -225,10 +226,7 @@ def time_model(cfg, preset: str, frozen: bool, cached: bool, repeats: int, warmu
              "act": matmul_gflop(act)}  # fmt: skip
     compiled = compile_hot_paths(model, compile_setting, paths)
     step = UpdateStep(model, heads, autocast=precision, graphs=mode in GRAPH_MODES)
-
-    def update() -> None:
-        step(batch)
-
+    update = functools.partial(step, batch)
     result = {
         "mode": mode,
         "compiled": compiled,

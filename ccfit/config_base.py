@@ -158,7 +158,7 @@ DATASET_RECORDS = ("resolved_seed_dataset_meta", "resolved_dataset_meta")
 fitted one), recorded for the reader."""
 ENCODER_RECORD = "resolved_encoder_sha256"
 """config.json key of the SHA-256 of a run's frozen encoder file (`--encoder frozen:PATH`). A
-resume checks it (`check_saved_config`): another file at the same path is another run."""
+resume checks it (`check_same_encoder`): another file at the same path is another run."""
 NOT_IDENTITY = ("log", "train.parallel", "train.env_workers", "out", *DATASET_RECORDS,
                 ENCODER_RECORD)  # fmt: skip
 """config.json settings a run may change when it is resumed (where it logs, how it spreads
