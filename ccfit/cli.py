@@ -97,13 +97,16 @@ def cmd_run(argv: list[str]) -> None:
     """ccfit run --suite Reach --preset cpu --method.type=packnet  (see --help)"""
     from ccfit.analysis import stage_callbacks
     from ccfit.config import CurriculumConfig
-    from ccfit.config_parse import parse_cli
+    from ccfit.config_parse import budget_note, parse_cli
     from ccfit.curriculum import Curriculum
 
     extra, argv = _split_flags(argv, {"quiet": False, "scratch_root": True, "keep_stages": False,
                                       "branch_from": True, "branch_after": True})  # fmt: skip
     cfg = parse_cli(CurriculumConfig, argv, prog="ccfit run")
     out = run_dir(cfg)
+    note = budget_note(cfg.to_dict())
+    if note is not None:
+        print(f"ccfit run: note: {note}", file=sys.stderr)
     result = Curriculum(
         cfg,
         out,

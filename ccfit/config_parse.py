@@ -52,6 +52,30 @@ def preset_defaults(cls: type[BaseRunConfig], choices: dict[str, Any]) -> dict:
     return out
 
 
+def budget_note(config: dict) -> str | None:
+    """One line for a curriculum (`config`: its plain data, as config.json holds it) that trains
+    a suite its model has no measured budget for at a preset where it has measured others
+    (`ModelConfig.SUITE_TRAIN`), with the preset's steps per task: those steps were never shown
+    to suffice. None where the budget is measured, the steps were given, or the model measured
+    none at this preset."""
+    train, suite, preset = config.get("train"), config.get("suite"), config["preset"]
+    model = config["model"]["type"]
+    budgets = vars(config_class(model)).get("SUITE_TRAIN", {}).get(preset)
+    if train is None or suite is None or not budgets:
+        return None
+    if config["obs"] == "state" and suite in budgets:
+        return None
+    from ccfit.config import TrainConfig
+
+    steps = TrainConfig.PRESETS[preset]["steps"]
+    if train["steps"] != steps:  # given: the user chose them
+        return None
+    return (f"{model} has no measured {preset!r} budget for {suite} from {config['obs']} "
+            f"(measured from state: {', '.join(budgets)}); each task trains the preset's "
+            f"{steps} steps, which may not learn it (README, learnability table; "
+            "--train.steps sets them)")
+
+
 def resolve[C: BaseRunConfig](cls: type[C], overrides: dict[str, Any]) -> C:
     """`cls` from nested plain data (`{"suite": ..., "model": {"type": NAME, ...}}`): the
     preset's defaults (preset, model and method types, obs and image size taken from

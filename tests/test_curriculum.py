@@ -594,6 +594,42 @@ def test_a_models_suite_budget_sets_the_training_settings_unless_given(monkeypat
     assert pwm.train.steps == 6_000
 
 
+def test_a_suite_without_a_measured_budget_says_so_once_per_sweep_and_run(
+        monkeypatch, tmp_path, capsys):  # fmt: skip
+    """Where the model measured budgets at this preset but not for this suite (or from pixels),
+    `ccfit sweep` and `ccfit run` say how many steps each task trains and that they were not
+    shown to suffice; nothing where the budget is measured or the steps are given."""
+    from ccfit.cli import main
+    from ccfit.config_parse import budget_note
+    from ccfit.models.tdmpc2.config import TDMPC2Config
+
+    monkeypatch.setattr(TDMPC2Config, "SUITE_TRAIN", {"cpu": {"Grasp": {"steps": 9_000}}})
+
+    def note(*argv):
+        return budget_note(parse_cli(CurriculumConfig, ["--preset", "cpu", *argv]).to_dict())
+
+    assert note("--suite", "Grasp") is None
+    assert note("--suite", "Reach", "--train.steps=4000") is None
+    assert note("--suite", "Reach", "--preset", "smoke") is None  # no budgets at smoke
+    assert note("--suite", "Reach", "--model.type=dreamerv3") is None  # its own, none here
+    reach = note("--suite", "Reach")
+    assert "no measured 'cpu' budget for Reach from state" in reach and "6000 steps" in reach
+    assert "Grasp from pixels" in note("--suite", "Grasp", "--obs", "pixels")
+
+    out = tmp_path / "sweep"
+    code = main(["sweep", "--suites", "Reach,Grasp", "--methods", "ft,ewc", "--seeds", "0,1",
+                 "--preset", "cpu", "--out", str(out), "--dry-run"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0 and err.splitlines() == [f"ccfit sweep: note: {reach}"]
+    # `ccfit run` says it before anything is trained (here an empty dataset folder then stops
+    # it, exit 2)
+    (tmp_path / "empty").mkdir()
+    code = main(["run", "--suite", "Reach", "--preset", "cpu", "--seed_dataset",
+                 str(tmp_path / "empty"), "--out", str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err.splitlines()
+    assert code == 2 and err[0] == f"ccfit run: note: {reach}"
+
+
 def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
     from ccfit.cli import main
 
