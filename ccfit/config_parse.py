@@ -70,10 +70,12 @@ def budget_note(config: dict) -> str | None:
     steps = TrainConfig.PRESETS[preset]["steps"]
     if train["steps"] != steps:  # given: the user chose them
         return None
-    return (f"{model} has no measured {preset!r} budget for {suite} from {config['obs']} "
-            f"(measured from state: {', '.join(budgets)}); each task trains the preset's "
-            f"{steps} steps, which may not learn it (README, learnability table; "
-            "--train.steps sets them)")
+    return (
+        f"{model} has no measured {preset!r} budget for {suite} from {config['obs']} "
+        f"(measured from state: {', '.join(budgets)}); each task trains the preset's "
+        f"{steps} steps, which may not learn it (README, learnability table; "
+        "--train.steps sets them)"
+    )
 
 
 def resolve[C: BaseRunConfig](cls: type[C], overrides: dict[str, Any]) -> C:
