@@ -168,6 +168,43 @@ def test_stage_reached_follows_the_lid_and_stage_flags_where_the_scene_has_them(
         assert all(0 <= k <= n for k, n in zip(out[flag], out["steps"], strict=True))
 
 
+def test_handover_lets_the_oracle_play_until_the_raw_reward_reaches_the_threshold(made, capsys):
+    """The policy takes over where the oracle alone first reaches T on that layout (the same
+    layout seed, the same 20-step episodes); T = 0 is the run alone; a T the oracle never
+    reaches gives nulls. DreamerV3 (a recurrent acting state) takes over too."""
+    from ccdata.env import make_env
+    from ccdata.policies import make_policy
+    from ccfit.train.evaluate import eval_seeds
+
+    seed = eval_seeds(0, 0, 1)[0]
+    with shorter_episodes(EPISODE_STEPS):
+        env, oracle = make_env("pick-cube"), make_policy("oracle", "pick-cube")
+        obs, _ = env.reset(seed=seed)
+        raw = []
+        for _ in range(EPISODE_STEPS):
+            obs, *_, info = env.step(oracle.act(obs))
+            raw.append(float(info["raw_reward"]))
+    at = raw[5]  # reached by step 6 at the latest
+    first = next(i + 1 for i, r in enumerate(raw) if r >= at)
+    script = _script("handover")
+    lines = _run(script, [str(made.runs["tdmpc2"]), "--layouts", "2", "--at", f"0,{at},1000"],
+                 capsys).splitlines()  # fmt: skip
+    alone, handed, never = (json.loads(x) for x in lines)
+    assert [x["handover_at_raw"] for x in (alone, handed, never)] == [0.0, at, 1000.0]
+    assert alone["handover_step"] == [0, 0] and handed["handover_step"][0] == first
+    for x in (alone, handed):
+        assert all(isinstance(s, bool) for s in x["success"])
+        assert all(0.0 <= r <= 10.0 for r in x["best_raw"] + x["last_raw"])
+    assert set(never) - {"run", "task", "task_step", "handover_at_raw"} == {
+        "handover_step", "success", "best_raw", "last_raw"}
+    assert all(v == [None, None] for k, v in never.items() if k in ("success", "best_raw"))
+    out = json.loads(_run(script, [str(made.runs["dreamerv3"]), "--layouts", "1", "--at",
+                                   str(at)], capsys))  # fmt: skip
+    assert out["handover_step"] == [first]
+    with pytest.raises(InputError, match="--at takes comma-separated numbers"):
+        script.main([str(made.runs["tdmpc2"]), "--at", "a,b"])
+
+
 def test_grasp_er_branch(made, tmp_path, capsys):
     """An ER run that kept its stages, its branch without replay after task 2, and FT's."""
     source, branch = tmp_path / "er", tmp_path / "er-off"
@@ -191,7 +228,8 @@ def test_grasp_er_branch(made, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("name", ["grasp_er_pick", "packnet_prune", "dreamerv3_pick",
-                                  "stage_reached", "grasp_er_branch", "task_reading"])  # fmt: skip
+                                  "stage_reached", "grasp_er_branch", "task_reading",
+                                  "handover"])  # fmt: skip
 def test_a_diagnostic_refuses_a_missing_run_in_one_line(name, tmp_path, capsys):
     script = _script(name)
     capsys.readouterr()
