@@ -196,7 +196,11 @@ def test_handover_lets_the_oracle_play_until_the_raw_reward_reaches_the_threshol
         assert all(isinstance(s, bool) for s in x["success"])
         assert all(0.0 <= r <= 10.0 for r in x["best_raw"] + x["last_raw"])
     assert set(never) - {"run", "task", "task_step", "handover_at_raw"} == {
-        "handover_step", "success", "best_raw", "last_raw"}
+        "handover_step",
+        "success",
+        "best_raw",
+        "last_raw",
+    }
     assert all(v == [None, None] for k, v in never.items() if k in ("success", "best_raw"))
     out = json.loads(_run(script, [str(made.runs["dreamerv3"]), "--layouts", "1", "--at",
                                    str(at)], capsys))  # fmt: skip

@@ -73,10 +73,17 @@ def handover_episode(env, oracle, model, heads, obs_mode: str, seed: int, at: fl
 def main(argv: list[str] | None = None) -> None:
     parser = OneLineParser(prog="handover.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("run", type=Path, help="a finished `ccfit train` run directory")
-    parser.add_argument("--at", default="0,1,2,3,4,5,7",
-                        help="raw rewards at which the policy takes over (default 0,1,2,3,4,5,7)")
-    parser.add_argument("--layouts", type=int, default=10,
-                        help="how many of the run's evaluation layouts (default 10)")
+    parser.add_argument(
+        "--at",
+        default="0,1,2,3,4,5,7",
+        help="raw rewards at which the policy takes over (default 0,1,2,3,4,5,7)",
+    )
+    parser.add_argument(
+        "--layouts",
+        type=int,
+        default=10,
+        help="how many of the run's evaluation layouts (default 10)",
+    )
     args = parser.parse_args(argv)
     try:
         thresholds = [float(t) for t in args.at.split(",")]
