@@ -7,12 +7,14 @@ episodes, driven only through the interface the training loop uses.
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
 import pytest
 import torch
 from torch import nn
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from ccfit.config_base import PRESETS, ConfigError
 from ccfit.models import ModelConfig, WorldModel, make_model, model_names
@@ -246,6 +248,48 @@ def test_backbone_loss_trains_the_backbone_only(name, mode):
     assert all(p.grad is None or not p.grad.any() for p in heads.parameters())
     grads = [p.grad for p in model.backbone.parameters() if p.requires_grad]
     assert any(g is not None and g.abs().sum() > 0 for g in grads)
+
+
+class HostReads(TorchDispatchMode):
+    """On the meta device, which holds no data, what would read the device's data back to the
+    host (a wait for the device, on a GPU): a scalar read (`.item()`, `bool()`) fails there; a
+    copy to the CPU is recorded and answered with an uninitialised CPU tensor."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.copies: list[tuple[int, ...]] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        src = args[0] if args else None
+        if (func is torch.ops.aten._to_copy.default and src.is_meta
+                and torch.device(kwargs.get("device") or src.device).type == "cpu"):  # fmt: skip
+            self.copies.append(tuple(src.shape))
+            return torch.empty(src.shape, dtype=kwargs.get("dtype") or src.dtype)
+        return func(*args, **kwargs)
+
+
+@cases
+def test_an_update_reads_nothing_back_and_an_act_only_its_actions(name, mode, monkeypatch):
+    """An update as the loop makes it (`UpdateStep`) runs on the meta device, so nothing in it
+    reads the device's data back; an act reads back exactly its actions (n, A). On a GPU a
+    read waits for every queued kernel: one per update would starve the device."""
+    import ccfit.train.update as update_module
+
+    real_adam = torch.optim.Adam  # fused Adam has no meta kernel; the unfused rule is the same
+    monkeypatch.setattr(torch.optim, "Adam", lambda p, **kw: real_adam(p, **{**kw, "fused": False}))
+    monkeypatch.setattr(update_module, "autocast", lambda *a: contextlib.nullcontext())
+    model, heads = build(name, mode)
+    batch = batch_of(model)
+    model.to("meta"), heads.to("meta")
+    model.device = torch.device("meta")
+    meta = batch.to("meta")
+    obs = {k: v[0, :2] for k, v in meta.obs.items()}
+    with HostReads() as reads:
+        logs = UpdateStep(model, heads)(meta)
+        assert reads.copies == [] and all(v.is_meta for v in logs.values())
+        action, _ = model.act(obs, heads, model.initial_state(heads, 2), eval_mode=False)
+    assert reads.copies == [(2, model.cfg.action_dim)] and action.shape == (2, model.cfg.action_dim)
 
 
 @pytest.mark.parametrize("name", NAMES)

@@ -247,12 +247,13 @@ class WorldModel(nn.Module, ABC):
 
 
 def check_on_device(ok: torch.Tensor, message: str) -> None:
-    """ValueError(message) unless the boolean tensor `ok` is true. On a GPU the check is
-    queued on the device (`torch._assert_async`) instead of read back, so an update never
-    waits for the host; a failure then surfaces as a device-side assertion. Inside a compiled
-    function it is the same op (a RuntimeError with the message on a CPU), which the graph
-    holds: reading the value back would break the graph in two."""
-    if ok.is_cuda or torch.compiler.is_compiling():
+    """ValueError(message) unless the boolean tensor `ok` is true. Off the CPU (a GPU; the
+    meta device, on which the tests look for reads) the check is queued on the device
+    (`torch._assert_async`) instead of read back, so an update never waits for the host; a
+    failure then surfaces as a device-side assertion. Inside a compiled function it is the
+    same op (a RuntimeError with the message on a CPU), which the graph holds: reading the
+    value back would break the graph in two."""
+    if ok.device.type != "cpu" or torch.compiler.is_compiling():
         torch._assert_async(ok, message)
     elif not bool(ok):
         raise ValueError(message)
