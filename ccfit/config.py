@@ -299,6 +299,11 @@ class RunConfig(BaseRunConfig):
               f"train.demo_fraction {self.train.demo_fraction} (given, or the model's budget "
               f"for the suite) oversamples the seed dataset's demonstrations: it needs a seed "
               f"dataset (--seed_dataset), or --train.demo_fraction=0")  # fmt: skip
+        bc = getattr(self.model, "demo_bc_coef", 0.0)  # the models that clone demonstrations
+        check(bc == 0 or self.train.demo_fraction > 0,
+              f"model.demo_bc_coef {bc} clones the demonstrations that "
+              "--train.demo_fraction puts in each batch; it is 0 here: set it > 0, or "
+              "--model.demo_bc_coef=0")  # fmt: skip
 
 
 def _with_encoder(model: ModelConfig, path: str, image_size: int) -> ModelConfig:

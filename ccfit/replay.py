@@ -355,12 +355,14 @@ class ReplayBuffer:
                              f"start a window of {seq_len} on")  # fmt: skip
         picks = torch.randint(0, pool, (demos,), generator=self.generator)
         window = torch.arange(seq_len).unsqueeze(1)
-        return self._window(
+        batch = self._window(
             [
                 (self._demo_columns(), picks.unsqueeze(0) + window),
                 (self._columns(), self._rows(starts[demos:].unsqueeze(0) + window)),
             ]
         )
+        batch.demos = demos
+        return batch
 
     def num_demo_starts(self, seq_len: int) -> int:
         """How many windows of `seq_len` rows the kept demonstrations hold (one after another,

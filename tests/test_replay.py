@@ -177,6 +177,7 @@ def test_demonstrations_are_oversampled_by_demo_fraction(tmp_path):
     firsts = [[], []]
     for _ in range(300):
         batch = buf.sample(8, 3, demo_fraction=0.5)  # round(0.5 * 8) = 4 demo windows, first
+        assert batch.demos == 4 and batch.to("cpu").demos == 4
         check_windows(columns(batch, slice(4, None)), src, buf.oldest)
         ids = batch.obs["id"][..., 2].long()
         for j in range(4):  # consecutive demonstration rows, is_first where one starts
@@ -194,6 +195,7 @@ def test_demonstrations_are_oversampled_by_demo_fraction(tmp_path):
     marked, _ = build()
     for _ in range(3):
         assert torch.equal(plain.sample(8, 3).obs["id"], marked.sample(8, 3).obs["id"])
+    assert marked.sample(8, 3).demos == 0
 
     torch.save(buf.state_dict(), tmp_path / "replay.pt")
     other = ReplayBuffer(26)

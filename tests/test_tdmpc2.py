@@ -376,6 +376,78 @@ def test_optimisers_and_head_update(mode):
         torch.testing.assert_close(t, q + 0.1 * model.cfg.tau)
 
 
+def test_demo_bc_clones_the_demonstrations_of_the_batch_and_nothing_else():
+    """`demo_bc_coef`: the policy loss gains coef x the squared distance of the policy's mean
+    to the actions of the batch's demonstration windows (its first `demos`), at rows with a
+    real transition only, weighted per step as the Q term; the other windows and rows are
+    not cloned. Updates with it alone pull the policy's mean to the demonstrated actions."""
+    import dataclasses
+
+    model, heads = build("state", demo_bc_coef=2.0)
+    batch = dataclasses.replace(_boundary_batch(model), demos=2)
+    out = model.loss(batch, heads)
+    zs, mask = out.aux["zs"], out.aux["mask"]
+    assert mask[1:, :2].sum() < mask[1:, :2].numel()  # a boundary inside a demo window
+
+    def loss(demo_actions):
+        torch.manual_seed(7)  # the same policy noise in both
+        return model.pi_loss(zs, mask, heads, demo_actions)
+
+    plain, _ = loss(None)
+    cloned, logs = loss(batch.action[:-1, :2])
+    with torch.no_grad():
+        _, info = model.pi(zs, heads)
+    err = (info["mean"][:-1, :2] - batch.action[:-1, :2]).pow(2).sum(-1, keepdim=True)
+    rho = model.cfg.rho ** torch.arange(zs.shape[0] - 1, dtype=zs.dtype)
+    by_hand = ((err * mask[1:, :2]).sum(dim=(1, 2)) / 2 * rho).sum() / zs.shape[0]
+    torch.testing.assert_close(cloned - plain, 2.0 * by_hand)
+    torch.testing.assert_close(logs["pi_demo_bc"], (err * mask[1:, :2]).sum((1, 2)).mean() / 2)
+    # head_update passes the demonstrations' actions only where the batch has some
+    seen = []
+
+    def recording(zs, mask, h, demo_actions=None):
+        seen.append(demo_actions)
+        return torch.zeros((), requires_grad=True), {}
+
+    model.pi_loss = recording
+    head_opts = model.head_optimizers(heads)
+    for demos in (2, 0):
+        model.head_update(dataclasses.replace(batch, demos=demos), heads, out, head_opts)
+    assert torch.equal(seen[0], batch.action[:-1, :2]) and seen[1] is None
+    del model.pi_loss
+
+    # cloning alone (Q's pull switched off) moves the mean to a demonstrated action
+    model, heads = build("state", demo_bc_coef=1.0, entropy_coef=0.0)
+    target = torch.tensor([0.6, -0.4, 0.2, 0.8])
+    batch = dataclasses.replace(make_batch(model.cfg), demos=B)
+    batch.action[:] = target
+    batch.is_first.zero_()
+    model.Q = lambda z, a, h, *args, **kw: torch.zeros(*a.shape[:-1], 1)
+    opt = model.head_optimizers(heads)
+    zs = model.loss(batch, heads).aux["zs"].detach()
+    for _ in range(300):
+        model.head_update(batch, heads, model.loss(batch, heads), opt)
+    with torch.no_grad():
+        _, info = model.pi(zs, heads)
+    assert (info["mean"][:-1] - target).abs().max() < 0.05
+
+
+def test_demo_bc_needs_demonstrations_in_the_batch_and_an_online_run():
+    from ccfit.config import TaskRunConfig
+    from ccfit.config_parse import parse_cli
+    from ccfit.offline.config import OfflineConfig
+
+    with pytest.raises(ConfigError, match="demo_bc_coef must be >= 0"):
+        make_cfg("state", demo_bc_coef=-1.0)
+    args = ["--task", "pick-cube", "--preset", "smoke", "--model.demo_bc_coef=0.5"]
+    with pytest.raises(ConfigError, match="--train.demo_fraction puts in each batch"):
+        parse_cli(TaskRunConfig, args)
+    assert parse_cli(TaskRunConfig, [*args, "--train.demo_fraction=0.25"]).model.demo_bc_coef == 0.5
+    with pytest.raises(ConfigError, match="the offline track fits every episode alike"):
+        parse_cli(OfflineConfig, ["--suite", "Grasp", "--model.type=tdmpc2",
+                                  "--model.demo_bc_coef=0.5"])  # fmt: skip
+
+
 def _boundary_batch(model) -> Batch:
     """Windows of 4 rows whose episode ends at row 1: transitions 1 and 2 are not real."""
     cfg = model.cfg

@@ -89,6 +89,10 @@ class Batch:
     terminated: torch.Tensor
     is_first: torch.Tensor
     task: torch.Tensor
+    demos: int = 0
+    """How many windows, the first ones, start on a stored demonstration
+    (`ReplayBuffer.sample(demo_fraction=)`), which a model may learn from apart (TD-MPC2's
+    `demo_bc_coef`)."""
 
     def to(self, device: torch.device | str) -> Batch:
         """This batch on `device` (no copy if it is there; from page-locked memory the copy
@@ -99,7 +103,8 @@ class Batch:
 
         return Batch(obs={k: move(v) for k, v in self.obs.items()}, action=move(self.action),
                      reward=move(self.reward), terminated=move(self.terminated),
-                     is_first=move(self.is_first), task=move(self.task))  # fmt: skip
+                     is_first=move(self.is_first), task=move(self.task),
+                     demos=self.demos)  # fmt: skip
 
     @property
     def seq_len(self) -> int:
@@ -119,7 +124,8 @@ class Batch:
         return self.valid().cumprod(0)
 
     def select(self, rows: torch.Tensor) -> Batch:
-        """The windows at batch indices `rows` (any order, repeats allowed)."""
+        """The windows at batch indices `rows` (any order, repeats allowed; none counted as
+        demonstrations)."""
         return Batch(
             obs={k: v[:, rows] for k, v in self.obs.items()},
             action=self.action[:, rows],

@@ -130,6 +130,9 @@ class OfflineConfig(BaseRunConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         suite_tasks(self.suite)
+        check(getattr(self.model, "demo_bc_coef", 0.0) == 0,
+              "model.demo_bc_coef clones the demonstrations an online run oversamples "
+              "(--train.demo_fraction); the offline track fits every episode alike")  # fmt: skip
         check_prediction(self.model, self.encoder is not None)
         check_pairing(self.model, self.method, len(self.tasks))
 

@@ -112,6 +112,13 @@ class TDMPC2Config(ModelConfig):
     """Upper bound of the policy's log standard deviation."""
     entropy_coef: float = 1e-4
     """Weight of the (action-dim scaled) entropy bonus in the policy loss."""
+    demo_bc_coef: float = 0.0
+    """Weight of a behaviour-cloning term in the policy loss: the squared distance of the
+    policy's mean action to the demonstrated action, on the batch's demonstration windows
+    (`--train.demo_fraction`), at every row with a real transition, averaged over those
+    windows and weighted per step as the Q term is. Leans on the oracle's demonstrations
+    where the policy does not find a phase of a task by itself (MoDem's observation); 0 (every
+    preset): the official objective."""
 
     horizon: int = 3
     """MPPI planning horizon (actions per plan). The training rollout is seq_len - 1 steps."""
@@ -185,6 +192,7 @@ class TDMPC2Config(ModelConfig):
             (self.num_elites <= self.num_samples, "num_elites must be <= num_samples"),
             (0.0 < self.min_std <= self.max_std, "need 0 < min_std <= max_std"),
             (self.temperature > 0, "temperature must be > 0"),
+            (self.demo_bc_coef >= 0, "demo_bc_coef must be >= 0"),
         ]  # fmt: skip
         for ok, msg in checks:
             check(ok, f"{name}: {msg}")

@@ -337,7 +337,10 @@ class TDMPC2(WorldModel, Prediction):
         """Policy step on the detached rollout latents of `out`, then the Polyak step of the
         target Qs."""
         h = _heads(heads)
-        pi_loss, logs = self.pi_loss(out.aux["zs"].detach(), out.aux["mask"], h)
+        demo_actions = None
+        if self.cfg.demo_bc_coef > 0 and batch.demos > 0:
+            demo_actions = batch.action[:-1, : batch.demos]
+        pi_loss, logs = self.pi_loss(out.aux["zs"].detach(), out.aux["mask"], h, demo_actions)
         optim = optimizers["pi"]
         optim.zero_grad(set_to_none=True)
         pi_loss.backward()
@@ -348,12 +351,15 @@ class TDMPC2(WorldModel, Prediction):
         return {"pi_loss": pi_loss.detach(), "pi_grad_norm": grad_norm.detach(), **logs}
 
     def pi_loss(
-        self, zs: torch.Tensor, mask: torch.Tensor, h: TDMPC2Heads
-    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        self, zs: torch.Tensor, mask: torch.Tensor, h: TDMPC2Heads,
+        demo_actions: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:  # fmt: skip
         """The policy's objective on latents zs (T+1, B, L): entropy-regularised Q of its own
         actions, scaled by the running 5-95% range of Q (moved here, by tau), weighted rho^t
-        and masked past an episode's end. Pure tensor code (no optimiser), so it compiles
-        into one graph that fits every task's heads."""
+        and masked past an episode's end; with `demo_actions` (T, k, A), the actions of the
+        first k windows (demonstrations), plus `demo_bc_coef` x the squared distance of the
+        policy's mean to them. Pure tensor code (no optimiser), so it compiles into one graph
+        that fits every task's heads."""
         cfg = self.cfg
         action, info = self.pi(zs, h)
         q = self.Q(zs, action, h, "avg", detach=True)
@@ -365,6 +371,13 @@ class TDMPC2(WorldModel, Prediction):
         per_step = (-(cfg.entropy_coef * info["scaled_entropy"] + q) * mask).mean(dim=(1, 2))
         logs = {"pi_entropy": info["entropy"].mean().detach(),
                 "q_scale": h.q_scale.detach().clone().reshape(())}  # fmt: skip
+        if demo_actions is not None:
+            k = demo_actions.shape[1]
+            # Row t's action is real where transition t is (the latent mask of row t + 1).
+            err = (info["mean"][:-1, :k] - demo_actions).pow(2).sum(-1, keepdim=True)
+            bc = (err * mask[1:, :k]).sum(dim=(1, 2)) / k  # (T,)
+            per_step = per_step + cfg.demo_bc_coef * F.pad(bc, (0, 1))
+            logs["pi_demo_bc"] = bc.mean().detach()
         return (per_step * rho).mean(), logs
 
     # ---------------------------------------------------------------- prediction
