@@ -497,6 +497,54 @@ def test_methods_on_tdmpc2_backbone(name):
         assert len(method_.owner) == len(linears) > 0
 
 
+@pytest.mark.parametrize("name,options", [*((n, {}) for n in method_names()),
+                                          ("er", {"through_heads": True})])  # fmt: skip
+def test_an_update_under_a_method_reads_nothing_back_from_the_device(name, options, monkeypatch):
+    """The second task's update under each method (its penalty, through the first task's
+    stored heads where it uses them, and its `after_step`) runs on the meta device, so it
+    reads nothing back to the host: on a GPU every read waits for the queued kernels."""
+    import contextlib
+
+    import ccfit.train.update as update_module
+    from ccfit.continual.base import method_config_class
+    from ccfit.models import make_model
+    from ccfit.models.registry import config_class
+    from ccfit.train.update import UpdateStep
+
+    try:
+        from replay_data import random_buffer
+        from test_models_contract import HostReads
+    except ImportError:  # tests/ imported as a package
+        from tests.replay_data import random_buffer
+        from tests.test_models_contract import HostReads
+
+    real_adam = torch.optim.Adam  # fused Adam has no meta kernel; the unfused rule is the same
+    monkeypatch.setattr(torch.optim, "Adam", lambda p, **kw: real_adam(p, **{**kw, "fused": False}))
+    monkeypatch.setattr(update_module, "autocast", lambda *a: contextlib.nullcontext())
+    torch.manual_seed(0)
+    model_name = "pwm" if "experts" in method_config_class(name).REQUIRES else "tdmpc2"
+    model = make_model(config_class(model_name).preset("smoke", obs_mode="state"), "cpu")
+    cfg = model.cfg
+    if name == "packnet":
+        options = {"retrain_steps": 0}  # task 1 starts at once
+    method_ = make_method(method_config_class(name)(**options), num_tasks=2)
+    buffers = [random_buffer(cfg, seed=t, task=t, steps=(5, 30)) for t in range(2)]
+    model.begin_task(0, 1000)
+    method_.before_task(0, model.backbone)
+    stored = {0: model.new_heads()}
+    method_.after_task(0, model.backbone, _task_data(model, buffers[0], 0))
+    model.begin_task(1, 1000)
+    heads = model.new_heads()  # (PWM reads its current task here: once a task, not an update)
+    model.to("meta"), heads.to("meta"), stored[0].to("meta")
+    model.device = torch.device("meta")
+    method_.before_task(1, model.backbone)  # which moves the method's state to the backbone's
+    step = UpdateStep(model, heads, method_, lambda batch, j: model.loss(batch, stored[j]).total)
+    batch = buffers[1].sample(cfg.batch_size, cfg.seq_len).to("meta")
+    with HostReads() as reads:
+        logs = step(batch)
+    assert reads.copies == [] and logs["total"].is_meta
+
+
 @pytest.mark.parametrize("name", ["ewc", "packnet"])
 def test_method_state_saved_on_the_cpu_works_on_the_backbones_device(name):
     """A resumed run loads method state on the CPU (`map_location='cpu'`) while the backbone

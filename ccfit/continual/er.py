@@ -139,17 +139,18 @@ class ExperienceReplay(ContinualMethod):
         zero = zero_like_backbone(backbone)
         if self.memory.num_episodes == 0 or self.weight == 0.0:
             return zero
-        batch = self.replay_batch(zero.device)
         if not self.cfg.through_heads or backbone_loss.stored_heads is None:
-            return self.weight * backbone_loss(batch)
+            return self.weight * backbone_loss(self.replay_batch(zero.device))
         # Each window goes through the stored heads of the task it was kept from: the whole
         # model loss, backbone terms included, with those frozen heads' reward, termination
-        # and value predictions held to the kept transitions.
+        # and value predictions held to the kept transitions. Grouped on the host, where the
+        # memory is: grouping on the device would read its task ids back every update.
+        batch = self.replay_batch()
         first = batch.task[0]
         total = zero
         for task in first.unique().tolist():
             rows = (first == task).nonzero().squeeze(1)
-            part = backbone_loss.stored_heads(batch.select(rows), int(task))
+            part = backbone_loss.stored_heads(batch.select(rows).to(zero.device), int(task))
             total = total + part * (len(rows) / batch.size)
         return self.weight * total
 

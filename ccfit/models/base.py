@@ -95,10 +95,14 @@ class Batch:
     `demo_bc_coef`)."""
 
     def to(self, device: torch.device | str) -> Batch:
-        """This batch on `device` (no copy if it is there; from page-locked memory the copy
-        does not block the host)."""
+        """This batch on `device` (no copy if it is there). From the host to a GPU the copy
+        goes through page-locked memory (made here where the tensor is not in it already, as
+        replay's batches are), so that it does not make the host wait for the device."""
+        to_gpu = torch.device(device).type == "cuda"
 
         def move(x: torch.Tensor) -> torch.Tensor:
+            if to_gpu and x.device.type == "cpu" and not x.is_pinned():
+                x = x.pin_memory()
             return x.to(device, non_blocking=True)
 
         return Batch(obs={k: move(v) for k, v in self.obs.items()}, action=move(self.action),

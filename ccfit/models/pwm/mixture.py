@@ -71,8 +71,8 @@ class MixtureDynamics(nn.Module, ExpertGroups):
         # and loops depend on them, and reading a buffer would sync with the GPU every forward.
         self._groups, self._frozen = 1, 0
         self.apply_trainability()
-        # Loading a checkpoint restores the group counters; the flags follow them.
-        self.register_load_state_dict_post_hook(lambda module, _: module.apply_trainability())
+        # Loading a checkpoint restores the group counters; the copies and flags follow them.
+        self.register_load_state_dict_post_hook(lambda module, _: module._read_counters())
 
     # ------------------------------------------------------------------ groups
     @property
@@ -97,22 +97,28 @@ class MixtureDynamics(nn.Module, ExpertGroups):
 
     def apply_trainability(self) -> None:
         """requires_grad: True for active, unfrozen experts; False for frozen and inactive."""
-        self._groups, self._frozen = int(self.num_groups), int(self.num_frozen)
         for e, expert in enumerate(self.experts):
             g = self.group_of(e)
             expert.requires_grad_(self._frozen <= g < self._groups)
+
+    def _read_counters(self) -> None:
+        """The Python copies from the buffers (after a checkpoint load, the one read of them)."""
+        self._groups, self._frozen = int(self.num_groups), int(self.num_frozen)
+        self.apply_trainability()
 
     def add_group(self) -> None:
         """Activate the next K experts (fresh, trainable)."""
         if self._groups >= self.max_tasks:
             raise ValueError(f"PWM: all {self.max_tasks} expert groups are active; raise max_tasks")
-        self.num_groups += 1
+        self._groups += 1
+        self.num_groups.fill_(self._groups)
         self.apply_trainability()
 
     def freeze_groups(self, n: int) -> None:
         """Freeze the experts of groups 0..n-1 (they stay routable)."""
         if not 0 <= n <= self._groups:
             raise ValueError(f"PWM: cannot freeze {n} groups, {self._groups} active")
+        self._frozen = n
         self.num_frozen.fill_(n)
         self.apply_trainability()
 
