@@ -78,8 +78,8 @@ class ReplayBuffer:
         `add_episode` before they are stored, e.g. `WorldModel.replay_obs`, which swaps a
         frozen encoder's inputs for its latents.
     storage: where the rows live and batches are drawn (a GPU when replay fits in its memory:
-        batches then never cross the bus); pin: page-locked host memory, for batches copied to
-        a GPU without blocking.
+        batches then never cross the bus; from the host, `Batch.to` copies them through
+        page-locked memory).
 
     A bounded buffer allocates its whole capacity at its first episode (`torch.empty`: on the
     CPU the pages are only committed when rows are written), so it never grows by copying.
@@ -91,13 +91,12 @@ class ReplayBuffer:
         seed: int = 0,
         obs_transform: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]] | None = None,
         storage: torch.device | str = "cpu",
-        pin: bool = False,
     ) -> None:
         if capacity is not None and capacity < 2:
             raise ValueError(f"capacity must be >= 2 rows or None, got {capacity}")
         self.capacity = None if capacity is None else int(capacity)
         self.obs_transform = obs_transform
-        self.storage, self.pin = torch.device(storage), bool(pin)
+        self.storage = torch.device(storage)
         self.generator = torch.Generator().manual_seed(int(seed))
         self._obs: dict[str, torch.Tensor] = {}
         self._action = torch.empty(0, 0)
@@ -273,8 +272,7 @@ class ReplayBuffer:
         new = self.capacity if self.capacity is not None else max(rows, 2 * size, 1024)
 
         def grown(t: torch.Tensor) -> torch.Tensor:
-            out = torch.empty((new, *t.shape[1:]), dtype=t.dtype, device=self.storage,
-                              pin_memory=self.pin)  # fmt: skip
+            out = torch.empty((new, *t.shape[1:]), dtype=t.dtype, device=self.storage)
             out[:size] = t
             return out
 
@@ -410,8 +408,7 @@ class ReplayBuffer:
 
         def take(name: str) -> torch.Tensor:
             outs = [cols[name][rows.to(self.storage)] for cols, rows in parts]
-            out = outs[0] if len(outs) == 1 else torch.cat(outs, dim=1)
-            return out.pin_memory() if self.pin else out  # so `Batch.to(gpu)` won't block
+            return outs[0] if len(outs) == 1 else torch.cat(outs, dim=1)
 
         return Batch(
             obs={k: take(f"obs.{k}") for k in self._obs},

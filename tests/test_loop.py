@@ -559,12 +559,12 @@ def test_a_replay_that_fits_nowhere_is_refused_before_the_run(tmp_path, capsys):
     free = shutil.disk_usage(tmp_path).free
     row = 10**6
     capacity = free // row  # the ring alone fits; with the file it partly overwrote it does not
-    plan = ReplayPlan(row, capacity, 0, torch.device("cpu"), False)
+    plan = ReplayPlan(row, capacity, 0, torch.device("cpu"))
     with pytest.raises(ConfigError, match="lower --train.buffer_capacity to at most") as err:
         check_disk(plan, tmp_path / "y")
     most = int(str(err.value).split("at most ")[1].split()[0])
     assert disk_rows(most) * row <= free < disk_rows(most + 1) * row
-    check_disk(ReplayPlan(row, most, 0, torch.device("cpu"), False), tmp_path / "y")
+    check_disk(ReplayPlan(row, most, 0, torch.device("cpu")), tmp_path / "y")
 
 
 def test_a_second_process_on_the_same_run_directory_stops_in_one_line(tmp_path, capsys):

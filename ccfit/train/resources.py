@@ -37,7 +37,6 @@ class ReplayPlan:
     demo_rows: int
     """Rows of demonstrations kept beside the ring (`--train.demo_fraction`)."""
     storage: torch.device
-    pin: bool
 
     @property
     def bytes(self) -> int:
@@ -75,7 +74,7 @@ def plan_replay(cfg: RunConfig, model: WorldModel, demo_rows: int = 0) -> Replay
     total = row * (cfg.train.buffer_capacity + demo_rows)
     device = model.device
     if device.type == "cuda" and total <= GPU_SHARE * torch.cuda.mem_get_info(device)[0]:
-        return ReplayPlan(row, cfg.train.buffer_capacity, demo_rows, device, False)
+        return ReplayPlan(row, cfg.train.buffer_capacity, demo_rows, device)
     free = available_host_memory()
     if total > HOST_SHARE * free:
         demos = f" and {demo_rows} rows of demonstrations" if demo_rows else ""
@@ -86,8 +85,7 @@ def plan_replay(cfg: RunConfig, model: WorldModel, demo_rows: int = 0) -> Replay
             f"replay needs {_gb(total)} ({cfg.train.buffer_capacity} rows{demos} of {row} B) "
             f"but {_gb(free)} of memory is available: {fix}"
         )
-    return ReplayPlan(row, cfg.train.buffer_capacity, demo_rows, torch.device("cpu"),
-                      device.type == "cuda")  # fmt: skip
+    return ReplayPlan(row, cfg.train.buffer_capacity, demo_rows, torch.device("cpu"))
 
 
 def check_disk(plan: ReplayPlan, out: Path) -> None:

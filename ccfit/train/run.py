@@ -140,8 +140,7 @@ def make_replay(cfg: RunConfig, model: WorldModel, task_id: str, task_index: int
     buffer = ReplayBuffer(cfg.train.buffer_capacity,
                           seed=derived_seed(cfg.seed, REPLAY_TAG, 0, task_index),
                           obs_transform=model.replay_obs,
-                          storage=plan.storage if plan else "cpu",
-                          pin=plan.pin if plan else False)  # fmt: skip
+                          storage=plan.storage if plan else "cpu")  # fmt: skip
     if source is not None:
         added = seed_buffer(buffer, source, task_id, cfg.obs, render_settings(cfg),
                             task_index=task_index, endpoint=cfg.dataset_endpoint,
