@@ -65,6 +65,14 @@ def test_first_steps_and_budgets_by_hand(tmp_path):
     _fake_run(tmp_path, "pnp-cube", "m", [0, 60], capacity=100_000, demo_fraction=0.25)
     row = read_run(sorted(tmp_path.glob("*cap100000"))[0])
     assert row["model"] == "m [demo_fraction=0.25, buffer_capacity=100000]"
+    # and runs cloning the demonstrations (a model setting)
+    run = Path(row["run"])
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["model"]["demo_bc_coef"] = 0.5
+    (run / "config.json").write_text(json.dumps(cfg))
+    assert read_run(run)["model"] == (
+        "m [demo_fraction=0.25, buffer_capacity=100000, demo_bc_coef=0.5]"
+    )
     # and runs from pixels, through a frozen encoder or not (the state budget is not theirs)
     for obs, encoder in (("pixels", "frozen:enc.safetensors"), ("pixels", None)):
         run = _fake_run(tmp_path / obs / str(encoder), "reach-xy", "m", [0, 60])

@@ -2,10 +2,10 @@
 
 `ccfit learnability RUNS --out DIR` reads single-task runs (`ccfit train`, one per task, model
 and seed, long budgets, and the from-scratch references of curricula and sweeps; runs that
-learn another way, `RECIPE` settings off their preset's values (demonstrations oversampled,
-another replay capacity), pixels or a frozen encoder, are rows of their own, their model named
-with the settings) and
-writes `learnability.md` / `.csv`: per suite, task, model and seed, the first evaluated step
+learn another way, `RECIPE` and `MODEL_RECIPE` settings off their preset's values
+(demonstrations oversampled or cloned, another replay capacity), pixels or a frozen encoder,
+are rows of their own, their model named with the settings) and writes
+`learnability.md` / `.csv`: per suite, task, model and seed, the first evaluated step
 whose normalised return reached 50 and 80, the best and last score, the mean of the last
 `PLATEAU` evaluations (one evaluation of a few episodes swings with the policy's acting noise:
 TD-MPC2's grasping by tens of points), the budget and what the run cost (`cost.json`), plus
@@ -36,6 +36,9 @@ THRESHOLDS = (50, 80)
 RECIPE = ("demo_fraction", "buffer_capacity")
 """`--train.*` settings that change how a task is learnt: a run with one of them off its
 preset's value is a row (and budget) of its own."""
+MODEL_RECIPE = ("demo_bc_coef",)
+"""`--model.*` settings likewise, where the run's model has them; off is their value in every
+preset (`LEGACY_VALUES`)."""
 PLATEAU = 5
 """Evaluations at the end of a run averaged into `last_5` (what the run ends at)."""
 
@@ -94,6 +97,11 @@ def read_run(run: Path) -> dict | None:
         f"{k}={cfg['train'][k]}"
         for k in RECIPE
         if cfg["train"].get(k, _preset_value(cfg, k)) != _preset_value(cfg, k)
+    ]
+    recipe += [
+        f"{k}={cfg['model'][k]}"
+        for k in MODEL_RECIPE
+        if cfg["model"].get(k, LEGACY_VALUES[f"model.{k}"]) != LEGACY_VALUES[f"model.{k}"]
     ]
     if cfg.get("encoder"):  # through a frozen pretrained encoder: another problem to learn
         recipe.insert(0, "frozen encoder")
