@@ -195,7 +195,7 @@ def test_handover_lets_the_oracle_play_until_the_raw_reward_reaches_the_threshol
     for x in (alone, handed):
         assert all(isinstance(s, bool) for s in x["success"])
         assert all(0.0 <= r <= 10.0 for r in x["best_raw"] + x["last_raw"])
-    assert set(never) - {"run", "task", "task_step", "handover_at_raw"} == {
+    assert set(never) - {"run", "task", "task_step", "handover_at_raw", "acting"} == {
         "handover_step",
         "success",
         "best_raw",
@@ -207,6 +207,24 @@ def test_handover_lets_the_oracle_play_until_the_raw_reward_reaches_the_threshol
     assert out["handover_step"] == [first]
     with pytest.raises(InputError, match="--at takes comma-separated numbers"):
         script.main([str(made.runs["tdmpc2"]), "--at", "a,b"])
+
+
+def test_handover_can_act_by_the_policy_alone(made, capsys, monkeypatch):
+    """`--acting policy`: the run's policy's mean acts, the planner is never called."""
+    import ccfit.models.tdmpc2.model as tdmpc2_model
+
+    def no_planning(*args, **kwargs):
+        raise AssertionError("planned")
+
+    monkeypatch.setattr(tdmpc2_model, "mppi_plan", no_planning)
+    script = _script("handover")
+    argv = [str(made.runs["tdmpc2"]), "--layouts", "1", "--at", "0"]
+    out = json.loads(_run(script, [*argv, "--acting", "policy"], capsys))
+    assert out["acting"] == "policy" and out["handover_step"] == [0]
+    with pytest.raises(AssertionError, match="planned"):
+        _run(script, argv, capsys)
+    with pytest.raises(InputError, match="has no policy to act alone"):
+        script.main([str(made.runs["dreamerv3"]), "--acting", "policy"])
 
 
 def test_grasp_er_branch(made, tmp_path, capsys):

@@ -11,7 +11,7 @@ normalised return through MPPI and through the policy's mean alone."""
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import torch
@@ -73,19 +73,30 @@ def acting(model, heads, index: int, task: str, view: View | None = None) -> dic
     evaluator = Evaluator(model, {index: task}, seed=0, obs_mode="state", image_size=64,
                           episodes=10, view=view)  # fmt: skip
     evaluator.heads[index] = heads
+    out = {}
+    for mode, acts_alone in (("mppi", False), ("policy_mean", True)):
+        with policy_alone(model, acts_alone):
+            records = [evaluator.evaluate([index], stage=99, global_step=noise, task_step=None)[0]
+                       for noise in (1, 2, 3)]  # fmt: skip
+        out[mode] = [round(r["normalized_return"], 1) for r in records]
+    return out
+
+
+@contextlib.contextmanager
+def policy_alone(model, on: bool = True) -> Iterator[None]:
+    """Inside: a TD-MPC2-style `model` acts by its policy's mean action alone instead of
+    planning (its `plan` replaced; `on=False`: unchanged)."""
+    if not on:
+        yield
+        return
     mppi = model.plan
 
     def policy_mean(z, heads, prev_mean, *, eval_mode):
         _, info = model.pi(z, heads)
         return info["mean"], prev_mean
 
-    out = {}
+    model.plan = policy_mean
     try:
-        for mode, plan in (("mppi", mppi), ("policy_mean", policy_mean)):
-            model.plan = plan
-            records = [evaluator.evaluate([index], stage=99, global_step=noise, task_step=None)[0]
-                       for noise in (1, 2, 3)]  # fmt: skip
-            out[mode] = [round(r["normalized_return"], 1) for r in records]
+        yield
     finally:
         model.plan = mppi
-    return out

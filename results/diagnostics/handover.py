@@ -13,6 +13,7 @@ scripted oracle plays until the scene's raw reward (in [0, 10]; a composition's 
 pays 5-10) first reaches T, and the run's policy plays the rest of the episode, acting as
 evaluation does (its last weights, MPPI or the actor in eval mode, the run's observations,
 warm start from nothing at the handover). T = 0 hands over at the first step: the run alone.
+`--acting policy`: the run acts by its policy's mean alone instead (TD-MPC2-style models).
 Per T and layout: the step of the handover (null where the oracle never reached T), success,
 the best raw reward after the handover and the last. One JSON line per T.
 """
@@ -29,6 +30,7 @@ import torch
 from ccdata.env import make_env
 from ccdata.errors import InputError, OneLineParser, run_script
 from ccdata.policies import make_policy
+from ccfit.analysis.reading import policy_alone
 from ccfit.io import seeded
 from ccfit.obs import model_input, obs_to_arrays
 from ccfit.train import load_task_run
@@ -84,6 +86,13 @@ def main(argv: list[str] | None = None) -> None:
         default=10,
         help="how many of the run's evaluation layouts (default 10)",
     )
+    parser.add_argument(
+        "--acting",
+        choices=("plan", "policy"),
+        default="plan",
+        help="how the run acts: as evaluation does (default), or by its policy's mean alone "
+        "(TD-MPC2-style models)",
+    )
     args = parser.parse_args(argv)
     try:
         thresholds = [float(t) for t in args.at.split(",")]
@@ -97,12 +106,16 @@ def main(argv: list[str] | None = None) -> None:
     env = make_env(cfg.task, render=cfg.obs == "pixels", image_size=cfg.image_size)
     oracle = make_policy("oracle", cfg.task)
     seeds = eval_seeds(cfg.seed, 0, args.layouts)
+    if args.acting == "policy" and not hasattr(model, "pi"):
+        raise InputError(f"{args.run}: a {cfg.model.type} run has no policy to act alone "
+                         "(--acting policy reads TD-MPC2-style models)")  # fmt: skip
     for at in thresholds:
-        with seeded(NOISE_SEED, model.device):
+        with seeded(NOISE_SEED, model.device), policy_alone(model, args.acting == "policy"):
             episodes = [handover_episode(env, oracle, model, loaded.heads, cfg.obs, s, at)
                         for s in seeds]  # fmt: skip
         print(json.dumps({"run": args.run.name, "task": cfg.task,
                           "task_step": loaded.checkpoint["task_step"], "handover_at_raw": at,
+                          "acting": args.acting,
                           **{k: [e[k] for e in episodes] for k in episodes[0]}}),
               flush=True)  # fmt: skip
 
