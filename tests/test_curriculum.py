@@ -33,6 +33,7 @@ from ccfit.config import CurriculumConfig
 from ccfit.config_parse import parse_cli, resolve
 from ccfit.curriculum import Curriculum
 from ccfit.io import derived_seed
+from ccfit.models import model_names
 from ccfit.train import CONFIG, METRICS, build_model, resolved_config
 from ccfit.train.update import backbone_optimizer_state
 
@@ -592,6 +593,21 @@ def test_a_models_suite_budget_sets_the_training_settings_unless_given(monkeypat
     # a subclass (PWM's config extends TD-MPC2's) measures its own budgets
     pwm = parse_cli(CurriculumConfig, ["--model.type=pwm", "--suite", "Grasp", "--preset", "cpu"])
     assert pwm.train.steps == 6_000
+
+
+@pytest.mark.parametrize("model", model_names())
+def test_every_measured_budget_names_a_suite_and_resolves(model):
+    """Each registered model's `SUITE_TRAIN` entry names a real suite and preset and gives a
+    valid state curriculum config holding those settings."""
+    from ccdata import SUITES
+    from ccfit.models.registry import config_class
+
+    for preset, suites in vars(config_class(model)).get("SUITE_TRAIN", {}).items():
+        for suite, budget in suites.items():
+            assert suite in SUITES, f"{model} budget for unknown suite {suite!r}"
+            cfg = parse_cli(CurriculumConfig, ["--suite", suite, "--preset", preset,
+                                                "--model.type", model])  # fmt: skip
+            assert {k: getattr(cfg.train, k) for k in budget} == budget
 
 
 def test_a_suite_without_a_measured_budget_says_so_once_per_sweep_and_run(
