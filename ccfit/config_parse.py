@@ -19,7 +19,7 @@ from typing import Any
 
 import draccus
 
-from ccfit.config import BaseRunConfig
+from ccfit.config import BaseRunConfig, TrainConfig
 from ccfit.config_base import DEFAULTS, PRESETS, ChoiceConfig, ConfigError, check
 from ccfit.continual.base import method_config_class
 from ccfit.models import DEFAULT_MODEL
@@ -65,8 +65,6 @@ def budget_note(config: dict) -> str | None:
         return None
     if config["obs"] == "state" and suite in budgets:
         return None
-    from ccfit.config import TrainConfig
-
     steps = TrainConfig.PRESETS[preset]["steps"]
     if train["steps"] != steps:  # given: the user chose them
         return None

@@ -535,7 +535,8 @@ def test_an_update_under_a_method_reads_nothing_back_from_the_device(name, optio
     method_.after_task(0, model.backbone, _task_data(model, buffers[0], 0))
     model.begin_task(1, 1000)
     heads = model.new_heads()  # (PWM reads its current task here: once a task, not an update)
-    model.to("meta"), heads.to("meta"), stored[0].to("meta")
+    for module in (model, heads, stored[0]):
+        module.to("meta")
     model.device = torch.device("meta")
     method_.before_task(1, model.backbone)  # which moves the method's state to the backbone's
     step = UpdateStep(model, heads, method_, lambda batch, j: model.loss(batch, stored[j]).total)

@@ -627,7 +627,7 @@ def test_a_suite_without_a_measured_budget_says_so_once_per_sweep_and_run(
     assert note("--suite", "Grasp") is None
     assert note("--suite", "Reach", "--train.steps=4000") is None
     assert note("--suite", "Reach", "--preset", "smoke") is None  # no budgets at smoke
-    assert note("--suite", "Reach", "--model.type=dreamerv3") is None  # its own, none here
+    assert note("--suite", "Reach", "--model.type=dreamerv3") is None  # its own Reach budget
     reach = note("--suite", "Reach")
     assert "no measured 'cpu' budget for Reach from state" in reach and "6000 steps" in reach
     assert "Grasp from pixels" in note("--suite", "Grasp", "--obs", "pixels")

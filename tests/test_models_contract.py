@@ -281,7 +281,8 @@ def test_an_update_reads_nothing_back_and_an_act_only_its_actions(name, mode, mo
     monkeypatch.setattr(update_module, "autocast", lambda *a: contextlib.nullcontext())
     model, heads = build(name, mode)
     batch = batch_of(model)
-    model.to("meta"), heads.to("meta")
+    model.to("meta")
+    heads.to("meta")
     model.device = torch.device("meta")
     meta = batch.to("meta")
     obs = {k: v[0, :2] for k, v in meta.obs.items()}

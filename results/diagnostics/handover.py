@@ -5,7 +5,8 @@
 handover.jsonl beside it: `--at 0,1,2,3,4,5,6,7,8` over the single-task runs (TD-MPC2, `cpu`,
 state, seed 0, Grasp's recipe) of stack-blocks (100 000 steps), stack-blocks with the
 demonstrations at 0.5 (60 000), pnp-red-block (ended at 41 000) and box-pnp-close (100 000),
-in that order (README.md here lists their commands).
+in that order, then the demonstration-cloning stack-blocks run, and `--acting policy` lines
+(README.md here lists each line's command).
 
 A policy that never completes a composition may fail at its first stage or at every stage. On
 each of the run's first LAYOUTS evaluation layouts (`--layouts`, default 10) the task's
