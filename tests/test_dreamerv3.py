@@ -566,6 +566,60 @@ def test_head_update_leaves_backbone_and_world_heads_bit_identical(actor_grad):
     assert float(heads.retnorm.high) != 0.0  # statistics moved
 
 
+def test_demo_cloning_reads_the_demonstration_windows_rows_with_a_real_transition_only():
+    """`demo_bc_coef`: the actor's loss gains coef x the mean squared distance of its mean at
+    row t's posterior to the demonstrated a_t, over the first `demos` windows' rows with a
+    real transition; the critic's update is untouched, and without demonstrations in the
+    batch the term is absent."""
+    import dataclasses
+
+    batch = dataclasses.replace(make_batch(), demos=2)  # window 1 ends an episode at row 5
+    model, heads = make(demo_bc_coef=2.0)
+    aux = model.loss(batch, heads).aux
+    with torch.no_grad():
+        feat = model.rssm.feat(aux.deter[:-1, :2], aux.stoch[:-1, :2])
+        err = (heads.actor(feat)[0] - batch.action[:-1, :2]).pow(2).sum(-1)
+    real = torch.ones(L - 1, 2)
+    real[5, 1] = 0.0  # row 5 of window 1 is the episode's last observation: no transition
+    by_hand = (err * real).sum() / real.sum()
+    torch.testing.assert_close(model._demo_cloning(batch, heads, aux), by_hand)
+
+    after = {}
+    for demos in (2, 0):
+        model, heads = make(demo_bc_coef=2.0)
+        opts = model.head_optimizers(heads)
+        out = model.loss(batch, heads)
+        torch.manual_seed(3)  # the same imagination noise
+        logs = model.head_update(dataclasses.replace(batch, demos=demos), heads, out, opts)
+        after[demos] = (logs, [p.clone() for p in heads.actor.parameters()],
+                        [p.clone() for p in heads.critic.parameters()])  # fmt: skip
+    torch.testing.assert_close(after[2][0]["actor_demo_bc"], by_hand)
+    assert "actor_demo_bc" not in after[0][0]
+    assert all(torch.equal(a, b) for a, b in zip(after[2][2], after[0][2], strict=True))
+    assert any(not torch.equal(a, b) for a, b in zip(after[2][1], after[0][1], strict=True))
+
+
+def test_demo_cloning_alone_moves_the_actors_mean_to_the_demonstrated_action():
+    """With no entropy bonus and zero-initialised reward and critic, imagination gives the
+    actor no gradient: cloning alone must bring its mean to a demonstrated action."""
+    import dataclasses
+
+    model, heads = make(demo_bc_coef=1.0, actor_entropy=0.0, actor_lr=1e-3)
+    target = torch.tensor([0.6, -0.4, 0.2, 0.8])
+    batch = dataclasses.replace(make_batch(), demos=B)
+    batch.action[:] = target
+    opts = model.head_optimizers(heads)
+    first = model.head_update(batch, heads, model.loss(batch, heads), opts)["actor_demo_bc"]
+    for _ in range(300):
+        last = model.head_update(batch, heads, model.loss(batch, heads), opts)["actor_demo_bc"]
+    assert last < first / 20
+    aux = model.loss(batch, heads).aux
+    with torch.no_grad():
+        mean, _ = heads.actor(model.rssm.feat(aux.deter[:-1], aux.stoch[:-1]))
+    real = batch.valid().squeeze(-1) > 0  # the rows cloned: each has a demonstrated action
+    assert (mean[real] - target).abs().mean() < 0.05  # the posteriors are sampled: not exact
+
+
 # ------------------------------------------------------------------------------ 2025 options
 
 

@@ -8,6 +8,7 @@ episodes, driven only through the interface the training loop uses.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 
 import numpy as np
@@ -30,6 +31,9 @@ except ImportError:  # tests/ imported as a package
 NAMES = model_names()
 MODES = ("state", "pixels")
 B = 8
+CLONING = [n for n in NAMES
+           if "demo_bc_coef" in {f.name for f in dataclasses.fields(config_class(n))}]  # fmt: skip
+"""The models that can clone the batch's demonstration windows (`demo_bc_coef`)."""
 
 
 def smoke_config(name: str, mode: str) -> ModelConfig:
@@ -42,9 +46,10 @@ def smoke_config(name: str, mode: str) -> ModelConfig:
         return cls.preset("smoke", obs_mode="pixels", image_size=64)
 
 
-def build(name: str, mode: str, seed: int = 0) -> tuple[WorldModel, nn.Module]:
+def build(name: str, mode: str, seed: int = 0, **fields) -> tuple[WorldModel, nn.Module]:
+    """A model at its smoke preset (with `fields` changed) and its first task's heads."""
     torch.manual_seed(seed)
-    model = make_model(smoke_config(name, mode), "cpu")
+    model = make_model(dataclasses.replace(smoke_config(name, mode), **fields), "cpu")
     model.begin_task(0, 1000)
     return model, model.new_heads()
 
@@ -273,14 +278,16 @@ class HostReads(TorchDispatchMode):
 def test_an_update_reads_nothing_back_and_an_act_only_its_actions(name, mode, monkeypatch):
     """An update as the loop makes it (`UpdateStep`) runs on the meta device, so nothing in it
     reads the device's data back; an act reads back exactly its actions (n, A). On a GPU a
-    read waits for every queued kernel: one per update would starve the device."""
+    read waits for every queued kernel: one per update would starve the device. A model that
+    can clone demonstrations does, on a batch with some."""
     import ccfit.train.update as update_module
 
     real_adam = torch.optim.Adam  # fused Adam has no meta kernel; the unfused rule is the same
     monkeypatch.setattr(torch.optim, "Adam", lambda p, **kw: real_adam(p, **{**kw, "fused": False}))
     monkeypatch.setattr(update_module, "autocast", lambda *a: contextlib.nullcontext())
-    model, heads = build(name, mode)
-    batch = batch_of(model)
+    clones = name in CLONING
+    model, heads = build(name, mode, **({"demo_bc_coef": 0.5} if clones else {}))
+    batch = dataclasses.replace(batch_of(model), demos=2 if clones else 0)
     model.to("meta")
     heads.to("meta")
     model.device = torch.device("meta")
@@ -291,6 +298,30 @@ def test_an_update_reads_nothing_back_and_an_act_only_its_actions(name, mode, mo
         assert reads.copies == [] and all(v.is_meta for v in logs.values())
         action, _ = model.act(obs, heads, model.initial_state(heads, 2), eval_mode=False)
     assert reads.copies == [(2, model.cfg.action_dim)] and action.shape == (2, model.cfg.action_dim)
+
+
+def test_the_models_that_clone_demonstrations():
+    assert set(CLONING) == {"tdmpc2", "pwm", "dreamerv3"}
+
+
+@pytest.mark.parametrize("name", CLONING)
+def test_demo_cloning_needs_demonstrations_in_the_batch_and_an_online_run(name):
+    """`--model.demo_bc_coef` clones what `--train.demo_fraction` puts in each batch: without
+    it, or offline, one clear refusal."""
+    from ccfit.config import TaskRunConfig
+    from ccfit.config_parse import parse_cli
+    from ccfit.offline.config import OfflineConfig
+
+    with pytest.raises(ConfigError, match="demo_bc_coef must be >= 0"):
+        dataclasses.replace(smoke_config(name, "state"), demo_bc_coef=-1.0)
+    args = ["--task", "pick-cube", "--preset", "smoke", f"--model.type={name}",
+            "--model.demo_bc_coef=0.5"]  # fmt: skip
+    with pytest.raises(ConfigError, match="--train.demo_fraction puts in each batch"):
+        parse_cli(TaskRunConfig, args)
+    assert parse_cli(TaskRunConfig, [*args, "--train.demo_fraction=0.25"]).model.demo_bc_coef == 0.5
+    with pytest.raises(ConfigError, match="the offline track fits every episode alike"):
+        parse_cli(OfflineConfig, ["--suite", "Grasp", f"--model.type={name}",
+                                  "--model.demo_bc_coef=0.5"])  # fmt: skip
 
 
 @pytest.mark.parametrize("name", NAMES)

@@ -432,22 +432,6 @@ def test_demo_bc_clones_the_demonstrations_of_the_batch_and_nothing_else():
     assert (info["mean"][:-1] - target).abs().max() < 0.05
 
 
-def test_demo_bc_needs_demonstrations_in_the_batch_and_an_online_run():
-    from ccfit.config import TaskRunConfig
-    from ccfit.config_parse import parse_cli
-    from ccfit.offline.config import OfflineConfig
-
-    with pytest.raises(ConfigError, match="demo_bc_coef must be >= 0"):
-        make_cfg("state", demo_bc_coef=-1.0)
-    args = ["--task", "pick-cube", "--preset", "smoke", "--model.demo_bc_coef=0.5"]
-    with pytest.raises(ConfigError, match="--train.demo_fraction puts in each batch"):
-        parse_cli(TaskRunConfig, args)
-    assert parse_cli(TaskRunConfig, [*args, "--train.demo_fraction=0.25"]).model.demo_bc_coef == 0.5
-    with pytest.raises(ConfigError, match="the offline track fits every episode alike"):
-        parse_cli(OfflineConfig, ["--suite", "Grasp", "--model.type=tdmpc2",
-                                  "--model.demo_bc_coef=0.5"])  # fmt: skip
-
-
 def _boundary_batch(model) -> Batch:
     """Windows of 4 rows whose episode ends at row 1: transitions 1 and 2 are not real."""
     cfg = model.cfg

@@ -91,8 +91,8 @@ class Batch:
     task: torch.Tensor
     demos: int = 0
     """How many windows, the first ones, start on a stored demonstration
-    (`ReplayBuffer.sample(demo_fraction=)`), which a model may learn from apart (TD-MPC2's
-    `demo_bc_coef`)."""
+    (`ReplayBuffer.sample(demo_fraction=)`), which a model may learn from apart (the
+    `demo_bc_coef` of TD-MPC2, PWM and DreamerV3)."""
 
     def to(self, device: torch.device | str) -> Batch:
         """This batch on `device` (no copy if it is there). From the host to a GPU the copy

@@ -12,6 +12,8 @@ discount, with c_0 = 1 unless the start is a terminal observation.
   (NM512/dreamerv3-torch forgets the normalisation). Both add an entropy bonus.
 - Critic: two-hot cross-entropy toward sg(R) on detached states, plus a regulariser toward
   the slow critic's predictions.
+- Demonstration cloning (an option, not the recipe's): the actor's mean pulled toward the
+  actions of replayed demonstrations at their posteriors.
 """
 
 from __future__ import annotations
@@ -137,6 +139,17 @@ def behavior_losses(
         "imag_cont": traj.cont[1:].mean(),
     }
     return actor_loss, critic_loss, logs
+
+
+def demo_cloning(
+    heads: DreamerV3Heads, feat: torch.Tensor, action: torch.Tensor, valid: torch.Tensor
+) -> torch.Tensor:
+    """Mean over the rows with a real transition (`valid` (T, k, 1)) of the squared distance
+    of the actor's mean at posteriors `feat` (T, k, F) to the demonstrated `action` (T, k, A)
+    taken from each row (its posterior has read the row's observation and the action before)."""
+    mean, _ = heads.actor(feat)
+    err = (mean - action).pow(2).sum(-1, keepdim=True)
+    return (err * valid).sum() / valid.sum().clamp(min=1.0)
 
 
 # ---------------------------------------------------------------------- 2025: replay value

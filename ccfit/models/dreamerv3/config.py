@@ -152,6 +152,13 @@ class DreamerV3Config(ModelConfig):
     critic_replay_scale: float = 0.0
     """Weight of the critic's loss on replayed posteriors with lambda-returns bootstrapped
     from imagination (2025: 0.3); its gradient reaches the backbone. 0 = off (recipe)."""
+    demo_bc_coef: float = 0.0
+    """Weight of a behaviour-cloning term in the actor's loss: the squared distance of the
+    actor's mean action at each posterior of the batch's demonstration windows
+    (`--train.demo_fraction`) to the action demonstrated there, averaged over the rows with a
+    real transition. The critic learns on-policy in imagination, so demonstrations in replay
+    teach the world model what a grasp pays but never show the actor how; 0 (every preset):
+    the recipe's objective."""
     retnorm_rate: float = 0.01
     """EMA rate of the return normaliser's 5th and 95th return percentiles."""
     retnorm_low: float = 0.05
@@ -202,6 +209,7 @@ class DreamerV3Config(ModelConfig):
             "actor_entropy",
             "slow_critic_reg",
             "critic_replay_scale",
+            "demo_bc_coef",
         ):
             check(getattr(self, f) >= 0, f"{name}.{f} must be >= 0, got {getattr(self, f)}")
         for f in ("model_lr", "model_eps", "actor_lr", "critic_lr", "ac_eps", "ac_grad_clip"):

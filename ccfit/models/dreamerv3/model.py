@@ -24,6 +24,7 @@ from ccfit.config_base import check, resolve_device
 from ccfit.models.base import LATENT_KEY, Batch, LossOutput, OpenLoop, Prediction, WorldModel
 from ccfit.models.dreamerv3.behavior import (
     behavior_losses,
+    demo_cloning,
     imagine,
     imagined_returns,
     replay_lambda_return,
@@ -33,7 +34,7 @@ from ccfit.models.dreamerv3.config import DreamerV3Config
 from ccfit.models.dreamerv3.heads import DreamerV3Heads
 from ccfit.models.dreamerv3.math import kl_loss
 from ccfit.models.dreamerv3.networks import Decoder, Encoder, bernoulli_nll, init_weights
-from ccfit.models.dreamerv3.rssm import RSSM
+from ccfit.models.dreamerv3.rssm import RSSM, clip_action
 from ccfit.models.layers import adam
 from ccfit.models.registry import register_model
 
@@ -270,6 +271,10 @@ class DreamerV3(WorldModel, Prediction):
         with torch.set_grad_enabled(cfg.actor_grad == "dynamics"):
             traj = imagine(self.rssm, heads, *self._starts(aux), cfg.horizon, cfg.discount)
         actor_loss, critic_loss, logs = behavior_losses(cfg, heads, traj)
+        if cfg.demo_bc_coef > 0 and batch.demos > 0:
+            bc = self._demo_cloning(batch, heads, aux)
+            actor_loss = actor_loss + cfg.demo_bc_coef * bc
+            logs["actor_demo_bc"] = bc
         if aux.replay is not None:
             r = aux.replay
             repval = replay_value_loss(cfg, heads, heads.critic(r.feat), r.feat, r.target, r.mask)
@@ -279,6 +284,14 @@ class DreamerV3(WorldModel, Prediction):
         logs["critic_grad_norm"] = self._step(critic_loss, heads.critic, optimizers["critic"])
         heads.update_slow_critic(cfg.slow_critic_fraction)
         return _detached(logs)
+
+    def _demo_cloning(self, batch: Batch, heads: DreamerV3Heads, aux: DreamerV3Aux) -> torch.Tensor:
+        """`demo_cloning` on the batch's first `demos` windows (demonstrations): row t's
+        posterior, which acting would read to choose a_t, against the demonstrated a_t."""
+        k, batch = batch.demos, batch.to(self.device)
+        feat = self.rssm.feat(aux.deter[:-1, :k], aux.stoch[:-1, :k])
+        action = clip_action(batch.action[:-1, :k])
+        return demo_cloning(heads, feat, action, batch.valid()[:, :k])
 
     def _step(self, loss: torch.Tensor, module: nn.Module, opt: torch.optim.Optimizer,
               retain_graph: bool = False):  # fmt: skip
