@@ -6,6 +6,7 @@ fails; sizes are tiny so the file runs in about a minute on one thread.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -571,8 +572,6 @@ def test_demo_cloning_reads_the_demonstration_windows_rows_with_a_real_transitio
     row t's posterior to the demonstrated a_t, over the first `demos` windows' rows with a
     real transition; the critic's update is untouched, and without demonstrations in the
     batch the term is absent."""
-    import dataclasses
-
     batch = dataclasses.replace(make_batch(), demos=2)  # window 1 ends an episode at row 5
     model, heads = make(demo_bc_coef=2.0)
     aux = model.loss(batch, heads).aux
@@ -602,8 +601,6 @@ def test_demo_cloning_reads_the_demonstration_windows_rows_with_a_real_transitio
 def test_demo_cloning_alone_moves_the_actors_mean_to_the_demonstrated_action():
     """With no entropy bonus and zero-initialised reward and critic, imagination gives the
     actor no gradient: cloning alone must bring its mean to a demonstrated action."""
-    import dataclasses
-
     model, heads = make(demo_bc_coef=1.0, actor_entropy=0.0, actor_lr=1e-3)
     target = torch.tensor([0.6, -0.4, 0.2, 0.8])
     batch = dataclasses.replace(make_batch(), demos=B)
