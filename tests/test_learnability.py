@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ccfit.analysis.learnability import budgets, first_step_at, read_run
+from ccfit.analysis.learnability import budgets, first_steady_at, first_step_at, read_run
 
 try:
     from short_episodes import smoke_train_argv
@@ -38,9 +38,14 @@ def test_first_steps_and_budgets_by_hand(tmp_path):
                [(0, 10.0), (1000, 55.0), (2000, 40.0), (3000, 85.0)]]  # fmt: skip
     assert first_step_at(records, 50) == 1000 and first_step_at(records, 80) == 3000
     assert first_step_at(records, 90) is None
+    # three evaluations in a row at 80 or more (the stop rule), in any record order
+    later = [(4000, 90.0), (5000, 20.0), (6000, 81.0), (7000, 80.0), (8000, 99.0)]
+    swings = records + [{"task_step": t, "normalized_return": s} for t, s in later]
+    assert first_steady_at(swings[::-1], 80) == 6000 and first_steady_at(records, 80) is None
+    assert first_steady_at(swings, 80, evals=2) == 3000
     # Grasp: pick-cube reaches 50 at 2000, place-cube at 1000, pnp-cube at 4000: the suite
     # needs 4000 steps per task. Reach lacks a task: no budget.
-    for task, scores in [("pick-cube", [0, 20, 60, 90]), ("place-cube", [0, 70, 90, 95]),
+    for task, scores in [("pick-cube", [0, 20, 60, 90]), ("place-cube", [0, 70, 90, 95, 96]),
                          ("pnp-cube", [0, 10, 20, 30, 55])]:  # fmt: skip
         _fake_run(tmp_path, task, "m", scores)
     _fake_run(tmp_path, "reach-xy", "m", [0, 90])
@@ -51,6 +56,8 @@ def test_first_steps_and_budgets_by_hand(tmp_path):
     assert pnp["suites"] == ["Grasp", "DrawerPnP", "PnPBoxClose"] and pnp["cpu_hours"] == 2.0
     assert (pnp["steps_to_50"], pnp["steps_to_80"], pnp["best"]) == (4000, None, 55)
     assert pnp["last"] == 55 and pnp["last_5"] == 23.0  # (0 + 10 + 20 + 30 + 55) / 5
+    assert pnp["steady_80"] is None
+    assert next(r for r in rows if r["task"] == "place-cube")["steady_80"] == 2000
     assert next(r for r in rows if r["task"] == "reach-xz")["last_5"] == 50.0  # 30 .. 70
     # runs oversampling demonstrations are rows (and budgets) of their own
     for task in ("pick-cube", "place-cube", "pnp-cube"):

@@ -6,7 +6,9 @@ learn another way, `RECIPE` and `MODEL_RECIPE` settings off their preset's value
 (demonstrations oversampled or cloned, another replay capacity), pixels or a frozen encoder,
 are rows of their own, their model named with the settings) and writes
 `learnability.md` / `.csv`: per suite, task, model and seed, the first evaluated step
-whose normalised return reached 50 and 80, the best and last score, the mean of the last
+whose normalised return reached 50 and 80, the first of `STEADY` evaluations in a row at 80 or
+more (`steady_80`: where `--train.stop_score=80` would end the run), the best and last score,
+the mean of the last
 `PLATEAU` evaluations (one evaluation of a few episodes swings with the policy's acting noise:
 TD-MPC2's grasping by tens of points), the budget and what the run cost (`cost.json`), plus
 `budgets.json`: per suite and model, the steps per task every task of the suite needs to reach
@@ -25,7 +27,7 @@ import math
 from pathlib import Path
 
 from ccdata.errors import InputError
-from ccfit.config import stop_reached
+from ccfit.config import TrainConfig, stop_reached
 from ccfit.config_base import LEGACY_VALUES
 from ccfit.curriculum import REFERENCE_DONE
 from ccfit.io import atomic_write_json, atomic_write_text, read_run_json
@@ -41,6 +43,8 @@ MODEL_RECIPE = ("demo_bc_coef",)
 preset (`LEGACY_VALUES`)."""
 PLATEAU = 5
 """Evaluations at the end of a run averaged into `last_5` (what the run ends at)."""
+STEADY = TrainConfig.stop_evals
+"""Evaluations in a row at 80 or more that make `steady_80` (as many as end a run early)."""
 
 
 def first_step_at(records: list[dict], level: float) -> int | None:
@@ -51,10 +55,19 @@ def first_step_at(records: list[dict], level: float) -> int | None:
     return None
 
 
+def first_steady_at(records: list[dict], level: float, evals: int = STEADY) -> int | None:
+    """Task step of the first of `evals` evaluations in a row whose normalised returns are all
+    at least `level` (the `--train.stop_score` rule)."""
+    ordered = sorted(records, key=lambda r: r["task_step"])
+    scores = [r["normalized_return"] for r in ordered]
+    for end in range(evals, len(ordered) + 1):
+        if stop_reached(scores[:end], level, evals):
+            return int(ordered[end - evals]["task_step"])
+    return None
+
+
 def _preset_value(cfg: dict, setting: str):
     """`--train.<setting>` of the run's preset (as configs older than the setting ran)."""
-    from ccfit.config import TrainConfig
-
     legacy = LEGACY_VALUES.get(f"train.{setting}")
     if legacy is not None:
         return legacy
@@ -116,6 +129,7 @@ def read_run(run: Path) -> dict | None:
         "trained": trained,
         "eval_interval": int(cfg["train"]["eval_interval"]),
         **{f"steps_to_{t}": first_step_at(records, t) for t in THRESHOLDS},
+        "steady_80": first_steady_at(records, 80),
         "best": max(scores) if scores else None, "last": scores[-1] if scores else None,
         f"last_{PLATEAU}": sum(scores[-PLATEAU:]) / len(scores[-PLATEAU:]) if scores else None,
         # A from-scratch reference trained in a worker records no cost.
@@ -152,11 +166,11 @@ def write_learnability(runs: list[Path], out: Path) -> list[Path]:
     rows.sort(key=lambda r: (r["suites"][0], r["task"], r["model"], r["seed"]))
     out.mkdir(parents=True, exist_ok=True)
     cols = ["suites", "task", "model", "seed", "budget", "trained", "steps_to_50", "steps_to_80",
-            "best", "last", f"last_{PLATEAU}", "cpu_hours"]  # fmt: skip
+            "steady_80", "best", "last", f"last_{PLATEAU}", "cpu_hours"]  # fmt: skip
 
     def cell(col: str, v) -> str:
         if v is None:
-            return "not reached" if col.startswith("steps_to") else "n/a"
+            return "not reached" if col.startswith(("steps_to", "steady")) else "n/a"
         if isinstance(v, list):
             return ", ".join(v)
         return f"{v:.2f}" if col == "cpu_hours" else f"{v:.1f}" if isinstance(v, float) else str(v)

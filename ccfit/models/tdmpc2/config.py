@@ -52,7 +52,7 @@ class TDMPC2Config(ModelConfig):
     #   (44 at 64k), 80 once (66k); pnp-cube as in Grasp.
     # - BinPnP, Grasp's recipe (runs ended by three evaluations in a row at 80): every task
     #   first reaches 50 and 80 at 13-24k, then swings (1-141) until its three in a row at 80:
-    #   29-37k, bin-red-blue's at 51k.
+    #   29-37k, bin-red-blue's at 50k.
     # - PnPBlock and PnPBoxClose, Grasp's recipe: the primitives hold 80 by 51k
     #   (pnp-red-block from 38k, pnp-blue-block 51k, box-close 20k, pnp-cube as in Grasp); the
     #   compositions are not learnt in 100k (stack-blocks best 36, nor after its primitives in
