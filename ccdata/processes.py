@@ -8,7 +8,9 @@ the fork server of a generating process imports them once and serves every later
 of that process too. The generating process itself still imports neither torch nor LeRobot.
 
 A forked process's parent in the OS is the fork server, so `die_with` watches the generating
-process itself: killing it must leave no orphan writing into its journal.
+process itself: killing it must leave no orphan writing into its journal. `worker_pool` gives
+the same guarantee to the spawned process pools of training (evaluation, a from-scratch
+reference, a sweep's local jobs).
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import select
 import signal
 import threading
 import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from multiprocessing.context import BaseContext
 from multiprocessing.process import BaseProcess
@@ -113,6 +117,23 @@ def die_with(parent: int) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
     threading.Thread(target=watch, name="ccdata-die-with-parent", daemon=True).start()
+
+
+def worker_pool(max_workers: int, initializer: Callable | None = None, initargs: tuple = (),
+                **kwargs) -> ProcessPoolExecutor:  # fmt: skip
+    """A pool of spawned worker processes that end with this process. A worker of a plain pool
+    outlives a parent killed by a signal (no clean-up runs) and waits forever, idle, or goes on
+    computing beside the parent's successor; these die with it (`die_with`), then run
+    `initializer(*initargs)`. `kwargs`: `ProcessPoolExecutor`'s."""
+    return ProcessPoolExecutor(max_workers, mp_context=get_context("spawn"),
+                               initializer=_die_with_then,
+                               initargs=(os.getpid(), initializer, initargs), **kwargs)  # fmt: skip
+
+
+def _die_with_then(parent: int, initializer: Callable | None, initargs: tuple) -> None:
+    die_with(parent)
+    if initializer is not None:
+        initializer(*initargs)
 
 
 def _alive(pid: int) -> bool:

@@ -30,10 +30,9 @@ import dataclasses
 import fcntl
 import hashlib
 import json
-import multiprocessing as mp
 import shutil
 from collections.abc import Callable
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -41,6 +40,7 @@ from typing import NamedTuple
 import torch
 
 from ccdata.env import make_env
+from ccdata.processes import worker_pool
 from ccfit import metrics as M
 from ccfit.branch import RECORD as BRANCH_RECORD
 from ccfit.branch import STAGES, Branch, keep_stage, read_branch, start_branch
@@ -167,7 +167,7 @@ def start_scratch(cfg: CurriculumConfig, out: Path) -> Future | None:
     import ccdata.env
 
     alone = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, parallel="off"))
-    pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"))
+    pool = worker_pool(1)
     future = pool.submit(_scratch_worker, alone, out, ccdata.env.EPISODE_STEPS)
     pool.shutdown(wait=False)  # the worker ends with its one job
     return future

@@ -129,6 +129,36 @@ def test_workers_end_with_a_killed_evaluating_process():
     assert not any(_alive(pid) for pid in pids)
 
 
+@pytest.mark.parametrize("initializer", [False, True])
+def test_a_worker_pool_ends_with_a_killed_process(initializer):
+    """The spawned pools of training (evaluation, a from-scratch reference, a sweep's local
+    jobs: `ccdata.processes.worker_pool`) leave no worker behind a process killed by a signal,
+    idle or busy, with or without an initializer of their own. A plain `ProcessPoolExecutor`
+    worker would wait on its queue forever."""
+    init = "initializer=time.sleep, initargs=(0,)" if initializer else ""
+    code = (
+        "import time\n"
+        "from ccdata.processes import worker_pool\n"
+        f"idle, busy = worker_pool(1, {init}), worker_pool(1, {init})\n"
+        "idle.submit(time.sleep, 0).result()\n"
+        "busy.submit(time.sleep, 0).result()\n"
+        "busy.submit(time.sleep, 600)\n"
+        "print(*idle._processes, *busy._processes, flush=True)\n"
+        "time.sleep(600)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        pids = [int(x) for x in proc.stdout.readline().split()]
+    finally:
+        proc.terminate()  # SIGTERM: Python runs no clean-up for it
+        proc.wait()
+    assert len(pids) == 2
+    deadline = time.monotonic() + 30
+    while any(_alive(pid) for pid in pids) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(_alive(pid) for pid in pids)
+
+
 def _alive(pid: int) -> bool:
     """Whether `pid` runs (a zombie, exited but not reaped by its dead parent's init, is not)."""
     try:

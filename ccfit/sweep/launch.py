@@ -18,15 +18,15 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
-import multiprocessing as mp
 import os
 import time
 import traceback
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, wait
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 
 from ccdata.errors import InputError
+from ccdata.processes import worker_pool
 from ccdata.slurm import SlurmSettings, active_jobs, check_array_size, last_line, submitting
 from ccfit.sweep.grid import SCRATCH, RunSpec, Sweep, write_record
 from ccfit.sweep.jobs import ReportJob, RunJob, ScratchJob, report_current
@@ -137,8 +137,7 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
             and jobs.get(waiting_on.get(n, ""), {"state": "COMPLETED"})["state"] == "COMPLETED"
         ]
 
-    ctx = mp.get_context("spawn")
-    pool = ProcessPoolExecutor(max_parallel, mp_context=ctx, max_tasks_per_child=1)
+    pool = worker_pool(max_parallel, max_tasks_per_child=1)
     running: dict = {}
     try:
         while True:

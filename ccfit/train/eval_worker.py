@@ -14,16 +14,15 @@ if it dies, collecting its results raises in the training process.
 
 from __future__ import annotations
 
-import multiprocessing as mp
 from collections.abc import Mapping, Sequence
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
 import torch
 from torch import nn
 
-from ccdata.processes import available_cores
+from ccdata.processes import available_cores, worker_pool
 from ccfit.models.base import WorldModel
 
 
@@ -130,8 +129,7 @@ class AsyncEvaluator:
         self.heads: dict[int, nn.Module] = {}
         self._sent: set[int] = set()
         self._queue: list[tuple[dict, Future]] = []
-        self._pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"),
-                                         initializer=_start, initargs=(spec,))  # fmt: skip
+        self._pool = worker_pool(1, initializer=_start, initargs=(spec,))
 
     def submit(self, tasks: Sequence[int], *, stage: int, global_step: int,
                task_step: int | None) -> None:  # fmt: skip
