@@ -116,17 +116,7 @@ def test_workers_end_with_a_killed_evaluating_process():
         "print(*(p.pid for p in pool._procs), flush=True)\n"
         "time.sleep(600)\n"
     )
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
-    try:
-        pids = [int(x) for x in proc.stdout.readline().split()]
-    finally:
-        proc.kill()
-        proc.wait()
-    assert len(pids) == 2
-    deadline = time.monotonic() + 30
-    while any(_alive(pid) for pid in pids) and time.monotonic() < deadline:
-        time.sleep(0.2)
-    assert not any(_alive(pid) for pid in pids)
+    _assert_workers_end_with(code, signal.SIGKILL, workers=2)
 
 
 @pytest.mark.parametrize("initializer", [False, True])
@@ -146,13 +136,19 @@ def test_a_worker_pool_ends_with_a_killed_process(initializer):
         "print(*idle._processes, *busy._processes, flush=True)\n"
         "time.sleep(600)\n"
     )
+    _assert_workers_end_with(code, signal.SIGTERM, workers=2)  # Python runs no clean-up for it
+
+
+def _assert_workers_end_with(code: str, sig: signal.Signals, workers: int) -> None:
+    """Run `code` (it prints its workers' pids, then sleeps), send it `sig`: within 30 s none
+    of its `workers` may run."""
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     try:
         pids = [int(x) for x in proc.stdout.readline().split()]
     finally:
-        proc.terminate()  # SIGTERM: Python runs no clean-up for it
+        proc.send_signal(sig)
         proc.wait()
-    assert len(pids) == 2
+    assert len(pids) == workers
     deadline = time.monotonic() + 30
     while any(_alive(pid) for pid in pids) and time.monotonic() < deadline:
         time.sleep(0.2)
