@@ -4,6 +4,8 @@
         > results/diagnostics/dreamerv3_pick.json
     python results/diagnostics/dreamerv3_pick.py RUNS/dreamerv3-pick-cube-s0-bc0.5 \
         > results/diagnostics/dreamerv3_pick_cloning.json
+    python results/diagnostics/dreamerv3_pick.py RUNS/dreamerv3-pick-cube-s0-demo \
+        > results/diagnostics/dreamerv3_pick_control.json
 
 With a finished single-task run's weights (`ccfit train`), along 20 oracle and 20 random
 pick-cube episodes of the Grasp dataset: (1) the reward head along the filtered posteriors

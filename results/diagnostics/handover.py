@@ -5,10 +5,11 @@
 handover.jsonl beside it: `--at 0,1,2,3,4,5,6,7,8` over the single-task runs (TD-MPC2, `cpu`,
 state, seed 0, Grasp's recipe) of stack-blocks (100 000 steps), stack-blocks with the
 demonstrations at 0.5 (60 000), pnp-red-block (ended at 41 000) and box-pnp-close (100 000),
-in that order, then the demonstration-cloning stack-blocks run, `--acting policy` lines, and
-last `--at 0,0.05,0.1,0.2,0.5` over DreamerV3's pick-cube run that clones the demonstrations,
-at its checkpoint of 47 000 steps and at its end, 100 000 (README.md here lists each line's
-command).
+in that order, then the demonstration-cloning stack-blocks run, `--acting policy` lines, then
+`--at 0,0.05,0.1,0.2,0.5` over DreamerV3's pick-cube run that clones the demonstrations (lines
+58-67), at its checkpoint of 47 000 steps and at its end, 100 000, and last over its control
+without cloning (lines 68-77), at 47 000 and at its end, 60 000 (README.md here lists each
+line's command).
 
 A policy that never completes a composition may fail at its first stage or at every stage. On
 each of the run's first LAYOUTS evaluation layouts (`--layouts`, default 10) the task's
