@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
 
+from ccdata.archived import archived_commit
 from ccdata.errors import InputError
 
 PROBE_TIMEOUT_S = 30
@@ -289,9 +290,10 @@ def last_line(text: str) -> str:
 
 
 def code_version() -> dict:
-    """What code submits or runs a job: the package version (None when not installed) and,
-    when the source tree is a git checkout, `git describe` (`-dirty` with uncommitted
-    changes) and the commit."""
+    """What code submits or runs a job: the package version (None when not installed) and
+    `git describe` (`-dirty` with uncommitted changes) and the commit, from git where the
+    source tree is a checkout, else as `git archive` wrote them into an exported tree
+    (`ccdata.archived`; None in neither)."""
     try:
         version = metadata.version("ccbench")
     except metadata.PackageNotFoundError:
@@ -308,6 +310,8 @@ def code_version() -> dict:
                 break
             if done.returncode == 0:
                 git[key] = done.stdout.strip()
+    else:
+        git = archived_commit() or git
     return {"package": version, "git": git["describe"], "commit": git["commit"],
             "source": str(source)}  # fmt: skip
 

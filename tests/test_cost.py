@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import io
 import json
 import subprocess
 import sys
+import tarfile
 import time
 from pathlib import Path
 
+import pytest
 import torch
 
 from ccfit.train.cost import RunCost, read_cost, running_code
@@ -54,3 +57,24 @@ def test_a_killed_segment_stays_counted_up_to_its_last_flush(tmp_path):
     cost = read_cost(tmp_path)
     assert cost["segments"] == 2 and cost["cpu_s"] >= killed["cpu_s"] >= 0.3
     assert cost["code"] == [running_code()] * 2
+
+
+def test_a_tree_exported_by_git_archive_records_its_commit(tmp_path):
+    # A snapshot or release tarball has no .git: the commit comes from the fields git archive
+    # fills in (.gitattributes export-subst on ccdata/archived.py).
+    if not (ROOT / ".git").exists():
+        pytest.skip("needs the git checkout")
+
+    def git(*args: str) -> bytes:
+        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, check=True).stdout
+
+    # the working tree as a commit object (no ref moves), or HEAD where nothing has changed
+    commit = git("stash", "create").decode().strip() or git("rev-parse", "HEAD").decode().strip()
+    with tarfile.open(fileobj=io.BytesIO(git("archive", commit, "ccdata"))) as tar:
+        tar.extractall(tmp_path, filter="data")
+    show = "import json; from ccdata.slurm import code_version; print(json.dumps(code_version()))"
+    done = subprocess.run([sys.executable, "-c", show], cwd=tmp_path, capture_output=True,
+                          text=True, check=True, env={"PYTHONPATH": str(tmp_path)})  # fmt: skip
+    code = json.loads(done.stdout)
+    assert Path(code["source"]) == tmp_path
+    assert code["commit"] == commit and commit.startswith(code["git"])
