@@ -92,8 +92,8 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument(
         "--acting",
-        choices=("plan", "policy"),
-        default="plan",
+        choices=("evaluation", "policy"),
+        default="evaluation",
         help="how the run acts: as evaluation does (default), or by its policy's mean alone "
         "(TD-MPC2-style models)",
     )
