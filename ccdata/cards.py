@@ -159,7 +159,19 @@ Entry (i, j) is ✓ when task i reuses a component of task j along the suite's a
 
 {_table(["task \\ reuses"] + [f"`{t.id}`" for t in tasks], mat_rows)}
 
-{_table(["task", "action components", "perception components"], comp_rows)}"""
+{_table(["task", "action components", "perception components"], comp_rows)}{_state_text(suite)}"""
+
+
+def _state_text(suite) -> str:
+    """What the state observation cannot tell apart (`Suite.same_from_state`), or nothing."""
+    if not suite.same_from_state:
+        return ""
+    return (
+        f"\n\nFrom the `state` observation, {suite.same_from_state_text('`')} are one task: "
+        "they differ only in "
+        "colours, which the state does not hold (the same observations and rewards along the "
+        "same actions). Their difference is in the images alone."
+    )
 
 
 def _policies_section(settings: DatasetSettings) -> str:

@@ -19,10 +19,33 @@ class Suite:
     """Composition axis: 'action', 'perception' or 'full' (both)."""
     task_ids: tuple[str, ...]
     description: str
+    same_from_state: tuple[tuple[str, ...], ...] = ()
+    """Groups of tasks that differ only in what the images show (a colour): from the state
+    observation each group is one MDP, the same observations and rewards along the same
+    actions (a contract test checks every pair of every suite). A curriculum from state
+    relearns such a group's task with fresh heads; the difference the suite composes is
+    seen from pixels only."""
 
     def __post_init__(self) -> None:
         if self.axis not in AXES:
             raise ValueError(f"suite {self.name}: axis must be one of {AXES}, got {self.axis!r}")
+        for group in self.same_from_state:
+            if len(group) < 2 or not set(group) <= set(self.task_ids):
+                raise ValueError(f"suite {self.name}: same_from_state group {group} must name "
+                                 "two or more of its tasks")  # fmt: skip
+
+    def same_from_state_text(self, quote: str = "") -> str:
+        """`same_from_state` in words, each id between `quote`s: 'a and b; c, d and e'."""
+
+        def one(group: tuple[str, ...]) -> str:
+            ids = [f"{quote}{t}{quote}" for t in group]
+            return f"{', '.join(ids[:-1])} and {ids[-1]}"
+
+        return "; ".join(one(group) for group in self.same_from_state)
+
+    def same_task_from_state(self, a: str, b: str) -> bool:
+        """Whether tasks `a` and `b` are one MDP from the state observation."""
+        return a == b or any({a, b} <= set(group) for group in self.same_from_state)
 
     @property
     def tasks(self) -> list[TaskSpec]:
@@ -59,12 +82,18 @@ SUITES: dict[str, Suite] = {
             ("bin-red-blue", "bin-yellow-blue", "bin-red-purple", "bin-yellow-purple"),
             "One bin-to-bin transfer under changing bin colours; the composition pairs the "
             "source colour of one primitive with the target colour of another.",
+            # The layout is fixed; only the bins' colours change, which the state does not hold.
+            same_from_state=(
+                ("bin-red-blue", "bin-yellow-blue", "bin-red-purple", "bin-yellow-purple"),
+            ),
         ),
         Suite(
             "PnPBlock",
             "perception",
             ("pnp-red-block", "pnp-blue-block", "stack-blocks"),
             "Pick-and-place of a red and of a blue block, then both in one scene: stack them.",
+            # Each primitive's scene holds its one block, in the same state slot.
+            same_from_state=(("pnp-red-block", "pnp-blue-block"),),
         ),
         Suite(
             "DrawerPnP",

@@ -97,15 +97,14 @@ def cmd_run(argv: list[str]) -> None:
     """ccfit run --suite Reach --preset cpu --method.type=packnet  (see --help)"""
     from ccfit.analysis import stage_callbacks
     from ccfit.config import CurriculumConfig
-    from ccfit.config_parse import budget_note, parse_cli
+    from ccfit.config_parse import curriculum_notes, parse_cli
     from ccfit.curriculum import Curriculum
 
     extra, argv = _split_flags(argv, {"quiet": False, "scratch_root": True, "keep_stages": False,
                                       "branch_from": True, "branch_after": True})  # fmt: skip
     cfg = parse_cli(CurriculumConfig, argv, prog="ccfit run")
     out = run_dir(cfg)
-    note = budget_note(cfg.to_dict())
-    if note is not None:
+    for note in curriculum_notes(cfg.to_dict()):
         print(f"ccfit run: note: {note}", file=sys.stderr)
     result = Curriculum(
         cfg,
@@ -139,12 +138,14 @@ def _branch(extra: dict):
 
 def cmd_fit(argv: list[str]) -> None:
     """ccfit fit --suite Reach --preset cpu --method.type=ewc  (offline track; see --help)"""
-    from ccfit.config_parse import parse_cli
+    from ccfit.config_parse import curriculum_notes, parse_cli
     from ccfit.offline import OfflineConfig, OfflineCurriculum, default_out
 
     extra, argv = _split_flags(argv, {"quiet": False, "scratch_root": True})
     cfg = parse_cli(OfflineConfig, argv, prog="ccfit fit")
     out = Path(cfg.out) if cfg.out else default_out(cfg)
+    for note in curriculum_notes(cfg.to_dict()):
+        print(f"ccfit fit: note: {note}", file=sys.stderr)
     result = OfflineCurriculum(cfg, out, extra.get("scratch_root") or None,
                                progress=not extra.get("quiet")).run()  # fmt: skip
     print(

@@ -76,6 +76,31 @@ def budget_note(config: dict) -> str | None:
     )
 
 
+def state_note(config: dict) -> str | None:
+    """One line for a curriculum from state on a suite some of whose tasks are one MDP from
+    state (`Suite.same_from_state`: they differ only in a colour): what such a run measures
+    there. None elsewhere."""
+    from ccdata.suites import get_suite
+
+    suite = config.get("suite")
+    if config.get("obs") != "state" or suite is None:
+        return None
+    named = get_suite(suite).same_from_state_text()
+    if not named:
+        return None
+    return (
+        f"from state, {suite}'s {named} are one task (they differ only in colours, which the "
+        "state does not hold): the curriculum meets that task again, and what the suite "
+        "composes is seen from pixels only (--obs pixels)"
+    )
+
+
+def curriculum_notes(config: dict) -> list[str]:
+    """The note lines `ccfit run` and `ccfit sweep` print before training (`budget_note`,
+    `state_note`)."""
+    return [note for note in (budget_note(config), state_note(config)) if note is not None]
+
+
 def resolve[C: BaseRunConfig](cls: type[C], overrides: dict[str, Any]) -> C:
     """`cls` from nested plain data (`{"suite": ..., "model": {"type": NAME, ...}}`): the
     preset's defaults (preset, model and method types, obs and image size taken from

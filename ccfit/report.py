@@ -229,7 +229,7 @@ def group_metrics(runs: list[Run]) -> dict:
     mean = metrics_from_curves(curves, ends, scratch, budget)
     out = {"seeds": sorted(seeds), "curves": curves, "scratch": scratch,
            "ends": ends, "budget": budget, "runs": [str(r.path) for r in runs],
-           "track": track}  # fmt: skip
+           "track": track, "obs": runs[0].config.get("obs")}  # fmt: skip
     for name, source in METRICS_SHOWN.items():
         values = [r.metrics[source] for r in runs if r.metrics.get(source) is not None]
         out[name] = mean[source]

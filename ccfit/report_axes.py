@@ -8,7 +8,8 @@ present of one online backbone and variant (`ccfit.report.load_groups`: the metr
 seed-averaged curves) and names what it averaged, so that a cell made of one suite, or of
 fewer methods, reads as such; the paper's figure stands beside it. A group whose metric is
 undefined (BWT with no earlier task learnt above the floor) is left out of that metric's mean
-and named.
+and named, and so is a suite whose runs from state meet one task again where the suite changes
+only a colour (`Suite.same_from_state`): there they do not measure the perception axis.
 """
 
 from __future__ import annotations
@@ -53,6 +54,9 @@ def axis_cells(groups: dict) -> list[dict]:
             cell = {
                 "backbone": backbone, "variant": variant, "axis": axis,
                 "members": list(members), "paper": PAPER_AXES.get((backbone, axis)),
+                "same_from_state": sorted({s for (s, _), g in members.items()
+                                           if g.get("obs") == "state"
+                                           and SUITES[s].same_from_state}),
             }  # fmt: skip
             for metric in ("bwt", "fwt"):
                 values = [g[metric] for g in members.values() if g[metric] is not None]
@@ -78,6 +82,8 @@ def _averaged(cell: dict) -> str:
         if cell[f"{metric}_undefined"]:
             left = ", ".join(f"{s} {m}" for s, m in cell[f"{metric}_undefined"])
             text += f"; {metric.upper()} undefined for {left}"
+    for suite in cell["same_from_state"]:
+        text += f"; {suite} from state: {SUITES[suite].same_from_state_text()} are one task"
     return text
 
 

@@ -646,6 +646,38 @@ def test_a_suite_without_a_measured_budget_says_so_once_per_sweep_and_run(
     assert code == 2 and err[0] == f"ccfit run: note: {reach}"
 
 
+def test_a_curriculum_from_state_says_which_tasks_are_one_task_there(tmp_path, capsys):
+    """BinPnP's and PnPBlock's tasks that differ only in a colour are one MDP from state
+    (`Suite.same_from_state`): `ccfit run`, `ccfit fit` and `ccfit sweep` say so from state,
+    not from pixels, and nothing on a suite without such tasks."""
+    from ccfit.cli import main
+    from ccfit.config_parse import state_note
+
+    def note(*argv):
+        return state_note(parse_cli(CurriculumConfig, ["--preset", "cpu", *argv]).to_dict())
+
+    assert note("--suite", "Reach") is None and note("--suite", "Grasp") is None
+    assert note("--suite", "BinPnP", "--obs", "pixels") is None
+    blocks = note("--suite", "PnPBlock")
+    assert "PnPBlock's pnp-red-block and pnp-blue-block are one task" in blocks
+    assert "stack-blocks" not in blocks
+    bins = note("--suite", "BinPnP")
+    assert "bin-red-blue, bin-yellow-blue, bin-red-purple and bin-yellow-purple" in bins
+
+    code = main(["sweep", "--suites", "BinPnP,Reach", "--methods", "ft,ewc", "--seeds", "0,1",
+                 "--preset", "cpu", "--out", str(tmp_path / "sweep"), "--dry-run"])  # fmt: skip
+    notes = [line for line in capsys.readouterr().err.splitlines() if "one task" in line]
+    assert code == 0 and notes == [f"ccfit sweep: note: {bins}"]
+    # `ccfit run` and `ccfit fit` say it before anything is trained (an empty dataset folder
+    # then stops them, exit 2)
+    (tmp_path / "empty").mkdir()
+    for command, dataset in (("run", "--seed_dataset"), ("fit", "--dataset")):
+        code = main([command, "--suite", "PnPBlock", "--preset", "cpu", dataset,
+                     str(tmp_path / "empty"), "--out", str(tmp_path / command)])  # fmt: skip
+        err = capsys.readouterr().err.splitlines()
+        assert code == 2 and f"ccfit {command}: note: {blocks}" in err
+
+
 def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
     from ccfit.cli import main
 

@@ -45,3 +45,23 @@ def test_a_cell_averages_the_paper_methods_of_its_axis_suites(tmp_path):
 def test_no_online_run_of_the_papers_methods_makes_an_empty_table(tmp_path):
     text = write_axes({("pwm", "Reach", "experts", ""): _group(1.0, 1.0)}, tmp_path).read_text()
     assert "(no online run of FT, ER, EWC or PackNet here)" in text
+
+
+def test_a_suite_that_is_one_task_from_state_is_named_in_its_cell(tmp_path):
+    state = {**_group(30.0, 60.0), "obs": "state"}
+    pixels = {**_group(40.0, 1.0), "obs": "pixels"}
+    groups = {
+        ("tdmpc2", "BinPnP", "ft", "obs=state"): state,
+        ("tdmpc2", "Grasp", "ft", "obs=state"): state,  # Grasp's tasks differ from state
+        ("tdmpc2", "BinPnP", "ft", "obs=pixels"): pixels,
+    }
+    cells = {c["variant"]: c for c in axis_cells(groups) if c["axis"] == "perception"}
+    assert cells["obs=state"]["same_from_state"] == ["BinPnP"]
+    assert cells["obs=pixels"]["same_from_state"] == []
+    rows = write_axes(groups, tmp_path).read_text().splitlines()
+    state_row = next(x for x in rows if x.startswith("| tdmpc2 [obs=state] | perception"))
+    assert state_row.endswith(
+        "; BinPnP from state: bin-red-blue, bin-yellow-blue, bin-red-purple and "
+        "bin-yellow-purple are one task |"
+    )
+    assert not any("one task" in x for x in rows if "obs=pixels" in x or "| action" in x)

@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 import ccdata
+from ccdata.env import EPISODE_STEPS
+from ccdata.policies import make_policy
 
 EXPECTED_ORDER = {
     "Reach": ["reach-xy", "reach-xz", "reach-yz", "reach-xyz"],
@@ -100,3 +102,58 @@ def test_every_task_has_an_oracle_reference():
     assert refs["gamma"] == ccdata.GAMMA == 0.99
     for task_id, ref in refs["tasks"].items():
         assert ref["success_rate"] >= 0.95, task_id
+
+
+def _replayed(task_id: str, actions: list[np.ndarray], seed: int) -> tuple[list, list]:
+    """State observations and rewards of `task_id` along `actions`, from reset seed `seed`."""
+    env = ccdata.make_env(task_id, seed=0, render=False)
+    obs, _ = env.reset(seed=seed)
+    states, rewards = [obs["state"]], []
+    for action in actions:
+        obs, reward, terminated, truncated, _ = env.step(action)
+        states.append(obs["state"])
+        rewards.append(reward)
+        if terminated or truncated:
+            break
+    env.close()
+    return states, rewards
+
+
+def _oracle_actions(task_id: str, seed: int) -> list[np.ndarray]:
+    """The actions of one successful oracle episode of `task_id` (every phase of its task)."""
+    env = ccdata.make_env(task_id, seed=0, render=False)
+    policy = make_policy("oracle", task_id)
+    obs, _ = env.reset(seed=seed)
+    policy.reset()
+    actions, info = [], {}
+    for _ in range(EPISODE_STEPS):
+        actions.append(policy.act(obs))
+        obs, _, terminated, truncated, info = env.step(actions[-1])
+        if terminated or truncated:
+            break
+    env.close()
+    assert info["success"], f"the oracle failed seed {seed} of {task_id}"
+    return actions
+
+
+@pytest.mark.parametrize("name", list(ccdata.SUITES))
+def test_tasks_declared_one_mdp_from_state_are_and_no_others(name):
+    # Each task's oracle plays one episode and every later task of the suite replays its
+    # actions from the same reset: the same state observations and rewards all along mean one
+    # MDP from state, which the suite must declare (`same_from_state`), and only then.
+    suite, seed = ccdata.get_suite(name), 5
+    for i, first in enumerate(suite.task_ids[:-1]):
+        actions = _oracle_actions(first, seed)
+        states, rewards = _replayed(first, actions, seed)
+        for task_id in suite.task_ids[i + 1 :]:
+            other_states, other_rewards = _replayed(task_id, actions, seed)
+            pairs = zip(states, other_states, strict=True)  # equal rewards: equal lengths
+            same = other_rewards == rewards and all(
+                a.shape == b.shape and np.array_equal(a, b) for a, b in pairs
+            )
+            assert same == suite.same_task_from_state(first, task_id), f"{name}: {task_id}, {first}"
+
+
+def test_same_from_state_groups_name_the_suites_tasks():
+    with pytest.raises(ValueError, match="same_from_state"):
+        ccdata.suites.Suite("X", "perception", ("a", "b"), "", same_from_state=(("a", "c"),))

@@ -24,7 +24,7 @@ from ccdata.processes import available_cores
 from ccdata.slurm import REQUEUE_SAFE_MIN, LaunchError, check_slurm, settings_from_options
 from ccdata.slurm import add_options as add_slurm_options
 from ccfit.config_base import DEFAULTS, PRESETS
-from ccfit.config_parse import budget_note
+from ccfit.config_parse import curriculum_notes
 from ccfit.continual import method_names
 from ccfit.models import DEFAULT_MODEL, DEFAULT_OFFLINE_MODEL, model_names
 from ccfit.sweep.grid import (
@@ -142,9 +142,8 @@ def cmd_sweep(argv: list[str]) -> None:
                          f"{sweep.root} ({', '.join(sorted(set(active.values()))[:5])}): wait "
                          f"for them or scancel them")  # fmt: skip
     work = plan_work(sweep, active)
-    for note in dict.fromkeys(budget_note(run.config) for run in sweep.runs):
-        if note is not None:
-            print(f"ccfit sweep: note: {note}", file=sys.stderr)
+    for note in dict.fromkeys(n for run in sweep.runs for n in curriculum_notes(run.config)):
+        print(f"ccfit sweep: note: {note}", file=sys.stderr)
     _print_plan(sweep, work, args.dry_run)
     if args.dry_run or work.empty:
         return
