@@ -46,6 +46,9 @@ def _cmd_list(args: argparse.Namespace) -> None:
             marks = " ".join("x" if m else "." for m in matrix[i])
             role = "composition" if i == len(suite.tasks) - 1 else "primitive"
             print(f"  {i}  {task.id:<{width}}  [{marks}]  {role}: {task.title}")
+        if suite.same_from_state:
+            same = suite.same_from_state_text()
+            print(f"  from state, {same} are one task (only colours differ)")
         print()
 
 

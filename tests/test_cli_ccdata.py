@@ -28,6 +28,8 @@ def test_list_prints_every_suite_with_its_matrix(capsys):
     for name in ("Reach", "Grasp", "BinPnP", "PnPBlock", "DrawerPnP", "PnPBoxClose"):
         assert f"{name}  (axis:" in out
     assert "bin-yellow-purple  [. x x x]  composition" in out
+    assert "  from state, pnp-red-block and pnp-blue-block are one task" in out
+    assert out.count("are one task") == 2  # BinPnP and PnPBlock
 
 
 @pytest.mark.parametrize(
