@@ -96,7 +96,7 @@ def state_note(config: dict) -> str | None:
 
 
 def curriculum_notes(config: dict) -> list[str]:
-    """The note lines `ccfit run` and `ccfit sweep` print before training (`budget_note`,
+    """The note lines `ccfit run`, `fit` and `sweep` print before training (`budget_note`,
     `state_note`)."""
     return [note for note in (budget_note(config), state_note(config)) if note is not None]
 
