@@ -9,7 +9,8 @@ from __future__ import annotations
 
 COMMIT = "$Format:%H$"
 DESCRIBE = "$Format:%(describe:tags)$"
-"""`git describe --tags` at archive time: empty where no tag is reachable."""
+"""`git describe --tags` at archive time: empty where no tag is reachable, left as written by
+a git older than 2.32."""
 SHORT = "$Format:%h$"
 
 
@@ -17,4 +18,5 @@ def archived_commit() -> dict | None:
     """{'describe', 'commit'} as `git archive` wrote them, or None in a tree it did not make."""
     if COMMIT.startswith("$Format"):
         return None
-    return {"describe": DESCRIBE or SHORT, "commit": COMMIT}
+    described = DESCRIBE and not DESCRIBE.startswith("$Format")
+    return {"describe": DESCRIBE if described else SHORT, "commit": COMMIT}

@@ -168,9 +168,8 @@ def _state_text(suite) -> str:
         return ""
     return (
         f"\n\nFrom the `state` observation, {suite.same_from_state_text('`')} are one task: "
-        "they differ only in "
-        "colours, which the state does not hold (the same observations and rewards along the "
-        "same actions). Their difference is in the images alone."
+        "they differ only in colours, which the state does not hold (the same observations and "
+        "rewards along the same actions). Their difference is in the images alone."
     )
 
 
