@@ -19,13 +19,13 @@
 # update_rate.err (the tool brings back 8 files at most); the last lines printed summarise.
 # The official TD-MPC2 with compile=true on the same GPU (issue 19's anchor) is not part of
 # this script: its code is not ours to carry in the repository (on 2026-11-27 a scratch harness
-# timed it in the same call; README, "On a GPU").
+# timed it in the same call; docs/performance.md, "On a GPU").
 set -uo pipefail
 cd "$(dirname "$0")/.."
 WHEELS=(draccus mergedeep toml typing-inspect mujoco metaworld gymnasium farama-notifications
         glfw pyopengl dill pytz)
 GL_DEBS=(libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
-# Measured on an H200 on 2026-11-27: TD-MPC2 eager and graphs, DreamerV3 eager (README). Next:
+# Measured on an H200 on 2026-11-27: TD-MPC2 eager and graphs, DreamerV3 eager (docs/performance.md). Next:
 # what would decide `compile_pays` on CUDA and the paper preset's bf16, and `graphs` again
 # as the loop now runs it (outputs copied).
 BENCH_ORDER=("tdmpc2 compiled" "tdmpc2 graphs" "tdmpc2 auto-bf16" "tdmpc2 graphs-bf16"

@@ -71,7 +71,7 @@ def budget_note(config: dict) -> str | None:
     return (
         f"{model} has no measured {preset!r} budget for {suite} from {config['obs']} "
         f"(measured from state: {', '.join(budgets)}); each task trains the preset's "
-        f"{steps} steps, which may not learn it (README, learnability table; "
+        f"{steps} steps, which may not learn it (docs/learnability.md; "
         "--train.steps sets them)"
     )
 

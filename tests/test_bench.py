@@ -1,5 +1,5 @@
 """The benchmark scripts still run and report what they say they report (their figures are
-quoted in the README; a script that rotted would leave those figures unreproducible)."""
+quoted in docs/performance.md; a script that rotted would leave those figures unreproducible)."""
 
 from __future__ import annotations
 

@@ -32,7 +32,7 @@ class ModelConfig(ChoiceConfig, draccus.ChoiceRegistry):
     task of the suite to be learnt from state (measured with `ccfit learnability`): the steps
     per task, and where a suite needs them, e.g. demonstrations oversampled or a replay that
     holds the whole task. Where a task is not learnt within 100 000 steps, what the suite's
-    other tasks need (the README's learnability table names such tasks). A state curriculum
+    other tasks need (docs/learnability.md names such tasks). A state curriculum
     of the suite at the preset uses them unless the command line says otherwise; pixel runs
     keep the preset's (nothing measured there yet). A subclass does not inherit its parent's
     budgets unless it says so."""
