@@ -3,11 +3,15 @@ report over them, so a repository can ship its numbers without checkpoints or re
 
     ccfit publish ../runs/reach-tdmpc2 --out results/online/reach-tdmpc2
 
-Every finished run under RUNS (a folder with metrics.json) keeps its configuration, metrics,
-per-evaluation records and cost; its from-scratch reference keeps the same. The copy has the
-sweep's layout (runs beside `scratch/`), so `ccfit report DEST` finds everything and rebuilds
-`DEST/report` byte for byte from the copied files alone. Anything large is refused rather than
-silently committed.
+    ccfit publish ../runs/learn --out results/learnability
+
+Every finished curriculum under RUNS (a folder with metrics.json) keeps its configuration,
+metrics, per-evaluation records and cost; its from-scratch reference keeps the same. The copy
+has the sweep's layout (runs beside `scratch/`), so `ccfit report DEST` finds everything and
+rebuilds `DEST/report` byte for byte from the copied files alone. Every finished single-task
+run (`ccfit train`) keeps the same files, and `DEST/learnability` holds `ccfit learnability`'s
+tables over the published ones: the steps each task needed, from which the per-suite budgets
+were set. Anything large is refused rather than silently committed.
 """
 
 from __future__ import annotations
@@ -16,6 +20,8 @@ import shutil
 from pathlib import Path
 
 from ccdata.errors import InputError
+from ccfit.analysis.learnability import finished_task_runs, write_learnability
+from ccfit.curriculum import METRICS_JSON
 from ccfit.report import find_runs, scratch_dir_of, write_report
 from ccfit.sweep.grid import SCRATCH, SCRATCH_DONE, SWEEP_JSON
 
@@ -24,22 +30,41 @@ RUN_FILES = ("config.json", "metrics.json", "metrics.jsonl", "cost.json", "routi
 SCRATCH_FILES = ("config.json", SCRATCH_DONE, "metrics.jsonl", "cost.json")
 MAX_FILE_BYTES = 2_000_000
 """A published file larger than this is refused: results are for small files only."""
+TASK_RUN_FILES = ("config.json", "metrics.jsonl", "cost.json")
+"""What a published single-task run keeps: all that `ccfit learnability` reads."""
 REPORT = "report"
+LEARNABILITY = "learnability"
 
 
 def publish(runs: Path, out: Path) -> list[Path]:
-    """Copy the small files of every finished run under `runs` (and of its from-scratch
-    reference) to `out`, keeping paths relative to `runs`; write `out/report`. Returns the
-    files written."""
+    """Copy the small files of every finished run under `runs` (a curriculum's with its
+    from-scratch reference's) to `out`, keeping paths relative to `runs`; write `out/report`
+    over the curricula and `out/learnability` over the single-task runs. Returns the files
+    written."""
+    if not runs.is_dir():
+        raise InputError(f"no such run folder: {runs}")
+    curricula = find_runs([runs]) if any(runs.rglob(METRICS_JSON)) else []
+    task_runs = finished_task_runs(runs)
+    if not curricula and not task_runs:
+        raise InputError(f"no finished runs under {runs}: neither a curriculum (with "
+                         f"metrics.json) nor a finished `ccfit train` run")  # fmt: skip
     written = []
-    for run in find_runs([runs]):
+    for run in curricula:
         rel = run.path.resolve().relative_to(runs.resolve())
         written += _copy(run.path, out / rel, RUN_FILES)
         scratch = scratch_dir_of(run.path, run.metrics)
         written += _copy(scratch, out / rel.parent / SCRATCH / scratch.name, SCRATCH_FILES)
+    published = [out / run.resolve().relative_to(runs.resolve()) for run in task_runs]
+    for run, dst in zip(task_runs, published, strict=True):
+        written += _copy(run, dst, TASK_RUN_FILES)
     if (runs / SWEEP_JSON).is_file():
         written += _copy(runs, out, (SWEEP_JSON,))
-    return sorted(set(written)) + _rewrite_report(out)
+    written = sorted(set(written))
+    if curricula:
+        written += _rewrite_report(out)
+    if task_runs:
+        written += write_learnability(finished_task_runs(out), out / LEARNABILITY)
+    return written
 
 
 def _rewrite_report(out: Path) -> list[Path]:

@@ -72,13 +72,13 @@ def test_first_steps_and_budgets_by_hand(tmp_path):
     _fake_run(tmp_path, "pnp-cube", "m", [0, 60], capacity=100_000, demo_fraction=0.25)
     row = read_run(sorted(tmp_path.glob("*cap100000"))[0])
     assert row["model"] == "m [demo_fraction=0.25, buffer_capacity=100000]"
-    # and runs cloning the demonstrations (a model setting)
+    # and runs cloning the demonstrations (a model setting, off in the preset's model)
     run = Path(row["run"])
     cfg = json.loads((run / "config.json").read_text())
-    cfg["model"]["demo_bc_coef"] = 0.5
+    cfg["model"] = {"type": "tdmpc2", "demo_bc_coef": 0.5}
     (run / "config.json").write_text(json.dumps(cfg))
     assert read_run(run)["model"] == (
-        "m [demo_fraction=0.25, buffer_capacity=100000, demo_bc_coef=0.5]"
+        "tdmpc2 [demo_fraction=0.25, buffer_capacity=100000, demo_bc_coef=0.5]"
     )
     # and runs from pixels, through a frozen encoder or not (the state budget is not theirs)
     for obs, encoder in (("pixels", "frozen:enc.safetensors"), ("pixels", None)):
@@ -130,6 +130,38 @@ def test_cli_on_a_real_smoke_run(tmp_path, capsys, short_episodes):
     md = (tmp_path / "out" / "learnability.md").read_text()
     assert "| Reach | reach-xy | tdmpc2 | 0 | 100 | 100 |" in md  # budget, trained
     assert main(["learnability", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 2
+    # Published: the run's small files, and the same tables rebuilt from them alone.
+    published = tmp_path / "results" / "learnability"
+    assert main(["publish", str(tmp_path / "runs"), "--out", str(published)]) == 0
+    files = sorted(str(p.relative_to(published)) for p in published.rglob("*") if p.is_file())
+    assert files == ["learnability/budgets.json", "learnability/learnability.csv",
+                     "learnability/learnability.md", "reach/config.json", "reach/cost.json",
+                     "reach/metrics.jsonl"]  # fmt: skip
+    for name in ("learnability.md", "learnability.csv", "budgets.json"):
+        assert (published / "learnability" / name).read_text() == (
+            tmp_path / "out" / name).read_text(), name  # fmt: skip
+    (tmp_path / "empty").mkdir()
+    capsys.readouterr()
+    assert main(["publish", str(tmp_path / "empty"), "--out", str(tmp_path / "p")]) == 2
+    assert "no finished runs under" in capsys.readouterr().err
+
+
+def test_a_run_off_its_presets_model_is_a_row_of_its_own(tmp_path):
+    # Another model size (or planner) learns another way: its row names the settings, as
+    # demonstrations oversampled do; a run at the preset's model is the plain row.
+    from ccfit.config import TaskRunConfig
+    from ccfit.config_parse import resolve
+
+    preset = resolve(TaskRunConfig, {"preset": "cpu", "obs": "state", "task": "reach-xy",
+                                     "model": {"type": "tdmpc2"}}).to_dict()  # fmt: skip
+    rows = {}
+    for name, change in [("plain", {}), ("wide", {"mlp_dim": 384, "num_samples": 512})]:
+        run = _fake_run(tmp_path / name, "reach-xy", "tdmpc2", [0, 90])
+        cfg = json.loads((run / "config.json").read_text())
+        cfg["model"] = {**preset["model"], **change}
+        (run / "config.json").write_text(json.dumps(cfg))
+        rows[name] = read_run(run)["model"]
+    assert rows == {"plain": "tdmpc2", "wide": "tdmpc2 [mlp_dim=384, num_samples=512]"}
 
 
 def test_a_damaged_run_is_one_line_and_exit_2(tmp_path, capsys):

@@ -2,7 +2,8 @@
 report's tables and orderings are rebuilt from the copied config.json / metrics files and
 compared byte for byte (`ccfit publish` wrote them; a hand edit or a stale table fails here), and
 so are `results/orderings.md` and `results/axes.md`, the orderings and the composition-axis
-table over every published run."""
+table over every published run, and each `learnability/` folder's tables over the single-task
+runs published beside it."""
 
 from __future__ import annotations
 
@@ -10,12 +11,15 @@ from pathlib import Path
 
 import pytest
 
+from ccfit.analysis.learnability import finished_task_runs, write_learnability
+from ccfit.publish import LEARNABILITY
 from ccfit.report import load_groups, write_report
 from ccfit.report_axes import AXES_MD, write_axes
 from ccfit.report_orderings import ORDERINGS_MD, write_orderings
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 REPORTS = sorted(p for p in RESULTS.rglob("report") if p.is_dir())
+LEARNABILITY_TABLES = sorted(p for p in RESULTS.rglob(LEARNABILITY) if p.is_dir())
 
 
 def test_results_hold_published_reports():
@@ -37,3 +41,16 @@ def test_the_orderings_over_all_results_match_them(tmp_path):
     groups = load_groups([RESULTS])
     for written in (write_orderings(groups, tmp_path), write_axes(groups, tmp_path)):
         assert written.read_text() == (RESULTS / written.name).read_text(), written.name
+
+
+def test_results_hold_published_learnability_tables():
+    assert LEARNABILITY_TABLES, f"no published learnability tables under {RESULTS}"
+
+
+@pytest.mark.parametrize("tables", LEARNABILITY_TABLES,
+                         ids=lambda p: str(p.parent.relative_to(RESULTS)))  # fmt: skip
+def test_committed_learnability_tables_match_the_runs_beside_them(tables, tmp_path):
+    runs = finished_task_runs(tables.parent)
+    assert runs, f"{tables} has no published single-task run beside it"
+    for written in write_learnability(runs, tmp_path):
+        assert written.read_text() == (tables / written.name).read_text(), written.name

@@ -2,9 +2,10 @@
 
 `ccfit learnability RUNS --out DIR` reads single-task runs (`ccfit train`, one per task, model
 and seed, long budgets, and the from-scratch references of curricula and sweeps; runs that
-learn another way, `RECIPE` and `MODEL_RECIPE` settings off their preset's values
-(demonstrations oversampled or cloned, another replay capacity), pixels or a frozen encoder,
-are rows of their own, their model named with the settings) and writes
+learn another way, `RECIPE` settings or any model setting off what their preset gives
+(demonstrations oversampled or cloned, another replay capacity or precision, another model
+size), pixels or a frozen encoder, are rows of their own, their model named with the settings)
+and writes
 `learnability.md` / `.csv`: per suite, task, model and seed, the first evaluated step
 whose normalised return reached 50 and 80, the first of `STEADY` evaluations in a row at 80 or
 more (`steady_80`: where `--train.stop_score=80` would end the run), the best and last score,
@@ -27,20 +28,22 @@ import math
 from pathlib import Path
 
 from ccdata.errors import InputError
-from ccfit.config import TrainConfig, stop_reached
+from ccfit.config import TaskRunConfig, TrainConfig, stop_reached
 from ccfit.config_base import LEGACY_VALUES
+from ccfit.config_parse import resolve
 from ccfit.curriculum import REFERENCE_DONE
 from ccfit.io import atomic_write_json, atomic_write_text, read_run_json
 from ccfit.train import CONFIG, METRICS
 from ccfit.train.cost import read_cost
 
 THRESHOLDS = (50, 80)
-RECIPE = ("demo_fraction", "buffer_capacity")
+RECIPE = ("demo_fraction", "buffer_capacity", "autocast")
 """`--train.*` settings that change how a task is learnt: a run with one of them off its
-preset's value is a row (and budget) of its own."""
+preset's value is a row (and budget) of its own. Every `--model.*` setting counts likewise
+(`_model_recipe`)."""
 MODEL_RECIPE = ("demo_bc_coef",)
-"""`--model.*` settings likewise, where the run's model has them; off is their value in every
-preset (`LEGACY_VALUES`)."""
+"""The `--model.*` settings compared where the preset's model cannot be rebuilt (a frozen
+encoder's sizes come from its file); off is their value in every preset (`LEGACY_VALUES`)."""
 PLATEAU = 5
 """Evaluations at the end of a run averaged into `last_5` (what the run ends at)."""
 STEADY = TrainConfig.stop_evals
@@ -73,6 +76,22 @@ def _preset_value(cfg: dict, setting: str):
         return legacy
     default = next(f.default for f in dataclasses.fields(TrainConfig) if f.name == setting)
     return TrainConfig.PRESETS.get(cfg["preset"], {}).get(setting, default)
+
+
+def _model_recipe(cfg: dict, task: str) -> list[str]:
+    """`name=value` of each model setting the run recorded off what its preset gives that model
+    for its task and observations (sizes, planner, cloning); a setting older configs lack ran
+    at its legacy value, the preset's."""
+    model = cfg["model"]
+    if cfg.get("encoder"):
+        off = {k: model.get(k, LEGACY_VALUES[f"model.{k}"]) for k in MODEL_RECIPE}
+        return [f"{k}={v}" for k, v in off.items() if v != LEGACY_VALUES[f"model.{k}"]]
+    if set(model) == {"type"}:
+        return []
+    choices = {k: cfg[k] for k in ("preset", "obs", "image_size") if k in cfg}
+    preset = resolve(TaskRunConfig, {**choices, "task": task, "model": {"type": model["type"]}})
+    given = preset.to_dict()["model"]
+    return [f"{k}={v}" for k, v in model.items() if k in given and given[k] != v]
 
 
 def read_run(run: Path) -> dict | None:
@@ -111,11 +130,7 @@ def read_run(run: Path) -> dict | None:
         for k in RECIPE
         if cfg["train"].get(k, _preset_value(cfg, k)) != _preset_value(cfg, k)
     ]
-    recipe += [
-        f"{k}={cfg['model'][k]}"
-        for k in MODEL_RECIPE
-        if cfg["model"].get(k, LEGACY_VALUES[f"model.{k}"]) != LEGACY_VALUES[f"model.{k}"]
-    ]
+    recipe += _model_recipe(cfg, task)
     if cfg.get("encoder"):  # through a frozen pretrained encoder: another problem to learn
         recipe.insert(0, "frozen encoder")
     if cfg.get("obs", "state") != "state":
@@ -135,6 +150,13 @@ def read_run(run: Path) -> dict | None:
         # A from-scratch reference trained in a worker records no cost.
         "cpu_hours": cost["cpu_s"] / 3600 if cost["segments"] else None, "run": str(run),
     }  # fmt: skip
+
+
+def finished_task_runs(root: Path) -> list[Path]:
+    """The finished single-task `ccfit train` runs under `root` (not a curriculum's from-scratch
+    references, which are published with their curricula)."""
+    found = sorted(p.parent for p in Path(root).rglob(CONFIG))
+    return [p for p in found if "task" in read_run_json(p / CONFIG) and read_run(p) is not None]
 
 
 def budgets(rows: list[dict]) -> dict:
