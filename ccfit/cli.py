@@ -12,8 +12,9 @@ Commands:
     sweep    a grid of runs (suites x models x methods x seeds), locally or on SLURM, and the
              report over them; again: submits only unfinished work; --status RUNS
     report   tables and plots over run directories (BWT / FWT per backbone, suite, method)
-    publish  finished runs' small files (config, metrics, cost) and the report over them, for
-             a results folder under version control
+    publish  finished runs' small files (config, metrics, cost) and the report over them (the
+             learnability tables over single-task runs), for a results folder under version
+             control
     learnability   steps each task needs (single-task runs) and the per-suite budgets
     ablate   a finished routed-model run's expert ablation on the composition task (Fig. 6)
     probe-encoder   whether a frozen encoder's latent gives each task's hand, objects and goal
@@ -226,9 +227,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_report)
 
     p = sub.add_parser("publish", help="copy finished runs' small files (config, metrics, "
-                       "cost) and write the report over them, for a results folder")  # fmt: skip
-    p.add_argument("runs", help="folder holding finished runs (e.g. a sweep's)")
-    p.add_argument("--out", required=True, help="results folder (its report/ is rewritten)")
+                       "cost) and write the report (curricula) or the learnability tables "
+                       "(single-task runs) over them, for a results folder")  # fmt: skip
+    p.add_argument("runs", help="folder holding finished runs (a sweep's, or `ccfit train` runs)")
+    p.add_argument(
+        "--out", required=True, help="results folder (its report/ and learnability/ are rewritten)"
+    )
     p.set_defaults(func=_cmd_publish)
 
     p = sub.add_parser("learnability", help="steps each task needs to reach 50 and 80, and the "
