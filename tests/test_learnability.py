@@ -6,7 +6,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ccfit.analysis.learnability import budgets, first_steady_at, first_step_at, read_run
+from ccfit.analysis.learnability import (
+    budgets,
+    first_steady_at,
+    first_step_at,
+    read_run,
+    write_learnability,
+)
 
 try:
     from short_episodes import smoke_train_argv
@@ -173,3 +179,19 @@ def test_a_damaged_run_is_one_line_and_exit_2(tmp_path, capsys):
     assert main(["learnability", str(tmp_path / "runs"), "--out", str(tmp_path / "out")]) == 2
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert "metrics.jsonl: missing or corrupt" in line and "leave it out of the table" in line
+
+
+def test_an_offline_reference_is_no_row(tmp_path):
+    # `ccfit learnability results/` meets the offline track's references too: they score
+    # predictions, not returns, so they are left out rather than read as online runs.
+    ref = tmp_path / "runs" / "scratch" / "offline-Reach-dreamerv3-state-cpu-s0"
+    ref.mkdir(parents=True)
+    (ref / "config.json").write_text(json.dumps({"track": "offline", "suite": "Reach",
+                                                 "seed": 0, "fit": {"updates": 100}}))  # fmt: skip
+    (ref / "done.json").write_text("[]")
+    (ref / "metrics.jsonl").write_text(json.dumps({"task": "reach-xyz", "global_step": 0,
+                                                   "score": -90.0}) + "\n")  # fmt: skip
+    _fake_run(tmp_path / "runs", "reach-xy", "m", [0, 90])
+    assert read_run(ref) is None
+    (path, *_) = write_learnability([tmp_path / "runs"], tmp_path / "out")
+    assert len(path.read_text().splitlines()) == 3  # header, rule, the online run's row

@@ -105,6 +105,8 @@ def read_run(run: Path) -> dict | None:
 
     cfg = read_run_json(config, leave_out="the table")
     records = read_run_json(metrics, lines=True, leave_out="the table")
+    if "train" not in cfg:  # the offline track's (`ccfit fit`): it scores predictions, not returns
+        return None
     task = cfg.get("task")
     if task is None and (run / REFERENCE_DONE).is_file() and records:
         task = records[0].get("task")
