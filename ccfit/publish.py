@@ -3,7 +3,7 @@ report over them, so a repository can ship its numbers without checkpoints or re
 
     ccfit publish ../runs/reach-tdmpc2 --out results/online/reach-tdmpc2
 
-    ccfit publish ../runs/learn --out results/learnability
+    ccfit publish ../runs/learn --out results/single-task
 
 Every finished curriculum under RUNS (a folder with metrics.json) keeps its configuration,
 metrics, per-evaluation records and cost; its from-scratch reference keeps the same. The copy
