@@ -54,9 +54,8 @@ def publish(runs: Path, out: Path) -> list[Path]:
         written += _copy(run.path, out / rel, RUN_FILES)
         scratch = scratch_dir_of(run.path, run.metrics)
         written += _copy(scratch, out / rel.parent / SCRATCH / scratch.name, SCRATCH_FILES)
-    published = [out / run.resolve().relative_to(runs.resolve()) for run in task_runs]
-    for run, dst in zip(task_runs, published, strict=True):
-        written += _copy(run, dst, TASK_RUN_FILES)
+    for run in task_runs:
+        written += _copy(run, out / run.resolve().relative_to(runs.resolve()), TASK_RUN_FILES)
     if (runs / SWEEP_JSON).is_file():
         written += _copy(runs, out, (SWEEP_JSON,))
     written = sorted(set(written))
