@@ -1,10 +1,21 @@
 """Shared pytest fixtures, and the order in which pytest-xdist hands out test files."""
 
+import atexit
 import functools
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
+
+# No test reads or writes the user's LeRobot cache: a suite dataset generated there for real
+# runs changes what `--seed_dataset auto` resolves to, and so a test's result (a dry-run sweep
+# over BinPnP passed only where BinPnP had been generated). Set before LeRobot is imported,
+# which reads it once; subprocesses inherit it. Tests that need a dataset make a tiny one.
+_LEROBOT_HOME = tempfile.mkdtemp(prefix="ccbench-tests-lerobot-")
+os.environ["HF_LEROBOT_HOME"] = _LEROBOT_HOME
+atexit.register(shutil.rmtree, _LEROBOT_HOME, ignore_errors=True)
 
 try:
     from hubserver import HubServer
