@@ -85,9 +85,10 @@ def test_compiled_hot_paths_compute_what_the_eager_ones_do(name, device="cpu", s
 
 
 # A cold Inductor cache (every CI machine) spends minutes compiling the dynamic-shape variants
-# of DreamerV3's and PWM's paths (353 s and 183 s on a 2-core EPYC; DreamerV3's 36 s warm):
-# those two run under `make test-slow`. TD-MPC2's (84 s cold) keeps the shared quantile path
-# in `make test`.
+# of DreamerV3's and PWM's paths (353 s and 183 s on a 2-core EPYC at the smoke preset's
+# unroll, DreamerV3's 36 s warm; 164 s and 138 s at SHORT_UNROLL's, their static graphs
+# cached): those two run under `make test-slow`. TD-MPC2's (84 s cold) keeps the shared
+# quantile path in `make test`.
 COLD_COMPILE_SLOW = {"dreamerv3", "pwm"}
 
 
