@@ -24,14 +24,37 @@ except ImportError:  # tests/ imported as a package
     from tests.replay_data import random_buffer
 
 
-SHORT_UNROLL = {"dreamerv3": dict(seq_len=4, horizon=2), "pwm": dict(seq_len=3, horizon=2)}
+SHORT_UNROLL = {
+    "dreamerv3": dict(seq_len=4, horizon=2),
+    "pwm": dict(seq_len=3, horizon=2),
+    "tdmpc2": dict(seq_len=2, horizon=1),
+}
 """Fewer unrolled steps than the smoke preset's: Dynamo unrolls the model's window and its
 imagination or plan, and with a cold Inductor cache (CI) code generation per step dominates.
 The compiled-equals-eager test below, cold, one process, 2-core EPYC: DreamerV3 208 -> 153 s,
-PWM 190 -> 154 s."""
+PWM 190 -> 154 s, TD-MPC2 162 -> 110 s."""
+
+FAST_INDUCTOR = {"tdmpc2"}
+"""Models whose hot paths `make test` compiles with Inductor, the backend runs use. Every model
+is checked there through 'aot_eager' (Dynamo's capture and AOTAutograd's forward and backward
+graphs, run eagerly: ~26 s per model), which is what capture alone can break; Inductor's code
+generation costs minutes per model with a cold cache (above), so the others' run under
+`make test-slow`. TD-MPC2's covers the layers PWM shares and Inductor's random numbers."""
 
 
-def _run(name: str, setting: str, device: str = "cpu", **overrides) -> dict:
+def _backends(fast_inductor: set[str], fast_capture: set[str]) -> list:
+    """(model, backend) for every model and both backends, 'aot_eager' and 'inductor': each
+    marked slow unless its model is in that backend's `fast_*` set."""
+    params = []
+    for name in model_names():
+        for backend, fast in (("aot_eager", fast_capture), ("inductor", fast_inductor)):
+            marks = () if name in fast else (pytest.mark.slow,)
+            params.append(pytest.param(name, backend, id=f"{name}-{backend}", marks=marks))
+    return params
+
+
+def _run(name: str, setting: str, device: str = "cpu", backend: str = "inductor",
+         **overrides) -> dict:  # fmt: skip
     """Two updates and two acts, the second warm-started from the first's state (setting
     "graphs" replays CUDA graphs: what a call keeps from the last one must survive)."""
     overrides = {**SHORT_UNROLL.get(name, {}), **overrides}
@@ -44,7 +67,7 @@ def _run(name: str, setting: str, device: str = "cpu", **overrides) -> dict:
     model = make_model(cfg, device)
     model.begin_task(0, 100)
     heads = model.new_heads()
-    assert compile_hot_paths(model, setting) == compiled_paths(
+    assert compile_hot_paths(model, setting, backend=backend) == compiled_paths(
         type(model), setting, torch.device(device)
     )
     opt, head_opts = model.world_model_optimizer(heads), model.head_optimizers(heads)
@@ -77,24 +100,20 @@ def _assert_same(compiled: dict, eager: dict) -> None:
         torch.testing.assert_close(compiled["params"][k], v, rtol=1e-3, atol=1e-4, msg=k)
 
 
-@pytest.mark.parametrize("name", model_names())
-def test_compiled_hot_paths_compute_what_the_eager_ones_do(name, device="cpu", setting="on"):
+@pytest.mark.parametrize("name, backend", _backends(FAST_INDUCTOR, set(model_names())))
+def test_compiled_hot_paths_compute_what_the_eager_ones_do(name, backend, device="cpu",
+                                                           setting="on"):  # fmt: skip
     if not model_class(name).hot_paths:
         pytest.skip(f"{name} declares no hot path")
-    _assert_same(_run(name, setting, device), _run(name, "off", device))
+    _assert_same(_run(name, setting, device, backend), _run(name, "off", device))
 
 
-# A cold Inductor cache (every CI machine) spends minutes compiling the dynamic-shape variants
-# of DreamerV3's and PWM's paths (353 s and 183 s on a 2-core EPYC at the smoke preset's
-# unroll, DreamerV3's 36 s warm; 164 s and 138 s at SHORT_UNROLL's, their static graphs
-# cached): those two run under `make test-slow`. TD-MPC2's (84 s cold) keeps the shared
-# quantile path in `make test`.
-COLD_COMPILE_SLOW = {"dreamerv3", "pwm"}
-
-
-@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n in COLD_COMPILE_SLOW
-                                  else n for n in model_names()])  # fmt: skip
-def test_one_process_compiles_models_of_two_sizes(name):
+# The dynamic-shape variants cost Inductor minutes more with a cold cache (DreamerV3 353 s and
+# PWM 183 s at the smoke preset's unroll, 164 s and 138 s at SHORT_UNROLL's): every model's run
+# under `make test-slow`; `make test` checks TD-MPC2's capture (the shared quantile path) with
+# 'aot_eager'.
+@pytest.mark.parametrize("name, backend", _backends(set(), {"tdmpc2"}))
+def test_one_process_compiles_models_of_two_sizes(name, backend):
     # Compiled code is shared by every instance of a class, so a second batch size makes
     # Dynamo trace the hot paths again with dynamic shapes: torch.quantile could not be
     # traced then, and DreamerV3's actor step (retain_graph) met a backward that had donated
@@ -103,7 +122,7 @@ def test_one_process_compiles_models_of_two_sizes(name):
         pytest.skip(f"{name} declares no hot path")
     size = config_class(name).preset("smoke").batch_size
     for batch_size in (size, size + 2):
-        _assert_same(_run(name, "on", batch_size=batch_size),
+        _assert_same(_run(name, "on", backend=backend, batch_size=batch_size),
                      _run(name, "off", batch_size=batch_size))  # fmt: skip
 
 

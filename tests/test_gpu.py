@@ -82,13 +82,13 @@ def test_killed_cuda_run_resumes_to_the_uninterrupted_result(method, tmp_path):
 
 @pytest.mark.parametrize("name", model_names())
 def test_compiled_equals_eager_on_cuda(name):
-    compiled(name, device="cuda")
+    compiled(name, "inductor", device="cuda")
 
 
 @pytest.mark.parametrize("name", model_names())
 def test_cuda_graphs_equal_eager(name):
     # What `bench/update_rate.py --modes graphs` times must compute the same function.
-    compiled(name, device="cuda", setting="graphs")
+    compiled(name, "inductor", device="cuda", setting="graphs")
 
 
 def test_update_rate_bench_on_cuda():

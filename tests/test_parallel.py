@@ -51,7 +51,9 @@ def serial(tmp_path_factory):
     return root
 
 
-@pytest.mark.parametrize("env_workers", ["auto", "2"])
+# Each variant is a whole 3-task curriculum (~1 min on 2 cores): those another test covers
+# run under `make test-slow`. Environments in worker processes are test_env_workers'.
+@pytest.mark.parametrize("env_workers", ["auto", pytest.param("2", marks=pytest.mark.slow)])
 def test_parallel_run_equals_the_serial_one(serial, tmp_path, env_workers):
     """'2': the evaluator's environments step in two processes of their own (started by the
     evaluation worker)."""
@@ -110,7 +112,10 @@ def test_killed_parallel_run_resumes_to_the_serial_result(serial, tmp_path):
     assert _outputs(out) == _outputs(serial / "run")
 
 
-@pytest.mark.parametrize("at", ["task-checkpoint", "curriculum-state"])
+# Stopped at a task's checkpoint, as the killed run above is (there at a time chosen by the
+# kill, here exactly): slow.
+@pytest.mark.parametrize("at", [pytest.param("task-checkpoint", marks=pytest.mark.slow),
+                                "curriculum-state"])  # fmt: skip
 def test_a_run_stopped_with_evaluations_in_flight_resumes_to_the_serial_result(
         serial, tmp_path, monkeypatch, at):  # fmt: skip
     # A checkpoint lists the evaluations still running at its step, and so does the

@@ -45,10 +45,14 @@ def check_compile_device(setting: str, device: torch.device) -> None:
                           "on")  # fmt: skip
 
 
-def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None = None) -> list[str]:
+def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None = None,
+                      backend: str = "inductor") -> list[str]:  # fmt: skip
     """Replace `model`'s hot methods by compiled ones (on the instance); returns their names.
     `paths`: these methods instead of those `setting` names (`bench/update_rate.py` times
-    them one by one to decide `compile_pays`)."""
+    them one by one to decide `compile_pays`). `backend`: Dynamo's backend for 'on';
+    'aot_eager' captures the same forward and backward graphs and runs them eagerly, without
+    Inductor's code generation (minutes per model with a cold cache), which is how the fast
+    tests check what capture alone can break."""
     names = compiled_paths(type(model), setting, model.device) if paths is None else paths
     graphs = setting == "graphs"
     if names:
@@ -70,7 +74,8 @@ def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None =
     for name in names:
         # Compile the class's function, bound to the model: compiling the bound method would
         # wrap every method in one shared code object, so all of them would share one limit.
-        fn = torch.compile(getattr(type(model), name), mode="reduce-overhead" if graphs else None)
+        how = {"mode": "reduce-overhead"} if graphs else {"backend": backend}
+        fn = torch.compile(getattr(type(model), name), **how)
         setattr(model, name, types.MethodType(outputs_copied(fn) if graphs else fn, model))
     return names
 
