@@ -149,10 +149,11 @@ def count_parameters(model, heads) -> dict[str, int]:
     return out
 
 
-def _median_times(fn, repeats: int, warmup: int,
-                  device: torch.device = CPU) -> dict[str, float]:  # fmt: skip
+def _median_times(fn, repeats: int, warmup: int, device: torch.device = CPU,
+                  budget_s: float | None = None) -> dict[str, float]:  # fmt: skip
     """Medians of `repeats` calls after `warmup`; on CUDA each call's time includes waiting
-    for the work it queued (a call returns before the device has done it)."""
+    for the work it queued (a call returns before the device has done it). `budget_s`: stop
+    timing once the timed calls took this long, after three at least."""
 
     def call() -> None:
         fn()
@@ -167,6 +168,8 @@ def _median_times(fn, repeats: int, warmup: int,
         call()
         wall.append(time.perf_counter() - w0)
         cpu.append(time.process_time() - c0)
+        if budget_s is not None and len(wall) >= 3 and sum(wall) > budget_s:
+            break
     return {"wall": statistics.median(wall), "cpu": statistics.median(cpu)}
 
 
@@ -280,12 +283,15 @@ def matmul_peak_gflop_per_s(device: torch.device = CPU,
                             repeats: int = 20) -> dict[str, float]:  # fmt: skip
     """`device`'s matmul rate in `dtype` (on a CPU at the current thread count), for square
     products of a few sizes: the roof an update made of matmuls cannot pass (median per
-    size). Random operands: zeros multiply faster on some hardware."""
+    size). Random operands: zeros multiply faster on some hardware. At most about two seconds
+    of timed calls per size: a CPU without bf16 instructions emulates them at ~1 GFLOP/s, and
+    its bf16 peak at 20 + 3 products per size took 62 s of a 1-thread run (2-core EPYC)."""
     rates = {}
     sizes = (1024, 4096, 8192) if device.type == "cuda" else (256, 512, 1024)
     for n in sizes:
         a, b = (torch.randn(n, n, device=device, dtype=dtype) for _ in range(2))
-        t = _median_times(lambda a=a, b=b: torch.mm(a, b), repeats, 3, device)["wall"]
+        t = _median_times(lambda a=a, b=b: torch.mm(a, b), repeats, 1, device,
+                          budget_s=2.0)["wall"]  # fmt: skip
         rates[str(n)] = 2 * n**3 / t / 1e9
     return rates
 
