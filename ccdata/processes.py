@@ -16,6 +16,7 @@ reference, a sweep's local jobs).
 from __future__ import annotations
 
 import os
+import pickle
 import select
 import signal
 import threading
@@ -124,10 +125,37 @@ def worker_pool(max_workers: int, initializer: Callable | None = None, initargs:
     """A pool of spawned worker processes that end with this process. A worker of a plain pool
     outlives a parent killed by a signal (no clean-up runs) and waits forever, idle, or goes on
     computing beside the parent's successor; these die with it (`die_with`), then run
-    `initializer(*initargs)`. `kwargs`: `ProcessPoolExecutor`'s."""
-    return ProcessPoolExecutor(max_workers, mp_context=get_context("spawn"),
-                               initializer=_die_with_then,
-                               initargs=(os.getpid(), initializer, initargs), **kwargs)  # fmt: skip
+    `initializer(*initargs)`. What a job raises comes back whole where it can (`_Reported`).
+    `kwargs`: `ProcessPoolExecutor`'s."""
+    return _Pool(max_workers, mp_context=get_context("spawn"), initializer=_die_with_then,
+                 initargs=(os.getpid(), initializer, initargs), **kwargs)  # fmt: skip
+
+
+class _Pool(ProcessPoolExecutor):
+    def submit(self, fn, /, *args, **kwargs):
+        return super().submit(_Reported(fn), *args, **kwargs)
+
+
+class _Reported:
+    """`fn` run in a worker, with what it raises sent back to the caller. An exception that
+    cannot be pickled (Inductor's errors hold closures) would come back as the pickling error
+    instead ("cannot pickle 'cell' object": all a sweep's summary of a failed run said of a C++
+    compile error): it comes back as a RuntimeError of one line, its type and the first line
+    of its message; the whole of it is in the worker's traceback, the RuntimeError's cause."""
+
+    def __init__(self, fn: Callable) -> None:
+        self.fn = fn
+
+    def __call__(self, *args, **kwargs):
+        try:
+            return self.fn(*args, **kwargs)
+        except Exception as err:
+            try:
+                pickle.loads(pickle.dumps(err))  # some unpickle only with other arguments
+            except Exception:
+                first = next(iter(str(err).strip().splitlines()), "")
+                raise RuntimeError(f"{type(err).__name__}: {first}") from err
+            raise
 
 
 def _die_with_then(parent: int, initializer: Callable | None, initargs: tuple) -> None:

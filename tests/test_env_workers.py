@@ -162,3 +162,34 @@ def _alive(pid: int) -> bool:
             return f.read().split(")")[-1].split()[0] != "Z"
     except FileNotFoundError:
         return False
+
+
+class _HoldsAClosure(Exception):
+    """An exception that cannot be pickled, as Inductor's errors cannot."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(f"{message}\n\nCommand: g++ ...")
+        self.hook = lambda: message
+
+
+def _fail(picklable: bool) -> None:
+    if picklable:
+        raise ValueError("a plain failure")
+    raise _HoldsAClosure("C++ compile error")
+
+
+def test_what_a_pooled_job_raises_comes_back_named():
+    # An evaluation worker's Inductor error came back as "cannot pickle 'cell' object", and
+    # a sweep's summary of the failed run said only that.
+    from ccdata.processes import worker_pool
+
+    pool = worker_pool(1)
+    try:
+        with pytest.raises(RuntimeError, match=r"^_HoldsAClosure: C\+\+ compile error$") as err:
+            pool.submit(_fail, False).result()
+        assert "in _fail" in str(err.value.__cause__)  # the worker's traceback, whole
+        assert "Command: g++" in str(err.value.__cause__)
+        with pytest.raises(ValueError, match="^a plain failure$"):
+            pool.submit(_fail, True).result()
+    finally:
+        pool.shutdown()
