@@ -132,6 +132,8 @@ def worker_pool(max_workers: int, initializer: Callable | None = None, initargs:
 
 
 class _Pool(ProcessPoolExecutor):
+    """A `ProcessPoolExecutor` whose jobs run as `_Reported`."""
+
     def submit(self, fn, /, *args, **kwargs):
         return super().submit(_Reported(fn), *args, **kwargs)
 

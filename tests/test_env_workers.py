@@ -172,9 +172,18 @@ class _HoldsAClosure(Exception):
         self.hook = lambda: message
 
 
-def _fail(picklable: bool) -> None:
-    if picklable:
+class _NeedsTwoArguments(Exception):
+    """An exception that pickles but unpickles only with other arguments than its message."""
+
+    def __init__(self, what: str, why: str) -> None:
+        super().__init__(f"{what} failed: {why}")
+
+
+def _fail(how: str) -> None:
+    if how == "plain":
         raise ValueError("a plain failure")
+    if how == "two arguments":
+        raise _NeedsTwoArguments("the merge", "disk full")
     raise _HoldsAClosure("C++ compile error")
 
 
@@ -186,10 +195,12 @@ def test_what_a_pooled_job_raises_comes_back_named():
     pool = worker_pool(1)
     try:
         with pytest.raises(RuntimeError, match=r"^_HoldsAClosure: C\+\+ compile error$") as err:
-            pool.submit(_fail, False).result()
+            pool.submit(_fail, "closure").result()
         assert "in _fail" in str(err.value.__cause__)  # the worker's traceback, whole
         assert "Command: g++" in str(err.value.__cause__)
+        with pytest.raises(RuntimeError, match="^_NeedsTwoArguments: the merge failed: disk full$"):
+            pool.submit(_fail, "two arguments").result()
         with pytest.raises(ValueError, match="^a plain failure$"):
-            pool.submit(_fail, True).result()
+            pool.submit(_fail, "plain").result()
     finally:
         pool.shutdown()

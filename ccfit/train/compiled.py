@@ -49,10 +49,10 @@ def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None =
                       backend: str = "inductor") -> list[str]:  # fmt: skip
     """Replace `model`'s hot methods by compiled ones (on the instance); returns their names.
     `paths`: these methods instead of those `setting` names (`bench/update_rate.py` times
-    them one by one to decide `compile_pays`). `backend`: Dynamo's backend for 'on';
-    'aot_eager' captures the same forward and backward graphs and runs them eagerly, without
-    Inductor's code generation (minutes per model with a cold cache), which is how the fast
-    tests check what capture alone can break."""
+    them one by one to decide `compile_pays`). `backend`: Dynamo's backend for every setting
+    but 'graphs' (Inductor's CUDA graphs); 'aot_eager' captures the same forward and backward
+    graphs and runs them eagerly, without Inductor's code generation (minutes per model with a
+    cold cache), which is how the fast tests check what capture alone can break."""
     names = compiled_paths(type(model), setting, model.device) if paths is None else paths
     graphs = setting == "graphs"
     if names:
