@@ -84,6 +84,9 @@ def test_closed_form_mish_equals_torch_mish_in_value_and_gradient():
         torch.testing.assert_close(ours, ref, rtol=tol, atol=tol)
         g_ours, g_ref = (torch.autograd.grad(y.sum(), xd)[0] for y in (ours, ref))
         torch.testing.assert_close(g_ours, g_ref, rtol=tol, atol=tol)
+        with torch.no_grad():  # no autograd Function there; the same arithmetic
+            assert torch.equal(mish(xd), ours.detach())
+        assert torch.equal(mish(xd.detach()), ours.detach())
     tail = torch.tensor([-30.0, -15.0, -8.0])  # relative accuracy where the value is ~x e^x
     torch.testing.assert_close(mish(tail), torch.nn.functional.mish(tail), rtol=1e-5, atol=0)
     half = torch.linspace(-8, 30, 500, dtype=torch.float16)
