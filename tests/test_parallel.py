@@ -52,8 +52,10 @@ def serial(tmp_path_factory):
 
 
 # Each variant is a whole 3-task curriculum (~1 min on 2 cores): those another test covers
-# run under `make test-slow`. Environments in worker processes are test_env_workers'.
-@pytest.mark.parametrize("env_workers", ["auto", pytest.param("2", marks=pytest.mark.slow)])
+# run under `make test-slow`. The killed run below ends as the serial one with the default
+# 'auto'; environments in worker processes are test_env_workers'.
+@pytest.mark.slow
+@pytest.mark.parametrize("env_workers", ["auto", "2"])
 def test_parallel_run_equals_the_serial_one(serial, tmp_path, env_workers):
     """'2': the evaluator's environments step in two processes of their own (started by the
     evaluation worker)."""
@@ -110,6 +112,11 @@ def test_killed_parallel_run_resumes_to_the_serial_result(serial, tmp_path):
                           timeout=600)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
     assert _outputs(out) == _outputs(serial / "run")
+    (ours,), (theirs,) = (list(d.glob("*/done.json")) for d in (tmp_path / "scratch",
+                                                                 serial / "scratch"))  # fmt: skip
+    assert ours.read_text() == theirs.read_text()
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["train"]["parallel"] == "on" and saved["train"]["env_workers"] == "auto"
 
 
 # Stopped at a task's checkpoint, as the killed run above is (there at a time chosen by the
