@@ -58,6 +58,9 @@ from ccfit.report_plots import (
 )
 from ccfit.train import CONFIG, METRICS
 
+SUMMARY_JSON = "summary.json"
+"""Every report's summary: its groups' metrics (numbers, what the tables print)."""
+
 __all__ = [
     "METHOD_ORDER",
     "PER_SEED",
@@ -423,7 +426,7 @@ def write_report(paths: list[Path], out: Path) -> list[Path]:
         written += pngs
         if where != out and not any(where.iterdir()):
             where.rmdir()
-    path = out / "summary.json"
+    path = out / SUMMARY_JSON
     atomic_write_text(path, json.dumps(summary, indent=2) + "\n")
     return written + [path]
 

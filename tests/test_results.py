@@ -16,10 +16,13 @@ from ccfit.publish import LEARNABILITY
 from ccfit.report import load_groups, write_report
 from ccfit.report_axes import AXES_MD, write_axes
 from ccfit.report_orderings import ORDERINGS_MD, write_orderings
+from ccfit.sweep.grid import SWEEP_JSON
+from ccfit.sweep.status import sweep_status
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 REPORTS = sorted(p for p in RESULTS.rglob("report") if p.is_dir())
 LEARNABILITY_TABLES = sorted(p for p in RESULTS.rglob(LEARNABILITY) if p.is_dir())
+SWEEPS = sorted(p.parent for p in RESULTS.rglob(SWEEP_JSON))
 
 
 def test_results_hold_published_reports():
@@ -54,3 +57,14 @@ def test_committed_learnability_tables_match_the_runs_beside_them(tables, tmp_pa
     assert runs, f"{tables} has no published single-task run beside it"
     for written in write_learnability(runs, tmp_path):
         assert written.read_text() == (tables / written.name).read_text(), written.name
+
+
+@pytest.mark.parametrize("root", SWEEPS, ids=lambda p: str(p.relative_to(RESULTS)))
+def test_sweep_status_reads_every_published_run_and_report_as_done(root):
+    # What a published folder holds is done; what its sweep had not finished is not there.
+    status = sweep_status(root)
+    assert status.pop("report")["state"] == "done"
+    runs = {name: s["state"] for name, s in status.items() if name.startswith("run:")}
+    published = {f"run:{p.parent.name}" for p in root.glob("*/metrics.json")}
+    assert published and published <= set(runs)
+    assert {name for name, state in runs.items() if state == "done"} == published

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from ccdata.slurm import check_slurm, job_states
 from ccfit.config_base import suite_tasks
+from ccfit.report import SUMMARY_JSON
 from ccfit.sweep.grid import REPORT, STATUS_JSON, Sweep, load_sweep
 from ccfit.train.records import METRICS
 
@@ -32,8 +33,10 @@ def units(sweep: Sweep) -> dict[str, tuple[bool, Path, int | None]]:
            for k, c in sweep.scratch_configs().items()}  # fmt: skip
     out.update({f"run:{r.name}": (sweep.run_done(r), sweep.run_dir(r), _total_steps(r.config))
                 for r in sweep.runs})  # fmt: skip
-    # The report's own lines list its gaps.
-    out["report"] = ((sweep.root / REPORT / STATUS_JSON).is_file(), sweep.root / REPORT, None)
+    # The report's own lines list its gaps. One that `ccfit report` or `ccfit publish` wrote
+    # (a published folder's) has no status.json, the sweep's report job's: its summary is there.
+    report = sweep.root / REPORT
+    out["report"] = (any((report / f).is_file() for f in (STATUS_JSON, SUMMARY_JSON)), report, None)
     return out
 
 
