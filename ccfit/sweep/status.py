@@ -33,8 +33,8 @@ def units(sweep: Sweep) -> dict[str, tuple[bool, Path, int | None]]:
            for k, c in sweep.scratch_configs().items()}  # fmt: skip
     out.update({f"run:{r.name}": (sweep.run_done(r), sweep.run_dir(r), _total_steps(r.config))
                 for r in sweep.runs})  # fmt: skip
-    # The report's own lines list its gaps. One that `ccfit report` or `ccfit publish` wrote
-    # (a published folder's) has no status.json, the sweep's report job's: its summary is there.
+    # The report's own lines list its gaps. Only the sweep's report job writes status.json; a
+    # report that `ccfit report` or `ccfit publish` wrote (a published folder's) has a summary.
     report = sweep.root / REPORT
     out["report"] = (any((report / f).is_file() for f in (STATUS_JSON, SUMMARY_JSON)), report, None)
     return out
