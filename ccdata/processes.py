@@ -155,9 +155,15 @@ class _Reported:
             try:
                 pickle.loads(pickle.dumps(err))  # some unpickle only with other arguments
             except Exception:
-                first = next(iter(str(err).strip().splitlines()), "")
-                raise RuntimeError(f"{type(err).__name__}: {first}") from err
+                raise RuntimeError(one_line(err)) from err
             raise
+
+
+def one_line(err: BaseException) -> str:
+    """An exception in one line: its type and its message's first line (later lines are
+    detail or hints: Inductor's last one says how to get more logs)."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    return f"{type(err).__name__}: {lines[0]}" if lines else type(err).__name__
 
 
 def _die_with_then(parent: int, initializer: Callable | None, initargs: tuple) -> None:

@@ -204,3 +204,14 @@ def test_what_a_pooled_job_raises_comes_back_named():
             pool.submit(_fail, "plain").result()
     finally:
         pool.shutdown()
+
+
+def test_an_error_in_one_line_is_its_type_and_first_line():
+    # What a sweep's summary says of a failed job: Inductor's errors end with a hint ("Set
+    # TORCHDYNAMO_VERBOSE=1 ..."), not the error.
+    from ccdata.processes import one_line
+
+    err = RuntimeError("CppCompileError: C++ compile error\n\nCommand:\ng++ ...\n\nSet X=1")
+    assert one_line(err) == "RuntimeError: CppCompileError: C++ compile error"
+    assert one_line(ValueError("\n  indented\n")) == "ValueError: indented"
+    assert one_line(ValueError()) == "ValueError"

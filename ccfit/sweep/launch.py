@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 
 from ccdata.errors import InputError
-from ccdata.processes import worker_pool
+from ccdata.processes import one_line, worker_pool
 from ccdata.slurm import SlurmSettings, active_jobs, check_array_size, submitting
 from ccfit.sweep.grid import SCRATCH, RunSpec, Sweep, write_record
 from ccfit.sweep.jobs import ReportJob, RunJob, ScratchJob, report_current
@@ -166,7 +166,7 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
                     j["state"] = "COMPLETED"
                     print(f"[{ended}/{total}] done {name}", flush=True)
                     continue
-                j.update(state="FAILED", error=job_error(exc))
+                j.update(state="FAILED", error=one_line(exc))
                 errors[name.split(":", 1)[1]] = j["error"]
                 log = log_dir / (name.replace(":", "-") + ".err")
                 log.parent.mkdir(parents=True, exist_ok=True)
@@ -276,10 +276,3 @@ def wait_report(entry: dict, timeout_s: float) -> None:
         if time.monotonic() > deadline:
             raise TimeoutError(f"report job {job} still queued after {timeout_s} s")
         time.sleep(2)
-
-
-def job_error(exc: BaseException) -> str:
-    """A failed job's error in one line: the exception's type and its message's first line
-    (later lines are detail or hints: Inductor's last line says how to get more logs)."""
-    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
-    return f"{type(exc).__name__}: {lines[0]}" if lines else type(exc).__name__
