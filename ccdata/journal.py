@@ -119,11 +119,13 @@ def finished_batches(paths: JournalPaths) -> dict[tuple[str, ...], Path]:
     }
 
 
-def chunks_of(keys: list[str]) -> list[list[str]]:
-    """The batches a run's episodes (in plan order) are merged in: consecutive runs of `GROUP`;
-    a shorter remainder is left to the final merge. Fixed by the run's episode list alone, so
-    the merge tree, and with it every byte of the result, does not depend on timing."""
-    return [keys[i : i + GROUP] for i in range(0, len(keys) - GROUP + 1, GROUP)]
+def chunks_of(keys: list[str], group: int | None = None) -> list[list[str]]:
+    """The batches a run's episodes (in plan order) are merged in: consecutive runs of `group`
+    (default `GROUP`); a shorter remainder is left to the final merge. Fixed by the run's
+    episode list alone, so the merge tree, and with it every byte of the result, does not
+    depend on timing."""
+    group = group or GROUP
+    return [keys[i : i + group] for i in range(0, len(keys) - group + 1, group)]
 
 
 def merge_batch(config: DatasetSettings, keys: list[str]) -> Path:
@@ -168,9 +170,8 @@ def merge_chunks(config: DatasetSettings, chunks: list[list[str]], finished) -> 
         merge_batch(config, keys)
 
 
-def _merger_main(
-    config: DatasetSettings, chunks: list[list[str]], order: list[str], finished, parent: int
-) -> None:
+def _merger_main(config: DatasetSettings, chunks: list[list[str]], order: list[str], finished,
+                 parent: int, group: int) -> None:  # fmt: skip
     import signal
 
     die_with(parent)
@@ -180,21 +181,21 @@ def _merger_main(
 
     merge_chunks(config, chunks, finished)
     finished.wait()  # merge_chunks returns early when it runs out of chunks
-    merge_pieces(config, order)
+    merge_pieces(config, order, group)
 
 
-def _aggregate(sources: list[Path], dst: Path, repo_id: str, scratch: Path) -> None:
-    """Merge finalized datasets, in order, into a new dataset at `dst` (grouped in a tree)."""
+def _aggregate(sources: list[Path], dst: Path, repo_id: str, scratch: Path, group: int) -> None:
+    """Merge finalized datasets, in order, into a new dataset at `dst` (in a tree of `group`s)."""
     from lerobot.datasets.aggregate import aggregate_datasets
 
     level = 0
-    while len(sources) > GROUP:
-        groups = [sources[i : i + GROUP] for i in range(0, len(sources), GROUP)]
+    while len(sources) > group:
+        groups = [sources[i : i + group] for i in range(0, len(sources), group)]
         merged = []
-        for g, group in enumerate(groups):
+        for g, members in enumerate(groups):
             out = scratch / f"level{level}-{g:05d}"
             shutil.rmtree(out, ignore_errors=True)
-            aggregate_datasets([repo_id] * len(group), repo_id, roots=group, aggr_root=out)
+            aggregate_datasets([repo_id] * len(members), repo_id, roots=members, aggr_root=out)
             merged.append(out)
         if level > 0:
             for s in sources:
@@ -203,9 +204,12 @@ def _aggregate(sources: list[Path], dst: Path, repo_id: str, scratch: Path) -> N
     aggregate_datasets([repo_id] * len(sources), repo_id, roots=sources, aggr_root=dst)
 
 
-def merge_pieces(config: DatasetSettings, order: list[str] | None = None) -> int:
+def merge_pieces(config: DatasetSettings, order: list[str] | None = None,
+                 group: int | None = None) -> int:  # fmt: skip
     """Merge the journal (batches and pieces) after the episodes already at the root; swap
-    atomically. `order`: the plan's keys, which fixes the episode order and the chunks.
+    atomically. `order`: the plan's keys, which fixes the episode order and the chunks;
+    `group`: datasets per merge (default `GROUP`; the merger process is handed its parent's,
+    so that the tree is the one the parent planned whichever process merges).
 
     Journal entries whose episodes are already at the root are dropped. Returns the episodes
     added."""
@@ -222,7 +226,8 @@ def merge_pieces(config: DatasetSettings, order: list[str] | None = None) -> int
     quiet_libraries()
     # Complete chunks the merger did not get to are batched here: the same tree either way.
     batched = {k for keys in batches for k in keys}
-    for keys in chunks_of([k for k in order or [] if k not in present]):
+    group = group or GROUP
+    for keys in chunks_of([k for k in order or [] if k not in present], group):
         if all(k in pieces and k not in batched for k in keys):
             batches[tuple(keys)] = merge_batch(config, keys)
             batched.update(keys)
@@ -249,7 +254,7 @@ def merge_pieces(config: DatasetSettings, order: list[str] | None = None) -> int
     scratch = paths.work / "merge"
     scratch.mkdir(parents=True, exist_ok=True)
     with faster_lerobot():
-        _aggregate(sources, paths.new, config.repo_id, scratch)
+        _aggregate(sources, paths.new, config.repo_id, scratch, group)
     shutil.rmtree(scratch, ignore_errors=True)
     from ccdata.cards import render_card
 
@@ -298,7 +303,7 @@ class Merger:
             target=_merger_main,
             name="ccdata-merger",
             daemon=True,
-            args=(config, chunks, order, self.finished, os.getpid()),
+            args=(config, chunks, order, self.finished, os.getpid(), GROUP),
         )
         self.starting = start_soon(self.process)
 

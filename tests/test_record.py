@@ -244,6 +244,7 @@ def test_a_failing_writer_is_raised_with_its_traceback(tmp_path):
         write_shard(cfg, plan(cfg)[:1], tmp_path / "not-a-directory" / "pieces")
 
 
+@pytest.mark.integration
 def test_a_killed_rollout_process_fails_the_generation_without_a_hang(tmp_path):
     """A rollout process killed (say by the OOM killer), maybe in the middle of sending an
     episode: the generation raises at once, leaves no process behind, and a rerun completes."""
@@ -287,6 +288,7 @@ def test_a_killed_rollout_process_fails_the_generation_without_a_hang(tmp_path):
     assert summary["episodes"] == 8 and verify_dataset(cfg.dataset_root) == []
 
 
+@pytest.mark.integration
 def test_the_generating_process_imports_neither_torch_nor_lerobot(tmp_path):
     """Writing and merging happen in the writer and merger processes; the process that rolls
     out (and that a user's script runs in) never pays the seconds of importing torch."""
