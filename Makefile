@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: install demo test test-slow bench lint clean
+.PHONY: install demo test test-integration test-slow bench lint clean
 
 # uv installs the ~3 GB of torch and CUDA wheels in half of pip's time (88 s against 186 s,
 # back to back on a 2-core machine with empty caches). Byte code is compiled at install: where
@@ -26,8 +26,12 @@ test: install
 	$(BIN)/ruff check . && $(BIN)/ruff format --check .
 	$(BIN)/python -m pytest -q -n auto --dist loadfile --durations=20
 
+# The whole runs `make test` leaves out (marked `integration`); CI runs them after it.
+test-integration: install
+	$(BIN)/python -m pytest -q -n auto --dist loadfile --durations=20 -m integration
+
 test-slow: install
-	$(BIN)/python -m pytest -q -m slow
+	$(BIN)/python -m pytest -q -n auto --dist loadfile -m slow
 
 bench: install
 	@for script in bench/*.py; do echo "== $$script"; $(BIN)/python $$script; done

@@ -13,7 +13,7 @@ import pytest
 
 import ccdata.env
 
-EPISODE_STEPS = 50
+EPISODE_STEPS = 25
 
 
 @contextlib.contextmanager

@@ -66,6 +66,7 @@ def pwm_run(tmp_path_factory):
 # ----------------------------------------------------------------------- routing record
 
 
+@pytest.mark.integration
 def test_routing_record_per_stage(pwm_run):
     records = read_routing(pwm_run)
     assert [r["stage"] for r in records] == list(range(TASKS))
@@ -82,6 +83,7 @@ def test_routing_record_per_stage(pwm_run):
             assert w.sum() == pytest.approx(1.0, abs=1e-5)
 
 
+@pytest.mark.integration
 def test_routing_record_reproduces_from_saved_run(pwm_run, short_episodes):
     """Replaying the last stage from curriculum.pt gives the record written during the run:
     the record depends only on the model state and the run's seed."""
@@ -93,6 +95,7 @@ def test_routing_record_reproduces_from_saved_run(pwm_run, short_episodes):
     assert json.loads(json.dumps(again)) == read_routing(pwm_run)[-1]
 
 
+@pytest.mark.integration
 def test_resume_of_finished_run_keeps_routing(pwm_run):
     before = (pwm_run / ROUTING).read_bytes()
     with shorter_episodes():  # the run's config (its episode length) as the fixture made it
@@ -153,6 +156,7 @@ def test_figure_data_known_answer():
     assert figure_data(records[:2], num_tasks=3)["top_expert"]["k"] is None  # not finished
 
 
+@pytest.mark.integration
 def test_figure_data_of_run(pwm_run):
     records = read_routing(pwm_run)
     data = figure_data(records, TASKS)
@@ -175,6 +179,7 @@ def test_figure_data_of_run(pwm_run):
         assert p["top_after"] == K * j + int(np.argmax(w[-1][K * j : K * (j + 1)]))
 
 
+@pytest.mark.integration
 def test_report_draws_routing_figure(pwm_run, tmp_path):
     import matplotlib.image
 
@@ -193,6 +198,7 @@ def test_report_draws_routing_figure(pwm_run, tmp_path):
 # ---------------------------------------------------------------------------- ablation
 
 
+@pytest.mark.integration
 def test_ablate_command(pwm_run, short_episodes, capsys):
     assert main(["ablate", str(pwm_run), "--episodes", "1"]) == 0
     assert "uniform" in capsys.readouterr().out
@@ -223,6 +229,7 @@ def test_ablate_command(pwm_run, short_episodes, capsys):
     assert modes["prior"]["latent_error"] != full["latent_error"]
 
 
+@pytest.mark.integration
 def test_ablate_errors(pwm_run, tmp_path, capsys):
     tdmpc2 = tmp_path / "tdmpc2"
     tdmpc2.mkdir()

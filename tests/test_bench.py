@@ -18,6 +18,7 @@ def update_rate(*args: str, timeout: float = 300) -> subprocess.CompletedProcess
                           capture_output=True, text=True, timeout=timeout, cwd=ROOT)  # fmt: skip
 
 
+@pytest.mark.integration
 def test_update_rate_times_every_model_and_mode_on_the_cpu():
     done = update_rate("--models", "tdmpc2,dreamerv3", "--presets", "smoke", "--variants",
                        "state", "--modes", "eager,bf16", "--repeats", "1", "--warmup", "0",
@@ -76,6 +77,7 @@ def test_inductor_threads_times_jobs_with_and_without_the_pin():
     assert report["ratio_default_over_pinned"] > 0
 
 
+@pytest.mark.integration
 def test_eval_workers_times_evaluations_here_and_in_workers():
     done = subprocess.run([sys.executable, str(ROOT / "bench" / "eval_workers.py"), "--preset",
                            "smoke", "--episodes", "2", "--workers", "0,1", "--repeats", "1",

@@ -63,6 +63,7 @@ def test_a_run_with_keep_stages_keeps_its_state_after_every_task(source):
     assert final["completed"] == 3
 
 
+@pytest.mark.integration
 def test_a_run_that_kept_stages_keeps_them_when_resumed_without_the_flag(source, tmp_path,
                                                                           monkeypatch):  # fmt: skip
     """Interrupted just after its first stage, then resumed without `keep_stages` (a sweep
@@ -103,6 +104,7 @@ def branches(source):
     return made
 
 
+@pytest.mark.integration
 def test_a_branch_with_the_sources_config_reproduces_the_source(source, branches):
     out, result = branches["same"].dir, branches["same"].result
     assert result == source.result
@@ -116,6 +118,7 @@ def test_a_branch_with_the_sources_config_reproduces_the_source(source, branches
     assert again == result
 
 
+@pytest.mark.integration
 def test_a_branch_with_other_method_options_changes_only_the_later_tasks(source, branches):
     out = branches["no-replay"].dir
     ours, theirs = _records(out), _records(source.dir)
@@ -175,6 +178,7 @@ def test_a_branch_needs_a_source_that_kept_its_stages_and_a_new_out(source, tmp_
     assert "missing or corrupt" in capsys.readouterr().err
 
 
+@pytest.mark.integration
 def test_the_report_keeps_a_branch_apart_from_its_source(source, branches):
     from ccfit.report import load_groups
 
@@ -184,6 +188,7 @@ def test_the_report_keeps_a_branch_apart_from_its_source(source, branches):
     assert any("resolved_branch.after=2" in v and "replay_ratio=0.0" in v for v in variants)
 
 
+@pytest.mark.integration
 def test_a_branch_start_killed_before_its_record_starts_again(source, branches, tmp_path):
     """What a start writes before branch.json (the state, the records) is written again."""
     out = tmp_path / "killed"
@@ -197,6 +202,7 @@ def test_a_branch_start_killed_before_its_record_starts_again(source, branches, 
     assert json.loads((out / BRANCH).read_text())["after"] == 1
 
 
+@pytest.mark.integration
 def test_er_without_replay_after_a_branch_trains_as_ft_does(source, tmp_path):
     """What `results/diagnostics/grasp_er_branch.py` relies on: ER with `replay_ratio` 0 from
     task K on is FT from there. ER's first task replays nothing, so a branch after it is FT."""

@@ -34,21 +34,24 @@ imagination or plan, and with a cold Inductor cache (CI) code generation per ste
 The compiled-equals-eager test below, cold, one process, 2-core EPYC: DreamerV3 208 -> 153 s,
 PWM 190 -> 154 s, TD-MPC2 162 -> 110 s."""
 
-FAST_INDUCTOR = {"tdmpc2"}
-"""Models whose hot paths `make test` compiles with Inductor, the backend runs use. Every model
-is checked there through 'aot_eager' (Dynamo's capture and AOTAutograd's forward and backward
-graphs, run eagerly: ~26 s per model), which is what capture alone can break; Inductor's code
-generation costs minutes per model with a cold cache (above), so the others' run under
-`make test-slow`. TD-MPC2's covers the layers PWM shares and Inductor's random numbers."""
+FAST = {"tdmpc2"}
+"""Models whose hot paths `make test` compiles through 'aot_eager' (Dynamo's capture and
+AOTAutograd's forward and backward graphs, run eagerly: ~20 s per model), which is what capture
+alone can break, and whose Inductor compile (the backend runs use; minutes with a cold cache, as
+on CI) runs after it (`integration`). TD-MPC2's covers the layers PWM shares and Inductor's
+random numbers. The other models' capture is `integration` too; their Inductor code generation
+costs minutes per model with a cold cache (above), so it runs under `make test-slow`."""
 
 
-def _backends(fast_inductor: set[str], fast_capture: set[str]) -> list:
-    """(model, backend) for every model and both backends, 'aot_eager' and 'inductor': each
-    marked slow unless its model is in that backend's `fast_*` set."""
+def _backends(fast_capture: set[str], later_inductor: set[str]) -> list:
+    """(model, backend) for every model and both backends: 'aot_eager' in `make test` for the
+    models of `fast_capture`, else `integration`; 'inductor' `integration` for the models of
+    `later_inductor`, else slow."""
     params = []
     for name in model_names():
-        for backend, fast in (("aot_eager", fast_capture), ("inductor", fast_inductor)):
-            marks = () if name in fast else (pytest.mark.slow,)
+        capture = () if name in fast_capture else (pytest.mark.integration,)
+        inductor = pytest.mark.integration if name in later_inductor else pytest.mark.slow
+        for backend, marks in (("aot_eager", capture), ("inductor", (inductor,))):
             params.append(pytest.param(name, backend, id=f"{name}-{backend}", marks=marks))
     return params
 
@@ -100,7 +103,7 @@ def _assert_same(compiled: dict, eager: dict) -> None:
         torch.testing.assert_close(compiled["params"][k], v, rtol=1e-3, atol=1e-4, msg=k)
 
 
-@pytest.mark.parametrize("name, backend", _backends(FAST_INDUCTOR, set(model_names())))
+@pytest.mark.parametrize("name, backend", _backends(FAST, FAST))
 def test_compiled_hot_paths_compute_what_the_eager_ones_do(name, backend, device="cpu",
                                                            setting="on"):  # fmt: skip
     if not model_class(name).hot_paths:
@@ -110,9 +113,9 @@ def test_compiled_hot_paths_compute_what_the_eager_ones_do(name, backend, device
 
 # The dynamic-shape variants cost Inductor minutes more with a cold cache (DreamerV3 353 s and
 # PWM 183 s at the smoke preset's unroll, 164 s and 138 s at SHORT_UNROLL's): every model's run
-# under `make test-slow`; `make test` checks TD-MPC2's capture (the shared quantile path) with
-# 'aot_eager'.
-@pytest.mark.parametrize("name, backend", _backends(set(), {"tdmpc2"}))
+# under `make test-slow`; TD-MPC2's capture (the shared quantile path) with 'aot_eager' after
+# `make test`.
+@pytest.mark.parametrize("name, backend", _backends(set(), set()))
 def test_one_process_compiles_models_of_two_sizes(name, backend):
     # Compiled code is shared by every instance of a class, so a second batch size makes
     # Dynamo trace the hot paths again with dynamic shapes: torch.quantile could not be
@@ -199,7 +202,10 @@ def test_a_compiled_plan_stays_compiled_over_the_variants_a_run_meets(caplog):
     assert not [r for r in caplog.records if "recompile_limit" in r.getMessage()]
 
 
-@pytest.mark.parametrize("name", [n for n in model_names() if "plan" in model_class(n).hot_paths])
+@pytest.mark.parametrize("name", [
+    pytest.param(n, marks=() if n in FAST else pytest.mark.integration)
+    for n in model_names() if "plan" in model_class(n).hot_paths
+])  # fmt: skip
 def test_acting_compiles_one_plan_per_mode_and_batch_kind(name):
     # What a run meets: training acts on one episode, from a cold start and then warm;
     # evaluation acts on a batch that shrinks as its episodes end (down to one), its acting

@@ -48,6 +48,9 @@ SUITE = "Grasp"
 TASKS = ("pick-cube", "place-cube", "pnp-cube")
 METHODS = ("ft", "er", "ewc", "packnet")
 STEPS, EVAL = 100, 100
+EPISODE_STEPS = 50
+"""Longer than the other tests' short episodes: at 25 steps no Grasp task scores above 0 by
+the end of its 100-step stage, and BWT (which counts the tasks learnt) would be vacuous."""
 TRAIN = {"steps": STEPS, "seed_steps": 50, "eval_interval": EVAL, "checkpoint_interval": 50}
 OPTIONS = {
     "ft": {},
@@ -136,7 +139,7 @@ def runs(tmp_path_factory):
     out = {}
     done_mtimes = []
     start = time.monotonic()
-    with shorter_episodes(), pytest.MonkeyPatch.context() as mp:
+    with shorter_episodes(EPISODE_STEPS), pytest.MonkeyPatch.context() as mp:
         mp.setattr(R, "ReplayBuffer", SpyBuffer)
         mp.setattr(C, "Trainer", SpyTrainer)
         mp.setattr(R, "Trainer", SpyTrainer)  # the scratch reference's
@@ -396,12 +399,13 @@ def test_each_task_trains_only_on_its_own_env_and_data(runs, method):
 # ============================================================================= resume
 
 
+@pytest.mark.integration
 def test_killed_run_resumes_to_the_uninterrupted_result(runs, tmp_path):
     """SIGKILL a `ccfit run` once task 1 has a checkpoint (task 0 finished), rerun the same
     command, and compare with the fixture's uninterrupted run of the same seed."""
     method = "packnet"
     out = tmp_path / "killed"
-    cmd = ccfit_command(_cli_argv(method, out, runs.scratch_root))
+    cmd = ccfit_command(_cli_argv(method, out, runs.scratch_root), EPISODE_STEPS)
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     ckpt = out / "tasks" / f"1-{TASKS[1]}" / "checkpoint.pt"
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -511,7 +515,7 @@ def test_a_foreign_or_old_run_state_is_one_line(runs, tmp_path, capsys, content)
     saved["out"] = str(out)
     (out / CONFIG).write_text(json.dumps(saved))
     argv = _cli_argv("ft", out, runs.scratch_root)
-    with shorter_episodes():
+    with shorter_episodes(EPISODE_STEPS):
         code = main(argv)
     err = capsys.readouterr().err
     assert code == 2 and len(err.strip().splitlines()) == 1, err
@@ -763,6 +767,7 @@ def test_report_table_frame_matches_runs(runs):
         table_frame(groups, "pwm")
 
 
+@pytest.mark.integration
 def test_results_notebook_runs_on_smoke_runs(runs, tmp_path, monkeypatch):
     import nbformat
     from nbclient import NotebookClient
@@ -785,6 +790,7 @@ def test_results_notebook_runs_on_smoke_runs(runs, tmp_path, monkeypatch):
 # ============================================================================= memory
 
 
+@pytest.mark.integration
 def test_a_tasks_replay_is_freed_before_the_next_task_allocates_its_own(tmp_path, monkeypatch):
     """Two tasks' replay rings never coexist (the memory check counts one): when the
     curriculum makes task i's buffer, nothing references an earlier task's buffer any more."""
@@ -806,11 +812,12 @@ def test_a_tasks_replay_is_freed_before_the_next_task_allocates_its_own(tmp_path
              "parallel": "off"}  # fmt: skip
     cfg = resolve(CurriculumConfig, {"suite": SUITE, "preset": "smoke", "seed_dataset": None,
                                      "train": train, "method": {"type": "ft"}})  # fmt: skip
-    with shorter_episodes():
+    with shorter_episodes(EPISODE_STEPS):
         Curriculum(cfg, tmp_path / "run", tmp_path / "scratch", progress=False).run()
     assert alive_when_making == [0] * len(TASKS)
 
 
+@pytest.mark.integration
 def test_the_reference_records_what_the_seed_dataset_held(tmp_path):
     """With a seed dataset, the from-scratch reference's config.json records the dataset's
     contents as the run's does (its key leaves them out, its record keeps them)."""
@@ -823,7 +830,7 @@ def test_the_reference_records_what_the_seed_dataset_held(tmp_path):
     out = tmp_path / "run"
     argv = ["run", "--suite", SUITE, "--preset", "smoke", "--seed_dataset", str(root), "--quiet",
             "--out", str(out), *(f"--train.{k}={v}" for k, v in TRAIN.items())]  # fmt: skip
-    with shorter_episodes():
+    with shorter_episodes(EPISODE_STEPS):
         assert main(argv) == 0
     run = json.loads((out / CONFIG).read_text())
     reference_dir = json.loads((out / C.METRICS_JSON).read_text())["scratch_dir"]
@@ -844,6 +851,7 @@ def _same_state(a: dict, b: dict) -> bool:
     )
 
 
+@pytest.mark.integration
 def test_kept_backbone_optimiser_state_crosses_tasks_and_a_stop_between_them(tmp_path, monkeypatch):
     """`--train.keep_backbone_optimizer`: each task's optimiser starts from the backbone's
     state where the last task left it; curriculum.pt holds it between tasks, so a run stopped
@@ -873,7 +881,7 @@ def test_kept_backbone_optimiser_state_crosses_tasks_and_a_stop_between_them(tmp
 
     monkeypatch.setattr(C, "Trainer", SpyTrainer)
     scratch = tmp_path / "scratch"
-    with shorter_episodes():
+    with shorter_episodes(EPISODE_STEPS):
         whole = Curriculum(cfg, tmp_path / "whole", scratch, progress=False).run()
         assert started[0] == {} and ended[0], "the first task starts fresh and trains"
         assert all(_same_state(s, e) for s, e in zip(started[1:], ended[:-1], strict=True))

@@ -182,12 +182,20 @@ def test_seed_buffer_preloads_the_tasks_episodes(tiny_dataset):
     assert random.num_demo_starts(2) == 0
 
 
+def _demo_fraction_argv(root) -> list[str]:
+    """`ccfit train` at the smoke preset for 200 steps, seeded from `root`, a quarter of each
+    batch on its demonstrations (no task, no out)."""
+    return ["train", "--preset", "smoke", "--seed_dataset", str(root), "--train.steps=200",
+            "--train.seed_steps=100", "--train.eval_interval=200", "--train.demo_fraction=0.25",
+            "--quiet"]  # fmt: skip
+
+
 def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
     tiny_dataset, tmp_path, capsys, monkeypatch
 ):
     """`--train.demo_fraction` trains with the seed dataset's oracle episodes oversampled (every
-    update's batch is drawn with it), also after online episodes overwrote them in the ring,
-    and records the setting; without demonstrations to oversample it is one line, exit 2."""
+    update's batch is drawn with it) and records the setting; without demonstrations to
+    oversample it is one line, exit 2."""
     from ccfit.cli import main
     from ccfit.seeding import demonstration_rows
 
@@ -199,9 +207,7 @@ def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
         return sample(self, batch_size, seq_len, demo_fraction)
 
     monkeypatch.setattr(ReplayBuffer, "sample", spy)
-    base = ["train", "--preset", "smoke", "--seed_dataset", str(root), "--train.steps=200",
-            "--train.seed_steps=100", "--train.eval_interval=200", "--train.demo_fraction=0.25",
-            "--quiet"]  # fmt: skip
+    base = _demo_fraction_argv(root)
     out = tmp_path / "xy"
     assert main([*base, "--task", "reach-xy", "--out", str(out)]) == 0
     saved = json.loads((out / "config.json").read_text())
@@ -211,12 +217,6 @@ def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
     assert (recorded["total_episodes"], recorded["repo_id"]) == (2, "ccdata/Reach")
     assert recorded["generated_with"]["suite"] == "Reach" and "lerobot" in recorded["versions"]
     assert len(fractions) >= 100 and set(fractions) == {0.25}  # smoke: 1 update per step
-    # A ring of one episode's rows: the online episodes overwrite the oracle's (failed before).
-    small = ["--train.buffer_capacity=251", "--train.steps=600", "--train.eval_interval=600"]
-    assert main([*base, *small, "--task", "reach-xy", "--out", str(tmp_path / "ring")]) == 0
-    meta = torch.load(tmp_path / "ring" / "checkpoint.pt", weights_only=False)["buffer"]
-    ((first, end),) = meta["demo_spans"].tolist()
-    assert first == 0 and meta["written"] - meta["capacity"] >= end  # every demo row overwritten
     assert main([*base, "--task", "reach-xyz", "--out", str(tmp_path / "xyz")]) == 2
     assert "holds no oracle episode of reach-xyz" in capsys.readouterr().err
     # Demonstrations shorter than one window (`demonstration_rows`: an upper bound).
@@ -229,6 +229,21 @@ def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
     assert "needs a seed dataset" in err and "or --train.demo_fraction=0" in err
     assert main([*base, "--task", "reach-xy", "--train.demo_fraction=1"]) == 2
     assert "train.demo_fraction must be in [0, 1)" in capsys.readouterr().err
+
+
+@pytest.mark.integration  # a 600-step run
+def test_demo_fraction_draws_demonstrations_the_ring_overwrote(tiny_dataset, tmp_path):
+    """A ring of one episode's rows: the online episodes overwrite the oracle's in the ring,
+    and training with `demo_fraction` goes on to the end (this failed before)."""
+    from ccfit.cli import main
+
+    root, _ = tiny_dataset
+    small = ["--train.buffer_capacity=251", "--train.steps=600", "--train.eval_interval=600"]
+    argv = [*_demo_fraction_argv(root), *small, "--task", "reach-xy"]
+    assert main([*argv, "--out", str(tmp_path / "ring")]) == 0
+    meta = torch.load(tmp_path / "ring" / "checkpoint.pt", weights_only=False)["buffer"]
+    ((first, end),) = meta["demo_spans"].tolist()
+    assert first == 0 and meta["written"] - meta["capacity"] >= end  # every demo row overwritten
 
 
 def test_demonstrations_are_kept_only_for_demo_fraction_and_counted_before_seeding(tiny_dataset):

@@ -113,6 +113,7 @@ def test_the_projects_readers_print_no_torchcodec_traceback(tiny_reach, caplog):
     assert "torchcodec" not in ours, ours
 
 
+@pytest.mark.integration
 def test_explore_notebook_runs_on_the_dataset(tiny_reach):
     nbformat = pytest.importorskip("nbformat")
     from nbclient import NotebookClient

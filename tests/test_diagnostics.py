@@ -82,6 +82,7 @@ READING = {"reward_abs_err", "Q_mean", "Q_pi_mean", "return_mean", "dynamics_rel
 """What `ccfit.analysis.reading` gives per policy."""
 
 
+@pytest.mark.integration
 def test_grasp_er_pick(made, monkeypatch, capsys):
     script = _script("grasp_er_pick")
     monkeypatch.setattr(script, "DATASET", str(made.dataset))
@@ -101,6 +102,7 @@ def test_grasp_er_pick(made, monkeypatch, capsys):
             assert all(len(v) == 3 and all(_finite(s) for s in v) for v in acting.values())
 
 
+@pytest.mark.integration
 def test_task_reading(made, capsys):
     script = _script("task_reading")
     out = json.loads(_run(script, [str(made.runs["tdmpc2"]), "--dataset", str(made.dataset)],
@@ -115,6 +117,7 @@ def test_task_reading(made, capsys):
         script.main([str(made.runs["dreamerv3"]), "--dataset", str(made.dataset)])
 
 
+@pytest.mark.integration
 def test_packnet_prune(made, monkeypatch, capsys):
     script = _script("packnet_prune")
     monkeypatch.setattr(script, "RETRAINING", (0, 2, 5))
@@ -131,6 +134,7 @@ def test_packnet_prune(made, monkeypatch, capsys):
         assert all(0.0 <= s <= 1.0 for s in p["success"])
 
 
+@pytest.mark.integration
 def test_dreamerv3_pick(made, monkeypatch, capsys):
     script = _script("dreamerv3_pick")
     monkeypatch.setattr(script, "DATASET", str(made.dataset))
@@ -143,6 +147,7 @@ def test_dreamerv3_pick(made, monkeypatch, capsys):
         assert out[policy]["reward_abs_err_per_step"] >= 0
 
 
+@pytest.mark.integration
 def test_stage_reached(made, capsys):
     script = _script("stage_reached")
     out = json.loads(_run(script, [str(made.runs["tdmpc2"]), "3"], capsys))
@@ -155,6 +160,7 @@ def test_stage_reached(made, capsys):
     assert not [key for key in out if key.startswith("steps_") and key != "steps_at_5_or_more"]
 
 
+@pytest.mark.integration
 def test_stage_reached_follows_the_lid_and_stage_flags_where_the_scene_has_them(made, capsys):
     out = json.loads(_run(_script("stage_reached"), [str(made.runs["box"]), "2"], capsys))
     assert out["task"] == "box-pnp-close"
@@ -168,6 +174,7 @@ def test_stage_reached_follows_the_lid_and_stage_flags_where_the_scene_has_them(
         assert all(0 <= k <= n for k, n in zip(out[flag], out["steps"], strict=True))
 
 
+@pytest.mark.integration
 def test_handover_lets_the_oracle_play_until_the_raw_reward_reaches_the_threshold(made, capsys):
     """The policy takes over where the oracle alone first reaches T on that layout (the same
     layout seed, the same 20-step episodes); T = 0 is the run alone; a T the oracle never
@@ -209,6 +216,7 @@ def test_handover_lets_the_oracle_play_until_the_raw_reward_reaches_the_threshol
         script.main([str(made.runs["tdmpc2"]), "--at", "a,b"])
 
 
+@pytest.mark.integration
 def test_handover_can_act_by_the_policy_alone(made, capsys, monkeypatch):
     """`--acting policy`: the run's policy's mean acts, the planner is never called."""
     import ccfit.models.tdmpc2.model as tdmpc2_model
@@ -227,6 +235,7 @@ def test_handover_can_act_by_the_policy_alone(made, capsys, monkeypatch):
         script.main([str(made.runs["dreamerv3"]), "--acting", "policy"])
 
 
+@pytest.mark.integration
 def test_grasp_er_branch(made, tmp_path, capsys):
     """An ER run that kept its stages, its branch without replay after task 2, and FT's."""
     source, branch = tmp_path / "er", tmp_path / "er-off"
@@ -261,6 +270,7 @@ def test_a_diagnostic_refuses_a_missing_run_in_one_line(name, tmp_path, capsys):
     assert err.count("\n") == 1
 
 
+@pytest.mark.integration
 def test_optimizer_state_pairs_the_arms_by_seed(made, tmp_path, capsys):
     """Two arms of one grid, with and without `keep_backbone_optimizer`: the first task agrees
     exactly (it starts fresh either way), every seed gets its paired differences."""

@@ -54,6 +54,7 @@ def encoder_path(tmp_path):
     return path
 
 
+@pytest.mark.integration
 def test_probe_reports_the_positions_each_task_varies(encoder_path, tmp_path, capsys):
     out = tmp_path / "probe"
     assert main(["probe-encoder", str(encoder_path), "--tasks", "reach-xy,reach-xyz",

@@ -38,6 +38,7 @@ def _play(envs, seeds, actions):
     return trace
 
 
+@pytest.mark.integration
 def test_remote_envs_render_and_step_as_local_ones(short_episodes):
     seeds = [3, 4, 5]
     rng = np.random.default_rng(0)
@@ -105,6 +106,7 @@ def test_env_workers_resolve(monkeypatch):
         TrainConfig(env_workers="many")
 
 
+@pytest.mark.integration
 def test_workers_end_with_a_killed_evaluating_process():
     """A run killed outright (SIGKILL: no cleanup) leaves no environment worker behind: each
     sees its pipe close and exits."""

@@ -118,7 +118,8 @@ def test_load_task_run_reads_a_finished_run_back(tmp_path):
         parse_cli(TaskRunConfig, ["--config_path", str(tmp_path / "none.json")])
 
 
-@pytest.mark.parametrize("parallel", ["off", "on"])
+# With the evaluations in a worker, after `make test` (test_parallel covers that worker).
+@pytest.mark.parametrize("parallel", ["off", pytest.param("on", marks=pytest.mark.integration)])
 def test_stop_score_ends_a_single_task_run_early_and_resumed_it_stays_ended(parallel, tmp_path):
     from ccfit.analysis.learnability import read_run
     from ccfit.train import train_single
@@ -196,7 +197,7 @@ def test_an_extended_run_stops_where_the_longer_run_stops(tmp_path):
 
 
 def test_a_run_killed_after_an_evaluation_resumes_without_logging_it_twice(tmp_path, monkeypatch):
-    """Wall-clock checkpoints due at every episode end (50-step episodes end at 50, 100, ...;
+    """Wall-clock checkpoints due at every episode end (25-step episodes end at 25, 50, ...;
     evaluations every 100 steps) and a kill right after the evaluation at step 100 was logged:
     the resumed run logs no evaluation twice and ends as the uninterrupted one (a checkpoint
     at step 100, before its evaluation, made the resumed run log it again). It resumes with
@@ -451,6 +452,7 @@ def test_pretrain_updates_run_once_on_the_runs_first_task_only(global_offset, bu
     assert min(updates_at) == (20 if burst else 21)
 
 
+@pytest.mark.integration
 def test_wandb_offline_logs_the_evaluations_and_resumes_the_same_run(tmp_path):
     """`--log.wandb=true --log.wandb_mode=offline`: every evaluation reaches W&B at its global
     step, the resolved config is the W&B run's config, and running the command again (the

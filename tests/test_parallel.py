@@ -120,9 +120,14 @@ def test_killed_parallel_run_resumes_to_the_serial_result(serial, tmp_path):
 
 
 # Stopped at a task's checkpoint, as the killed run above is (there at a time chosen by the
-# kill, here exactly): slow.
-@pytest.mark.parametrize("at", [pytest.param("task-checkpoint", marks=pytest.mark.slow),
-                                "curriculum-state"])  # fmt: skip
+# kill, here exactly): slow. Stopped between tasks: after `make test` (one curriculum each).
+@pytest.mark.parametrize(
+    "at",
+    [
+        pytest.param("task-checkpoint", marks=pytest.mark.slow),
+        pytest.param("curriculum-state", marks=pytest.mark.integration),
+    ],
+)
 def test_a_run_stopped_with_evaluations_in_flight_resumes_to_the_serial_result(
         serial, tmp_path, monkeypatch, at):  # fmt: skip
     # A checkpoint lists the evaluations still running at its step, and so does the
@@ -167,6 +172,7 @@ def test_a_run_stopped_with_evaluations_in_flight_resumes_to_the_serial_result(
     assert _outputs(snapshot) == _outputs(serial / "run")
 
 
+@pytest.mark.integration
 def test_with_compiled_hot_paths_the_reference_starts_after_the_first_task(tmp_path, monkeypatch):
     # A compiled run's reference starts once the first task has trained (the compiled graphs
     # are then cached for it; an eager run's starts at once). The compiled paths are faked in

@@ -375,6 +375,7 @@ def test_config_and_parser():
         pretrain_encoder(PretrainConfig.preset("smoke"), "enc.pt", progress=False)
 
 
+@pytest.mark.integration
 def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeypatch):
     """PWM + experts on pixels with a frozen encoder, seeded from the dataset: replay holds the
     encoder's latents (dataset and live episodes alike) and the encoder ends bit-identical."""

@@ -233,6 +233,7 @@ def test_unreachable_controller_is_one_line_and_exit_2(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["slurm.conf"]
 
 
+@pytest.mark.integration
 @pytest.mark.slurm
 def test_missing_shard_fails_the_merge_and_a_rerun_fills_it_to_the_one_worker_dataset(
     one_worker, tmp_path

@@ -238,6 +238,7 @@ def test_a_run_without_its_reference_does_not_start(tmp_path):
     assert not sweep.run_dir(run).exists()
 
 
+@pytest.mark.integration
 def test_keep_stages_reaches_every_run_of_a_sweep(tmp_path, capsys):
     root = tmp_path / "runs"
     code, _, err = sweep_cli(capsys, "--suites", "Reach", "--methods", "ft", "--seeds", "0",
@@ -318,6 +319,7 @@ def test_local_sweep_trains_once_and_resubmits_only_unfinished_work(tmp_path, ca
     assert code == 0 and "0 pending, 0 running, 4 done, 0 failed, 0 not submitted" in out
 
 
+@pytest.mark.integration
 def test_a_local_sweep_finishes_seed_after_seed(tmp_path, capsys):
     """One job at a time, the jobs start seed-major, each reference just before its runs:
     stopped at any point, the sweep holds every method of the seeds it finished."""

@@ -56,6 +56,7 @@ def _log(root: Path, job: str) -> str:
     return (root / "slurm" / job / f"{job}_0_log.out").read_text()
 
 
+@pytest.mark.integration
 @pytest.mark.skipif(not {"low", "high"} <= partitions(), reason="needs low and high partitions")
 def test_a_sweep_through_slurm_is_preempted_and_ends_as_an_uninterrupted_run(tmp_path, capsys):
     """One scenario (each job costs seconds of imports): a two-run sweep, its reference trained

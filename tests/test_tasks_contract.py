@@ -96,6 +96,7 @@ def test_same_seed_same_episode_and_reset_randomises(task_id):
     env.close()
 
 
+@pytest.mark.integration
 def test_same_seed_same_episode_across_processes():
     """A fresh interpreter (its own hash seed) replays the same episodes: checked on each
     suite's last task, the composition (every task is checked in-process above)."""
