@@ -10,6 +10,7 @@ metadata (each episode's from/to timestamps inside its video file).
 
 from __future__ import annotations
 
+import hashlib
 import json
 from collections import defaultdict
 from dataclasses import dataclass
@@ -115,15 +116,33 @@ def _open_metadata(source: str | Path, endpoint: str | None = None) -> tuple[_Me
 
 def dataset_meta(source: str | Path, endpoint: str | None = None) -> dict:
     """What a run records of a dataset beside its path, which alone does not say what lay
-    there: its size and, for a ccdata dataset (meta/ccdata.json), its repo id and the
-    `ccdata generate` settings and package versions that made it."""
+    there: its size, the SHA-256 of its frames (`content_sha256`) and, for a ccdata dataset
+    (meta/ccdata.json), its repo id and the `ccdata generate` settings and package versions
+    that made it."""
     meta, root = _open_metadata(source, endpoint)
     out = {k: meta.info.get(k) for k in ("total_episodes", "total_frames")}
+    out["content_sha256"] = {part: content_sha256(root / part) for part in ("data", "videos")}
     if (root / CCDATA_META).is_file():
         made = read_ccdata_metadata(root)
         out |= {"repo_id": made.get("repo_id"), "generated_with": made.get("config"),
                 "versions": made.get("versions")}  # fmt: skip
     return out
+
+
+def content_sha256(folder: Path) -> str | None:
+    """One SHA-256 over every file under `folder`, with its path there, in path order; None
+    when there is no such folder. `data/` holds the frames a state run reads, `videos/` the
+    cameras a pixel run reads: two datasets with the same settings and sizes can still differ
+    (one regenerated on another machine kind, say), and these tell them apart."""
+    if not folder.is_dir():
+        return None
+    digest = hashlib.sha256()
+    for path in sorted(p for p in folder.rglob("*") if p.is_file()):
+        digest.update(f"{path.relative_to(folder).as_posix()}\0{path.stat().st_size}\0".encode())
+        with path.open("rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                digest.update(block)
+    return digest.hexdigest()
 
 
 def _id_maps(root: Path) -> tuple[dict[str, int], dict[str, int]]:

@@ -1,9 +1,10 @@
-"""cost.json: time summed over a run's segments, and the code that ran each segment."""
+"""cost.json: time summed over a run's segments, and the code and machine that ran each segment."""
 
 from __future__ import annotations
 
 import io
 import json
+import os
 import subprocess
 import sys
 import tarfile
@@ -13,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from ccfit.train.cost import RunCost, read_cost, running_code
+from ccfit.train.cost import RunCost, read_cost, running_code, running_machine
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -32,7 +33,21 @@ def test_each_segment_records_the_code_that_ran_it(tmp_path):
     if head.returncode == 0:  # a checkout, as in CI
         assert cost["code"][0]["commit"] == head.stdout.strip()
     assert read_cost(tmp_path / "none") == {"wall_s": 0.0, "cpu_s": 0.0, "segments": 0,
-                                            "code": []}  # fmt: skip
+                                            "code": [], "machines": []}  # fmt: skip
+
+
+def test_each_segment_records_the_machine_kind_that_ran_it(tmp_path):
+    # The vector kernels torch dispatches to decide the rounding, so a resumed run says where
+    # each segment ran; a segment run with ATen's vector kernels off says so too.
+    with RunCost(tmp_path):
+        pass
+    env = {**os.environ, "ATEN_CPU_CAPABILITY": "default"}
+    script = "import sys\nfrom ccfit.train.cost import RunCost\nwith RunCost(sys.argv[1]): pass"
+    subprocess.run([sys.executable, "-c", script, str(tmp_path)], env=env, check=True)
+    first, second = read_cost(tmp_path)["machines"]
+    assert first == running_machine() and first["cores"] >= 1
+    assert first["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert second == {**first, "cpu_capability": "DEFAULT"}
 
 
 def test_a_killed_segment_stays_counted_up_to_its_last_flush(tmp_path):

@@ -216,6 +216,7 @@ def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
     recorded = saved["resolved_seed_dataset_meta"]
     assert (recorded["total_episodes"], recorded["repo_id"]) == (2, "ccdata/Reach")
     assert recorded["generated_with"]["suite"] == "Reach" and "lerobot" in recorded["versions"]
+    assert set(recorded["content_sha256"]) == {"data", "videos"}
     assert len(fractions) >= 100 and set(fractions) == {0.25}  # smoke: 1 update per step
     assert main([*base, "--task", "reach-xyz", "--out", str(tmp_path / "xyz")]) == 2
     assert "holds no oracle episode of reach-xyz" in capsys.readouterr().err
@@ -265,6 +266,31 @@ def test_demonstrations_are_kept_only_for_demo_fraction_and_counted_before_seedi
     assert demonstration_rows(root, ["reach-xy", "reach-xyz"]) == rows
     with pytest.raises(InputError, match="task 'reach-zz' is not in this dataset"):
         episode_lengths(root, "reach-zz", "oracle")
+
+
+def test_the_recorded_digest_tells_a_changed_frame_apart(tiny_dataset, tmp_path):
+    # Same settings and sizes, one reward changed by one ulp: only the data digest differs; a
+    # byte-for-byte copy elsewhere has the same digests.
+    import pyarrow.parquet as pq
+
+    from ccfit.data import REWARD_KEY, dataset_meta
+
+    copy, changed = tmp_path / "copy", tmp_path / "changed"
+    shutil.copytree(tiny_dataset[0], copy)
+    shutil.copytree(tiny_dataset[0], changed)
+    original = dataset_meta(tiny_dataset[0])
+    assert original["content_sha256"]["data"] and original["content_sha256"]["videos"]
+    assert dataset_meta(copy) == original
+    (frames,) = (changed / "data").rglob("*.parquet")
+    table = pq.read_table(frames)
+    rewards = table[REWARD_KEY].to_numpy().copy()
+    rewards[0] = np.nextafter(rewards[0], np.inf)
+    column = table.schema.get_field_index(REWARD_KEY)
+    pq.write_table(table.set_column(column, REWARD_KEY, [rewards]), frames)
+    recorded = dataset_meta(changed)
+    assert recorded["content_sha256"]["data"] != original["content_sha256"]["data"]
+    assert {**recorded, "content_sha256": None} == {**original, "content_sha256": None}
+    assert recorded["content_sha256"]["videos"] == original["content_sha256"]["videos"]
 
 
 def test_a_corrupt_ccdata_json_is_one_input_error(tiny_dataset, tmp_path):

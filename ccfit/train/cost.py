@@ -1,6 +1,8 @@
 """What a run cost: `cost.json` in its run directory, wall and CPU seconds, summed over every
 process that ran it (the training process and its worker processes) and over resumptions,
-and which code ran each segment (a run resumed under newer code says so).
+which code ran each segment (a run resumed under newer code says so) and on what kind of CPU
+(the same seed takes other rounding paths on a CPU whose vector kernels differ, so a run
+resumed on another machine kind, or compared with one made there, says so).
 
 A resumed run adds to what is recorded. While a segment runs, its cost so far is written every
 `FLUSH_S` seconds, so a process killed without warning (a session's end, a SLURM timeout's
@@ -10,6 +12,7 @@ lost."""
 from __future__ import annotations
 
 import json
+import platform
 import resource
 import threading
 import time
@@ -17,6 +20,7 @@ from pathlib import Path
 
 import torch
 
+from ccdata.processes import available_cores
 from ccdata.slurm import code_version
 from ccfit.io import atomic_write_json
 
@@ -46,7 +50,7 @@ class RunCost:
     def __enter__(self) -> RunCost:
         # what earlier segments recorded, a killed one's up to its last flush
         self._before = read_cost(self.path.parent)
-        self._code = running_code()
+        self._code, self._machine = running_code(), running_machine()
         self._wall, self._cpu = time.monotonic(), _cpu()
         self._stop = threading.Event()
         self._flusher = threading.Thread(target=self._flush_until_stopped, daemon=True,
@@ -72,6 +76,7 @@ class RunCost:
             "cpu_s": before["cpu_s"] + _cpu() - self._cpu,
             "segments": before["segments"] + 1,
             "code": [*before["code"], self._code],
+            "machines": [*before["machines"], self._machine],
         })  # fmt: skip
 
 
@@ -83,11 +88,31 @@ def running_code() -> dict:
             "torch": torch.__version__}  # fmt: skip
 
 
+def running_machine() -> dict:
+    """What of this machine decides a CPU run's floating-point results: the CPU model, the
+    vector instruction set torch's CPU kernels dispatch to (`ATEN_CPU_CAPABILITY` can lower
+    it) and the cores this process may use."""
+    return {"cpu": _cpu_model(), "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+            "cores": available_cores()}  # fmt: skip
+
+
+def _cpu_model() -> str | None:
+    """The CPU's model name (/proc/cpuinfo on Linux), else what `platform` knows, or None."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:  # not Linux
+        pass
+    return platform.processor() or None
+
+
 def read_cost(run_dir: str | Path) -> dict:
-    """{'wall_s', 'cpu_s', 'segments', 'code'} of a run directory (zeros when none is
-    recorded); 'code' lists the code of each segment (`running_code`) in order, recorded since
-    cost.json holds it (older files list none)."""
+    """{'wall_s', 'cpu_s', 'segments', 'code', 'machines'} of a run directory (zeros when
+    none is recorded); 'code' lists the code of each segment (`running_code`) in order and
+    'machines' the machine of each (`running_machine`), each recorded since cost.json holds it
+    (older files list none: the lists name the last segments)."""
     path = Path(run_dir) / COST
     if not path.is_file():
-        return {"wall_s": 0.0, "cpu_s": 0.0, "segments": 0, "code": []}
-    return {"code": [], **json.loads(path.read_text())}
+        return {"wall_s": 0.0, "cpu_s": 0.0, "segments": 0, "code": [], "machines": []}
+    return {"code": [], "machines": [], **json.loads(path.read_text())}
