@@ -15,6 +15,8 @@ variant label naming those settings ("obs=pixels, preset=cpu"). Outputs:
   transfer (FWT) region between the composition curve and its from-scratch reference.
 - `orderings.md`: the paper's four orderings checked on these groups (`ccfit.report_orderings`);
 - `axes.md`: BWT and FWT by composition axis beside the paper's table (`ccfit.report_axes`);
+- `cost.md`: CPU-hours per group and reference, and the machines that ran them
+  (`ccfit.report_cost`);
 - `routing_<backbone>_<suite>_<method>_s<seed>.png`: the paper's Fig. 5 for every run with a
   `routing.jsonl` (`ccfit.analysis`); summary.json gets the top-expert statement per seed.
 
@@ -46,6 +48,7 @@ from ccfit.io import atomic_write_text, read_run_json
 from ccfit.metrics import metrics_from_curves, task_curves
 from ccfit.offline.fit import SCORE_KEY, TRACK
 from ccfit.report_axes import write_axes
+from ccfit.report_cost import write_cost
 from ccfit.report_orderings import write_orderings
 from ccfit.report_plots import (
     METHOD_ORDER,
@@ -407,6 +410,9 @@ def write_report(paths: list[Path], out: Path) -> list[Path]:
     groups = {k: group_metrics(v) for k, v in run_groups.items()}
     out.mkdir(parents=True, exist_ok=True)
     written = write_tables(groups, out) + [write_orderings(groups, out), write_axes(groups, out)]
+    references = {scratch_dir_of(r.path, r.metrics): (k[0], k[1], k[3])
+                  for k, runs in run_groups.items() for r in runs}  # fmt: skip
+    written.append(write_cost(run_groups, references, out))
     written += plot_bars(groups, out)
     summary = {}
     for k, g in groups.items():

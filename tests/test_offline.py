@@ -29,7 +29,7 @@ from ccfit.offline import OfflineConfig, OfflineCurriculum
 from ccfit.offline.data import SPLIT
 from ccfit.offline.fit import TaskFitter
 from ccfit.offline.score import normalised_score, score_windows
-from ccfit.train.cost import running_code
+from ccfit.train.cost import read_cost, running_code, running_machine
 from ccfit.train.update import backbone_optimizer_state
 
 SUITE = "Reach"
@@ -236,11 +236,12 @@ def test_every_seen_task_is_scored_and_the_metrics_come_from_the_records(runs, m
         assert tasks == ([stage] if first else list(range(stage + 1))), (stage, step)
     scratch = json.loads((Path(metrics["scratch_dir"]) / "done.json").read_text())
     assert {r["task_index"] for r in scratch} == {3}
-    # What it cost, as online: the run's own cost.json, and the reference's where it ran.
+    # What it cost, as online: the run's own cost.json, the reference it trained included
+    # (a reference has a cost.json of its own only when it was a job of its own: the sweep's).
     cost = json.loads((run.dir / "cost.json").read_text())
     assert cost["segments"] == 1 and 0 < cost["cpu_s"] and 0 < cost["wall_s"]
     assert cost["code"] == [running_code()] and cost["code"][0]["torch"] == torch.__version__
-    assert json.loads((Path(metrics["scratch_dir"]) / "cost.json").read_text())["cpu_s"] > 0
+    assert not (Path(metrics["scratch_dir"]) / "cost.json").exists()
     again = M.compute_metrics(records, scratch, 4, UPDATES, key="score")
     for key in ("bwt", "fwt", "end_of_task", "final_per_task", "lopez_paz_bwt"):
         assert again[key] == metrics[key], key
@@ -461,3 +462,10 @@ def test_sweep_track_offline_expands_fit_runs_and_runs_their_jobs(dataset, tmp_p
         assert summary["method"] == run.config["method"]["type"]
     status = ReportJob()(str(root), [], sweep.code)
     assert not status["missing"] and "table_dreamerv3-offline.md" in status["report"]
+    # The reference's job recorded its cost, which the report's cost.md counts once, beside
+    # the runs' (each of which trained no reference).
+    reference = read_cost(sweep.scratch_dir(key))
+    assert reference["segments"] == 1 and reference["machines"] == [running_machine()]
+    cost_md = (root / "report" / "cost.md").read_text()
+    assert "| dreamerv3-offline | Reach | ft | 1 |" in cost_md
+    assert f"| dreamerv3-offline | Reach | 1 | {reference['cpu_s'] / 3600:.2f} |" in cost_md

@@ -179,7 +179,8 @@ def test_a_published_copy_reads_the_reference_beside_it(tmp_path):
     assert found == tmp_path / "published" / "scratch" / "a-scratch"
 
 
-@pytest.mark.parametrize("damage", ["corrupt metrics.json", "missing metrics.jsonl"])
+@pytest.mark.parametrize("damage", ["corrupt metrics.json", "missing metrics.jsonl",
+                                    "corrupt cost.json"])  # fmt: skip
 def test_a_damaged_run_directory_is_one_line_and_exit_2(damage, tmp_path, capsys):
     """A run copied in part or cut short is bad input: `ccfit report` names the file in one
     line (a corrupt metrics.json gave a JSONDecodeError traceback, a missing metrics.jsonl a
@@ -187,8 +188,8 @@ def test_a_damaged_run_directory_is_one_line_and_exit_2(damage, tmp_path, capsys
     from ccfit.cli import main
 
     run = write_run(tmp_path / "runs", "s0", config(), 1.0)
-    if damage == "corrupt metrics.json":
-        broken = run / "metrics.json"
+    if damage.startswith("corrupt"):
+        broken = run / damage.split()[1]
         broken.write_text('{"bwt": ')
     else:
         broken = run / "metrics.jsonl"
@@ -196,6 +197,36 @@ def test_a_damaged_run_directory_is_one_line_and_exit_2(damage, tmp_path, capsys
     assert main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"ccfit: error: {broken}: missing or corrupt (") and err.count("\n") == 1
+
+
+def test_cost_md_counts_each_groups_hours_and_machines_and_each_reference_once(tmp_path):
+    from ccfit.report_cost import COST_MD
+
+    machine = {"cpu": "Some CPU", "cpu_capability": "AVX2", "cores": 2}
+    runs = [write_run(tmp_path, f"s{seed}", config(seed=seed), 1.0) for seed in range(3)]
+    # seed 0: two segments, the first from before machines were recorded; seed 1: one; seed 2
+    # has no cost.json. Seeds 0 and 1 share a reference trained as a job of its own.
+    costs = {0: {"cpu_s": 7200.0, "segments": 2, "machines": [machine]},
+             1: {"cpu_s": 3600.0, "segments": 1, "machines": [machine]}}  # fmt: skip
+    for seed, cost in costs.items():
+        (runs[seed] / "cost.json").write_text(json.dumps({"wall_s": 1.0, **cost}))
+    shared = tmp_path / "scratch" / "s0-scratch"
+    for seed in (1, 2):
+        metrics = json.loads((runs[seed] / "metrics.json").read_text())
+        (runs[seed] / "metrics.json").write_text(
+            json.dumps({**metrics, "scratch_dir": str(shared)})
+        )
+    (shared / "cost.json").write_text(json.dumps({"wall_s": 1.0, "cpu_s": 1800.0, "segments": 1,
+                                                  "machines": [machine]}))  # fmt: skip
+    write_report([tmp_path], tmp_path / "out")
+    lines = (tmp_path / "out" / COST_MD).read_text().splitlines()
+    label = "Some CPU (AVX2, 2 cores)"
+    assert (
+        f"| tdmpc2 | Reach | ft | 3 | 1.50 [1.00, 2.00] | 3.00 (1 without cost.json) | "
+        f"{label} x2; not recorded x1 |"
+    ) in lines
+    assert f"| tdmpc2 | Reach | 1 | 0.50 | 0.50 | {label} x1 |" in lines
+    assert not any("hold no cost.json" in line for line in lines)  # the one reference has
 
 
 def test_curve_plot_keeps_green_and_red_for_forward_transfer(tmp_path, monkeypatch):

@@ -1,5 +1,5 @@
 """The published numbers in `results/` agree with the runs committed beside them: every
-report's tables and orderings are rebuilt from the copied config.json / metrics files and
+report's tables, orderings and costs are rebuilt from the copied config.json / metrics files and
 compared byte for byte (`ccfit publish` wrote them; a hand edit or a stale table fails here), and
 so are `results/orderings.md` and `results/axes.md`, the orderings and the composition-axis
 table over every published run, and each `learnability/` folder's tables over the single-task
@@ -15,6 +15,7 @@ from ccfit.analysis.learnability import finished_task_runs, write_learnability
 from ccfit.publish import LEARNABILITY
 from ccfit.report import load_groups, write_report
 from ccfit.report_axes import AXES_MD, write_axes
+from ccfit.report_cost import COST_MD
 from ccfit.report_orderings import ORDERINGS_MD, write_orderings
 from ccfit.sweep.grid import SWEEP_JSON
 from ccfit.sweep.status import sweep_status
@@ -34,7 +35,7 @@ def test_committed_tables_match_the_metrics_beside_them(report, tmp_path):
     write_report([report.parent], tmp_path)
     committed = sorted(p.name for p in report.glob("table_*"))
     assert committed, f"{report} has no tables"
-    for name in [*committed, ORDERINGS_MD, AXES_MD]:
+    for name in [*committed, ORDERINGS_MD, AXES_MD, COST_MD]:
         assert (tmp_path / name).read_text() == (report / name).read_text(), name
 
 

@@ -351,6 +351,12 @@ def test_a_local_sweep_finishes_seed_after_seed(tmp_path, capsys):
     ]
     assert order[:6] == ["scratch:s0", "run:s0:ft", "run:s0:er", "scratch:s1", "run:s1:ft",
                          "run:s1:er"]  # fmt: skip
+    # Each reference's job recorded what it cost, and the report counts the two once.
+    from ccfit.train.cost import read_cost
+
+    for key in {r.scratch_key for r in sweep.runs}:
+        assert read_cost(sweep.scratch_dir(key))["segments"] == 1
+    assert "| toy | Reach | 2 |" in (root / "report" / "cost.md").read_text()
 
 
 def test_status_reads_an_abandoned_local_record_as_interrupted(tmp_path):

@@ -139,12 +139,11 @@ def run_scratch(cfg: OfflineConfig, out: Path, progress: bool = True) -> list[di
             if not (out / "checkpoint.pt").exists():
                 logger.keep(lambda r: False)
             try:
-                with RunCost(out):
-                    records = TaskFitter(
-                        model=model, buffer=buffer, scored={n - 1: windows}, fit=cfg.fit,
-                        seed=cfg.seed, task_ids=tasks, task_index=n - 1, method=None,
-                        logger=logger, run_dir=out, progress=progress,
-                    ).run()  # fmt: skip
+                records = TaskFitter(
+                    model=model, buffer=buffer, scored={n - 1: windows}, fit=cfg.fit,
+                    seed=cfg.seed, task_ids=tasks, task_index=n - 1, method=None,
+                    logger=logger, run_dir=out, progress=progress,
+                ).run()  # fmt: skip
             finally:
                 logger.close()
             atomic_write_json(out / REFERENCE_DONE, records)

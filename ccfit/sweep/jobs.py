@@ -79,13 +79,18 @@ class ScratchJob(_Job):
 
     def __call__(self, config: dict, scratch_dir: str, plugins: list[str], code: dict,
                  threads: int | None = None) -> dict:  # fmt: skip
+        from ccfit.train.cost import RunCost
+
         if is_offline(config):
             from ccfit.offline import run_scratch
         else:
             from ccfit.curriculum import run_scratch
 
         job_start(f"scratch reference {scratch_dir}", plugins, code, threads)
-        evals = run_scratch(config_from_dict(config), Path(scratch_dir), progress=False)
+        # Trained here, the reference has a cost of its own; one a curriculum trains counts in
+        # the curriculum's cost.json.
+        with RunCost(scratch_dir):
+            evals = run_scratch(config_from_dict(config), Path(scratch_dir), progress=False)
         return {"scratch_dir": scratch_dir, "evaluations": len(evals)}
 
 

@@ -1,0 +1,95 @@
+"""`ccfit report`'s `cost.md`: what each group's runs cost and on what machines, from the
+`cost.json` beside every run (`ccfit.train.cost`).
+
+What the numbers count: `READING`.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+from ccfit.io import atomic_write_text, read_run_json
+from ccfit.report_plots import row_label
+from ccfit.train.cost import COST, read_cost
+
+COST_MD = "cost.md"
+READING = (
+    "CPU-hours are user and system time summed over a run's processes (training, its "
+    "evaluation worker, environment workers) and over its resumptions, so on N cores a run of "
+    "H CPU-hours took at least H/N hours; a run begun before cost.json existed counts only its "
+    "later segments. A from-scratch reference trained as a job of its own (a sweep's) has a "
+    "cost.json of its own and is counted once, in the references' table; one a curriculum "
+    "trained is part of that curriculum's cost. The machine column counts segments per CPU "
+    "kind (model, the vector instruction set torch used, cores): runs on different kinds round "
+    "differently, so the same seed does not reproduce across them. Segments run before "
+    "cost.json recorded machines are counted as not recorded."
+)
+"""How cost.md's numbers read (printed under its title)."""
+
+
+def run_cost(run_dir: Path) -> dict:
+    """`read_cost` of a run directory; a damaged cost.json is bad input, named."""
+    if (Path(run_dir) / COST).is_file():
+        read_run_json(Path(run_dir) / COST)
+    return read_cost(run_dir)
+
+
+def machine_label(machine: dict) -> str:
+    return f"{machine['cpu']} ({machine['cpu_capability']}, {machine['cores']} cores)"
+
+
+def machines_cell(costs: list[dict]) -> str:
+    """Segments per machine kind over `costs`, most first; those not recorded last."""
+    kinds = Counter(machine_label(m) for c in costs for m in c["machines"])
+    unrecorded = sum(c["segments"] - len(c["machines"]) for c in costs)
+    cells = [f"{label} x{n}" for label, n in kinds.most_common()]
+    return "; ".join(cells + ([f"not recorded x{unrecorded}"] if unrecorded else [])) or "—"
+
+
+def hours_cells(costs: list[dict]) -> tuple[str, str]:
+    """CPU-hours per run (the mean, [min, max] over several) and in all, over the runs with a
+    cost.json; how many have none is said."""
+    hours = [c["cpu_s"] / 3600 for c in costs if c["segments"]]
+    missing = len(costs) - len(hours)
+    if not hours:
+        return "—", f"— ({missing} without cost.json)"
+    mean = sum(hours) / len(hours)
+    per_run = f"{mean:.2f}" if len(hours) == 1 else \
+        f"{mean:.2f} [{min(hours):.2f}, {max(hours):.2f}]"  # fmt: skip
+    return per_run, f"{sum(hours):.2f}" + (f" ({missing} without cost.json)" if missing else "")
+
+
+def write_cost(run_groups: dict, references: dict[Path, tuple[str, str, str]], out: Path) -> Path:
+    """`cost.md` for `run_groups` ((backbone, suite, method, variant) -> runs with a `path`) and
+    their from-scratch `references` (directory -> (backbone, suite, variant))."""
+    lines = ["# What the runs cost", "", READING, "",
+             "| backbone | suite | method | runs | CPU-hours per run | CPU-hours | machines |",
+             "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for (backbone, suite, method, variant), runs in sorted(run_groups.items()):
+        costs = [run_cost(r.path) for r in runs]
+        per_run, total = hours_cells(costs)
+        lines.append(f"| {backbone} | {row_label(suite, variant)} | {method} | {len(runs)} | "
+                     f"{per_run} | {total} | {machines_cell(costs)} |")  # fmt: skip
+    by_scope: dict[tuple[str, str, str], list[dict]] = {}
+    unrecorded = 0
+    for where, scope in sorted(references.items()):
+        cost = run_cost(where)
+        if cost["segments"]:
+            by_scope.setdefault(scope, []).append(cost)
+        unrecorded += not cost["segments"]
+    if by_scope:
+        lines += ["", "## From-scratch references with a cost.json of their own", "",
+                  "| backbone | suite | references | CPU-hours per reference | CPU-hours | "
+                  "machines |", "|---|---|---|---|---|---|"]  # fmt: skip
+        for (backbone, suite, variant), costs in sorted(by_scope.items()):
+            per_run, total = hours_cells(costs)
+            lines.append(f"| {backbone} | {row_label(suite, variant)} | {len(costs)} | "
+                         f"{per_run} | {total} | {machines_cell(costs)} |")  # fmt: skip
+    if unrecorded:
+        lines += ["", f"From-scratch references without a cost.json: {unrecorded} of "
+                  f"{len(references)} (trained by a curriculum, whose cost counts them, or by a "
+                  "job before references recorded their own)."]  # fmt: skip
+    path = out / COST_MD
+    atomic_write_text(path, "\n".join(lines) + "\n")
+    return path
