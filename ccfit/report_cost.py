@@ -20,10 +20,10 @@ READING = (
     "H CPU-hours took at least H/N hours; a run begun before cost.json existed counts only its "
     "later segments. A from-scratch reference trained as a job of its own (a sweep's) has a "
     "cost.json of its own and is counted once, in the references' table; one a curriculum "
-    "trained is part of that curriculum's cost. The machine column counts segments per CPU "
-    "kind (model, the vector instruction set torch used, cores): runs on different kinds round "
-    "differently, so the same seed does not reproduce across them. Segments run before "
-    "cost.json recorded machines are counted as not recorded."
+    "trained is part of that curriculum's cost. The machine column counts segments per machine "
+    "kind (the GPU where a run used one; the CPU model, the vector instruction set torch used, "
+    "cores): runs on different kinds round differently, so the same seed does not reproduce "
+    "across them. Segments run before cost.json recorded machines are counted as not recorded."
 )
 """How cost.md's numbers read (printed under its title)."""
 
@@ -36,7 +36,8 @@ def run_cost(run_dir: Path) -> dict:
 
 
 def machine_label(machine: dict) -> str:
-    return f"{machine['cpu']} ({machine['cpu_capability']}, {machine['cores']} cores)"
+    cpu = f"{machine['cpu']} ({machine['cpu_capability']}, {machine['cores']} cores)"
+    return f"{machine['gpu']}, {cpu}" if machine.get("gpu") else cpu
 
 
 def machines_cell(costs: list[dict]) -> str:

@@ -93,3 +93,14 @@ def test_a_tree_exported_by_git_archive_records_its_commit(tmp_path):
     code = json.loads(done.stdout)
     assert Path(code["source"]) == tmp_path
     assert code["commit"] == commit and commit.startswith(code["git"])
+
+
+def test_a_segment_that_used_cuda_names_its_gpu(tmp_path, monkeypatch):
+    # CUDA stands in here (tests/test_gpu.py checks the real name on a GPU): the name is asked
+    # only once the run has initialised CUDA.
+    monkeypatch.setattr(torch.cuda, "is_initialized", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: "Some GPU")
+    with RunCost(tmp_path):
+        pass
+    assert read_cost(tmp_path)["machines"] == [{**running_machine(), "gpu": "Some GPU"}]
+    assert running_machine()["gpu"] is None

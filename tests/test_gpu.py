@@ -47,6 +47,13 @@ def test_smoke_curriculum_on_cuda(name, compile, autocast, tmp_path):
     if compile == "graphs":
         assert saved["resolved_compile"] == list(model_class(name).hot_paths)
     assert result["fwt"] is not None and len(result["end_of_task"]) == 4
+    # cost.json names the GPU the segment ran on
+    import torch
+
+    from ccfit.train.cost import read_cost
+
+    (machine,) = read_cost(tmp_path / "run")["machines"]
+    assert machine["gpu"] == torch.cuda.get_device_name()
 
 
 @pytest.mark.parametrize("method", ["ewc", "packnet"])

@@ -76,8 +76,15 @@ class RunCost:
             "cpu_s": before["cpu_s"] + _cpu() - self._cpu,
             "segments": before["segments"] + 1,
             "code": [*before["code"], self._code],
-            "machines": [*before["machines"], self._machine],
+            "machines": [*before["machines"], self._machine_now()],
         })  # fmt: skip
+
+    def _machine_now(self) -> dict:
+        """The segment's machine, its GPU's name once the run has put CUDA to use (asked
+        earlier, it would initialise CUDA in a process that forks workers afterwards)."""
+        if self._machine["gpu"] is None and torch.cuda.is_initialized():
+            self._machine["gpu"] = torch.cuda.get_device_name()
+        return self._machine
 
 
 def running_code() -> dict:
@@ -89,11 +96,12 @@ def running_code() -> dict:
 
 
 def running_machine() -> dict:
-    """What of this machine decides a CPU run's floating-point results: the CPU model, the
-    vector instruction set torch's CPU kernels dispatch to (`ATEN_CPU_CAPABILITY` can lower
-    it) and the cores this process may use."""
+    """What of this machine decides a run's floating-point results: the CPU model, the vector
+    instruction set torch's CPU kernels dispatch to (`ATEN_CPU_CAPABILITY` can lower it), the
+    cores this process may use, and the GPU (None here: `RunCost` names it once the run
+    uses CUDA)."""
     return {"cpu": _cpu_model(), "cpu_capability": torch.backends.cpu.get_cpu_capability(),
-            "cores": available_cores()}  # fmt: skip
+            "cores": available_cores(), "gpu": None}  # fmt: skip
 
 
 def _cpu_model() -> str | None:
