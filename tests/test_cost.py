@@ -43,7 +43,9 @@ def test_each_segment_records_the_machine_kind_that_ran_it(tmp_path):
         pass
     env = {**os.environ, "ATEN_CPU_CAPABILITY": "default"}
     script = "import sys\nfrom ccfit.train.cost import RunCost\nwith RunCost(sys.argv[1]): pass"
-    subprocess.run([sys.executable, "-c", script, str(tmp_path)], env=env, check=True)
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], env=env, check=True,
+                          capture_output=True, text=True)  # fmt: skip
+    assert "(DEFAULT); its last segment ran on" in done.stderr
     first, second = read_cost(tmp_path)["machines"]
     assert first == running_machine() and first["cores"] >= 1
     assert first["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
@@ -104,3 +106,16 @@ def test_a_segment_that_used_cuda_names_its_gpu(tmp_path, monkeypatch):
         pass
     assert read_cost(tmp_path)["machines"] == [{**running_machine(), "gpu": "Some GPU"}]
     assert running_machine()["gpu"] is None
+
+
+def test_a_run_resumed_on_another_cpu_kind_says_so(tmp_path, capsys):
+    with RunCost(tmp_path):
+        pass
+    assert capsys.readouterr().err == ""  # the same kind: nothing to say
+    cost = read_cost(tmp_path)
+    other = {**cost["machines"][0], "cpu": "Another CPU", "cpu_capability": "AVX512"}
+    (tmp_path / "cost.json").write_text(json.dumps({**cost, "machines": [other]}))
+    with RunCost(tmp_path):
+        pass
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "its last segment ran on Another CPU (AVX512)" in err

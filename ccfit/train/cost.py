@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import platform
 import resource
+import sys
 import threading
 import time
 from pathlib import Path
@@ -51,6 +52,9 @@ class RunCost:
         # what earlier segments recorded, a killed one's up to its last flush
         self._before = read_cost(self.path.parent)
         self._code, self._machine = running_code(), running_machine()
+        note = moved_note(self._before["machines"], self._machine)
+        if note:
+            print(f"ccfit: note: {self.path.parent}: {note}", file=sys.stderr)
         self._wall, self._cpu = time.monotonic(), _cpu()
         self._stop = threading.Event()
         self._flusher = threading.Thread(target=self._flush_until_stopped, daemon=True,
@@ -102,6 +106,20 @@ def running_machine() -> dict:
     uses CUDA)."""
     return {"cpu": _cpu_model(), "cpu_capability": torch.backends.cpu.get_cpu_capability(),
             "cores": available_cores(), "gpu": None}  # fmt: skip
+
+
+def moved_note(earlier: list[dict], machine: dict) -> str | None:
+    """A line for a run resumed on another kind of CPU than its last segment's (model or
+    vector instruction set): from here on it rounds differently, so it reproduces neither an
+    uninterrupted run there nor one here. None when the kind is the same or not recorded."""
+    if not earlier:
+        return None
+    last = earlier[-1]
+    if (last["cpu"], last["cpu_capability"]) == (machine["cpu"], machine["cpu_capability"]):
+        return None
+    return (f"resumed on {machine['cpu']} ({machine['cpu_capability']}); its last segment ran "
+            f"on {last['cpu']} ({last['cpu_capability']}), so from here on it rounds otherwise "
+            "and reproduces an uninterrupted run on neither")  # fmt: skip
 
 
 def _cpu_model() -> str | None:
