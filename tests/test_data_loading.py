@@ -268,7 +268,7 @@ def test_demonstrations_are_kept_only_for_demo_fraction_and_counted_before_seedi
         episode_lengths(root, "reach-zz", "oracle")
 
 
-def test_the_recorded_digest_tells_a_changed_frame_apart(tiny_dataset, tmp_path):
+def test_the_recorded_digest_tells_a_changed_frame_apart(tiny_dataset, tmp_path, capsys):
     # Same settings and sizes, one reward changed by one ulp: only the data digest differs; a
     # byte-for-byte copy elsewhere has the same digests.
     import pyarrow.parquet as pq
@@ -291,6 +291,19 @@ def test_the_recorded_digest_tells_a_changed_frame_apart(tiny_dataset, tmp_path)
     assert recorded["content_sha256"]["data"] != original["content_sha256"]["data"]
     assert {**recorded, "content_sha256": None} == {**original, "content_sha256": None}
     assert recorded["content_sha256"]["videos"] == original["content_sha256"]["videos"]
+    # A run that recorded the original at this path and resumes on the changed copy there
+    # says so, once (the resumed run records the new content).
+    from ccfit.train.run import check_saved_config
+
+    run = tmp_path / "run"
+    run.mkdir()
+    record = "resolved_seed_dataset", "resolved_seed_dataset_meta"
+    check_saved_config(run, dict(zip(record, (str(changed), original), strict=True)))
+    assert capsys.readouterr().err == ""
+    for _ in range(2):
+        check_saved_config(run, dict(zip(record, (str(changed), recorded), strict=True)))
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"the dataset at {changed} holds other data than" in err
 
 
 def test_a_corrupt_ccdata_json_is_one_input_error(tiny_dataset, tmp_path):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import json
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,7 +20,13 @@ import torch
 from ccdata.errors import InputError
 from ccdata.render import RenderSettings
 from ccfit.config import BaseRunConfig, RunConfig, TaskRunConfig
-from ccfit.config_base import ENCODER_RECORD, ConfigError, identity, resolve_device
+from ccfit.config_base import (
+    DATASET_RECORDS,
+    ENCODER_RECORD,
+    ConfigError,
+    identity,
+    resolve_device,
+)
 from ccfit.config_parse import flatten
 from ccfit.data import dataset_meta
 from ccfit.io import atomic_write_json, derived_seed, seed_everything
@@ -225,7 +232,26 @@ def check_saved_config(out: Path, resolved: dict, *, extends: type[WorldModel] |
         check_same_encoder(out, new.get("encoder"), new.get(ENCODER_RECORD))
         if old == new:
             return
+        note = other_data_note(old, new)
+        if note:
+            print(f"ccfit: note: {out}: {note}", file=sys.stderr)
     atomic_write_json(saved, new)
+
+
+def other_data_note(old: dict, new: dict) -> str | None:
+    """A line for a run resumed where a dataset it recorded (`DATASET_RECORDS`) now holds
+    other content (`content_sha256`, recorded both times, as when it was generated again on
+    another kind of machine): the run goes on with other data. None otherwise."""
+    for key in DATASET_RECORDS:
+        was = (old.get(key) or {}).get("content_sha256") or {}
+        now = (new.get(key) or {}).get("content_sha256") or {}
+        parts = [part for part in now if was.get(part) and now[part] and was[part] != now[part]]
+        if parts:
+            where = new.get(key.removesuffix("_meta"))
+            return (f"the dataset at {where} holds other {' and '.join(parts)} than the run "
+                    f"recorded ({key}): where the run reads it again (a later task, the "
+                    "offline track) it reads other data")  # fmt: skip
+    return None
 
 
 def check_same_encoder(out: Path, encoder: str | None, sha256: str | None) -> None:
