@@ -12,6 +12,7 @@ Commands:
     sweep    a grid of runs (suites x models x methods x seeds), locally or on SLURM, and the
              report over them; again: submits only unfinished work; --status RUNS
     report   tables and plots over run directories (BWT / FWT per backbone, suite, method)
+    compare  whether run B reproduces run A's records, and what differs between them
     publish  finished runs' small files (config, metrics, cost) and the report over them (the
              learnability tables over single-task runs), for a results folder under version
              control
@@ -195,6 +196,15 @@ def _cmd_probe_encoder(args: argparse.Namespace) -> None:
     print("-> " + ", ".join(str(p) for p in write_probe(result, Path(args.out))))
 
 
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from ccfit.compare import compare_runs, describe
+
+    a, b = Path(args.a), Path(args.b)
+    comparison = compare_runs(a, b)
+    print(describe(comparison, a, b), end="")
+    return 0 if comparison.reproduces else 1
+
+
 def _cmd_ablate(args: argparse.Namespace) -> None:
     from ccfit.analysis import ABLATION_JSON, ABLATION_PNG, ablate
 
@@ -241,6 +251,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=_cmd_learnability)
 
+    p = sub.add_parser("compare", help="whether run B reproduces run A's records, the first "
+                       "that differs, and what differs between the runs (settings, code, "
+                       "machines, datasets); exit 1 when a record differs")  # fmt: skip
+    p.add_argument("a", help="run directory (a curriculum, a single-task or an offline run)")
+    p.add_argument("b", help="run directory to compare with it")
+    p.set_defaults(func=_cmd_compare)
+
     p = sub.add_parser("probe-encoder", help="how well a frozen encoder's latent gives each "
                        "task's hand, object and goal positions (held-out R^2 of linear probes, "
                        "beside the same from the pixels)")  # fmt: skip
@@ -281,7 +298,9 @@ def main(argv: list[str] | None = None) -> int:
             CONFIG_COMMANDS[argv[0]](argv[1:])
         else:
             args = build_parser().parse_args(argv)
-            args.func(args)
+            code = args.func(args)
+            if code:
+                return code
     except (CliError, InputError) as e:
         print(f"ccfit: error: {e}", file=sys.stderr)
         return EXIT_USAGE

@@ -86,6 +86,11 @@ def test_resume_after_interruption_matches_uninterrupted_run(tmp_path, monkeypat
     rec_a = (full / "metrics.jsonl").read_text().splitlines()
     rec_b = (broken / "metrics.jsonl").read_text().splitlines()
     assert rec_a == rec_b and [json.loads(x)["task_step"] for x in rec_a] == [0, 60, 120]
+    # `ccfit compare` reads it so: the same settings, every record reproduced.
+    from ccfit.compare import compare_runs
+
+    comparison = compare_runs(full, broken)
+    assert comparison.reproduces and comparison.shared == 3 and comparison.settings == {}
     # A different config must not silently reuse the directory.
     with pytest.raises(ConfigError, match=r"different config \(differs in train\.steps\)"):
         train_single(_run_config(broken, steps=60), progress=False)  # fewer than it ran
