@@ -691,10 +691,18 @@ def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
     assert main(["report", str(runs.root), "--out", str(out)]) == 0
     printed = set(capsys.readouterr().out.split())
     expected = {"table_tdmpc2.md", "table_tdmpc2.csv", "bars_tdmpc2.png", "summary.json",
-                "orderings.md", "axes.md"}  # fmt: skip
+                "orderings.md", "axes.md", "cost.md"}  # fmt: skip
     expected |= {f"curves_tdmpc2_{SUITE}_{m}.png" for m in METHODS}
     assert {p.name for p in out.iterdir()} == expected
     assert printed == {str(out / name) for name in expected}
+    # cost.md: each method's curricula, on this machine (every segment recorded)
+    from ccfit.report_cost import machine_label
+    from ccfit.train.cost import running_machine
+
+    lines = (out / "cost.md").read_text().splitlines()
+    for m in METHODS:
+        (line,) = [x for x in lines if x.startswith(f"| tdmpc2 | {SUITE} | {m} |")]
+        assert line.endswith(f"| {machine_label(running_machine())} x1 |"), line
 
     with (out / "table_tdmpc2.csv").open() as f:
         rows = list(csv.DictReader(f))
