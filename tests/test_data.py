@@ -29,7 +29,7 @@ def reach(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("seed") / "Reach"
     root, _ = generate(
         GenerateConfig(
-            "Reach", episodes=3, explore_episodes=2, image_size=32, max_steps=40, root=root
+            "Reach", episodes=3, explore_episodes=1, image_size=32, max_steps=40, root=root
         ),
         progress=False,
     )
