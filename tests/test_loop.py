@@ -275,6 +275,8 @@ def test_wall_clock_checkpoints_do_not_change_the_run(tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
+@pytest.mark.integration  # the whole smoke preset in two processes (~35 s); in-process CLI runs
+# of `ccfit train` are in make test (test_data_loading, test_loop's resume tests)
 def test_cli_smoke_run_writes_config_metrics_checkpoint(tmp_path):
     out = tmp_path / "run"
     cmd = ccfit_command(smoke_train_argv(out, "--obs", "state"))

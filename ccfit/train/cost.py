@@ -24,6 +24,7 @@ import torch
 from ccdata.processes import available_cores
 from ccdata.slurm import code_version
 from ccfit.io import atomic_write_json
+from ccfit.train.compiled import cpu_info
 
 COST = "cost.json"
 FLUSH_S = 60.0
@@ -124,13 +125,7 @@ def moved_note(earlier: list[dict], machine: dict) -> str | None:
 
 def _cpu_model() -> str | None:
     """The CPU's model name (/proc/cpuinfo on Linux), else what `platform` knows, or None."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:  # not Linux
-        pass
-    return platform.processor() or None
+    return cpu_info().get("model name") or platform.processor() or None
 
 
 def read_cost(run_dir: str | Path) -> dict:
