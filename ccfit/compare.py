@@ -15,20 +15,20 @@ segment). This reads both runs' and prints, in this order:
   and how many of those are equal, the first that differs, with every field that differs in
   it, and how many only one run holds (a run still going, or stopped).
 Any kind of run compares: curricula, single-task runs, offline runs (their evaluations are
-records too). `ccfit compare` exits 0 when every shared record is equal, 1 when one differs,
-2 on bad input (a run directory without config.json or metrics.jsonl)."""
+records too). `ccfit compare` exits 0 when the runs share records and every one is equal, 1
+when one differs or none is shared, 2 on bad input (a directory without config.json or
+metrics.jsonl)."""
 
 from __future__ import annotations
 
 import json
-from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
 from ccfit.config_base import DATASET_RECORDS
 from ccfit.config_parse import flatten
 from ccfit.io import read_run_json
-from ccfit.report_cost import machine_label, run_cost
+from ccfit.report_cost import counted, machines_cell, run_cost
 from ccfit.train import CONFIG, METRICS
 
 LEFT_ASIDE = ("out", *DATASET_RECORDS)
@@ -55,7 +55,8 @@ class Comparison:
 
     @property
     def reproduces(self) -> bool:
-        return self.equal == self.shared
+        """Some records in common, and all of those equal."""
+        return self.shared > 0 and self.equal == self.shared
 
 
 def _same(x, y) -> bool:
@@ -67,19 +68,10 @@ def _key(record: dict) -> tuple:
     return record.get("stage", 0), record.get("task_index", 0), record["global_step"]
 
 
-def _counted(labels: list[str], segments: int) -> str:
-    """Segments per label, most first; those with no label (not recorded) last."""
-    cells = [f"{label} x{n}" for label, n in Counter(labels).most_common()]
-    missing = segments - len(labels)
-    return "; ".join(cells + ([f"not recorded x{missing}"] if missing else [])) or "none"
-
-
 def _segments(run: Path) -> dict[str, str]:
     cost = run_cost(run)
     commits = [c.get("git") or str(c.get("commit"))[:7] for c in cost["code"]]
-    return {"code": _counted(commits, cost["segments"]),
-            "machines": _counted([machine_label(m) for m in cost["machines"]],
-                                 cost["segments"])}  # fmt: skip
+    return {"code": counted(commits, cost["segments"]), "machines": machines_cell([cost])}
 
 
 def _digests(config: dict) -> dict[str, dict | None]:
@@ -144,8 +136,11 @@ def describe(comparison: Comparison, a: Path, b: Path) -> str:
         where = f"global step {d['global_step']}, {d['task']} (stage {d['stage']})"
         lines.append(f"first difference: {where}")
         lines += [f"  {f}: {va!r} -> {vb!r}" for f, (va, vb) in d["fields"].items()]
-    verdict = "B reproduces A's records" if c.reproduces else "B does not reproduce A's records"
-    lines.append(f"{verdict} ({c.equal} of the {c.shared} both hold)")
+    if c.shared == 0:
+        lines.append("no evaluation in common: nothing reproduced yet")
+    else:
+        verdict = "B reproduces A's records" if c.reproduces else "B does not reproduce A's records"
+        lines.append(f"{verdict} ({c.equal} of the {c.shared} both hold)")
     return "\n".join(lines) + "\n"
 
 

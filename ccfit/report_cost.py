@@ -40,12 +40,18 @@ def machine_label(machine: dict) -> str:
     return f"{machine['gpu']}, {cpu}" if machine.get("gpu") else cpu
 
 
+def counted(labels: list[str], segments: int) -> str:
+    """Segments per label ('AMD EPYC (AVX2, 2 cores) x3'), most first; the `segments` that
+    have no label (run before it was recorded) last."""
+    cells = [f"{label} x{n}" for label, n in Counter(labels).most_common()]
+    missing = segments - len(labels)
+    return "; ".join(cells + ([f"not recorded x{missing}"] if missing else [])) or "—"
+
+
 def machines_cell(costs: list[dict]) -> str:
-    """Segments per machine kind over `costs`, most first; those not recorded last."""
-    kinds = Counter(machine_label(m) for c in costs for m in c["machines"])
-    unrecorded = sum(c["segments"] - len(c["machines"]) for c in costs)
-    cells = [f"{label} x{n}" for label, n in kinds.most_common()]
-    return "; ".join(cells + ([f"not recorded x{unrecorded}"] if unrecorded else [])) or "—"
+    """Segments per machine kind over `costs`."""
+    labels = [machine_label(m) for c in costs for m in c["machines"]]
+    return counted(labels, sum(c["segments"] for c in costs))
 
 
 def hours_cells(costs: list[dict]) -> tuple[str, str]:

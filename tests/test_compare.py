@@ -49,6 +49,11 @@ def test_a_run_that_reproduces_another_so_far_exits_0(tmp_path, capsys):
     assert "settings: the same" in out and "B reproduces A's records (3 of the 3 both hold)" in out
     assert "machines: A Some CPU (AVX2, 2 cores) x1; B Some CPU (AVX2, 2 cores) x1" in out
     assert "resolved_seed_dataset_meta.content_sha256: the same" in out
+    # a run that has evaluated nothing yet reproduces nothing: exit 1
+    fresh = write_run(tmp_path, "fresh", [])
+    assert not compare_runs(a, fresh).reproduces
+    assert main(["compare", str(a), str(fresh)]) == 1
+    assert "no evaluation in common: nothing reproduced yet" in capsys.readouterr().out
 
 
 def test_the_first_differing_record_and_what_else_differs_exit_1(tmp_path, capsys):
