@@ -226,7 +226,12 @@ def test_cost_md_counts_each_groups_hours_and_machines_and_each_reference_once(t
         f"{label} x2; not recorded x1 |"
     ) in lines
     assert f"| tdmpc2 | Reach | 1 | 0.50 | 0.50 | {label} x1 |" in lines
-    assert not any("hold no cost.json" in line for line in lines)  # the one reference has
+    # the one reference has its cost.json; without it, the report says so
+    assert not any("without a cost.json" in line for line in lines)
+    (shared / "cost.json").unlink()
+    write_report([tmp_path], tmp_path / "out")
+    text = (tmp_path / "out" / COST_MD).read_text()
+    assert "From-scratch references without a cost.json: 1 of 1" in text
 
 
 def test_curve_plot_keeps_green_and_red_for_forward_transfer(tmp_path, monkeypatch):
