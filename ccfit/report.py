@@ -404,15 +404,20 @@ def _summary_name(key: tuple[str, str, str, str]) -> str:
     return "/".join(key[:3]) + (f" [{key[3]}]" if key[3] else "")
 
 
+def references_of(run_groups: dict) -> dict[Path, tuple[str, str, str]]:
+    """The from-scratch reference directory of every run in `run_groups` (`group_runs`) ->
+    (backbone, suite, variant) of its group; a reference shared by several runs once."""
+    return {scratch_dir_of(r.path, r.metrics): (k[0], k[1], k[3])
+            for k, runs in run_groups.items() for r in runs}  # fmt: skip
+
+
 def write_report(paths: list[Path], out: Path) -> list[Path]:
     """Tables and plots for every (backbone, suite, method, variant) group of finished runs."""
     run_groups = group_runs(find_runs([Path(p) for p in paths]))
     groups = {k: group_metrics(v) for k, v in run_groups.items()}
     out.mkdir(parents=True, exist_ok=True)
     written = write_tables(groups, out) + [write_orderings(groups, out), write_axes(groups, out)]
-    references = {scratch_dir_of(r.path, r.metrics): (k[0], k[1], k[3])
-                  for k, runs in run_groups.items() for r in runs}  # fmt: skip
-    written.append(write_cost(run_groups, references, out))
+    written.append(write_cost(run_groups, references_of(run_groups), out))
     written += plot_bars(groups, out)
     summary = {}
     for k, g in groups.items():

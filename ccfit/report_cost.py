@@ -73,11 +73,14 @@ def write_cost(run_groups: dict, references: dict[Path, tuple[str, str, str]], o
     lines = ["# What the runs cost", "", READING, "",
              "| backbone | suite | method | runs | CPU-hours per run | CPU-hours | machines |",
              "|---|---|---|---|---|---|---|"]  # fmt: skip
+    every: list[dict] = []
     for (backbone, suite, method, variant), runs in sorted(run_groups.items()):
         costs = [run_cost(r.path) for r in runs]
+        every += costs
         per_run, total = hours_cells(costs)
         lines.append(f"| {backbone} | {row_label(suite, variant)} | {method} | {len(runs)} | "
                      f"{per_run} | {total} | {machines_cell(costs)} |")  # fmt: skip
+    lines.append(f"| all | | | {len(every)} | | {hours_cells(every)[1]} | |")
     by_scope: dict[tuple[str, str, str], list[dict]] = {}
     unrecorded = 0
     for where, scope in sorted(references.items()):
@@ -93,6 +96,8 @@ def write_cost(run_groups: dict, references: dict[Path, tuple[str, str, str]], o
             per_run, total = hours_cells(costs)
             lines.append(f"| {backbone} | {row_label(suite, variant)} | {len(costs)} | "
                          f"{per_run} | {total} | {machines_cell(costs)} |")  # fmt: skip
+        costs = [c for group in by_scope.values() for c in group]
+        lines.append(f"| all | | {len(costs)} | | {hours_cells(costs)[1]} | |")
     if unrecorded:
         lines += ["", f"From-scratch references without a cost.json: {unrecorded} of "
                   f"{len(references)} (trained by a curriculum, whose cost counts them, or by a "

@@ -204,16 +204,19 @@ def test_cost_md_counts_each_groups_hours_and_machines_and_each_reference_once(t
 
     machine = {"cpu": "Some CPU", "cpu_capability": "AVX2", "cores": 2}
     runs = [write_run(tmp_path, f"s{seed}", config(seed=seed), 1.0) for seed in range(3)]
+    er = write_run(tmp_path, "er-s0", config(method="er"), 1.0)  # a second group, for the total
+    (er / "cost.json").write_text(json.dumps({"wall_s": 1.0, "cpu_s": 900.0, "segments": 1,
+                                              "machines": [machine]}))  # fmt: skip
     # seed 0: two segments, the first from before machines were recorded; seed 1: one; seed 2
-    # has no cost.json. Seeds 0 and 1 share a reference trained as a job of its own.
+    # has no cost.json. Every run shares one reference, trained as a job of its own.
     costs = {0: {"cpu_s": 7200.0, "segments": 2, "machines": [machine]},
              1: {"cpu_s": 3600.0, "segments": 1, "machines": [machine]}}  # fmt: skip
     for seed, cost in costs.items():
         (runs[seed] / "cost.json").write_text(json.dumps({"wall_s": 1.0, **cost}))
     shared = tmp_path / "scratch" / "s0-scratch"
-    for seed in (1, 2):
-        metrics = json.loads((runs[seed] / "metrics.json").read_text())
-        (runs[seed] / "metrics.json").write_text(
+    for run in (runs[1], runs[2], er):
+        metrics = json.loads((run / "metrics.json").read_text())
+        (run / "metrics.json").write_text(
             json.dumps({**metrics, "scratch_dir": str(shared)})
         )
     (shared / "cost.json").write_text(json.dumps({"wall_s": 1.0, "cpu_s": 1800.0, "segments": 1,
@@ -225,7 +228,10 @@ def test_cost_md_counts_each_groups_hours_and_machines_and_each_reference_once(t
         f"| tdmpc2 | Reach | ft | 3 | 1.50 [1.00, 2.00] | 3.00 (1 without cost.json) | "
         f"{label} x2; not recorded x1 |"
     ) in lines
+    assert f"| tdmpc2 | Reach | er | 1 | 0.25 | 0.25 | {label} x1 |" in lines
+    assert "| all | | | 4 | | 3.25 (1 without cost.json) | |" in lines
     assert f"| tdmpc2 | Reach | 1 | 0.50 | 0.50 | {label} x1 |" in lines
+    assert "| all | | 1 | | 0.50 | |" in lines
     # the one reference has its cost.json; without it, the report says so
     assert not any("without a cost.json" in line for line in lines)
     (shared / "cost.json").unlink()

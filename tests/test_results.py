@@ -1,8 +1,8 @@
 """The published numbers in `results/` agree with the runs committed beside them: every
 report's tables, orderings and costs are rebuilt from the copied config.json / metrics files and
 compared byte for byte (`ccfit publish` wrote them; a hand edit or a stale table fails here), and
-so are `results/orderings.md` and `results/axes.md`, the orderings and the composition-axis
-table over every published run, and each `learnability/` folder's tables over the single-task
+so are `results/orderings.md`, `results/axes.md` and `results/cost.md`, the orderings, the
+composition-axis table and the cost over every published run, and each `learnability/` folder's tables over the single-task
 runs published beside it."""
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ import pytest
 
 from ccfit.analysis.learnability import finished_task_runs, write_learnability
 from ccfit.publish import LEARNABILITY
-from ccfit.report import load_groups, write_report
+from ccfit.report import find_runs, group_runs, load_groups, references_of, write_report
 from ccfit.report_axes import AXES_MD, write_axes
-from ccfit.report_cost import COST_MD
+from ccfit.report_cost import COST_MD, write_cost
 from ccfit.report_orderings import ORDERINGS_MD, write_orderings
 from ccfit.sweep.grid import SWEEP_JSON
 from ccfit.sweep.status import sweep_status
@@ -39,11 +39,14 @@ def test_committed_tables_match_the_metrics_beside_them(report, tmp_path):
         assert (tmp_path / name).read_text() == (report / name).read_text(), name
 
 
-def test_the_orderings_over_all_results_match_them(tmp_path):
+def test_the_tables_over_all_results_match_them(tmp_path):
     # results/orderings.md: the paper's orderings over every published run at once, so that
-    # comparisons across folders (DreamerV3 against TD-MPC2, PWM against TD-MPC2) are made.
+    # comparisons across folders (DreamerV3 against TD-MPC2, PWM against TD-MPC2) are made;
+    # axes.md the composition-axis table over them; cost.md every published group's cost.
     groups = load_groups([RESULTS])
-    for written in (write_orderings(groups, tmp_path), write_axes(groups, tmp_path)):
+    run_groups = group_runs(find_runs([RESULTS]))
+    cost = write_cost(run_groups, references_of(run_groups), tmp_path)
+    for written in (write_orderings(groups, tmp_path), write_axes(groups, tmp_path), cost):
         assert written.read_text() == (RESULTS / written.name).read_text(), written.name
 
 
