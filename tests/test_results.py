@@ -2,8 +2,8 @@
 report's tables, orderings and costs are rebuilt from the copied config.json / metrics files and
 compared byte for byte (`ccfit publish` wrote them; a hand edit or a stale table fails here), and
 so are `results/orderings.md`, `results/axes.md` and `results/cost.md`, the orderings, the
-composition-axis table and the cost over every published run, and each `learnability/` folder's tables over the single-task
-runs published beside it."""
+composition-axis table and the cost over every published run, and each `learnability/`
+folder's tables over the single-task runs published beside it."""
 
 from __future__ import annotations
 
