@@ -216,9 +216,7 @@ def test_cost_md_counts_each_groups_hours_and_machines_and_each_reference_once(t
     shared = tmp_path / "scratch" / "s0-scratch"
     for run in (runs[1], runs[2], er):
         metrics = json.loads((run / "metrics.json").read_text())
-        (run / "metrics.json").write_text(
-            json.dumps({**metrics, "scratch_dir": str(shared)})
-        )
+        (run / "metrics.json").write_text(json.dumps({**metrics, "scratch_dir": str(shared)}))
     (shared / "cost.json").write_text(json.dumps({"wall_s": 1.0, "cpu_s": 1800.0, "segments": 1,
                                                   "machines": [machine]}))  # fmt: skip
     write_report([tmp_path], tmp_path / "out")
