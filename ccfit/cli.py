@@ -168,7 +168,7 @@ def _cmd_report(args: argparse.Namespace) -> None:
 def _cmd_publish(args: argparse.Namespace) -> None:
     from ccfit.publish import publish
 
-    paths = publish(Path(args.runs), Path(args.out))
+    paths = publish(Path(args.runs), Path(args.out), Path(args.root) if args.root else None)
     print(f"{len(paths)} files -> {args.out}")
 
 
@@ -243,6 +243,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--out", required=True, help="results folder (its report/ and learnability/ are rewritten)"
     )
+    p.add_argument("--root", help="folder holding --out and every other published result: its "
+                   "orderings.md, axes.md and cost.md are rewritten over all of them")  # fmt: skip
     p.set_defaults(func=_cmd_publish)
 
     p = sub.add_parser("learnability", help="steps each task needs to reach 50 and 80, and the "

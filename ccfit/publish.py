@@ -5,13 +5,17 @@ report over them, so a repository can ship its numbers without checkpoints or re
 
     ccfit publish ../runs/learn --out results/single-task
 
+    ccfit publish ../runs/drawerpnp-tdmpc2 --out results/online/drawerpnp-tdmpc2 --root results
+
 Every finished curriculum under RUNS (a folder with metrics.json) keeps its configuration,
 metrics, per-evaluation records and cost; its from-scratch reference keeps the same. The copy
 has the sweep's layout (runs beside `scratch/`), so `ccfit report DEST` finds everything and
 rebuilds `DEST/report` byte for byte from the copied files alone. Every finished single-task
 run (`ccfit train`) keeps the same files, and `DEST/learnability` holds `ccfit learnability`'s
 tables over the published ones: the steps each task needed, from which the per-suite budgets
-were set. Anything large is refused rather than silently committed.
+were set. Anything large is refused rather than silently committed. With `--root`, the folder
+holding every published result, its `orderings.md`, `axes.md` and `cost.md` are rewritten over
+all of them, so comparisons across published folders stay current.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from pathlib import Path
 from ccdata.errors import InputError
 from ccfit.analysis.learnability import finished_task_runs, write_learnability
 from ccfit.curriculum import METRICS_JSON
-from ccfit.report import find_runs, scratch_dir_of, write_report
+from ccfit.report import find_runs, scratch_dir_of, write_overview_of, write_report
 from ccfit.sweep.grid import SCRATCH, SCRATCH_DONE, SWEEP_JSON
 
 RUN_FILES = ("config.json", "metrics.json", "metrics.jsonl", "cost.json", "routing.jsonl")
@@ -36,13 +40,17 @@ REPORT = "report"
 LEARNABILITY = "learnability"
 
 
-def publish(runs: Path, out: Path) -> list[Path]:
+def publish(runs: Path, out: Path, root: Path | None = None) -> list[Path]:
     """Copy the small files of every finished run under `runs` (a curriculum's with its
     from-scratch reference's) to `out`, keeping paths relative to `runs`; write `out/report`
-    over the curricula and `out/learnability` over the single-task runs. Returns the files
-    written."""
+    over the curricula and `out/learnability` over the single-task runs; with `root` (a folder
+    holding `out`), rewrite `root`'s overview (`write_overview`) over every run published under
+    it. Returns the files written."""
     if not runs.is_dir():
         raise InputError(f"no such run folder: {runs}")
+    if root is not None and not out.resolve().is_relative_to(root.resolve()):
+        raise InputError(f"--root {root} does not hold --out {out}: its overview would not "
+                         f"include what is published")  # fmt: skip
     curricula = find_runs([runs]) if any(runs.rglob(METRICS_JSON)) else []
     task_runs = finished_task_runs(runs)
     if not curricula and not task_runs:
@@ -63,6 +71,8 @@ def publish(runs: Path, out: Path) -> list[Path]:
         written += _rewrite_report(out)
     if task_runs:
         written += write_learnability(finished_task_runs(out), out / LEARNABILITY)
+    if root is not None:
+        written += write_overview_of([root], root)
     return written
 
 

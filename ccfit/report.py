@@ -411,13 +411,27 @@ def references_of(run_groups: dict) -> dict[Path, tuple[str, str, str]]:
             for k, runs in run_groups.items() for r in runs}  # fmt: skip
 
 
+def write_overview(run_groups: dict, groups: dict, out: Path) -> list[Path]:
+    """`orderings.md`, `axes.md` and `cost.md` over `run_groups` (`group_runs`) and their
+    `groups` (`group_metrics` of each): the tables that compare across groups, and so across
+    published folders when made over all of them."""
+    return [write_orderings(groups, out), write_axes(groups, out),
+            write_cost(run_groups, references_of(run_groups), out)]  # fmt: skip
+
+
+def write_overview_of(paths: list[Path], out: Path) -> list[Path]:
+    """`write_overview` over every finished run under `paths` (`ccfit publish --root`)."""
+    run_groups = group_runs(find_runs([Path(p) for p in paths]))
+    groups = {k: group_metrics(v) for k, v in run_groups.items()}
+    return write_overview(run_groups, groups, out)
+
+
 def write_report(paths: list[Path], out: Path) -> list[Path]:
     """Tables and plots for every (backbone, suite, method, variant) group of finished runs."""
     run_groups = group_runs(find_runs([Path(p) for p in paths]))
     groups = {k: group_metrics(v) for k, v in run_groups.items()}
     out.mkdir(parents=True, exist_ok=True)
-    written = write_tables(groups, out) + [write_orderings(groups, out), write_axes(groups, out)]
-    written.append(write_cost(run_groups, references_of(run_groups), out))
+    written = write_tables(groups, out) + write_overview(run_groups, groups, out)
     written += plot_bars(groups, out)
     summary = {}
     for k, g in groups.items():

@@ -316,3 +316,33 @@ def test_bar_whiskers_span_the_per_seed_range_even_where_the_value_lies_outside_
         (whisker,) = [c for c in ax.collections if len(c.get_segments()) == 1]
         (segment,) = whisker.get_segments()
         assert sorted(segment[:, 1]) == pytest.approx([group[f"{name}_min"], group[f"{name}_max"]])
+
+
+def test_publish_with_root_rewrites_the_overview_over_every_published_folder(tmp_path, capsys):
+    """`ccfit publish --root`: the overview (orderings, axes, cost) at the root counts the runs
+    of every folder published under it, not only the one just published; a root that does not
+    hold --out is bad input."""
+    from ccfit.cli import main
+    from ccfit.report_cost import COST_MD
+    from ccfit.report_orderings import ORDERINGS_MD
+
+    write_run(tmp_path / "sweep-ft", "ft-s0", config(), 1.0)
+    write_run(tmp_path / "sweep-er", "er-s0", config(method="er"), 0.5)
+    results = tmp_path / "results"
+    for method in ("ft", "er"):
+        argv = ["publish", str(tmp_path / f"sweep-{method}"), "--out", str(results / method),
+                "--root", str(results)]  # fmt: skip
+        assert main(argv) == 0
+    cost = (results / COST_MD).read_text()
+    assert f"| tdmpc2 | {SUITE} | er | 1 |" in cost and f"| tdmpc2 | {SUITE} | ft | 1 |" in cost
+    assert "| all | | | 2 |" in cost
+    rebuilt = tmp_path / "rebuilt"
+    write_report([results], rebuilt)
+    for name in (ORDERINGS_MD, COST_MD):
+        assert (results / name).read_text() == (rebuilt / name).read_text()
+    capsys.readouterr()
+    argv = ["publish", str(tmp_path / "sweep-ft"), "--out", str(tmp_path / "elsewhere"),
+            "--root", str(results)]  # fmt: skip
+    assert main(argv) == 2
+    assert "does not hold --out" in capsys.readouterr().err
+    assert not (tmp_path / "elsewhere").exists()
