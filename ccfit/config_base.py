@@ -159,12 +159,15 @@ fitted one), recorded for the reader."""
 ENCODER_RECORD = "resolved_encoder_sha256"
 """config.json key of the SHA-256 of a run's frozen encoder file (`--encoder frozen:PATH`). A
 resume checks it (`check_same_encoder`): another file at the same path is another run."""
-NOT_IDENTITY = ("log", "train.parallel", "train.env_workers", "out", *DATASET_RECORDS,
-                ENCODER_RECORD)  # fmt: skip
-"""config.json settings a run may change when it is resumed (where it logs, how it spreads
-over processes, where its directory now is: not what it computes), and what it records of its
-datasets and encoder for the reader (runs made before those records existed resume; the
-encoder's is checked apart, where both configs hold it)."""
+EXECUTION_SETTINGS = ("log", "train.parallel", "train.env_workers")
+"""config.json settings of how a run is executed, not of what it computes: where it logs and how
+it spreads over processes (a parallel run's records equal the serial run's:
+`tests/test_parallel.py`). Runs that differ only in these are the same experiment."""
+NOT_IDENTITY = (*EXECUTION_SETTINGS, "out", *DATASET_RECORDS, ENCODER_RECORD)
+"""config.json settings a run may change when it is resumed (`EXECUTION_SETTINGS`, where its
+directory now is), and what it records of its datasets and encoder for the reader (runs made
+before those records existed resume; the encoder's is checked apart, where both configs hold
+it)."""
 
 
 def identity(resolved: dict) -> dict:

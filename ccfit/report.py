@@ -41,7 +41,7 @@ import numpy as np
 from ccdata.errors import InputError
 from ccfit import metrics as M
 from ccfit.analysis import report_routing
-from ccfit.config_base import DATASET_RECORDS
+from ccfit.config_base import DATASET_RECORDS, EXECUTION_SETTINGS
 from ccfit.config_parse import flatten
 from ccfit.curriculum import METRICS_JSON, REFERENCE_DONE
 from ccfit.io import atomic_write_text, read_run_json
@@ -97,11 +97,12 @@ PER_SEED = (
 """Flattened config keys (fnmatch patterns) that differ between the seeds of one experiment
 and so do not split groups: the seed, seeds derived from it, where outputs went, the run (of
 that seed) a branch started from (its `resolved_branch.after` does split them)."""
-AS_RUN = ("resolved_compile", "resolved_seed_dataset", *DATASET_RECORDS)
+AS_RUN = ("resolved_compile", "resolved_seed_dataset", *DATASET_RECORDS, *EXECUTION_SETTINGS)
 """Records of how a run was computed, not of what: which of the model's functions this code
 version compiled (eager and compiled compute the same within float tolerance), where the seed
 dataset lay on the machine that ran it and what the run recorded of its datasets (runs made
-before that record existed have none). Seeds run by two code versions or on two machines still
+before that record existed have none), how it spread over processes and where it logged. Seeds
+run by two code versions, on two machines or with and without worker processes still
 average."""
 CURVE_KEYS = {"online": "normalized_return", TRACK: SCORE_KEY}
 """Per track, what a record's curve value is."""
@@ -110,7 +111,9 @@ AXES = ("suite", "model", "method", "encoder", "track")
 
 
 def _is_per_seed(key: str) -> bool:
-    return key.partition(".")[0] in AS_RUN or any(fnmatch.fnmatchcase(key, p) for p in PER_SEED)
+    return any(key == s or key.startswith(f"{s}.") for s in AS_RUN) or any(
+        fnmatch.fnmatchcase(key, p) for p in PER_SEED
+    )
 
 
 def _axis_name(config: dict, name: str) -> Any:

@@ -346,3 +346,20 @@ def test_publish_with_root_rewrites_the_overview_over_every_published_folder(tmp
     assert main(argv) == 2
     assert "does not hold --out" in capsys.readouterr().err
     assert not (tmp_path / "elsewhere").exists()
+
+
+def test_seeds_run_with_and_without_worker_processes_average_as_one_experiment(tmp_path):
+    """How a run spreads over processes is not what it computes (`EXECUTION_SETTINGS`): a seed
+    run alone with its workers and one run beside others without them are one group; a setting
+    of what is computed still splits."""
+    alone = {"parallel": "auto", "env_workers": "auto"}
+    beside = {"parallel": "off", "env_workers": "0"}
+    for seed, execution in ((0, alone), (1, beside)):
+        cfg = config(seed=seed)
+        cfg["train"] = {**cfg["train"], **execution}
+        write_run(tmp_path, f"s{seed}", cfg, 1.0)
+    other = config(seed=2)
+    other["train"] = {**other["train"], **beside, "steps": 2 * STEPS}
+    write_run(tmp_path, "s2-longer", other, 1.0)
+    groups = group_runs(find_runs([tmp_path]))
+    assert sorted(sorted(r.seed for r in runs) for runs in groups.values()) == [[0, 1], [2]]
