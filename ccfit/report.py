@@ -2,11 +2,12 @@
 
 Runs are grouped by their whole resolved config (config.json, flattened to dotted keys) except
 what legitimately differs between the seeds of one experiment: the seed itself, seeds derived
-from it and output paths (`PER_SEED`). Only runs of one group are averaged; seeds within a group
-are averaged *before* a metric (the paper's protocol), and the per-seed metrics give the
-min/max. A group is named by (backbone, suite, method) and, when groups of one table differ in
-anything else (observation mode, preset, router, method options, step budget, ...), by a
-variant label naming those settings ("obs=pixels, preset=cpu"). Outputs:
+from it and output paths (`PER_SEED`), and records of how a run was computed rather than what
+(`AS_RUN`: compilation, worker processes, the dataset's location). Only runs of one group are
+averaged; seeds within a group are averaged *before* a metric (the paper's protocol), and the
+per-seed metrics give the min/max. A group is named by (backbone, suite, method) and, when
+groups of one table differ in anything else (observation mode, preset, router, method options,
+step budget, ...), by a variant label naming those settings ("obs=pixels, preset=cpu"). Outputs:
 - `table_<backbone>.md` / `.csv`: (suite, variant) x methods, BWT and FWT as mean [min, max]
   (the paper's Appendix B layout), with the settings the variants differ in;
 - `bars_<backbone>.png`: BWT and FWT bars per suite and method with min-max whiskers (Fig. 4);
