@@ -377,8 +377,13 @@ def write_tables(groups: dict, out: Path) -> list[Path]:
 def load_groups(paths: list[Path]) -> dict[tuple[str, str, str, str], dict]:
     """Finished runs under `paths` grouped by (backbone, suite, method, variant)
     (`group_runs`), each group's metrics (`group_metrics`)."""
-    groups = group_runs(find_runs([Path(p) for p in paths]))
-    return {k: group_metrics(v) for k, v in groups.items()}
+    return _grouped(paths)[1]
+
+
+def _grouped(paths: list[Path]) -> tuple[dict, dict]:
+    """Finished runs under `paths` by group (`group_runs`), and each group's metrics."""
+    run_groups = group_runs(find_runs([Path(p) for p in paths]))
+    return run_groups, {k: group_metrics(v) for k, v in run_groups.items()}
 
 
 def table_frame(groups: dict, backbone: str):
@@ -425,15 +430,12 @@ def write_overview(run_groups: dict, groups: dict, out: Path) -> list[Path]:
 
 def write_overview_of(paths: list[Path], out: Path) -> list[Path]:
     """`write_overview` over every finished run under `paths` (`ccfit publish --root`)."""
-    run_groups = group_runs(find_runs([Path(p) for p in paths]))
-    groups = {k: group_metrics(v) for k, v in run_groups.items()}
-    return write_overview(run_groups, groups, out)
+    return write_overview(*_grouped(paths), out)
 
 
 def write_report(paths: list[Path], out: Path) -> list[Path]:
     """Tables and plots for every (backbone, suite, method, variant) group of finished runs."""
-    run_groups = group_runs(find_runs([Path(p) for p in paths]))
-    groups = {k: group_metrics(v) for k, v in run_groups.items()}
+    run_groups, groups = _grouped(paths)
     out.mkdir(parents=True, exist_ok=True)
     written = write_tables(groups, out) + write_overview(run_groups, groups, out)
     written += plot_bars(groups, out)
