@@ -15,7 +15,9 @@ run (`ccfit train`) keeps the same files, and `DEST/learnability` holds `ccfit l
 tables over the published ones: the steps each task needed, from which the per-suite budgets
 were set. Anything large is refused rather than silently committed. With `--root`, the folder
 holding every published result, its `orderings.md`, `axes.md` and `cost.md` are rewritten over
-all of them, so comparisons across published folders stay current.
+all of them, so comparisons across published folders stay current; a publish after which the
+root's runs could not be averaged (a seed published twice in one group) is refused. A refused
+publish writes nothing.
 """
 
 from __future__ import annotations
@@ -26,7 +28,15 @@ from pathlib import Path
 from ccdata.errors import InputError
 from ccfit.analysis.learnability import finished_task_runs, write_learnability
 from ccfit.curriculum import METRICS_JSON
-from ccfit.report import find_runs, scratch_dir_of, write_overview_of, write_report
+from ccfit.report import (
+    Run,
+    find_runs,
+    group_metrics,
+    group_runs,
+    scratch_dir_of,
+    write_overview_of,
+    write_report,
+)
 from ccfit.sweep.grid import SCRATCH, SCRATCH_DONE, SWEEP_JSON
 
 RUN_FILES = ("config.json", "metrics.json", "metrics.jsonl", "cost.json", "routing.jsonl")
@@ -56,16 +66,26 @@ def publish(runs: Path, out: Path, root: Path | None = None) -> list[Path]:
     if not curricula and not task_runs:
         raise InputError(f"no finished runs under {runs}: neither a curriculum (with "
                          f"metrics.json) nor a finished `ccfit train` run")  # fmt: skip
-    written = []
-    for run in curricula:
-        rel = run.path.resolve().relative_to(runs.resolve())
-        written += _copy(run.path, out / rel, RUN_FILES)
+    placed = [(run, out / run.path.resolve().relative_to(runs.resolve())) for run in curricula]
+    copies = []
+    for run, dst in placed:
+        copies += _files(run.path, dst, RUN_FILES)
         scratch = scratch_dir_of(run.path, run.metrics)
-        written += _copy(scratch, out / rel.parent / SCRATCH / scratch.name, SCRATCH_FILES)
+        copies += _files(scratch, dst.parent / SCRATCH / scratch.name, SCRATCH_FILES)
     for run in task_runs:
-        written += _copy(run, out / run.resolve().relative_to(runs.resolve()), TASK_RUN_FILES)
+        copies += _files(run, out / run.resolve().relative_to(runs.resolve()), TASK_RUN_FILES)
     if (runs / SWEEP_JSON).is_file():
-        written += _copy(runs, out, (SWEEP_JSON,))
+        copies += _files(runs, out, (SWEEP_JSON,))
+    # Everything that can refuse is asked before the first file is written, so a refused
+    # publish leaves `out` and the root's overview as they were.
+    _check_sizes(copies)
+    if root is not None:
+        _check_overview(root, placed)
+    written = []
+    for src, dst in copies:
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(src, dst)
+        written.append(dst)
     written = sorted(set(written))
     if curricula:
         written += _rewrite_report(out)
@@ -87,17 +107,25 @@ def _rewrite_report(out: Path) -> list[Path]:
     return [report / p.relative_to(fresh) for p in written]
 
 
-def _copy(src: Path, dst: Path, names: tuple[str, ...]) -> list[Path]:
-    dst.mkdir(parents=True, exist_ok=True)
-    copied = []
-    for name in names:
-        f = src / name
-        if not f.is_file():
-            continue
-        size = f.stat().st_size
+def _files(src: Path, dst: Path, names: tuple[str, ...]) -> list[tuple[Path, Path]]:
+    """(source, destination) of each of `names` that `src` holds."""
+    return [(src / name, dst / name) for name in names if (src / name).is_file()]
+
+
+def _check_sizes(copies: list[tuple[Path, Path]]) -> None:
+    for src, _ in copies:
+        size = src.stat().st_size
         if size > MAX_FILE_BYTES:
-            raise InputError(f"{f} is {size} bytes: too large to publish "
+            raise InputError(f"{src} is {size} bytes: too large to publish "
                              f"(limit {MAX_FILE_BYTES})")  # fmt: skip
-        shutil.copyfile(f, dst / name)
-        copied.append(dst / name)
-    return copied
+
+
+def _check_overview(root: Path, placed: list[tuple[Run, Path]]) -> None:
+    """Refuses (InputError) a publish after which the runs under `root` could not be averaged
+    together (`group_metrics`: a seed twice in one group, say, from another folder under the
+    root), each curriculum of `placed` taking the place of what its destination holds now."""
+    gone = {dst.resolve() for _, dst in placed}
+    kept = [r for r in (find_runs([root]) if any(root.rglob(METRICS_JSON)) else [])
+            if r.path.resolve() not in gone]  # fmt: skip
+    for group in group_runs(kept + [run for run, _ in placed]).values():
+        group_metrics(group)

@@ -348,6 +348,34 @@ def test_publish_with_root_rewrites_the_overview_over_every_published_folder(tmp
     assert not (tmp_path / "elsewhere").exists()
 
 
+def test_a_refused_publish_writes_nothing(tmp_path, capsys, monkeypatch):
+    """Every refusal comes before the first file is written: a seed the root already holds in
+    the same group (published from another folder), or a file over the size limit, leaves
+    --out unmade and the root as it was; the same folder published again where it was replaces
+    its runs rather than counting them twice."""
+    from ccfit import publish
+    from ccfit.cli import main
+
+    write_run(tmp_path / "sweep", "ft-s0", config(), 1.0)
+    write_run(tmp_path / "again", "ft-s0", config(), 1.0)
+    results = tmp_path / "results"
+
+    def argv(runs: str, out: Path) -> list[str]:
+        return ["publish", str(tmp_path / runs), "--out", str(out), "--root", str(results)]
+
+    assert main(argv("sweep", results / "ft")) == 0
+    before = {p: p.read_bytes() for p in results.rglob("*") if p.is_file()}
+    capsys.readouterr()
+    assert main(argv("again", results / "ft-again")) == 2
+    assert "seed(s) [0] more than once" in capsys.readouterr().err
+    monkeypatch.setattr(publish, "MAX_FILE_BYTES", 100)
+    assert main(argv("again", results / "small")) == 2
+    assert "too large to publish" in capsys.readouterr().err
+    assert {p: p.read_bytes() for p in results.rglob("*") if p.is_file()} == before
+    monkeypatch.undo()
+    assert main(argv("sweep", results / "ft")) == 0
+
+
 def test_seeds_run_with_and_without_worker_processes_average_as_one_experiment(tmp_path):
     """How a run spreads over processes is not what it computes (`EXECUTION_SETTINGS`): a seed
     run alone with its workers and one run beside others without them are one group; a setting
