@@ -16,7 +16,12 @@ import torch
 
 from ccfit.models import make_model, model_names
 from ccfit.models.registry import config_class, model_class
-from ccfit.train.compiled import compile_hot_paths, compiled_paths, pin_inductor_threads
+from ccfit.train.compiled import (
+    cap_inductor_vector_width,
+    compile_hot_paths,
+    compiled_paths,
+    pin_inductor_threads,
+)
 
 try:
     from replay_data import random_buffer
@@ -151,6 +156,27 @@ def test_a_kernel_compiled_for_one_thread_count_is_not_served_to_another():
         torch._inductor.config.cpp.threads = pinned
         torch._dynamo.reset()
     assert hits == [0, 0, 1]  # the cache still serves the same thread count
+
+
+@pytest.mark.parametrize("picked, capped", [("VecAMX", 256), ("VecAVX512", 256), ("VecAVX2", None)])
+def test_inductor_cpu_kernels_use_vectors_of_at_most_256_bits(monkeypatch, picked, capped):
+    # AVX-512 kernels corrupted the heap on a Sapphire Rapids CPU (`cap_inductor_vector_width`):
+    # capped where Inductor would pick wider vectors, left alone where it picks AVX2 ...
+    import torch._inductor.config
+    from torch._inductor import cpu_vec_isa
+
+    real_pick = cpu_vec_isa.pick_vec_isa
+    monkeypatch.setattr(cpu_vec_isa, "pick_vec_isa", lambda: getattr(cpu_vec_isa, picked)())
+    with torch._inductor.config.patch({"cpp.simdlen": None}):
+        assert cap_inductor_vector_width() == capped == torch._inductor.config.cpp.simdlen
+    # ... and on this CPU the kernels are then generated for its widest ISA of 256 bits or less
+    monkeypatch.setattr(cpu_vec_isa, "pick_vec_isa", real_pick)
+    widths = [isa.bit_width() for isa in cpu_vec_isa.valid_vec_isa_list()]
+    narrow = [w for w in widths if w <= 256]
+    with torch._inductor.config.patch({"cpp.simdlen": None}):
+        cap_inductor_vector_width()
+        picked_here = cpu_vec_isa.pick_vec_isa().bit_width()
+    assert picked_here == (max(narrow) if narrow else 0)
 
 
 def test_auto_compiles_only_what_was_measured_to_pay():

@@ -62,6 +62,7 @@ def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None =
 
         torch._inductor.config.fallback_random = True
         pin_inductor_threads()
+        cap_inductor_vector_width()
         # DreamerV3's actor step differentiates with retain_graph (its critic pass serves the
         # critic's loss too), which a compiled backward that donates its saved buffers
         # refuses; Inductor compiles such a backward when it meets a second model size.
@@ -126,6 +127,30 @@ def pin_inductor_threads() -> int:
 
     torch._inductor.config.cpp.threads = torch.get_num_threads()
     return torch._inductor.config.cpp.threads
+
+
+MAX_CPU_VECTOR_BITS = 256
+"""The widest vectors Inductor's CPU kernels are generated for (`cap_inductor_vector_width`)."""
+
+
+def cap_inductor_vector_width() -> int | None:
+    """Generate Inductor's CPU kernels for vectors of at most `MAX_CPU_VECTOR_BITS` (AVX2 on
+    x86) where it would pick wider ones (AVX-512, AMX); returns the width set (None: Inductor's
+    own choice, already narrow enough).
+
+    With torch 2.11 on an Intel Sapphire Rapids CPU, a `cpu`-preset TD-MPC2 run aborted with
+    heap corruption ('double free or corruption', 'corrupted size vs. prev_size', segfaults)
+    at its first evaluation, in the compiled plan: every run whose kernels were AVX-512 (7 of
+    7; AMX, the default there, and plain AVX-512 alike), none with the kernels capped at 256
+    bits or eager (ATen's own AVX-512 kernels run). On an AVX2 machine the cap changes
+    nothing: Inductor picks the same instruction set and code as before."""
+    import torch._inductor.config
+    from torch._inductor import cpu_vec_isa
+
+    config = torch._inductor.config.cpp
+    if config.simdlen is None and cpu_vec_isa.pick_vec_isa().bit_width() > MAX_CPU_VECTOR_BITS:
+        config.simdlen = MAX_CPU_VECTOR_BITS
+    return config.simdlen
 
 
 _BF16_CPU_FLAGS = frozenset({"avx512_bf16", "amx_bf16"})
