@@ -62,7 +62,7 @@ def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None =
 
         torch._inductor.config.fallback_random = True
         pin_inductor_threads()
-        cap_inductor_vector_width()
+        pin_inductor_vector_width()
         # DreamerV3's actor step differentiates with retain_graph (its critic pass serves the
         # critic's loss too), which a compiled backward that donates its saved buffers
         # refuses; Inductor compiles such a backward when it meets a second model size.
@@ -129,27 +129,24 @@ def pin_inductor_threads() -> int:
     return torch._inductor.config.cpp.threads
 
 
-MAX_CPU_VECTOR_BITS = 256
-"""The widest vectors Inductor's CPU kernels are generated for (`cap_inductor_vector_width`)."""
+def pin_inductor_vector_width() -> int:
+    """Compile CPU kernels for this process's vector width, named in Inductor's cache key.
 
-
-def cap_inductor_vector_width() -> int | None:
-    """Generate Inductor's CPU kernels for vectors of at most `MAX_CPU_VECTOR_BITS` (AVX2 on
-    x86) where it would pick wider ones (AVX-512, AMX); returns the width set (None: Inductor's
-    own choice, already narrow enough).
-
-    With torch 2.11 on an Intel Sapphire Rapids CPU, a `cpu`-preset TD-MPC2 run aborted with
-    heap corruption ('double free or corruption', 'corrupted size vs. prev_size', segfaults)
-    at its first evaluation, in the compiled plan: every run whose kernels were AVX-512 (7 of
-    7; AMX, the default there, and plain AVX-512 alike), none with the kernels capped at 256
-    bits or eager (ATen's own AVX-512 kernels run). On an AVX2 machine the cap changes
-    nothing: Inductor picks the same instruction set and code as before."""
+    Inductor picks the vector instruction set of its CPU kernels when it compiles (the widest
+    the CPU has, or what `ATEN_CPU_CAPABILITY` lowers it to) and writes its width into their
+    loops (a step of 8 floats for AVX2, 16 for AVX-512), but torch 2.11 leaves the pick out of
+    its on-disk cache key, and a cached graph's kernels are built when they are loaded, for the
+    loading process's pick. On an AVX-512 machine, a graph a process had compiled under
+    `ATEN_CPU_CAPABILITY=avx2` was served to processes without it: their kernels stored 16
+    floats per step of 8, and every `cpu`-preset TD-MPC2 run aborted with heap corruption at
+    its first evaluation, in the plan (7 of 7; with a fresh cache, none). The width set
+    explicitly is part of the key and picks the same instruction set. Returns it."""
     import torch._inductor.config
     from torch._inductor import cpu_vec_isa
 
     config = torch._inductor.config.cpp
-    if config.simdlen is None and cpu_vec_isa.pick_vec_isa().bit_width() > MAX_CPU_VECTOR_BITS:
-        config.simdlen = MAX_CPU_VECTOR_BITS
+    config.simdlen = None  # what this process would pick unpinned (ATEN_CPU_CAPABILITY's)
+    config.simdlen = cpu_vec_isa.pick_vec_isa().bit_width()
     return config.simdlen
 
 
