@@ -61,8 +61,7 @@ def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None =
         import torch._inductor.config
 
         torch._inductor.config.fallback_random = True
-        pin_inductor_threads()
-        pin_inductor_vector_width()
+        pin_inductor_cache_key()
         # DreamerV3's actor step differentiates with retain_graph (its critic pass serves the
         # critic's loss too), which a compiled backward that donates its saved buffers
         # refuses; Inductor compiles such a backward when it meets a second model size.
@@ -111,6 +110,13 @@ def copied(value):
         fields = [f.name for f in dataclasses.fields(value) if f.init]
         return dataclasses.replace(value, **{k: copied(getattr(value, k)) for k in fields})
     return value
+
+
+def pin_inductor_cache_key() -> None:
+    """Set what torch 2.11 writes into Inductor's CPU kernels but leaves out of their cache
+    key, so that it is in the key: the thread count and the vector width (below)."""
+    pin_inductor_threads()
+    pin_inductor_vector_width()
 
 
 def pin_inductor_threads() -> int:
