@@ -61,7 +61,7 @@ def publish(runs: Path, out: Path, root: Path | None = None) -> list[Path]:
     if root is not None and not out.resolve().is_relative_to(root.resolve()):
         raise InputError(f"--root {root} does not hold --out {out}: its overview would not "
                          f"include what is published")  # fmt: skip
-    curricula = find_runs([runs]) if any(runs.rglob(METRICS_JSON)) else []
+    curricula = _curricula_under(runs)
     task_runs = finished_task_runs(runs)
     if not curricula and not task_runs:
         raise InputError(f"no finished runs under {runs}: neither a curriculum (with "
@@ -107,6 +107,11 @@ def _rewrite_report(out: Path) -> list[Path]:
     return [report / p.relative_to(fresh) for p in written]
 
 
+def _curricula_under(folder: Path) -> list[Run]:
+    """The finished curricula under `folder` (none where it holds no metrics.json)."""
+    return find_runs([folder]) if any(folder.rglob(METRICS_JSON)) else []
+
+
 def _files(src: Path, dst: Path, names: tuple[str, ...]) -> list[tuple[Path, Path]]:
     """(source, destination) of each of `names` that `src` holds."""
     return [(src / name, dst / name) for name in names if (src / name).is_file()]
@@ -125,7 +130,6 @@ def _check_overview(root: Path, placed: list[tuple[Run, Path]]) -> None:
     together (`group_metrics`: a seed twice in one group, say, from another folder under the
     root), each curriculum of `placed` taking the place of what its destination holds now."""
     gone = {dst.resolve() for _, dst in placed}
-    kept = [r for r in (find_runs([root]) if any(root.rglob(METRICS_JSON)) else [])
-            if r.path.resolve() not in gone]  # fmt: skip
+    kept = [r for r in _curricula_under(root) if r.path.resolve() not in gone]
     for group in group_runs(kept + [run for run, _ in placed]).values():
         group_metrics(group)

@@ -181,6 +181,7 @@ def test_a_kernel_compiled_for_one_vector_width_is_not_served_to_another(monkeyp
                     monkeypatch.delenv("ATEN_CPU_CAPABILITY", raising=False)
                 torch._dynamo.reset()
                 widths.append(pin_inductor_vector_width())
+                assert torch._inductor.config.cpp.simdlen == widths[-1]  # in the key
                 before = counters["inductor"]["fxgraph_cache_hit"]
                 torch.compile(lambda x: (x.sin() * scale).sum(0))(torch.randn(256, 256))
                 hits.append(counters["inductor"]["fxgraph_cache_hit"] - before)
