@@ -204,7 +204,7 @@ def test_a_branch_start_killed_before_its_record_starts_again(source, branches, 
 
 @pytest.mark.integration
 def test_er_without_replay_after_a_branch_trains_as_ft_does(source, tmp_path):
-    """What `results/diagnostics/grasp_er_branch.py` relies on: ER with `replay_ratio` 0 from
+    """What `results/diagnostics/er_branch.py` relies on: ER with `replay_ratio` 0 from
     task K on is FT from there. ER's first task replays nothing, so a branch after it is FT."""
     with shorter_episodes():
         ft = Curriculum(resolve(CurriculumConfig, {

@@ -236,7 +236,7 @@ def test_handover_can_act_by_the_policy_alone(made, capsys, monkeypatch):
 
 
 @pytest.mark.integration
-def test_grasp_er_branch(made, tmp_path, capsys):
+def test_er_branch(made, tmp_path, capsys):
     """An ER run that kept its stages, its branch without replay after task 2, and FT's."""
     source, branch = tmp_path / "er", tmp_path / "er-off"
     common = ["run", "--suite", "Grasp", "--method.type=er", "--scratch-root",
@@ -247,7 +247,7 @@ def test_grasp_er_branch(made, tmp_path, capsys):
         assert ccfit([*common, "--method.replay_ratio=0", "--out", str(branch),
                       "--branch-from", str(source), "--branch-after", "2"]) == 0  # fmt: skip
     runs = [source, branch, made.runs["ewc"]]
-    lines = [json.loads(x) for x in _run(_script("grasp_er_branch"), [str(r) for r in runs],
+    lines = [json.loads(x) for x in _run(_script("er_branch"), [str(r) for r in runs],
                                          capsys).splitlines()]  # fmt: skip
     assert [x["run"] for x in lines[:3]] == [r.name for r in runs]
     assert len(lines) == 4 and lines[3]["reference"]  # the three share one reference
@@ -259,7 +259,7 @@ def test_grasp_er_branch(made, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("name", ["grasp_er_pick", "packnet_prune", "dreamerv3_pick",
-                                  "stage_reached", "grasp_er_branch", "task_reading",
+                                  "stage_reached", "er_branch", "task_reading",
                                   "handover"])  # fmt: skip
 def test_a_diagnostic_refuses_a_missing_run_in_one_line(name, tmp_path, capsys):
     script = _script(name)

@@ -1,4 +1,4 @@
-"""Why ER transfers less than FT to Grasp's pnp-cube (TD-MPC2): replay while it trains, or the
+"""Why ER transfers less than FT to a composition task (TD-MPC2): replay while it trains, or the
 state ER reaches it in?
 
     ccfit run --suite Grasp --preset cpu --method.type=er --seed 2 --keep-stages \
@@ -6,18 +6,21 @@ state ER reaches it in?
     ccfit run --suite Grasp --preset cpu --method.type=er --seed 2 --method.replay_ratio=0 \
         --out RUNS/grasp-er-s2-noreplay-after2 --branch-from RUNS/grasp-er-s2 --branch-after 2 \
         --scratch-root SWEEP/scratch
-    python results/diagnostics/grasp_er_branch.py RUNS/grasp-er-s2 \
+    python results/diagnostics/er_branch.py RUNS/grasp-er-s2 \
         RUNS/grasp-er-s2-noreplay-after2 SWEEP/Grasp-tdmpc2-ft-state-cpu-s2 \
         > results/diagnostics/grasp_er_branch.jsonl
 
-The branch is the ER run up to the end of place-cube (the same weights, stored heads, kept
-windows and RNG) and trains pnp-cube without replaying them (`replay_ratio` 0, so ER's
-penalty is zero and draws nothing). If it learns pnp-cube as FT does, the replay's share of
-every update is what slows ER; if as ER does, the backbone ER hands to pnp-cube is. One JSON
-line per run: the composition task's curve while it trains (task steps of the first
-evaluation at 50 and at 80, mean of the last 21 evaluations, its end-of-task score), the mean
-score of each earlier task while it trains, the run's FWT and Continual World forward
-transfer; then one line for the from-scratch reference.
+The branch is the ER run up to the end of the task before the composition (the same weights,
+stored heads, kept windows and RNG) and trains the composition without replaying them
+(`replay_ratio` 0, so ER's penalty is zero and draws nothing). If it learns the composition as
+FT does, the replay's share of every update is what slows ER; if as ER does, the backbone ER
+hands to it is. A branch after the first task (`--branch-after 1`) trains as FT does
+(`tests/test_branch.py`): FT made on the machine that made the ER run, where a published FT
+run was made on another kind of CPU (`drawerpnp_er_branch.jsonl`; its commands are in
+`results/README.md`). One JSON line per run: the composition task's curve while it trains
+(task steps of the first evaluation at 50 and at 80, mean of the last 21 evaluations, its
+end-of-task score), the mean score of each earlier task while it trains, the run's FWT and
+Continual World forward transfer; then one line per from-scratch reference.
 """
 
 from __future__ import annotations
@@ -74,7 +77,7 @@ def summarise(run: Path) -> tuple[dict, Path]:
 
 
 def main(argv: list[str] | None) -> None:
-    parser = OneLineParser(prog="grasp_er_branch.py", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="er_branch.py", description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", type=Path, help="finished curriculum run directories")
     args = parser.parse_args(argv)
     references: dict[str, Path] = {}
@@ -90,4 +93,4 @@ def main(argv: list[str] | None) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(run_script(main, "grasp_er_branch.py"))
+    sys.exit(run_script(main, "er_branch.py"))
