@@ -17,10 +17,10 @@ FT does, the replay's share of every update is what slows ER; if as ER does, the
 hands to it is. A branch after the first task (`--branch-after 1`) trains as FT does
 (`tests/test_branch.py`): FT made on the machine that made the ER run, where a published FT
 run was made on another kind of CPU (`drawerpnp_er_branch.jsonl`; its commands are in
-`results/README.md`). One JSON line per run: the composition task's curve while it trains
-(task steps of the first evaluation at 50 and at 80, mean of the last 21 evaluations, its
-end-of-task score), the mean score of each earlier task while it trains, the run's FWT and
-Continual World forward transfer; then one line per from-scratch reference.
+`results/diagnostics/README.md`). One JSON line per run: the composition task's curve while it
+trains (task steps of the first evaluation at 50 and at 80, mean of the last 21 evaluations,
+its end-of-task score), the mean score of each earlier task while it trains, the run's FWT
+and Continual World forward transfer; then one line per from-scratch reference.
 """
 
 from __future__ import annotations
