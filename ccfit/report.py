@@ -18,6 +18,8 @@ step budget, ...), by a variant label naming those settings ("obs=pixels, preset
 - `axes.md`: BWT and FWT by composition axis beside the paper's table (`ccfit.report_axes`);
 - `cost.md`: CPU-hours per group and reference, and the machines that ran them
   (`ccfit.report_cost`);
+- `stages.md` / `.csv`: every run's scores stage by stage, each task's mean and end-of-stage
+  score while each task trains (`ccfit.report_stages`);
 - `routing_<backbone>_<suite>_<method>_s<seed>.png`: the paper's Fig. 5 for every run with a
   `routing.jsonl` (`ccfit.analysis`); summary.json gets the top-expert statement per seed.
 
@@ -60,6 +62,7 @@ from ccfit.report_plots import (
     row_label,
     slug,
 )
+from ccfit.report_stages import write_stages
 from ccfit.train import CONFIG, METRICS
 
 SUMMARY_JSON = "summary.json"
@@ -438,7 +441,7 @@ def write_report(paths: list[Path], out: Path) -> list[Path]:
     run_groups, groups = _grouped(paths)
     out.mkdir(parents=True, exist_ok=True)
     written = write_tables(groups, out) + write_overview(run_groups, groups, out)
-    written += plot_bars(groups, out)
+    written += plot_bars(groups, out) + write_stages(run_groups, CURVE_KEYS, out)
     summary = {}
     for k, g in groups.items():
         written.append(plot_curves(k, g, _task_ids(k[1]), out))

@@ -21,13 +21,15 @@ SUITE, TASKS, STEPS = "Reach", 4, 100
 
 
 def curve_records(task_scores: list[list[float]]) -> list[dict]:
-    """Evaluation records: task t's score list is sampled every 50 steps from its start."""
+    """Evaluation records: task t's score list is sampled every 50 steps from its start. As a
+    run logs them, an evaluation at a stage's last step belongs to that stage, except the one
+    that opens the next task's stage."""
     records = []
     for t, scores in enumerate(task_scores):
         for i, score in enumerate(scores):
-            records.append(
-                {"task_index": t, "global_step": t * STEPS + 50 * i, "normalized_return": score}
-            )
+            step = t * STEPS + 50 * i
+            records.append({"task_index": t, "global_step": step, "normalized_return": score,
+                            "stage": max(t, (step - 1) // STEPS)})  # fmt: skip
     return records
 
 

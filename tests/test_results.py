@@ -7,6 +7,8 @@ folder's tables over the single-task runs published beside it."""
 
 from __future__ import annotations
 
+import csv
+import json
 from pathlib import Path
 
 import pytest
@@ -17,6 +19,7 @@ from ccfit.report import write_overview_of, write_report
 from ccfit.report_axes import AXES_MD
 from ccfit.report_cost import COST_MD
 from ccfit.report_orderings import ORDERINGS_MD
+from ccfit.report_stages import STAGES_CSV, STAGES_MD
 from ccfit.sweep.grid import SWEEP_JSON
 from ccfit.sweep.status import sweep_status
 
@@ -35,8 +38,25 @@ def test_committed_tables_match_the_metrics_beside_them(report, tmp_path):
     write_report([report.parent], tmp_path)
     committed = sorted(p.name for p in report.glob("table_*"))
     assert committed, f"{report} has no tables"
-    for name in [*committed, ORDERINGS_MD, AXES_MD, COST_MD]:
+    for name in [*committed, ORDERINGS_MD, AXES_MD, COST_MD, STAGES_MD, STAGES_CSV]:
         assert (tmp_path / name).read_text() == (report / name).read_text(), name
+
+
+@pytest.mark.parametrize("report", REPORTS, ids=lambda p: str(p.parent.relative_to(RESULTS)))
+def test_the_stage_ends_are_each_runs_end_of_task_and_final_scores(report):
+    # stages.csv reads the records as they are; metrics.json read them through the metrics'
+    # curves when the run finished: the two agree on every published run.
+    rows = list(csv.DictReader((report / STAGES_CSV).open()))
+    for metrics in report.parent.glob("*/metrics.json"):
+        mine = [r for r in rows if r["run"] == metrics.parent.name]
+        assert mine, f"{metrics.parent.name} missing from {report / STAGES_CSV}"
+        m = json.loads(metrics.read_text())
+        end = {(int(r["stage"]), r["task"]): float(r["end"]) for r in mine}
+        tasks = list(dict.fromkeys(r["training"] for r in mine))
+        assert len(tasks) == len(m["end_of_task"])
+        assert [end[(i, t)] for i, t in enumerate(tasks)] == pytest.approx(m["end_of_task"])
+        last = len(tasks) - 1
+        assert [end[(last, t)] for t in tasks] == pytest.approx(m["final_per_task"])
 
 
 def test_the_tables_over_all_results_match_them(tmp_path):

@@ -1,0 +1,71 @@
+"""`stages.md` / `stages.csv`: each task's evaluations per stage, read as the metrics read them
+(the later of two records of one step stands), with the successes counted where records have
+them."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+
+from ccfit.report_stages import CSV_HEADER, STAGES_CSV, STAGES_MD, stage_cells
+
+try:
+    from test_report import config, write_run
+except ImportError:
+    from tests.test_report import config, write_run
+
+
+def _record(stage, task, step, score, success=None, episodes=5):
+    r = {"stage": stage, "task_index": task, "global_step": step, "normalized_return": score}
+    return r if success is None else {**r, "success_rate": success, "episodes": episodes}
+
+
+def test_cells_per_stage_and_task_in_order_with_successes():
+    records = [
+        _record(0, 0, 0, 10.0, 0.0),
+        _record(0, 0, 100, 90.0, 0.8),
+        _record(0, 0, 100, 30.0, 0.2),  # logged again after the end-of-task step: it stands
+        _record(1, 1, 100, 5.0, 0.0),
+        _record(1, 0, 200, 20.0, 0.4),
+        _record(1, 1, 200, 60.0, 1.0),
+        {"global_step": 200, "loss": 1.0},  # a training record: no score
+    ]
+    cells = stage_cells(records, "normalized_return")
+    assert [(c.stage, c.task) for c in cells] == [(0, 0), (1, 0), (1, 1)]
+    first, earlier, own = cells
+    assert first.scores == (10.0, 30.0) and first.end == 30.0 and first.mean == 20.0
+    assert (first.successes, first.episodes) == (1, 10)
+    assert (earlier.successes, earlier.episodes, earlier.end) == (2, 5, 20.0)
+    assert own.scores == (5.0, 60.0) and own.successes == 5
+
+
+def test_records_without_success_counts_have_none():
+    offline = [{"stage": 0, "task_index": 0, "global_step": s, "score": float(s)} for s in (0, 1)]
+    (cell,) = stage_cells(offline, "score")
+    assert (cell.successes, cell.episodes, cell.mean) == (None, None, 0.5)
+
+
+def test_the_ends_are_the_end_of_task_and_final_scores(tmp_path):
+    from ccfit.report import find_runs, group_runs
+    from ccfit.report_stages import write_stages
+
+    for seed in (0, 1):
+        write_run(tmp_path / "runs", f"ft-s{seed}", config(seed=seed), 1.0 + seed / 10)
+    run_groups = group_runs(find_runs([tmp_path / "runs"]))
+    written = write_stages(run_groups, {"online": "normalized_return"}, tmp_path / "report")
+    assert [p.name for p in written] == [STAGES_MD, STAGES_CSV]
+    rows = list(csv.DictReader((tmp_path / "report" / STAGES_CSV).open()))
+    assert list(rows[0]) == CSV_HEADER
+    for run in [r for runs in run_groups.values() for r in runs]:
+        mine = [r for r in rows if r["run"] == run.path.name]
+        last = max(int(r["stage"]) for r in mine)
+        by = {(int(r["stage"]), r["task"]): float(r["end"]) for r in mine}
+        tasks = list(dict.fromkeys(r["training"] for r in mine))
+        assert [by[(i, t)] for i, t in enumerate(tasks)] == pytest.approx(
+            run.metrics["end_of_task"]
+        )
+        assert [by[(last, t)] for t in tasks] == pytest.approx(run.metrics["final_per_task"])
+    text = (tmp_path / "report" / STAGES_MD).read_text()
+    assert "## tdmpc2, Reach, ft, seed 0 (`ft-s0`)" in text and "seed 1 (`ft-s1`)" in text
+    assert text.index("seed 0") < text.index("seed 1")
