@@ -691,7 +691,7 @@ def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
     assert main(["report", str(runs.root), "--out", str(out)]) == 0
     printed = set(capsys.readouterr().out.split())
     expected = {"table_tdmpc2.md", "table_tdmpc2.csv", "bars_tdmpc2.png", "summary.json",
-                "orderings.md", "axes.md", "cost.md"}  # fmt: skip
+                "orderings.md", "axes.md", "cost.md", "stages.md", "stages.csv"}  # fmt: skip
     expected |= {f"curves_tdmpc2_{SUITE}_{m}.png" for m in METHODS}
     assert {p.name for p in out.iterdir()} == expected
     assert printed == {str(out / name) for name in expected}
@@ -725,6 +725,17 @@ def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
     assert f"| tdmpc2 | {axis} | " in (out / "axes.md").read_text()
     summary = json.loads((out / "summary.json").read_text())
     assert sorted(summary) == sorted(f"tdmpc2/{SUITE}/{m}" for m in METHODS)
+    # stages.csv, read from the loop's records: each task's own stage ends at its end-of-task
+    # score, the last stage at the final scores
+    with (out / "stages.csv").open() as f:
+        stages = list(csv.DictReader(f))
+    tasks = list(get_suite(SUITE).task_ids)
+    for m in METHODS:
+        end = {(int(r["stage"]), r["task"]): float(r["end"]) for r in stages if r["method"] == m}
+        metrics = runs.runs[m].result
+        assert [end[(i, t)] for i, t in enumerate(tasks)] == pytest.approx(metrics["end_of_task"])
+        last = [end[(len(tasks) - 1, t)] for t in tasks]
+        assert last == pytest.approx(metrics["final_per_task"])
     assert all(summary[f"tdmpc2/{SUITE}/{m}"]["seeds"] == [0] for m in METHODS)
     for name in expected:
         if name.endswith(".png"):
