@@ -17,9 +17,11 @@ import io
 from dataclasses import dataclass
 from pathlib import Path
 
+from ccdata.errors import InputError
 from ccdata.suites import get_suite
 from ccfit.io import atomic_write_text
 from ccfit.report_plots import METHOD_ORDER, row_label
+from ccfit.train import METRICS
 
 STAGES_MD = "stages.md"
 STAGES_CSV = "stages.csv"
@@ -59,14 +61,19 @@ class StageCell:
         return self.scores[-1]
 
 
-def stage_cells(records: list[dict], key: str) -> list[StageCell]:
+def stage_cells(records: list[dict], key: str, source: str = "records") -> list[StageCell]:
     """The records' `key` per (stage, task), in order of stage then task. Records without the
     score are left out; should one step of a task be logged twice in a stage, the later stands
-    (as `ccfit.metrics.task_curves` reads them)."""
+    (as `ccfit.metrics.task_curves` reads them). A scored record without its stage is bad
+    input (InputError naming `source`)."""
     by_cell: dict[tuple[int, int], dict[int, dict]] = {}
     for r in records:
         if r.get(key) is None or "task_index" not in r:
             continue
+        if "stage" not in r:
+            step = r.get("global_step")
+            raise InputError(f"{source}: the evaluation record at step {step} names no stage; "
+                             "rerun the run or leave it out of the report")  # fmt: skip
         by_cell.setdefault((int(r["stage"]), int(r["task_index"])), {})[int(r["global_step"])] = r
     cells = []
     for (stage, task), by_step in sorted(by_cell.items()):
@@ -105,7 +112,7 @@ def write_stages(run_groups: dict, curve_keys: dict[str, str], out: Path) -> lis
                   f"(`{run.path.name}`)", "",
                   "| stage | training | task | evaluations | mean | successes | at its end |",
                   "|---|---|---|---|---|---|---|"]  # fmt: skip
-        for c in stage_cells(run.records, curve_keys[run.track]):
+        for c in stage_cells(run.records, curve_keys[run.track], str(run.path / METRICS)):
             n = len(c.scores)
             successes = "—" if c.successes is None else f"{c.successes}/{c.episodes}"
             lines.append(f"| {c.stage} | {names[c.stage]} | {names[c.task]} | {n} | "

@@ -5,14 +5,15 @@ them."""
 from __future__ import annotations
 
 import csv
-
-import pytest
+import json
 
 from ccfit.report_stages import CSV_HEADER, STAGES_CSV, STAGES_MD, stage_cells
 
 try:
+    from stage_ends import assert_stage_ends_are_the_metrics
     from test_report import config, write_run
 except ImportError:
+    from tests.stage_ends import assert_stage_ends_are_the_metrics
     from tests.test_report import config, write_run
 
 
@@ -46,6 +47,20 @@ def test_records_without_success_counts_have_none():
     assert (cell.successes, cell.episodes, cell.mean) == (None, None, 0.5)
 
 
+def test_a_scored_record_without_its_stage_is_one_line_and_exit_2(tmp_path, capsys):
+    from ccfit.cli import main
+
+    run = write_run(tmp_path / "runs", "s0", config(), 1.0)
+    lines = (run / "metrics.jsonl").read_text().splitlines()
+    lines[1] = json.dumps({k: v for k, v in json.loads(lines[1]).items() if k != "stage"})
+    (run / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+    assert main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    where = run / "metrics.jsonl"
+    assert err.startswith(f"ccfit: error: {where}: the evaluation record at step 50")
+    assert "names no stage" in err and err.count("\n") == 1
+
+
 def test_the_ends_are_the_end_of_task_and_final_scores(tmp_path):
     from ccfit.report import find_runs, group_runs
     from ccfit.report_stages import write_stages
@@ -59,13 +74,7 @@ def test_the_ends_are_the_end_of_task_and_final_scores(tmp_path):
     assert list(rows[0]) == CSV_HEADER
     for run in [r for runs in run_groups.values() for r in runs]:
         mine = [r for r in rows if r["run"] == run.path.name]
-        last = max(int(r["stage"]) for r in mine)
-        by = {(int(r["stage"]), r["task"]): float(r["end"]) for r in mine}
-        tasks = list(dict.fromkeys(r["training"] for r in mine))
-        assert [by[(i, t)] for i, t in enumerate(tasks)] == pytest.approx(
-            run.metrics["end_of_task"]
-        )
-        assert [by[(last, t)] for t in tasks] == pytest.approx(run.metrics["final_per_task"])
+        assert_stage_ends_are_the_metrics(mine, run.metrics)
     text = (tmp_path / "report" / STAGES_MD).read_text()
     assert "## tdmpc2, Reach, ft, seed 0 (`ft-s0`)" in text and "seed 1 (`ft-s1`)" in text
     assert text.index("seed 0") < text.index("seed 1")

@@ -23,6 +23,11 @@ from ccfit.report_stages import STAGES_CSV, STAGES_MD
 from ccfit.sweep.grid import SWEEP_JSON
 from ccfit.sweep.status import sweep_status
 
+try:
+    from stage_ends import assert_stage_ends_are_the_metrics
+except ImportError:
+    from tests.stage_ends import assert_stage_ends_are_the_metrics
+
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 REPORTS = sorted(p for p in RESULTS.rglob("report") if p.is_dir())
 LEARNABILITY_TABLES = sorted(p for p in RESULTS.rglob(LEARNABILITY) if p.is_dir())
@@ -49,14 +54,7 @@ def test_the_stage_ends_are_each_runs_end_of_task_and_final_scores(report):
     rows = list(csv.DictReader((report / STAGES_CSV).open()))
     for metrics in report.parent.glob("*/metrics.json"):
         mine = [r for r in rows if r["run"] == metrics.parent.name]
-        assert mine, f"{metrics.parent.name} missing from {report / STAGES_CSV}"
-        m = json.loads(metrics.read_text())
-        end = {(int(r["stage"]), r["task"]): float(r["end"]) for r in mine}
-        tasks = list(dict.fromkeys(r["training"] for r in mine))
-        assert len(tasks) == len(m["end_of_task"])
-        assert [end[(i, t)] for i, t in enumerate(tasks)] == pytest.approx(m["end_of_task"])
-        last = len(tasks) - 1
-        assert [end[(last, t)] for t in tasks] == pytest.approx(m["final_per_task"])
+        assert_stage_ends_are_the_metrics(mine, json.loads(metrics.read_text()))
 
 
 def test_the_tables_over_all_results_match_them(tmp_path):
