@@ -16,12 +16,18 @@ import csv
 import io
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ccdata.errors import InputError
 from ccdata.suites import get_suite
 from ccfit.io import atomic_write_text
 from ccfit.report_plots import METHOD_ORDER, row_label
 from ccfit.train import METRICS
+
+if TYPE_CHECKING:  # report.py imports this module: a run-time import would be a cycle
+    from ccfit.report import Run
+
+GroupKey = tuple[str, str, str, str]
 
 STAGES_MD = "stages.md"
 STAGES_CSV = "stages.csv"
@@ -87,7 +93,7 @@ def stage_cells(records: list[dict], key: str, source: str = "records") -> list[
     return cells
 
 
-def _ordered(run_groups: dict) -> list[tuple[tuple[str, str, str, str], object]]:
+def _ordered(run_groups: dict[GroupKey, list[Run]]) -> list[tuple[GroupKey, Run]]:
     """(group key, run) for every run, by backbone, suite, method (`METHOD_ORDER`), variant
     and seed."""
 
@@ -99,7 +105,8 @@ def _ordered(run_groups: dict) -> list[tuple[tuple[str, str, str, str], object]]
     return [(k, r) for k in keys for r in sorted(run_groups[k], key=lambda r: r.seed)]
 
 
-def write_stages(run_groups: dict, curve_keys: dict[str, str], out: Path) -> list[Path]:
+def write_stages(run_groups: dict[GroupKey, list[Run]], curve_keys: dict[str, str],
+                 out: Path) -> list[Path]:  # fmt: skip
     """`stages.md` and `stages.csv` over `run_groups` (`ccfit.report.group_runs`), each run's
     scores read from the record field `curve_keys` names for its track."""
     lines = ["# Each task's score, stage by stage", "", READING]
