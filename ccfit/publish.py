@@ -28,15 +28,8 @@ from pathlib import Path
 from ccdata.errors import InputError
 from ccfit.analysis.learnability import finished_task_runs, write_learnability
 from ccfit.curriculum import METRICS_JSON
-from ccfit.report import (
-    Run,
-    find_runs,
-    group_metrics,
-    group_runs,
-    scratch_dir_of,
-    write_overview_of,
-    write_report,
-)
+from ccfit.report import group_metrics, group_runs, write_overview_of, write_report
+from ccfit.report_runs import Run, find_runs, scratch_dir_of
 from ccfit.sweep.grid import SCRATCH, SCRATCH_DONE, SWEEP_JSON
 
 RUN_FILES = ("config.json", "metrics.json", "metrics.jsonl", "cost.json", "routing.jsonl")

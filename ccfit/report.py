@@ -3,11 +3,12 @@
 Runs are grouped by their whole resolved config (config.json, flattened to dotted keys) except
 what legitimately differs between the seeds of one experiment: the seed itself, seeds derived
 from it and output paths (`PER_SEED`), and records of how a run was computed rather than what
-(`AS_RUN`: compilation, worker processes, the dataset's location). Only runs of one group are
-averaged; seeds within a group are averaged *before* a metric (the paper's protocol), and the
-per-seed metrics give the min/max. A group is named by (backbone, suite, method) and, when
-groups of one table differ in anything else (observation mode, preset, router, method options,
-step budget, ...), by a variant label naming those settings ("obs=pixels, preset=cpu"). Outputs:
+(`AS_RUN`: compilation, worker processes, the dataset's location; both in `ccfit.report_runs`).
+Only runs of one group are averaged; seeds within a group are averaged *before* a metric (the
+paper's protocol), and the per-seed metrics give the min/max. A group is named by (backbone,
+suite, method) and, when groups of one table differ in anything else (observation mode, preset,
+router, method options, step budget, ...), by a variant label naming those settings
+("obs=pixels, preset=cpu"). Outputs:
 - `table_<backbone>.md` / `.csv`: (suite, variant) x methods, BWT and FWT as mean [min, max]
   (the paper's Appendix B layout), with the settings the variants differ in;
 - `bars_<backbone>.png`: BWT and FWT bars per suite and method with min-max whiskers (Fig. 4);
@@ -31,11 +32,9 @@ its prediction score (0 = persistence, 100 = perfect), not normalised returns.
 from __future__ import annotations
 
 import csv
-import fnmatch
 import io
 import json
 from collections import defaultdict
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -44,12 +43,9 @@ import numpy as np
 from ccdata.errors import InputError
 from ccfit import metrics as M
 from ccfit.analysis import report_routing
-from ccfit.config_base import DATASET_RECORDS, EXECUTION_SETTINGS
-from ccfit.config_parse import flatten
-from ccfit.curriculum import METRICS_JSON, REFERENCE_DONE
-from ccfit.io import atomic_write_text, read_run_json
+from ccfit.io import atomic_write_text
 from ccfit.metrics import metrics_from_curves, task_curves
-from ccfit.offline.fit import SCORE_KEY, TRACK
+from ccfit.offline.fit import TRACK
 from ccfit.report_axes import write_axes
 from ccfit.report_cost import write_cost
 from ccfit.report_orderings import write_orderings
@@ -62,18 +58,14 @@ from ccfit.report_plots import (
     row_label,
     slug,
 )
+from ccfit.report_runs import CURVE_KEYS, Run, find_runs, is_axis, scratch_dir_of
 from ccfit.report_stages import write_stages
-from ccfit.train import CONFIG, METRICS
 
 SUMMARY_JSON = "summary.json"
 """Every report's summary: its groups' metrics (numbers, what the tables print)."""
 
 __all__ = [
     "METHOD_ORDER",
-    "PER_SEED",
-    "Run",
-    "find_runs",
-    "flatten",
     "group_metrics",
     "group_runs",
     "load_groups",
@@ -83,133 +75,6 @@ __all__ = [
     "write_report",
     "write_tables",
 ]
-
-PER_SEED = (
-    "seed",
-    "*.seed",
-    "*_seed",
-    "*.*_seed",
-    "out",
-    "*.out",
-    "*_dir",
-    "*.*_dir",
-    "*_path",
-    "*.*_path",
-    "resolved_branch.source",
-    "resolved_branch.state_sha256",
-)
-"""Flattened config keys (fnmatch patterns) that differ between the seeds of one experiment
-and so do not split groups: the seed, seeds derived from it, where outputs went, the run (of
-that seed) a branch started from (its `resolved_branch.after` does split them)."""
-AS_RUN = ("resolved_compile", "resolved_seed_dataset", *DATASET_RECORDS, *EXECUTION_SETTINGS)
-"""Records of how a run was computed, not of what: which of the model's functions this code
-version compiled (eager and compiled compute the same within float tolerance), where the seed
-dataset lay on the machine that ran it and what the run recorded of its datasets (runs made
-before that record existed have none), how it spread over processes and where it logged. Seeds
-run by two code versions, on two machines or with and without worker processes still
-average."""
-CURVE_KEYS = {"online": "normalized_return", TRACK: SCORE_KEY}
-"""Per track, what a record's curve value is."""
-AXES = ("suite", "model", "method", "encoder", "track")
-"""Settings that are the table's own axes (backbone, suite, method), never variant labels."""
-
-
-def _is_per_seed(key: str) -> bool:
-    return any(key == s or key.startswith(f"{s}.") for s in AS_RUN) or any(
-        fnmatch.fnmatchcase(key, p) for p in PER_SEED
-    )
-
-
-def _axis_name(config: dict, name: str) -> Any:
-    """`config[name]`, or its 'type' / 'name' when the setting is a nested config."""
-    value = config.get(name)
-    if isinstance(value, dict):
-        return value.get("type", value.get("name"))
-    return value
-
-
-def _is_axis(key: str) -> bool:
-    head, _, rest = key.partition(".")
-    return head in AXES and rest in ("", "type", "name")
-
-
-@dataclass
-class Run:
-    path: Path
-    config: dict
-    records: list[dict]
-    scratch: list[dict]
-    metrics: dict
-
-    @property
-    def track(self) -> str:
-        """'online' (`ccfit run`) or 'offline' (`ccfit fit`)."""
-        return self.metrics.get("track", "online")
-
-    @property
-    def backbone(self) -> str:
-        """The model (+frozen-enc), and -offline for the offline track: tracks never share a
-        table or a figure."""
-        return _axis_name(self.config, "model") + (
-            "+frozen-enc" if _axis_name(self.config, "encoder") else "") + (
-            f"-{TRACK}" if self.track == TRACK else "")  # fmt: skip
-
-    @property
-    def suite(self) -> str:
-        return _axis_name(self.config, "suite")
-
-    @property
-    def method(self) -> str:
-        """The continual method's type (its options are in `config['method']`)."""
-        return _axis_name(self.config, "method")
-
-    @property
-    def key(self) -> tuple[str, str, str]:
-        return self.backbone, self.suite, self.method
-
-    @property
-    def seed(self) -> int:
-        flat = flatten(self.config)
-        keys = sorted(
-            (k for k in flat if k == "seed" or k.endswith(".seed")), key=lambda k: (k.count("."), k)
-        )
-        return int(flat[keys[0]]) if keys else 0
-
-    @property
-    def identity(self) -> dict[str, Any]:
-        """The flattened config without what may differ between seeds (`PER_SEED`, `AS_RUN`)."""
-        return {k: v for k, v in flatten(self.config).items() if not _is_per_seed(k)}
-
-
-def find_runs(paths: list[Path]) -> list[Run]:
-    dirs: list[Path] = []
-    for p in paths:
-        if not p.exists():
-            raise InputError(f"no such run directory: {p}")
-        dirs += [m.parent for m in sorted(p.rglob(METRICS_JSON))] if p.is_dir() else []
-    if not dirs:
-        where = ", ".join(map(str, paths))
-        raise InputError(f"no finished runs (with {METRICS_JSON}) under {where}")
-    runs = []
-    for d in dict.fromkeys(dirs):
-        metrics = read_run_json(d / METRICS_JSON)
-        records = read_run_json(d / METRICS, lines=True)
-        scratch = read_run_json(scratch_dir_of(d, metrics) / REFERENCE_DONE)
-        runs.append(Run(d, read_run_json(d / CONFIG), records, scratch, metrics))
-    return runs
-
-
-def scratch_dir_of(run_dir: Path, metrics: dict) -> Path:
-    """The run's from-scratch reference: the one beside the run (`<run>/../scratch/<key>`,
-    where a sweep keeps it and `ccfit publish` copies it) or else where the run wrote it. The
-    copy beside comes first: a published tree is read from itself even on the machine whose
-    paths its metrics.json names."""
-    stored = Path(metrics["scratch_dir"])
-    beside = run_dir.parent / "scratch" / stored.name
-    for where in (beside, stored):
-        if (where / REFERENCE_DONE).is_file():
-            return where
-    raise InputError(f"{run_dir}: its from-scratch reference {stored} is missing")
 
 
 def group_metrics(runs: list[Run]) -> dict:
@@ -268,7 +133,7 @@ def _distinguishing_keys(identities: list[dict[str, Any]]) -> list[str]:
     """Few settings whose values tell `identities` apart: shallow keys first (`obs` before
     `train.obs`), each kept only if it separates groups the earlier ones did not."""
     keys = sorted(
-        {k for i in identities for k in i if not _is_axis(k)}, key=lambda k: (k.count("."), k)
+        {k for i in identities for k in i if not is_axis(k)}, key=lambda k: (k.count("."), k)
     )
 
     def classes(ks: list[str]) -> int:

@@ -24,7 +24,7 @@ Row = tuple[str, str, str, str]  # backbones, suite [variant], verdict, evidence
 
 ORDERINGS_MD = "orderings.md"
 TRACK_SUFFIXES = ("", "-offline")
-"""Backbone label endings of the two tracks (`ccfit.report.Run.backbone`): a comparison
+"""Backbone label endings of the two tracks (`ccfit.report_runs.Run.backbone`): a comparison
 across backbones stays inside one track."""
 
 

@@ -16,16 +16,13 @@ import csv
 import io
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from ccdata.errors import InputError
 from ccdata.suites import get_suite
 from ccfit.io import atomic_write_text
 from ccfit.report_plots import METHOD_ORDER, row_label
+from ccfit.report_runs import Run
 from ccfit.train import METRICS
-
-if TYPE_CHECKING:  # report.py imports this module: a run-time import would be a cycle
-    from ccfit.report import Run
 
 GroupKey = tuple[str, str, str, str]
 

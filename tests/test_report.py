@@ -14,8 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ccfit.config_parse import flatten
 from ccfit.metrics import compute_metrics
-from ccfit.report import find_runs, flatten, group_metrics, group_runs, load_groups, write_report
+from ccfit.report import group_metrics, group_runs, load_groups, write_report
+from ccfit.report_runs import find_runs
 
 SUITE, TASKS, STEPS = "Reach", 4, 100
 
@@ -171,7 +173,7 @@ def test_step_budget_and_method_options_split_groups_but_output_paths_and_as_run
 def test_a_published_copy_reads_the_reference_beside_it(tmp_path):
     # metrics.json names where the sweep wrote the reference; a copy of the tree (what
     # `ccfit publish` makes) reads its own copy, even where the original still exists.
-    from ccfit.report import scratch_dir_of
+    from ccfit.report_runs import scratch_dir_of
 
     write_run(tmp_path / "sweep", "a", config(), 1.0)
     shutil.copytree(tmp_path / "sweep", tmp_path / "published")

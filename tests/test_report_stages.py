@@ -62,7 +62,8 @@ def test_a_scored_record_without_its_stage_is_one_line_and_exit_2(tmp_path, caps
 
 
 def test_the_ends_are_the_end_of_task_and_final_scores(tmp_path):
-    from ccfit.report import find_runs, group_runs
+    from ccfit.report import group_runs
+    from ccfit.report_runs import find_runs
     from ccfit.report_stages import write_stages
 
     for seed in (0, 1):

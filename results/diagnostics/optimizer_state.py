@@ -19,7 +19,8 @@ import sys
 from pathlib import Path
 
 from ccdata.errors import InputError, OneLineParser, run_script
-from ccfit.report import METRICS_SHOWN, find_runs, group_metrics, group_runs
+from ccfit.report import METRICS_SHOWN, group_metrics, group_runs
+from ccfit.report_runs import find_runs
 
 
 def _mean(xs: list[float]) -> float:
