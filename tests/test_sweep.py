@@ -412,6 +412,15 @@ def test_status_says_where_an_unfinished_run_is(tmp_path):
         "job": f"local:{os.getpid()}",
         "detail": "last evaluated reach-xz at global step 600 of 800",
     }  # 200 x 4 tasks
+    cost = sweep.run_dir(run) / "cost.json"
+    cost.write_text(json.dumps({"wall_s": 7000.0, "cpu_s": 5400.0, "segments": 2}))
+    assert sweep_status(tmp_path)[name]["detail"] == (
+        "last evaluated reach-xz at global step 600 of 800; "
+        "1.5 CPU-hours so far, about 0.5 to go"  # 9 CPU-s per step, 200 steps left
+    )
+    cost.write_text('{"wall_s": 7000.0, "cpu_')  # damaged: bad input, named
+    with pytest.raises(InputError, match="cost.json"):
+        sweep_status(tmp_path)
 
 
 def test_a_failed_reference_fails_its_runs_unstarted(tmp_path, capsys):

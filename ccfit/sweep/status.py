@@ -16,6 +16,7 @@ from pathlib import Path
 from ccdata.slurm import check_slurm, job_states
 from ccfit.config_base import suite_tasks
 from ccfit.report import SUMMARY_JSON
+from ccfit.report_cost import run_cost
 from ccfit.sweep.grid import REPORT, STATUS_JSON, Sweep, load_sweep
 from ccfit.train.records import METRICS
 
@@ -51,7 +52,8 @@ def _total_steps(config: dict, reference: bool = False) -> int | None:
 
 def progress(directory: Path, total: int | None = None) -> str:
     """Where an unfinished run is: its last evaluation's task and global step, of `total`
-    when given ('' before the first), read from the tail of its metrics.jsonl."""
+    when given ('' before the first), read from the tail of its metrics.jsonl; with `total`
+    and a recorded cost, the CPU-hours spent and those left at the rate so far (`remaining`)."""
     try:
         with (directory / METRICS).open("rb") as f:
             f.seek(0, os.SEEK_END)
@@ -67,8 +69,21 @@ def progress(directory: Path, total: int | None = None) -> str:
         if isinstance(record, dict) and "global_step" in record:
             task, step = record.get("task", "?"), record["global_step"]
             of = f" of {total}" if total else ""
-            return f"last evaluated {task} at global step {step}{of}"
+            where = f"last evaluated {task} at global step {step}{of}"
+            return "; ".join(filter(None, (where, remaining(directory, step, total))))
     return ""
+
+
+def remaining(directory: Path, step: int, total: int | None) -> str:
+    """'H CPU-hours so far, about R to go' for a run at global step `step` of `total`, from
+    its cost.json: the CPU seconds per step so far times the steps left ('' without a cost
+    or a step). A rate, not a promise: later stages of a curriculum may cost more per step
+    (a replayed or anchored earlier task, PackNet's retraining), and the cost recorded runs
+    up to a minute past the last evaluation."""
+    spent = run_cost(directory)["cpu_s"] / 3600
+    if not total or step <= 0 or spent <= 0:
+        return ""
+    return f"{spent:.1f} CPU-hours so far, about {spent / step * (total - step):.1f} to go"
 
 
 def latest_jobs(submissions: list[dict]) -> dict[str, tuple[dict, object]]:
