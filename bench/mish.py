@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from ccfit.models.layers import _Mish, mish
-from ccfit.train.compiled import pin_inductor_cache_key
+from ccfit.train.inductor_cache import pin_inductor_cache_key
 
 SHAPES = ((64, 128), (256, 128), (2, 256, 128))
 PLAN_SHAPES = ((32, 64), (72, 128))

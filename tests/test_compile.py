@@ -16,12 +16,8 @@ import torch
 
 from ccfit.models import make_model, model_names
 from ccfit.models.registry import config_class, model_class
-from ccfit.train.compiled import (
-    compile_hot_paths,
-    compiled_paths,
-    pin_inductor_threads,
-    pin_inductor_vector_width,
-)
+from ccfit.train.compiled import compile_hot_paths, compiled_paths
+from ccfit.train.inductor_cache import pin_inductor_threads, pin_inductor_vector_width
 
 try:
     from replay_data import random_buffer

@@ -26,6 +26,7 @@ import torch
 
 from ccfit.config_base import ConfigError
 from ccfit.models.base import WorldModel
+from ccfit.train.inductor_cache import prepare_inductor_cache
 
 
 def compiled_paths(model_class: type[WorldModel], setting: str, device: torch.device) -> list[str]:
@@ -61,7 +62,7 @@ def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None =
         import torch._inductor.config
 
         torch._inductor.config.fallback_random = True
-        pin_inductor_cache_key()
+        prepare_inductor_cache()
         # DreamerV3's actor step differentiates with retain_graph (its critic pass serves the
         # critic's loss too), which a compiled backward that donates its saved buffers
         # refuses; Inductor compiles such a backward when it meets a second model size.
@@ -110,50 +111,6 @@ def copied(value):
         fields = [f.name for f in dataclasses.fields(value) if f.init]
         return dataclasses.replace(value, **{k: copied(getattr(value, k)) for k in fields})
     return value
-
-
-def pin_inductor_cache_key() -> None:
-    """Set what torch 2.11 writes into Inductor's CPU kernels but leaves out of their cache
-    key, so that it is in the key: the thread count and the vector width (below)."""
-    pin_inductor_threads()
-    pin_inductor_vector_width()
-
-
-def pin_inductor_threads() -> int:
-    """Compile CPU kernels for this process's thread count, named in Inductor's cache key.
-
-    Inductor writes the thread count into its CPU kernels (`#pragma omp ... num_threads(N)`),
-    by default `torch.get_num_threads()` at compile time, but torch 2.11 leaves that count out
-    of its on-disk cache key (pytorch#160812): a run with `--train.torch_threads 1` then loads
-    the kernels a 2-thread process compiled, and two such runs on two cores spin four OpenMP
-    threads (found in a 1-thread TD-MPC2 run at 1M, 42% of its time in libgomp's spin-wait),
-    and a kernel's sums may be split otherwise than a same-seed run compiled afresh. The count
-    set explicitly is part of the key. Returns it."""
-    import torch._inductor.config
-
-    torch._inductor.config.cpp.threads = torch.get_num_threads()
-    return torch._inductor.config.cpp.threads
-
-
-def pin_inductor_vector_width() -> int:
-    """Compile CPU kernels for this process's vector width, named in Inductor's cache key.
-
-    Inductor picks the vector instruction set of its CPU kernels when it compiles (the widest
-    the CPU has, or what `ATEN_CPU_CAPABILITY` lowers it to) and writes its width into their
-    loops (a step of 8 floats for AVX2, 16 for AVX-512), but torch 2.11 leaves the pick out of
-    its on-disk cache key, and a cached graph's kernels are built when they are loaded, for the
-    loading process's pick. On an AVX-512 machine, a graph a process had compiled under
-    `ATEN_CPU_CAPABILITY=avx2` was served to processes without it: their kernels stored 16
-    floats per step of 8, and every `cpu`-preset TD-MPC2 run aborted with heap corruption at
-    its first evaluation, in the plan (7 of 7; with a fresh cache, none). The width set
-    explicitly is part of the key and picks the same instruction set. Returns it."""
-    import torch._inductor.config
-    from torch._inductor import cpu_vec_isa
-
-    config = torch._inductor.config.cpp
-    config.simdlen = None  # what this process would pick unpinned (ATEN_CPU_CAPABILITY's)
-    config.simdlen = cpu_vec_isa.pick_vec_isa().bit_width()
-    return config.simdlen
 
 
 _BF16_CPU_FLAGS = frozenset({"avx512_bf16", "amx_bf16"})

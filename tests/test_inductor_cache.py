@@ -1,0 +1,96 @@
+"""Inductor's on-disk cache after a compile was killed: a kernel's shared object cut short is
+removed and compiled again, not loaded ("file too short")."""
+
+from __future__ import annotations
+
+import _json
+import os
+import shutil
+import subprocess
+import sys
+import uuid
+from pathlib import Path
+
+import pytest
+from filelock import FileLock
+
+from ccfit.train.inductor_cache import drop_truncated_kernels, is_whole_elf
+
+
+def _elf() -> Path:
+    """A real shared object (a module of Python's own) to cut short."""
+    path = Path(_json.__file__)
+    if path.read_bytes()[:4] != b"\x7fELF":
+        pytest.skip("Python's extension modules are not ELF files here")
+    return path
+
+
+def _cut(src: Path, dst: Path, size: int) -> Path:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    dst.write_bytes(src.read_bytes()[:size])
+    return dst
+
+
+def test_only_shared_objects_cut_short_are_dropped_and_not_while_being_built(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path))
+    elf = _elf()
+    whole = tmp_path / "ab" / "cabwhole.main.so"
+    whole.parent.mkdir()
+    shutil.copyfile(elf, whole)
+    size = elf.stat().st_size
+    empty = _cut(elf, tmp_path / "cd" / "ccdempty.main.so", 0)
+    header_only = _cut(elf, tmp_path / "cd" / "ccdheader.so", 40)  # not even the header
+    tail_missing = _cut(elf, tmp_path / "ef" / "cefnotail.main.so", size - 100)
+    building = _cut(elf, tmp_path / "ef" / "cefbuilding.main.so", size // 2)
+    source = _cut(elf, tmp_path / "ef" / "cefbuilding.main.cpp", 0)  # not a shared object
+    assert is_whole_elf(whole) and is_whole_elf(tmp_path / "gone.so")
+    assert not any(map(is_whole_elf, (empty, header_only, tail_missing, building)))
+    (tmp_path / "locks").mkdir()
+    with FileLock(str(tmp_path / "locks" / "cefbuilding.lock")):  # another process links it
+        dropped = drop_truncated_kernels()
+    assert sorted(dropped) == sorted([empty, header_only, tail_missing])
+    assert whole.exists() and building.exists() and source.exists()
+    assert not any(p.exists() for p in dropped)
+    assert drop_truncated_kernels() == [building]  # once its lock is free, it was left cut
+
+
+CHILD = """
+import sys, torch
+from ccfit.train.inductor_cache import pin_inductor_cache_key, prepare_inductor_cache
+prepare_inductor_cache() if sys.argv[2] == "prepare" else pin_inductor_cache_key()
+x = torch.arange(64 * 64, dtype=torch.float32).reshape(64, 64) / 100
+f = torch.compile(lambda t: (t.sin() * float(sys.argv[1])).sum(0), backend="inductor")
+print(f(x).sum().item())
+"""
+
+
+def test_shared_objects_cut_short_by_a_killed_compile_are_built_again(tmp_path):
+    """What torch 2.11 does with them, each compile a process of its own as runs are (a
+    process that loaded a library gets it again whatever its file now holds): the libraries
+    that test each vector instruction set fail their tests silently when cut short, and the
+    kernel is compiled otherwise (a kernel cut short fails to load: "file too short", as the
+    PnPBoxClose reference met it). Dropped first, every file is built again under its name:
+    the same kernel, with the same instruction set."""
+    env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(tmp_path)}
+    scale = str(1.0 + uuid.uuid4().int % 10**6 / 10**7)  # a graph of its own
+
+    def compile_in_a_process(how: str) -> subprocess.CompletedProcess:
+        args = [sys.executable, "-c", CHILD, scale, how]
+        done = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, done.stderr
+        return done
+
+    def shared_objects() -> set[Path]:
+        return set(tmp_path.rglob("*.so"))
+
+    first = compile_in_a_process("prepare")
+    built = shared_objects()  # the instruction set tests' libraries and the kernel's
+    assert len(built) > 1 and all(map(is_whole_elf, built))
+    for path in built:
+        path.write_bytes(b"")  # a killed linker had created its output
+    compile_in_a_process("pin")
+    assert shared_objects() - built  # compiled otherwise, with the cut files left in place
+    again = compile_in_a_process("prepare")
+    assert again.stderr.count("cut short") == len(built)
+    assert again.stdout == first.stdout
+    assert built <= shared_objects() and all(map(is_whole_elf, built))
