@@ -5,7 +5,7 @@ Every process that compiles (`ccfit.train.compiled.compile_hot_paths`) calls
 - a shared object is linked straight to its final path, so a compile killed while linking (a
   session's end, a SLURM timeout) leaves a file cut short there, which every later process
   finds and uses instead of building it again. A kernel cut short fails to load ("file too
-  short", pytorch#102539; a PnPBoxClose reference met one that a run killed hours before had
+  short", pytorch#102539; a PnPBoxClose reference met one that a compile eleven hours before had
   left). A cut-short copy of the small library Inductor builds to test a vector instruction
   set fails that test, silently, and kernels are then compiled without the instruction set.
   Such files are removed (`drop_truncated_kernels`) and built again when next needed;
