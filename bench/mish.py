@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from ccfit.models.layers import _Mish, mish
-from ccfit.train.inductor_cache import pin_inductor_cache_key
+from ccfit.train.inductor_cache import prepare_inductor_cache
 
 SHAPES = ((64, 128), (256, 128), (2, 256, 128))
 PLAN_SHAPES = ((32, 64), (72, 128))
@@ -47,7 +47,7 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=20)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    pin_inductor_cache_key()
+    prepare_inductor_cache()
     gen = torch.Generator().manual_seed(0)
     rows = []
     for shape in SHAPES:

@@ -33,7 +33,10 @@ def prepare_inductor_cache() -> list[Path]:
 def drop_truncated_kernels() -> list[Path]:
     """Remove the shared objects under Inductor's cache that a dynamic loader would refuse as
     cut short (`is_whole_elf`), each under the lock Inductor builds that kernel under, so a
-    kernel another process is linking now is left to it. Returns the files removed."""
+    kernel another process is linking now is left to it. Returns the files removed. Only on
+    Linux, whose shared objects are ELF files (macOS's are not, and all would look cut)."""
+    if not sys.platform.startswith("linux"):
+        return []
     from filelock import FileLock, Timeout
     from torch._inductor.codecache import cache_dir, get_lock_dir
 
