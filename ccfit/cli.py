@@ -282,11 +282,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def cmd_sweep(argv: list[str]) -> None:
+def cmd_sweep(argv: list[str]) -> int:
     """ccfit sweep --suites Reach --methods ft,er --seeds 0,1 --out RUNS  (see --help)"""
     from ccfit.sweep.cli import cmd_sweep as sweep
 
-    sweep(argv)
+    return sweep(argv)
 
 
 CONFIG_COMMANDS = {"train": cmd_train, "run": cmd_run, "fit": cmd_fit, "sweep": cmd_sweep}
@@ -297,12 +297,12 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         if argv and argv[0] in CONFIG_COMMANDS:
-            CONFIG_COMMANDS[argv[0]](argv[1:])
+            code = CONFIG_COMMANDS[argv[0]](argv[1:])
         else:
             args = build_parser().parse_args(argv)
             code = args.func(args)
-            if code:
-                return code
+        if code:
+            return code
     except (CliError, InputError) as e:
         print(f"ccfit: error: {e}", file=sys.stderr)
         return EXIT_USAGE

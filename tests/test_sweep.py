@@ -20,6 +20,7 @@ from ccdata.errors import InputError
 from ccfit.branch import stage_path
 from ccfit.cli import main
 from ccfit.config_base import ConfigError
+from ccfit.sweep.cli import EXIT_RUNS_MISSING
 from ccfit.sweep.grid import (
     Grid,
     check_same_sweep,
@@ -432,7 +433,7 @@ def test_a_failed_reference_fails_its_runs_unstarted(tmp_path, capsys):
     blocker.parent.mkdir(parents=True)
     blocker.write_text("not a directory")  # the reference cannot write its outputs
     code, out, err = sweep_cli(capsys, *args)
-    assert code == 0, err
+    assert code == EXIT_RUNS_MISSING == 1, err  # `ccfit sweep ... && next` stops here
     assert out.count("failed run:") == 2 and "its reference scratch:" in out
     status = json.loads((root / "report" / "status.json").read_text())
     assert status["done"] == [] and [m["started"] for m in status["missing"]] == [False, False]

@@ -10,7 +10,9 @@
 Options the sweep does not know are run options (`ccfit run --help`, or `ccfit fit --help`
 with `--track offline`), set for every run; a field of some models' or methods' configs only
 (`--method.retrain_steps=6000`, PackNet's) is set for their runs.
-Running the same command again submits only the unfinished work.
+Running the same command again submits only the unfinished work. A local sweep (or a SLURM
+one with `--wait`) whose runs did not all finish exits 1 after writing its report, so that
+`ccfit sweep ... && next` stops there.
 """
 
 from __future__ import annotations
@@ -36,8 +38,12 @@ from ccfit.sweep.grid import (
     import_plugins,
     read_record,
 )
+from ccfit.sweep.jobs import report_current
 from ccfit.sweep.launch import launch_local, launch_slurm, plan_work, slurm_active, sweep_lock
 from ccfit.sweep.status import print_status, sweep_status
+
+EXIT_RUNS_MISSING = 1
+"""Exit status of a sweep that ended with runs failed or missing (bad input exits 2)."""
 
 SLURM_TIME = "1-00:00:00"
 """Time limit of every run and reference job when `--time` is not given."""
@@ -104,12 +110,13 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def cmd_sweep(argv: list[str]) -> None:
-    """ccfit sweep --suites Reach --methods ft,er --seeds 0,1 --out RUNS  (see --help)"""
+def cmd_sweep(argv: list[str]) -> int:
+    """ccfit sweep --suites Reach --methods ft,er --seeds 0,1 --out RUNS  (see --help)
+    Returns the exit status: EXIT_RUNS_MISSING where the work ran and runs are missing."""
     args, run_args = build_parser().parse_known_args(argv)
     if args.status:
         print_status(sweep_status(args.status))
-        return
+        return 0
     if not args.suites or not args.out:
         raise InputError("--suites and --out are required (or --status RUNS)")
     settings = None
@@ -146,15 +153,15 @@ def cmd_sweep(argv: list[str]) -> None:
         print(f"ccfit sweep: note: {note}", file=sys.stderr)
     _print_plan(sweep, work, args.dry_run)
     if args.dry_run or work.empty:
-        return
+        return 0
     if args.launcher == "local":
         cores = available_cores()  # not os.cpu_count(): inside taskset or SLURM it overstates
         parallel = args.max_parallel or cores
         # a config asking for torch's default thread count shares the cores among the jobs
         threads = max(1, cores // parallel)
         with sweep_lock(sweep):
-            launch_local(sweep, work, submissions, parallel, threads, args.keep_stages)
-        return
+            status = launch_local(sweep, work, submissions, parallel, threads, args.keep_stages)
+        return EXIT_RUNS_MISSING if status["missing"] else 0
     entry = launch_slurm(sweep, work, submissions, settings, args.keep_stages)
     for name, job in entry["jobs"].items():
         print(f"  {job}  {name}")
@@ -167,6 +174,8 @@ def cmd_sweep(argv: list[str]) -> None:
 
         wait_report(entry, timeout_s=float("inf"))
         print_status(sweep_status(sweep.root))
+        return 0 if report_current(sweep) else EXIT_RUNS_MISSING
+    return 0
 
 
 def _print_plan(sweep, work, dry_run: bool) -> None:
