@@ -304,7 +304,10 @@ def test_local_sweep_trains_once_and_resubmits_only_unfinished_work(tmp_path, ca
     shutil.rmtree(sweep.run_dir(lost))
     status = write_status(root, {})
     assert status["missing"] == [{"name": lost.name, "started": False, "error": None}]
-    assert sweep_status(root)[f"run:{lost.name}"]["state"] == "failed"  # recorded done, gone
+    lost_states = sweep_status(root)
+    assert lost_states[f"run:{lost.name}"]["state"] == "failed"  # recorded done, gone
+    assert lost_states["report"] == {"state": "done", "job": lost_states["report"]["job"],
+                                     "detail": "lists 1 of 2 runs missing"}  # fmt: skip
     assert [r.name for r in plan_work(sweep, {}).runs] == [lost.name]
     code, out, err = sweep_cli(capsys, *args)
     assert code == 0, err
@@ -316,6 +319,7 @@ def test_local_sweep_trains_once_and_resubmits_only_unfinished_work(tmp_path, ca
 
     states = sweep_status(root)
     assert {s["state"] for s in states.values()} == {"done"}
+    assert states["report"]["detail"] == ""
     code, out, _ = sweep_cli(capsys, "--status", str(root))
     assert code == 0 and "0 pending, 0 running, 4 done, 0 failed, 0 not submitted" in out
 
@@ -445,4 +449,5 @@ def test_a_failed_reference_fails_its_runs_unstarted(tmp_path, capsys):
     assert error.startswith(("NotADirectoryError: ", "FileExistsError: ")), error
     states = sweep_status(root)
     assert [s["state"] for s in states.values()] == ["failed", "failed", "failed", "done"]
+    assert states["report"]["detail"] == "lists 2 of 2 runs missing"
     assert not any(sweep.run_dir(r).exists() for r in sweep.runs)

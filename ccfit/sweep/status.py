@@ -13,6 +13,7 @@ import json
 import os
 from pathlib import Path
 
+from ccdata.errors import InputError
 from ccdata.slurm import check_slurm, job_states
 from ccfit.config_base import suite_tasks
 from ccfit.report import SUMMARY_JSON
@@ -142,7 +143,21 @@ def sweep_status(root: str | Path) -> dict[str, dict]:
         if out[name]["state"] != "done":
             where = progress(directory, total)
             out[name]["detail"] = "; ".join(filter(None, (out[name]["detail"], where)))
+    out["report"]["detail"] = _report_gaps(sweep)
     return out
+
+
+def _report_gaps(sweep: Sweep) -> str:
+    """'lists N runs missing' when the sweep's report job wrote its report before every run
+    was done (a report written then is not rewritten until the next launch ends)."""
+    path = sweep.root / REPORT / STATUS_JSON
+    if not path.is_file():
+        return ""
+    try:
+        missing = len(json.loads(path.read_text())["missing"])
+    except (json.JSONDecodeError, KeyError) as e:
+        raise InputError(f"{path} is not a sweep's report status ({e!r})") from None
+    return f"lists {missing} of {len(sweep.runs)} runs missing" if missing else ""
 
 
 def _job_id(entry: dict, job, name: str) -> str | None:
