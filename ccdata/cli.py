@@ -23,7 +23,7 @@ import json
 import sys
 from pathlib import Path
 
-from ccdata.errors import EXIT_USAGE, InputError
+from ccdata.errors import EXIT_USAGE, InputError, stdout_closed, stdout_reader_gone
 from ccdata.slurm import OPTIONS as SLURM_OPTIONS
 from ccdata.slurm import add_options as add_slurm_options
 
@@ -396,12 +396,17 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         code = args.func(args)
+        sys.stdout.flush()  # here, so that a reader gone (`| head`) is caught below
     except (CliError, HubError, InputError, FileNotFoundError, FileExistsError) as err:
         print(f"ccdata {args.command}: error: {err}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print(f"ccdata {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        if not stdout_reader_gone():
+            raise  # a pipe of the program's own broke: a bug, its traceback shows
+        return stdout_closed()
     return int(code or 0)
 
 

@@ -1,15 +1,20 @@
 """The one exception type for bad user input (unknown names, missing or corrupt data, bad
 settings): command-line tools print its message on one line and exit 2. Anything else that
 escapes is a bug and keeps its traceback. Also the pieces every command line shares for that:
-the exit status, a parser whose usage errors are one line, and a script entry point."""
+the exit status, a parser whose usage errors are one line, a script entry point, and the
+exit of a command whose reader left (`ccfit sweep --status RUNS | head`)."""
 
 from __future__ import annotations
 
 import argparse
+import os
+import select
 import sys
 from collections.abc import Callable, Sequence
 
 EXIT_USAGE = 2
+EXIT_PIPE_CLOSED = 128 + 13
+"""What a shell reports for a process that SIGPIPE ended: what `head` leaves its writer."""
 
 
 class InputError(ValueError):
@@ -36,3 +41,26 @@ def run_script(main: Callable[[Sequence[str] | None], object], prog: str,
         print(f"{prog}: error: {err}", file=sys.stderr)
         return EXIT_USAGE
     return 0
+
+
+def stdout_reader_gone() -> bool:
+    """stdout is a pipe or socket whose reader has left (poll reports an error on it): a
+    BrokenPipeError then came from writing output nobody wants, not from a pipe of the
+    program's own (a worker's), which is a bug."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # replaced by a test, or closed
+        return False
+    if not hasattr(select, "poll"):  # Windows: no poll; keep the traceback
+        return False
+    poll = select.poll()
+    poll.register(fd, select.POLLOUT)
+    return any(events & (select.POLLERR | select.POLLHUP) for _, events in poll.poll(0))
+
+
+def stdout_closed() -> int:
+    """The exit of a command whose stdout's reader left: no traceback (the output was not
+    wanted, nothing failed). Python's flush of stdout at exit would raise again, so stdout
+    now points at /dev/null."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    return EXIT_PIPE_CLOSED

@@ -42,7 +42,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from ccdata.errors import EXIT_USAGE, InputError, OneLineParser
+from ccdata.errors import EXIT_USAGE, InputError, OneLineParser, stdout_closed, stdout_reader_gone
 
 
 class CliError(Exception):
@@ -301,15 +301,18 @@ def main(argv: list[str] | None = None) -> int:
         else:
             args = build_parser().parse_args(argv)
             code = args.func(args)
-        if code:
-            return code
+        sys.stdout.flush()  # here, so that a reader gone (`| head`) is caught below
     except (CliError, InputError) as e:
         print(f"ccfit: error: {e}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("ccfit: interrupted; rerun the same command to resume", file=sys.stderr)
         return 130
-    return 0
+    except BrokenPipeError:
+        if not stdout_reader_gone():
+            raise  # a pipe of the program's own broke: a bug, its traceback shows
+        return stdout_closed()
+    return code or 0
 
 
 if __name__ == "__main__":

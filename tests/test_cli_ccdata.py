@@ -48,6 +48,44 @@ def test_bad_input_is_one_line_and_exit_2(args, message):
     assert "Traceback" not in result.stderr
 
 
+@pytest.mark.parametrize("buffered", [True, False], ids=["buffered", "unbuffered"])
+@pytest.mark.parametrize("script", ["ccdata.cli", "ccfit.cli"])
+def test_a_reader_gone_ends_the_command_quietly(script, buffered, tmp_path):
+    """`ccdata list | head -1`, `ccfit sweep --status RUNS | head -1`: stdout's reader
+    leaves before the output is written; the command ends as SIGPIPE would end it, without a
+    traceback, whether Python's stdout is flushed at exit (buffered) or at each line
+    (PYTHONUNBUFFERED)."""
+    args = ["list"]
+    if script == "ccfit.cli":
+        from ccfit.sweep.grid import Grid, expand, write_record
+
+        write_record(expand(Grid(("Reach",), ("tdmpc2",), ("ft",), (0,)), tmp_path), [])
+        args = ["sweep", "--status", str(tmp_path)]
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    if not buffered:
+        env["PYTHONUNBUFFERED"] = "1"
+    read, write = os.pipe()
+    os.close(read)  # gone before the first byte
+    proc = subprocess.run([sys.executable, "-m", script, *args], stdout=write,
+                          stderr=subprocess.PIPE, text=True, env=env)  # fmt: skip
+    os.close(write)
+    assert (proc.returncode, proc.stderr) == (141, ""), proc.stderr
+
+
+def test_a_broken_pipe_of_its_own_keeps_its_traceback(monkeypatch):
+    """A worker's pipe broken is a bug, not a reader gone: stdout is still read here."""
+
+    def worker_gone(args):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr("ccdata.cli._cmd_list", worker_gone)
+    read, write = os.pipe()
+    with os.fdopen(write, "w") as out, os.fdopen(read):  # the reader stays till the end
+        monkeypatch.setattr(sys, "stdout", out)
+        with pytest.raises(BrokenPipeError):
+            main(["list"])
+
+
 def test_generate_runs_a_worker_per_available_core_by_default():
     parse = build_parser().parse_args
     reach = ["generate", "--suite", "Reach"]
