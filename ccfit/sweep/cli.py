@@ -11,8 +11,8 @@ Options the sweep does not know are run options (`ccfit run --help`, or `ccfit f
 with `--track offline`), set for every run; a field of some models' or methods' configs only
 (`--method.retrain_steps=6000`, PackNet's) is set for their runs.
 Running the same command again submits only the unfinished work. A local sweep (or a SLURM
-one with `--wait`) whose runs did not all finish exits 1 after writing its report, so that
-`ccfit sweep ... && next` stops there.
+one with `--wait`) whose runs did not all finish, or whose report failed, exits 1 after the
+report, so that `ccfit sweep ... && next` stops there.
 """
 
 from __future__ import annotations
@@ -43,7 +43,8 @@ from ccfit.sweep.launch import launch_local, launch_slurm, plan_work, slurm_acti
 from ccfit.sweep.status import print_status, sweep_status
 
 EXIT_RUNS_MISSING = 1
-"""Exit status of a sweep that ended with runs failed or missing (bad input exits 2)."""
+"""Exit status of a sweep that ended with runs failed or missing, or its report failed (bad
+input exits 2)."""
 
 SLURM_TIME = "1-00:00:00"
 """Time limit of every run and reference job when `--time` is not given."""
@@ -112,7 +113,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def cmd_sweep(argv: list[str]) -> int:
     """ccfit sweep --suites Reach --methods ft,er --seeds 0,1 --out RUNS  (see --help)
-    Returns the exit status: EXIT_RUNS_MISSING where the work ran and runs are missing."""
+    Returns the exit status: EXIT_RUNS_MISSING where the work ran and its report does not
+    list every run as done."""
     args, run_args = build_parser().parse_known_args(argv)
     if args.status:
         print_status(sweep_status(args.status))
@@ -160,8 +162,8 @@ def cmd_sweep(argv: list[str]) -> int:
         # a config asking for torch's default thread count shares the cores among the jobs
         threads = max(1, cores // parallel)
         with sweep_lock(sweep):
-            status = launch_local(sweep, work, submissions, parallel, threads, args.keep_stages)
-        return EXIT_RUNS_MISSING if status["missing"] else 0
+            launch_local(sweep, work, submissions, parallel, threads, args.keep_stages)
+        return 0 if report_current(sweep) else EXIT_RUNS_MISSING
     entry = launch_slurm(sweep, work, submissions, settings, args.keep_stages)
     for name, job in entry["jobs"].items():
         print(f"  {job}  {name}")
