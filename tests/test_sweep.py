@@ -451,3 +451,6 @@ def test_a_failed_reference_fails_its_runs_unstarted(tmp_path, capsys):
     assert [s["state"] for s in states.values()] == ["failed", "failed", "failed", "done"]
     assert states["report"]["detail"] == "lists 2 of 2 runs missing"
     assert not any(sweep.run_dir(r).exists() for r in sweep.runs)
+    (root / "report" / "status.json").write_text('{"done": [], "miss')  # damaged: bad input
+    code, _, err = sweep_cli(capsys, "--status", str(root))
+    assert "report/status.json is not a sweep's report status" in one_line_error(code, err)

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import submitit
 
+from ccdata.errors import InputError
 from ccdata.slurm import code_version
 from ccfit.io import atomic_write_json
 from ccfit.sweep.grid import (
@@ -208,11 +209,26 @@ def write_status(root: str | Path, errors: dict[str, str]) -> dict:
     return status
 
 
-def report_current(sweep: Sweep) -> bool:
-    """The report lists every run as done (nothing for a report job to add)."""
+def read_report_status(sweep: Sweep) -> dict | None:
+    """The status.json the sweep's last report job wrote (`write_status`), None before any;
+    a damaged one is bad input, named."""
     path = sweep.root / REPORT / STATUS_JSON
     if not path.is_file():
+        return None
+    try:
+        status = json.loads(path.read_text())
+        if not isinstance(status.get("missing"), list) or not isinstance(status.get("done"), list):
+            raise ValueError("no 'done' and 'missing' lists")
+    except (json.JSONDecodeError, ValueError, AttributeError) as e:
+        raise InputError(f"{path} is not a sweep's report status ({e}); delete it and run the "
+                         f"sweep's command again to rewrite it") from None  # fmt: skip
+    return status
+
+
+def report_current(sweep: Sweep) -> bool:
+    """The report lists every run as done (nothing for a report job to add)."""
+    status = read_report_status(sweep)
+    if status is None:
         return False
-    status = json.loads(path.read_text())
     return (not status["missing"] and status.get("report_error") is None
             and sorted(status["done"]) == sorted(r.name for r in sweep.runs))  # fmt: skip

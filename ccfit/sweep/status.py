@@ -13,12 +13,12 @@ import json
 import os
 from pathlib import Path
 
-from ccdata.errors import InputError
 from ccdata.slurm import check_slurm, job_states
 from ccfit.config_base import suite_tasks
 from ccfit.report import SUMMARY_JSON
 from ccfit.report_cost import run_cost
 from ccfit.sweep.grid import REPORT, STATUS_JSON, Sweep, load_sweep
+from ccfit.sweep.jobs import read_report_status
 from ccfit.train.records import METRICS
 
 CATEGORIES = ("pending", "running", "done", "failed", "not submitted")
@@ -148,15 +148,10 @@ def sweep_status(root: str | Path) -> dict[str, dict]:
 
 
 def _report_gaps(sweep: Sweep) -> str:
-    """'lists N runs missing' when the sweep's report job wrote its report before every run
-    was done (a report written then is not rewritten until the next launch ends)."""
-    path = sweep.root / REPORT / STATUS_JSON
-    if not path.is_file():
-        return ""
-    try:
-        missing = len(json.loads(path.read_text())["missing"])
-    except (json.JSONDecodeError, KeyError) as e:
-        raise InputError(f"{path} is not a sweep's report status ({e!r})") from None
+    """'lists N of M runs missing' when the sweep's report job wrote its report before every
+    run was done (a report written then is not rewritten until the next launch ends)."""
+    status = read_report_status(sweep)
+    missing = len(status["missing"]) if status else 0
     return f"lists {missing} of {len(sweep.runs)} runs missing" if missing else ""
 
 
