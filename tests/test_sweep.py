@@ -31,7 +31,7 @@ from ccfit.sweep.grid import (
 )
 from ccfit.sweep.jobs import RunJob, ScratchMissing, config_from_dict, write_status
 from ccfit.sweep.launch import plan_work
-from ccfit.sweep.status import sweep_status
+from ccfit.sweep.status import hours_to_go, sweep_status
 
 TOY_RUN = ("--seed_dataset", "null", "--train.steps=100", "--train.seed_steps=50",
            "--train.eval_interval=100", "--train.checkpoint_interval=100")  # fmt: skip
@@ -321,7 +321,7 @@ def test_local_sweep_trains_once_and_resubmits_only_unfinished_work(tmp_path, ca
     assert {s["state"] for s in states.values()} == {"done"}
     assert states["report"]["detail"] == ""
     code, out, _ = sweep_cli(capsys, "--status", str(root))
-    assert code == 0 and "0 pending, 0 running, 4 done, 0 failed, 0 not submitted" in out
+    assert code == 0 and out.endswith("0 pending, 0 running, 4 done, 0 failed, 0 not submitted\n")
 
 
 @pytest.mark.integration
@@ -426,6 +426,42 @@ def test_status_says_where_an_unfinished_run_is(tmp_path):
     cost.write_text('{"wall_s": 7000.0, "cpu_')  # damaged: bad input, named
     with pytest.raises(InputError, match="cost.json"):
         sweep_status(tmp_path)
+
+
+def test_status_adds_up_the_cpu_hours_to_go(tmp_path, capsys):
+    """The sweep's total: a started run at its own rate, one not started at its kind's median
+    rate, a reference's rate never lent to a curriculum, a finished unit counted nowhere."""
+    sweep = expand(Grid(("Reach",), ("toy",), ("ft", "er"), (0,), "smoke", RUN_ARGS,
+                        ("test_seam",)), tmp_path)  # fmt: skip
+    (reference,) = sweep.scratch_configs()
+    ft, er = sweep.runs
+    write_record(sweep, [])
+    assert hours_to_go(tmp_path) == ""  # nothing has a rate yet
+
+    def cost(directory, cpu_s):
+        directory.mkdir(parents=True, exist_ok=True)
+        (directory / "cost.json").write_text(json.dumps({"wall_s": cpu_s, "cpu_s": cpu_s}))
+
+    cost(sweep.scratch_dir(reference), 720.0)  # 200 steps, done: 3.6 CPU-s per step
+    (sweep.scratch_dir(reference) / "done.json").write_text("{}")
+    assert hours_to_go(tmp_path) == (
+        "about 0.0 CPU-hours to go (2 not counted: no rate of their kind yet)"
+    )
+    cost(sweep.run_dir(ft), 5400.0)  # 9 CPU-s per step to step 600 of 800
+    (sweep.run_dir(ft) / "metrics.jsonl").write_text(
+        json.dumps({"task": "reach-xz", "global_step": 600}) + "\n"
+    )
+    # ft: 200 steps x 9 s; er: 800 steps x 9 s (ft's rate, its kind's only one)
+    assert hours_to_go(tmp_path) == (
+        "about 2.5 CPU-hours to go (1 without a rate of their own at their kind's median)"
+    )
+    (sweep.run_dir(ft) / "metrics.json").write_text("{}")  # ft done: er at ft's whole rate
+    cost(sweep.run_dir(ft), 7200.0)  # 9 CPU-s per step over its 800
+    assert hours_to_go(tmp_path) == (
+        "about 2.0 CPU-hours to go (1 without a rate of their own at their kind's median)"
+    )
+    code, out, _ = sweep_cli(capsys, "--status", str(tmp_path))
+    assert code == 0 and out.splitlines()[-1] == hours_to_go(tmp_path)
 
 
 def test_a_failed_reference_fails_its_runs_unstarted(tmp_path, capsys):

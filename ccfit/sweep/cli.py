@@ -40,7 +40,7 @@ from ccfit.sweep.grid import (
 )
 from ccfit.sweep.jobs import report_current
 from ccfit.sweep.launch import launch_local, launch_slurm, plan_work, slurm_active, sweep_lock
-from ccfit.sweep.status import print_status, sweep_status
+from ccfit.sweep.status import hours_to_go, print_status, sweep_status
 
 EXIT_RUNS_MISSING = 1
 """Exit status of a sweep that ended with runs failed or missing, or its report failed (bad
@@ -117,7 +117,7 @@ def cmd_sweep(argv: list[str]) -> int:
     list every run as done."""
     args, run_args = build_parser().parse_known_args(argv)
     if args.status:
-        print_status(sweep_status(args.status))
+        print_status(sweep_status(args.status), hours_to_go(args.status))
         return 0
     if not args.suites or not args.out:
         raise InputError("--suites and --out are required (or --status RUNS)")
@@ -175,7 +175,7 @@ def cmd_sweep(argv: list[str]) -> int:
         from ccfit.sweep.launch import wait_report
 
         wait_report(entry, timeout_s=float("inf"))
-        print_status(sweep_status(sweep.root))
+        print_status(sweep_status(sweep.root), hours_to_go(sweep.root))
         return 0 if report_current(sweep) else EXIT_RUNS_MISSING
     return 0
 
