@@ -341,7 +341,26 @@ def compute_metrics(records: list[dict], scratch: list[dict], num_tasks: int,
         )
     ends = [(i + 1) * steps_per_task for i in range(num_tasks)]
     scratch_curve = task_curves(scratch, num_tasks, key)[-1]
+    check_evaluated(curves, ends, scratch_curve, steps_per_task)
     return metrics_from_curves(curves, ends, scratch_curve, steps_per_task)
+
+
+def check_evaluated(curves, ends, scratch_curve, budget: float) -> None:
+    """Raises ValueError unless each score the metrics read at a stage boundary was evaluated
+    there, not interpolated between evaluations on either side of it: task i's at its stage's
+    start (0 or b_{i-1}; the last task's FWT curve starts there) and at every b_j with j >= i
+    (C_i, the performance matrix, the final scores), the reference's at 0 and at the budget.
+    A run logs all of them (each task seen is evaluated at every task's end, the new task at
+    its stage's step 0), so one missing means records lost from its metrics.jsonl."""
+    for i, (steps, _) in enumerate(curves):
+        for step in [ends[i - 1] if i else 0, *ends[i:]]:
+            if not np.any(steps == step):
+                raise ValueError(f"task {i} has no evaluation at global step {step:g}, where "
+                                 f"the metrics read its score (records lost?)")  # fmt: skip
+    for step in (0, budget):
+        if not np.any(scratch_curve[0] == step):
+            raise ValueError(f"the from-scratch reference has no evaluation at step {step:g}, "
+                             f"where FWT reads its score (records lost?)")  # fmt: skip
 
 
 def metrics_from_curves(curves, ends, scratch_curve, budget: float) -> dict:

@@ -15,6 +15,7 @@ from ccfit.config_base import DATASET_RECORDS, EXECUTION_SETTINGS
 from ccfit.config_parse import flatten
 from ccfit.curriculum import METRICS_JSON, REFERENCE_DONE
 from ccfit.io import read_run_json
+from ccfit.metrics import check_evaluated, task_curves
 from ccfit.offline.fit import SCORE_KEY, TRACK
 from ccfit.train import CONFIG, METRICS
 
@@ -130,7 +131,19 @@ def find_runs(paths: list[Path]) -> list[Run]:
         records = read_run_json(d / METRICS, lines=True)
         scratch = read_run_json(scratch_dir_of(d, metrics) / REFERENCE_DONE)
         runs.append(Run(d, read_run_json(d / CONFIG), records, scratch, metrics))
+        _check_records(runs[-1])
     return runs
+
+
+def _check_records(run: Run) -> None:
+    """A run whose records lack an evaluation its metrics read (`check_evaluated`) is refused:
+    the report would interpolate the score there instead."""
+    n, key = len(run.metrics["task_ends"]), CURVE_KEYS[run.track]
+    curves, scratch = task_curves(run.records, n, key), task_curves(run.scratch, n, key)[-1]
+    try:
+        check_evaluated(curves, run.metrics["task_ends"], scratch, run.metrics["budget"])
+    except ValueError as e:
+        raise InputError(f"{run.path}: {e}") from None
 
 
 def scratch_dir_of(run_dir: Path, metrics: dict) -> Path:

@@ -203,6 +203,43 @@ def test_a_damaged_run_directory_is_one_line_and_exit_2(damage, tmp_path, capsys
     assert err.startswith(f"ccfit: error: {broken}: missing or corrupt (") and err.count("\n") == 1
 
 
+@pytest.mark.parametrize("lost", [(0, 100), (3, 300), (2, 400), ("scratch", 100)])
+def test_an_evaluation_the_metrics_read_lost_is_refused_not_interpolated(lost, tmp_path, capsys):
+    """Records that lack a score the metrics read at a stage boundary (C_0 at b_0, the last
+    task's at its stage's start, a final score, the reference's at the budget) were cut: the
+    metrics would interpolate there (C_0 between steps 50 and 150 of the records below), so
+    `compute_metrics` refuses them and `ccfit report` names the run in one line, exit 2."""
+    from ccfit.cli import main
+
+    run = write_run(tmp_path / "runs", "s0", config(), 1.0)
+    task, step = lost
+    if task == "scratch":
+        done = tmp_path / "runs" / "scratch" / "s0-scratch" / "done.json"
+        kept = [r for r in json.loads(done.read_text()) if r["global_step"] != step]
+        done.write_text(json.dumps(kept))
+        records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+        with pytest.raises(
+            ValueError, match="from-scratch reference has no evaluation at step 100"
+        ):
+            compute_metrics(records, kept, TASKS, STEPS)
+    else:
+        lines = (run / "metrics.jsonl").read_text().splitlines()
+        kept = [r for r in map(json.loads, lines) if (r["task_index"], r["global_step"]) != lost]
+        assert len(kept) == len(lines) - 1
+        (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in kept))
+        scratch = json.loads(
+            (tmp_path / "runs" / "scratch" / "s0-scratch" / "done.json").read_text()
+        )
+        with pytest.raises(
+            ValueError, match=f"task {task} has no evaluation at global step {step}"
+        ):
+            compute_metrics(kept, scratch, TASKS, STEPS)
+    assert main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"ccfit: error: {run}: ") and "(records lost?)" in err
+    assert err.count("\n") == 1
+
+
 def test_cost_md_counts_each_groups_hours_and_machines_and_each_reference_once(tmp_path):
     from ccfit.report_cost import COST_MD
 
