@@ -14,11 +14,13 @@ from pathlib import Path
 import pytest
 
 from ccfit.analysis.learnability import finished_task_runs, write_learnability
+from ccfit.metrics import compute_metrics
 from ccfit.publish import LEARNABILITY
 from ccfit.report import write_overview_of, write_report
 from ccfit.report_axes import AXES_MD
 from ccfit.report_cost import COST_MD
 from ccfit.report_orderings import ORDERINGS_MD
+from ccfit.report_runs import CURVE_KEYS, find_runs
 from ccfit.report_stages import STAGES_CSV, STAGES_MD
 from ccfit.sweep.grid import SWEEP_JSON
 from ccfit.sweep.status import sweep_status
@@ -55,6 +57,17 @@ def test_the_stage_ends_are_each_runs_end_of_task_and_final_scores(report):
     for metrics in report.parent.glob("*/metrics.json"):
         mine = [r for r in rows if r["run"] == metrics.parent.name]
         assert_stage_ends_are_the_metrics(mine, json.loads(metrics.read_text()))
+
+
+@pytest.mark.parametrize("report", REPORTS, ids=lambda p: str(p.parent.relative_to(RESULTS)))
+def test_each_runs_metrics_json_is_what_its_records_give(report):
+    # A table's value is computed from the seeds' records at report time, its [min, max] read
+    # from each run's metrics.json, written when the run finished: the two agree only while
+    # every metrics.json is what the metrics code makes of the records beside it today.
+    for run in find_runs([report.parent]):
+        n, budget = len(run.metrics["task_ends"]), run.metrics["budget"]
+        fresh = compute_metrics(run.records, run.scratch, n, budget, CURVE_KEYS[run.track])
+        assert fresh == {k: run.metrics[k] for k in fresh}, run.path
 
 
 def test_the_tables_over_all_results_match_them(tmp_path):
