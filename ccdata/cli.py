@@ -23,7 +23,7 @@ import json
 import sys
 from pathlib import Path
 
-from ccdata.errors import EXIT_USAGE, InputError, stdout_closed, stdout_reader_gone
+from ccdata.errors import EXIT_USAGE, InputError, OneLineParser, stdout_closed, stdout_reader_gone
 from ccdata.slurm import OPTIONS as SLURM_OPTIONS
 from ccdata.slurm import add_options as add_slurm_options
 
@@ -283,10 +283,10 @@ def _cmd_push(args: argparse.Namespace) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="ccdata", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
 
     p = sub.add_parser("list", help="suites, tasks and composition matrices")
     p.add_argument("--suite")

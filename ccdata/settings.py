@@ -15,6 +15,7 @@ from pathlib import Path
 from ccdata.env import EPISODE_STEPS, FPS
 from ccdata.errors import InputError
 from ccdata.render import RenderSettings
+from ccdata.repo_id import validate_repo_id
 from ccdata.suites import SUITES, get_suite
 from ccdata.tasks import ExplorationNoise, get_task
 
@@ -122,8 +123,7 @@ class DatasetSettings:
             raise InputError("noise_std must be >= 0 and random_prob in [0, 1] (or unset)")
         if self.repo_id is None:
             self.repo_id = default_repo_id(self.suite)
-        if self.repo_id.count("/") != 1 or not all(self.repo_id.split("/")):
-            raise InputError(f"repo_id must look like 'owner/name', got {self.repo_id!r}")
+        validate_repo_id(self.repo_id)  # it names a folder under LeRobot's cache too
         _ = self.render_settings  # validates image_size and msaa_samples
 
     @property

@@ -38,6 +38,9 @@ def test_list_prints_every_suite_with_its_matrix(capsys):
         (["list", "--suite", "Nope"], "unknown suite 'Nope'"),
         (["render", "--task", "nope", "--out", "x.png"], "unknown task 'nope'"),
         (["generate", "--suite", "Nope"], "unknown suite 'Nope'"),
+        # a path, not a Hub id: it would have written the dataset outside LeRobot's cache
+        (["generate", "--suite", "Reach", "--repo-id", "../escape"], "repo id '../escape'"),
+        (["generate", "--suite", "Reach", "--episodes", "abc"], "invalid int value: 'abc'"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(args, message):

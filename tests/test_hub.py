@@ -14,7 +14,8 @@ import pytest
 from huggingface_hub import constants
 from huggingface_hub.repocard import RepoCard
 
-from ccdata.hub import CODEBASE_TAG, HubError, download_dataset, push_dataset, validate_repo_id
+from ccdata.hub import CODEBASE_TAG, HubError, download_dataset, push_dataset
+from ccdata.repo_id import validate_repo_id
 
 REPO_ID = "ccbench-test/tiny"
 CAMERA = "observation.images.top"
