@@ -120,10 +120,13 @@ def finished_batches(paths: JournalPaths) -> dict[tuple[str, ...], Path]:
 
 
 def chunks_of(keys: list[str], group: int | None = None) -> list[list[str]]:
-    """The batches a run's episodes (in plan order) are merged in: consecutive runs of `group`
-    (default `GROUP`); a shorter remainder is left to the final merge. Fixed by the run's
-    episode list alone, so the merge tree, and with it every byte of the result, does not
-    depend on timing."""
+    """The batches a plan's episodes (`keys`, the whole plan in order) are merged in:
+    consecutive runs of `group` (default `GROUP`); a shorter remainder is left to the final
+    merge. Fixed by the plan alone, so the merge tree of a run, and with it every byte of the
+    result, does not depend on timing; and a batch never spans an episode written by another
+    run (one at the root, or one a stopped run left waiting in the journal after a gap), which
+    the final merge could not put back in plan order. A chunk with an episode at the root is
+    not batched: its other episodes are merged one by one."""
     group = group or GROUP
     return [keys[i : i + group] for i in range(0, len(keys) - group + 1, group)]
 
@@ -158,9 +161,10 @@ def merge_chunks(config: DatasetSettings, chunks: list[list[str]], finished) -> 
     final merge. Needs only its arguments and the journal (an independent job)."""
     quiet_libraries()
     paths = JournalPaths(config.dataset_root)
-    done = set(finished_batches(paths))
+    taken = set(existing_keys(paths.root)) if paths.root.exists() else set()
+    taken |= {k for keys in finished_batches(paths) for k in keys}
     for keys in chunks:
-        if tuple(keys) in done:
+        if taken & set(keys):  # batched already, or partly at the root (`chunks_of`)
             continue
         while not all((paths.pieces / k / "piece.json").is_file() for k in keys):
             if finished.wait(0.25):
@@ -227,7 +231,7 @@ def merge_pieces(config: DatasetSettings, order: list[str] | None = None,
     # Complete chunks the merger did not get to are batched here: the same tree either way.
     batched = {k for keys in batches for k in keys}
     group = group or GROUP
-    for keys in chunks_of([k for k in order or [] if k not in present], group):
+    for keys in chunks_of(order or [], group):
         if all(k in pieces and k not in batched for k in keys):
             batches[tuple(keys)] = merge_batch(config, keys)
             batched.update(keys)
@@ -256,6 +260,7 @@ def merge_pieces(config: DatasetSettings, order: list[str] | None = None,
     with faster_lerobot():
         _aggregate(sources, paths.new, config.repo_id, scratch, group)
     shutil.rmtree(scratch, ignore_errors=True)
+    _sort_stats(paths.new)
     from ccdata.cards import render_card
 
     meta = ccdata_metadata(config)
@@ -271,6 +276,14 @@ def merge_pieces(config: DatasetSettings, order: list[str] | None = None,
     if paths.batches.is_dir() and not any(paths.batches.iterdir()):
         paths.batches.rmdir()
     return sum(len(e[2]) for e in entries)
+
+
+def _sort_stats(root: Path) -> None:
+    """meta/stats.json with its features in sorted order: LeRobot's merge collects them in a
+    set, so their order would follow Python's string hashing, which differs per process."""
+    path = root / "meta/stats.json"
+    stats = json.loads(path.read_text())
+    path.write_text(json.dumps({k: stats[k] for k in sorted(stats)}, indent=4, ensure_ascii=False))
 
 
 def prepare(config: DatasetSettings) -> JournalPaths:

@@ -41,7 +41,27 @@ def process_context() -> BaseContext:
     generation and keeps them: environment variables set later do not reach its children."""
     ctx = get_context("forkserver")
     ctx.set_forkserver_preload(list(PRELOAD))
+    _start_fork_server()
     return ctx
+
+
+def _start_fork_server() -> None:
+    """Start the fork server now, with SIGINT ignored. It imports PRELOAD (seconds) before it
+    ignores SIGINT itself, and a Ctrl-C meanwhile (it reaches the whole process group) killed
+    it mid-import: starting a writer then failed with EOFError, and the generation hung at
+    exit instead of stopping. Ignored, not blocked: the spawn resets the child's signal mask,
+    while an ignored signal stays ignored across exec and Python's start. Its children
+    ignore SIGINT anyway (the generating process decides what stops). A Ctrl-C in the few
+    milliseconds of the spawn is lost here."""
+    from multiprocessing import forkserver
+
+    if threading.current_thread() is not threading.main_thread():
+        return  # only the main thread sets handlers; the server then starts with a child
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        forkserver.ensure_running()
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 class _Starter(threading.Thread):

@@ -97,7 +97,7 @@ def generate(
             on_episode(record)
 
     interrupted = False
-    merger = Merger(config, chunks_of([s.key for s in todo]), order) if todo else None
+    merger = Merger(config, chunks_of(order), order) if todo else None
     try:
         if config.workers == 1 or len(todo) <= 1:
             write_shard(config, todo, paths.pieces, on_piece=done_one)

@@ -331,8 +331,8 @@ class Writers:
         """Let each writer complete the piece it is writing (pieces are atomic) within
         `grace_s`, drop the rest."""
         self.episodes.stop.set()
-        self.starting.join()
         self.episodes.jobs.cancel_join_thread()  # episodes never written must not block exit
+        self.starting.join()
         end_processes(self.processes, grace_s)
         try:  # report the pieces completed meanwhile; raise nothing more
             while True:

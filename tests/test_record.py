@@ -81,8 +81,10 @@ def test_config_is_validated():
         GenerateConfig("Reach", workers=0)
     with pytest.raises(ValueError, match="max_steps"):
         GenerateConfig("Reach", max_steps=0)
-    with pytest.raises(ValueError, match="repo_id"):
+    with pytest.raises(ValueError, match="repo id 'no-slash' must have the form 'ORG/NAME'"):
         GenerateConfig("Reach", repo_id="no-slash")
+    with pytest.raises(ValueError, match="NAME may only use"):
+        GenerateConfig("Reach", repo_id="ccdata/..")  # would be the cache folder itself
     assert GenerateConfig("Reach").repo_id == "ccdata/Reach"
 
 
@@ -384,6 +386,27 @@ def test_sigkill_loses_only_episodes_not_yet_written(tmp_path):
     assert verify_dataset(root) == []
 
 
+def test_a_ctrl_c_while_the_fork_server_imports_does_not_kill_it():
+    """Ctrl-C reaches the whole process group, the fork server too, which spends its first
+    seconds importing torch and LeRobot: killed there, a writer's start failed with EOFError
+    and the interrupted generation hung at exit. The server starts with SIGINT ignored."""
+    script = textwrap.dedent("""
+        import os, signal
+        from multiprocessing import forkserver
+        from ccdata.processes import process_context
+        ctx = process_context()
+        server = forkserver._forkserver._forkserver_pid
+        os.kill(server, signal.SIGINT)  # at once: it is importing
+        child = ctx.Process(target=os.getpid)
+        child.start()
+        child.join()
+        print(child.exitcode, forkserver._forkserver._forkserver_pid == server)
+    """)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                            timeout=300)  # fmt: skip
+    assert (result.returncode, result.stdout) == (0, "0 True\n"), result.stderr[-2000:]
+
+
 def test_other_suite_or_settings_at_target_are_refused(tiny):
     root, _ = tiny
     with pytest.raises(ValueError, match="suite"):
@@ -459,6 +482,27 @@ def test_merger_batches_complete_chunks_only(tiny, tmp_path):
     assert not paths.batches.exists() and not any(paths.pieces.iterdir())
 
 
+def test_a_run_resumed_after_a_gap_completes_in_plan_order(tmp_path, monkeypatch):
+    """A stopped run with two workers can leave episodes done after one that is not (here
+    the fourth of twelve): the resumed run merges the first three to the root, rolls out the
+    fourth and the last four, and batches only whole chunks of the plan, so no batch spans the
+    episodes waiting in the journal (batched from what was left to do, [4th, 9th] was merged
+    before the 5th to 8th). Its statistics list the features in sorted order."""
+    from ccdata import journal, record
+
+    monkeypatch.setattr(journal, "GROUP", 2)
+    cfg = GenerateConfig(**TINY, root=tmp_path / "Reach")
+    specs = plan(cfg)
+    paths = journal.prepare(cfg)
+    record.write_shard(cfg, specs[:3] + specs[4:8], paths.pieces)
+    _, summary = generate(cfg, progress=False)
+    assert summary["new_episodes"] == 5
+    assert existing_keys(cfg.dataset_root) == [s.key for s in specs]
+    assert verify_dataset(cfg.dataset_root) == []
+    stats = json.loads((cfg.dataset_root / "meta/stats.json").read_text())
+    assert list(stats) == sorted(stats)
+
+
 @pytest.mark.slow  # two generations (~50 s); test_workers_give_the_same_episodes runs in CI
 def test_batched_generation_is_byte_identical_across_workers(tmp_path, monkeypatch):
     """With chunks of 2 (6 batches, merged in a tree of pairs), the merge tree is fixed by the
@@ -473,8 +517,8 @@ def test_batched_generation_is_byte_identical_across_workers(tmp_path, monkeypat
         root, summary = generate(cfg, progress=False)
         assert summary["episodes"] == 12 and verify_dataset(root) == []
         roots.append(root)
-    # Same numbers to the last bit (LeRobot writes the stats' keys in no fixed order).
-    stats = [json.loads((r / "meta/stats.json").read_text()) for r in roots]
+    # Same numbers to the last bit, the features in the same (sorted) order.
+    stats = [(r / "meta/stats.json").read_text() for r in roots]
     assert stats[0] == stats[1]
     files = sorted(
         p
