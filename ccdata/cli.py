@@ -215,9 +215,11 @@ def _cmd_card(args: argparse.Namespace) -> None:
     if args.root:
         from ccdata.dataset_format import read_ccdata_metadata
         from ccdata.settings import DatasetSettings
+        from ccdata.verify import check_intact
 
         root = _dataset_root(args)
         meta = read_ccdata_metadata(root)
+        check_intact(root, "its card cannot be written")  # the card reads every episode
         settings = DatasetSettings.from_dict({**meta["config"], "root": args.root})
         text = render_card(settings, dataset=root, metadata=meta)
     elif args.suite:
@@ -225,6 +227,8 @@ def _cmd_card(args: argparse.Namespace) -> None:
     else:
         raise CliError("give --suite (the default card) or --root (a dataset's card)")
     if args.out:
+        if Path(args.out).is_dir():
+            raise CliError(f"--out {args.out} is a directory: name the card's file")
         Path(args.out).write_text(text)
         print(f"wrote {args.out}")
     else:

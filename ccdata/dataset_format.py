@@ -161,9 +161,12 @@ def read_ccdata_metadata(root: Path) -> dict:
     if not path.is_file():
         raise InputError(f"{root} holds no {CCDATA_META}: not a ccdata dataset")
     try:
-        return json.loads(path.read_text())
+        meta = json.loads(path.read_text())
     except json.JSONDecodeError as err:
         raise InputError(f"{path} is corrupt ({err}); regenerate the dataset") from None
+    if not isinstance(meta, dict):
+        raise InputError(f"{path} is corrupt (not a JSON object); regenerate the dataset")
+    return meta
 
 
 def check_lerobot_info(root: Path) -> None:

@@ -58,6 +58,10 @@ def resolve_endpoint(endpoint: str | None = None) -> str:
     url = (endpoint or os.environ.get("HF_ENDPOINT") or constants._HF_DEFAULT_ENDPOINT).rstrip("/")
     if not re.fullmatch(r"https?://[^/\s]+(/\S*)?", url):
         raise HubError(f"endpoint {url!r} is not an http(s) URL")
+    try:
+        httpx.URL(url)
+    except httpx.InvalidURL as exc:  # passes the pattern, e.g. an unclosed IPv6 bracket
+        raise HubError(f"endpoint {url!r} is not a valid URL: {exc}") from None
     return url
 
 
@@ -141,7 +145,7 @@ def _check_local_dataset(root: Path) -> None:
         raise HubError(f"no LeRobot dataset at {root}: {info_path} is missing")
     try:
         version = json.loads(info_path.read_text())["codebase_version"]
-    except (ValueError, KeyError) as exc:
+    except (ValueError, KeyError, TypeError) as exc:  # TypeError: JSON, not an object
         raise HubError(f"{info_path} is not a LeRobot info.json ({exc!r})") from None
     if version != CODEBASE_TAG:
         raise HubError(f"{root} is a LeRobot {version} dataset; only {CODEBASE_TAG} can be pushed")
@@ -153,7 +157,10 @@ def _check_card(root: Path) -> None:
     card = root / "README.md"
     if not card.is_file():
         return
-    lines = card.read_text(encoding="utf-8").splitlines()
+    try:
+        lines = card.read_text(encoding="utf-8").splitlines()
+    except UnicodeDecodeError as exc:
+        raise HubError(f"{card} is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     if not lines or lines[0].strip() != "---":
         return
     end = next((i for i, line in enumerate(lines[1:], 1) if line.strip() == "---"), None)

@@ -40,8 +40,10 @@ from ccdata.dataset_format import (
     read_ccdata_metadata,
     write_json,
 )
+from ccdata.errors import InputError
 from ccdata.lerobot_speedups import faster_lerobot
 from ccdata.processes import die_with, process_context, start_soon
+from ccdata.verify import check_intact
 
 if TYPE_CHECKING:
     from ccdata.settings import DatasetSettings
@@ -296,9 +298,19 @@ def prepare(config: DatasetSettings) -> JournalPaths:
         else:
             check_identity(read_ccdata_metadata(paths.root).get("identity", {}), config, paths.root)
             check_lerobot_info(paths.root)
+            # else the final merge would fail on it after every new episode was rolled out
+            check_intact(paths.root, "nothing can be added to it")
     settings = paths.work / "settings.json"
     if settings.is_file():
-        check_identity(json.loads(settings.read_text()), config, paths.work)
+        try:
+            identity = json.loads(settings.read_text())
+            damage = None if isinstance(identity, dict) else "not a JSON object"
+        except json.JSONDecodeError as err:
+            damage = str(err)
+        if damage:
+            raise InputError(f"{settings} is corrupt ({damage}): delete {paths.work} to start "
+                             f"the journal over (its finished episodes are lost)")  # fmt: skip
+        check_identity(identity, config, paths.work)
     paths.pieces.mkdir(parents=True, exist_ok=True)
     write_json(settings, config.identity())
     return paths

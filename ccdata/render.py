@@ -21,6 +21,11 @@ CAMERAS: tuple[str, ...] = ("topview", "frontview", "gripperPOV")
 """The benchmark's cameras, in channel-stacking order."""
 
 
+MAX_IMAGE_SIZE = 16384
+"""The largest offscreen framebuffer side every OpenGL 4.5 implementation must support
+(GL_MAX_RENDERBUFFER_SIZE); beyond it MuJoCo's renderer fails with a page of EGL errors."""
+
+
 @dataclass(frozen=True)
 class RenderSettings:
     """How camera images are rendered. Defaults are the benchmark's (cheap, recorded)."""
@@ -39,8 +44,8 @@ class RenderSettings:
     """Shadow map resolution, used only when shadows are on."""
 
     def __post_init__(self) -> None:
-        if self.image_size < 8:
-            raise InputError(f"image_size must be >= 8, got {self.image_size}")
+        if not 8 <= self.image_size <= MAX_IMAGE_SIZE:
+            raise InputError(f"image_size must be in [8, {MAX_IMAGE_SIZE}], got {self.image_size}")
         if self.msaa_samples < 0:
             raise InputError(f"msaa_samples must be >= 0, got {self.msaa_samples}")
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ccdata.dataset_format import CODEBASE_VERSION, FINAL_KEY, FORMAT_VERSION
+from ccdata.errors import InputError
 
 
 def verify_dataset(root: str | Path) -> list[str]:
@@ -25,7 +26,12 @@ def verify_dataset(root: str | Path) -> list[str]:
     ccmeta = _load_json(root / "meta/ccdata.json", findings)
     if info is None:
         return findings
+    features = info.get("features", {})
+    if not isinstance(features, dict) or not all(isinstance(f, dict) for f in features.values()):
+        return [*findings, "info.json features is not an object of feature objects"]
     _check_info(info, ccmeta, findings)
+    if any(f.startswith("info.json lacks") for f in findings):
+        return findings  # the rest is read through info.json's paths and features
     tasks = _read_tasks(root, info, findings)
     episodes = _read_episodes(root, info, findings)
     data = _read_data(root, info, findings)
@@ -37,15 +43,29 @@ def verify_dataset(root: str | Path) -> list[str]:
     return findings
 
 
+def check_intact(root: Path, doing: str) -> None:
+    """InputError unless the dataset at `root` passes `verify_dataset` (seconds: it decodes no
+    video); `doing` says what would otherwise fail on it, for the message."""
+    findings = verify_dataset(root)
+    if findings:
+        raise InputError(f"the dataset at {root} is damaged, so {doing} ({findings[0]}; "
+                         f"`ccdata verify --root {root}` lists every finding): remove it to "
+                         f"regenerate it")  # fmt: skip
+
+
 def _load_json(path: Path, findings: list[str]) -> dict | None:
     if not path.is_file():
         findings.append(f"missing {path.relative_to(path.parent.parent)}")
         return None
     try:
-        return json.loads(path.read_text())
+        value = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as e:
         findings.append(f"unreadable {path.name}: {e}")
         return None
+    if not isinstance(value, dict):
+        findings.append(f"{path.name} is not a JSON object")
+        return None
+    return value
 
 
 def _check_info(info: dict, ccmeta: dict | None, findings: list[str]) -> None:
@@ -328,6 +348,9 @@ def _check_stats(root: Path, info: dict, findings: list[str]) -> None:
         stats = json.loads(path.read_text())
     except json.JSONDecodeError as e:
         findings.append(f"unreadable meta/stats.json: {e}")
+        return
+    if not isinstance(stats, dict):
+        findings.append("meta/stats.json is not a JSON object")
         return
     for key, spec in info.get("features", {}).items():
         if spec.get("dtype") == "string":

@@ -3,6 +3,7 @@ with and what was measured on it; cards/<Suite>.md is the default settings' card
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -73,6 +74,17 @@ def test_card_command_rerenders_a_datasets_card(small, tmp_path, capsys):
     assert out.read_text() == (root / "README.md").read_text()
     assert main(["card"]) == 2
     assert "give --suite" in capsys.readouterr().err
+    assert main(["card", "--suite", "Reach", "--out", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == (
+        f"ccdata card: error: --out {tmp_path} is a directory: name the card's file\n"
+    )
+    damaged = shutil.copytree(root, tmp_path / "damaged")
+    data = next((damaged / "data").rglob("*.parquet"))
+    data.write_bytes(data.read_bytes()[:100])  # the card reads every episode from it
+    assert main(["card", "--root", str(damaged)]) == 2
+    err = capsys.readouterr().err
+    assert f"the dataset at {damaged} is damaged, so its card cannot be written (" in err
+    assert err.count("\n") == 1
 
 
 def test_default_card_states_the_default_settings():

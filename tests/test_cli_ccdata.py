@@ -41,6 +41,10 @@ def test_list_prints_every_suite_with_its_matrix(capsys):
         # a path, not a Hub id: it would have written the dataset outside LeRobot's cache
         (["generate", "--suite", "Reach", "--repo-id", "../escape"], "repo id '../escape'"),
         (["generate", "--suite", "Reach", "--episodes", "abc"], "invalid int value: 'abc'"),
+        (
+            ["render", "--task", "reach-xy", "--out", "x.png", "--image-size", "100000"],
+            "image_size must be in [8, 16384], got 100000",
+        ),  # fmt: skip
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(args, message):

@@ -346,5 +346,11 @@ def test_push_errors_are_one_clear_line(hub_server, tiny_dataset, clean_hub_env,
     (bad_card / "README.md").write_text("---\nlicense: [unclosed\n---\n# card\n")
     msg = push(root=bad_card)
     assert "README.md: invalid YAML header" in msg
+    (bad_card / "README.md").write_bytes(b"---\nlicense: caf\xe9\n---\n")  # Latin-1
+    assert "README.md is not UTF-8 text (invalid continuation byte" in push(root=bad_card)
+    assert "is not a valid URL" in push(endpoint="http://[::1")  # passes the URL pattern
+    not_info = shutil.copytree(tiny_dataset, tmp_path / "not-info")
+    (not_info / "meta/info.json").write_text("[1, 2]")
+    assert "is not a LeRobot info.json" in push(root=not_info)
     # None of the failures wrote anything.
     assert ("dataset", REPO_ID) not in hub_server.state.repos

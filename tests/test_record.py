@@ -415,6 +415,28 @@ def test_other_suite_or_settings_at_target_are_refused(tiny):
         generate(GenerateConfig(**{**TINY, "image_size": 48}, root=root))
 
 
+def test_a_damaged_target_or_journal_is_refused_before_any_rollout(tiny, tmp_path):
+    """Adding to a dataset whose meta/episodes is cut, or resuming a journal whose settings are
+    damaged, is one InputError before anything is rolled out: the final merge failed on the
+    first only after every new episode, with a pyarrow traceback."""
+    root, _ = tiny
+    damaged = tmp_path / "Reach"
+    shutil.copytree(root, damaged)
+    episodes = next((damaged / "meta/episodes").rglob("*.parquet"))
+    episodes.write_bytes(episodes.read_bytes()[:100])
+    more = GenerateConfig(**{**TINY, "episodes": 2}, root=damaged)
+    with pytest.raises(InputError, match=f"the dataset at {damaged} is damaged, so nothing can"):
+        generate(more, progress=False)
+    assert not (tmp_path / ".Reach.ccdata-work" / "pieces").exists()  # nothing rolled out
+
+    fresh = GenerateConfig(**TINY, root=tmp_path / "fresh" / "Reach")
+    journal = tmp_path / "fresh" / ".Reach.ccdata-work"
+    journal.mkdir(parents=True)
+    (journal / "settings.json").write_text('{"suite": "Re')
+    with pytest.raises(InputError, match="settings.json is corrupt .* delete .* to start"):
+        generate(fresh, progress=False)
+
+
 def test_verify_reports_corruption(tiny, tmp_path):
     root, _ = tiny
     assert verify_dataset(root) == []
@@ -444,6 +466,21 @@ def test_verify_reports_corruption(tiny, tmp_path):
     for path in (no_episodes / "meta/episodes").rglob("*.parquet"):
         path.unlink()
     assert "no meta/episodes/*.parquet files" in verify_dataset(no_episodes)
+
+    # JSON of the wrong shape is a finding too, not an AttributeError or KeyError
+    info = json.loads((root / "meta/info.json").read_text())
+    for name, text, finding in [
+        ("meta/info.json", "[1, 2]", "info.json is not a JSON object"),
+        ("meta/info.json", json.dumps({**info, "features": [1]}), "features is not an object"),
+        ("meta/info.json", json.dumps({k: v for k, v in info.items() if k != "video_path"}),
+         "info.json lacks 'video_path'"),
+        ("meta/ccdata.json", "[]", "ccdata.json is not a JSON object"),
+        ("meta/stats.json", "[]", "meta/stats.json is not a JSON object"),
+    ]:  # fmt: skip
+        shaped = tmp_path / f"shape-{finding.split()[0]}-{len(text)}"
+        shutil.copytree(root, shaped)
+        (shaped / name).write_text(text)
+        assert finding in " | ".join(verify_dataset(shaped)), name
 
 
 def test_merger_batches_complete_chunks_only(tiny, tmp_path):
@@ -640,7 +677,8 @@ def test_generating_into_a_damaged_dataset_is_one_line(damage, tiny, tmp_path, c
         else next((root / "data").rglob("*.parquet"))
     )
     path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
-    with pytest.raises(InputError, match=f"{path.name} is (missing or )?corrupt"):
+    damaged = f"is damaged, so nothing can be added to it \\(unreadable data file {path.name}"
+    with pytest.raises(InputError, match=f"{path.name} is missing or corrupt|{damaged}"):
         generate(GenerateConfig(**TINY, root=root), progress=False)
     args = ["generate", "--suite", TINY["suite"], "--root", str(root)]
     args += [f"--{k.replace('_', '-')}={v}" for k, v in TINY.items() if k != "suite"]
