@@ -158,24 +158,27 @@ def cmd_fit(argv: list[str]) -> None:
 
 
 def _cmd_report(args: argparse.Namespace) -> None:
+    from ccfit.io import out_dir
     from ccfit.report import write_report
 
-    paths = write_report([Path(p) for p in args.runs], Path(args.out))
+    paths = write_report([Path(p) for p in args.runs], out_dir(args.out))
     for path in paths:
         print(path)
 
 
 def _cmd_publish(args: argparse.Namespace) -> None:
+    from ccfit.io import out_dir
     from ccfit.publish import publish
 
-    paths = publish(Path(args.runs), Path(args.out), Path(args.root) if args.root else None)
+    paths = publish(Path(args.runs), out_dir(args.out), Path(args.root) if args.root else None)
     print(f"{len(paths)} files -> {args.out}")
 
 
 def _cmd_learnability(args: argparse.Namespace) -> None:
     from ccfit.analysis.learnability import write_learnability
+    from ccfit.io import out_dir
 
-    paths = write_learnability([Path(p) for p in args.runs], Path(args.out))
+    paths = write_learnability([Path(p) for p in args.runs], out_dir(args.out))
     for path in paths:
         print(path)
 
@@ -183,6 +186,7 @@ def _cmd_learnability(args: argparse.Namespace) -> None:
 def _cmd_probe_encoder(args: argparse.Namespace) -> None:
     from ccdata.tasks import get_task
     from ccfit.analysis.encoder_probe import markdown, probe_encoder, write_probe
+    from ccfit.io import out_dir
 
     tasks = [get_task(t.strip()).id for t in args.tasks.split(",") if t.strip()]
     if not tasks:
@@ -193,7 +197,7 @@ def _cmd_probe_encoder(args: argparse.Namespace) -> None:
         )
     result = probe_encoder(args.encoder, tasks, frames=args.frames, seed=args.seed)
     print(markdown(result), end="")
-    print("-> " + ", ".join(str(p) for p in write_probe(result, Path(args.out))))
+    print("-> " + ", ".join(str(p) for p in write_probe(result, out_dir(args.out))))
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:

@@ -250,6 +250,9 @@ class BaseRunConfig:
         check(self.preset in PRESETS, f"unknown preset {self.preset!r}; valid: "
                                       f"{', '.join(PRESETS)}")  # fmt: skip
         check(self.image_size >= 32, f"image_size must be >= 32, got {self.image_size}")
+        check(0 <= self.seed < 2**31, f"seed must be in [0, 2**31), got {self.seed}")
+        check(self.out is None or not Path(self.out).exists() or Path(self.out).is_dir(),
+              f"--out {self.out} is a file, not a folder")  # fmt: skip
         check(
             self.model.obs_mode == self.obs,
             f"model.obs_mode {self.model.obs_mode!r} != obs {self.obs!r}: set it with --obs",

@@ -105,10 +105,21 @@ def resolve[C: BaseRunConfig](cls: type[C], overrides: dict[str, Any]) -> C:
     """`cls` from nested plain data (`{"suite": ..., "model": {"type": NAME, ...}}`): the
     preset's defaults (preset, model and method types, obs and image size taken from
     `overrides`), then `overrides` on top. The programmatic twin of `parse_cli`."""
+    return _decode(cls, _under_preset_defaults(cls, overrides))
+
+
+def _under_preset_defaults(cls: type[BaseRunConfig], overrides: dict[str, Any]) -> dict:
+    """`overrides` on top of the preset's defaults that its own choices (preset, obs, image
+    size, suite, model and method types) select; a section given as anything but an object is
+    refused."""
+    sections = [n for n, t in typing.get_type_hints(cls).items() if dataclasses.is_dataclass(t)]
+    for name in sections:
+        check(isinstance(overrides.get(name, {}), dict),
+              f"{name} must be an object of settings, got {overrides.get(name)!r}")  # fmt: skip
     choices = {k: overrides.get(k) for k in ("preset", "obs", "image_size", "suite")}
     choices.update(model=overrides.get("model", {}).get("type"),
                    method=overrides.get("method", {}).get("type"))  # fmt: skip
-    return _decode(cls, _deep_merge(preset_defaults(cls, choices), overrides))
+    return _deep_merge(preset_defaults(cls, choices), overrides)
 
 
 def saved_config[C: BaseRunConfig](cls: type[C], run_dir: str | Path,
@@ -125,8 +136,9 @@ def _saved_fields(cls: type, path: Path) -> dict:
     check(path.is_file(), f"config file not found: {path}")
     try:
         saved = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ConfigError(f"{path} is not a JSON config: {e}") from None
+    check(isinstance(saved, dict), f"{path} is not a JSON config: not an object")
     names = {f.name for f in dataclasses.fields(cls)}
     return {k: v for k, v in saved.items() if k in names}
 
@@ -209,7 +221,8 @@ def parse_cli[C: BaseRunConfig](cls: type[C], argv: Sequence[str], prog: str | N
     args = [_underscored(a) for a in argv]
     pre = _preparse(args)
     if pre.get("config_path"):
-        defaults = _saved_fields(cls, Path(pre["config_path"]))
+        # what the file leaves out comes from the preset it names, as on the command line
+        defaults = _under_preset_defaults(cls, _saved_fields(cls, Path(pre["config_path"])))
         args = _without(args, "config_path")
     else:
         size = pre.get("image_size")  # a bad value is reported by draccus below

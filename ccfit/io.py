@@ -81,10 +81,19 @@ def read_run_json(path: Path, lines: bool = False, leave_out: str = "the report"
         text = Path(path).read_text()
         return [json.loads(x) for x in text.splitlines() if x.strip()] if lines else \
             json.loads(text)  # fmt: skip
-    except (OSError, json.JSONDecodeError) as err:
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
         raise InputError(
             f"{path}: missing or corrupt ({err}); rerun the run or leave it out of {leave_out}"
         ) from None
+
+
+def out_dir(path: str | Path) -> Path:
+    """An output folder given by the user: InputError when a file is in its place (writing
+    into it would end in a FileExistsError traceback)."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"--out {path} is a file, not a folder")
+    return path
 
 
 def seed_everything(seed: int) -> None:

@@ -460,6 +460,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(runs, tmp_path):
         (["--suite", SUITE, "--train.steps=abc"], "train.steps"),
         (["--suite", SUITE, "--model.lr=fast"], "model.lr"),
         (["--suite", "BinPnP", "--model.type=pwm", "--model.max_tasks=3"], "max_tasks=4"),
+        (["--suite", SUITE, "--seed=-1"], "seed must be in [0, 2**31), got -1"),
         (
             ["--suite", SUITE, "--method.type=packnet", "--method.keep_fraction=1.5"],
             "keep_fraction",
@@ -478,6 +479,47 @@ def test_cli_run_bad_input_exits_2_with_one_line(argv, needle, capsys, tmp_path)
     assert len(err.strip().splitlines()) == 1 and needle in err, err
     assert "Traceback" not in err
     assert not (tmp_path / "x").exists(), "bad input must not leave a run directory"
+
+
+def test_an_out_that_is_a_file_is_one_line(tmp_path, capsys):
+    from ccfit.cli import main
+
+    (tmp_path / "file").write_text("")
+    run = ["run", "--suite", SUITE, "--preset", "smoke", "--seed_dataset", "null"]
+    for argv in ([*run, "--out", str(tmp_path / "file")],
+                 ["report", str(tmp_path), "--out", str(tmp_path / "file")],
+                 ["sweep", "--suites", SUITE, "--methods", "ft", "--seeds", "0", "--preset",
+                  "smoke", "--out", str(tmp_path / "file"), "--dry-run"]):  # fmt: skip
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err == f"ccfit: error: --out {tmp_path / 'file'} is a file, not a folder\n", err
+
+
+def test_a_config_file_fills_what_it_leaves_out_from_its_preset(tmp_path):
+    """`--config_path` with a partial config takes the rest from the preset the file names,
+    as the command line does (it took the code's defaults: a `smoke` config trained 100 000
+    steps at the `cpu` size); a file of the wrong shape is one ConfigError."""
+    from ccfit.config_base import ConfigError
+
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({"preset": "smoke", "suite": SUITE, "seed_dataset": None,
+                                "train": {"eval_episodes": 1}}))  # fmt: skip
+    flags = ["--preset", "smoke", "--suite", SUITE, "--seed_dataset", "null",
+             "--train.eval_episodes=1"]  # fmt: skip
+    assert parse_cli(CurriculumConfig, ["--config_path", str(path)]) == parse_cli(
+        CurriculumConfig, flags
+    )
+    for text, needle in [
+        ("[1, 2]", "is not a JSON config: not an object"),
+        ('{"train": 5}', "train must be an object of settings, got 5"),
+        ('{"model": {"type": "nope"}}', "unknown model 'nope'"),
+    ]:
+        path.write_text(text)
+        with pytest.raises(ConfigError, match=needle):
+            parse_cli(CurriculumConfig, ["--config_path", str(path)])
+    path.write_bytes(b'{"suite": "caf\xe9"}')
+    with pytest.raises(ConfigError, match="is not a JSON config"):
+        parse_cli(CurriculumConfig, ["--config_path", str(path)])
 
 
 def test_a_suite_without_oracle_references_fails_before_the_run(capsys, tmp_path,

@@ -99,6 +99,7 @@ def test_env_workers_resolve(monkeypatch):
     assert resolve_env_workers("auto", **{**auto, "obs_mode": "state"}) == 0
     assert resolve_env_workers("auto", **{**auto, "parallel": False}) == 0
     assert resolve_env_workers("3", **{**auto, "obs_mode": "state"}) == 3
+    assert resolve_env_workers("100000", **auto) == 10  # not 100 000 processes for 10 episodes
     monkeypatch.setattr(ew, "available_cores", lambda: 4)  # one core free: not worth a process
     assert resolve_env_workers("auto", **auto) == 0
     assert TrainConfig(env_workers=2).env_workers == "2"

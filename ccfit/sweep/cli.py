@@ -28,6 +28,7 @@ from ccdata.slurm import add_options as add_slurm_options
 from ccfit.config_base import DEFAULTS, PRESETS
 from ccfit.config_parse import curriculum_notes
 from ccfit.continual import method_names
+from ccfit.io import out_dir
 from ccfit.models import DEFAULT_MODEL, DEFAULT_OFFLINE_MODEL, model_names
 from ccfit.sweep.grid import (
     SWEEP_JSON,
@@ -140,7 +141,7 @@ def cmd_sweep(argv: list[str]) -> int:
     grid = Grid(args.suites, args.models, args.methods, args.seeds, args.preset,
                 tuple(run_args), args.plugins, args.track)  # fmt: skip
     import_plugins(grid.plugins)
-    sweep = expand(grid, args.out)
+    sweep = expand(grid, out_dir(args.out))
     record = read_record(sweep.root)
     if record is not None:
         check_same_sweep(sweep, record)

@@ -190,12 +190,12 @@ its evaluator and (in a curriculum) the from-scratch reference."""
 
 def resolve_env_workers(setting: str, *, obs_mode: str, parallel: bool, episodes: int) -> int:
     """`--train.env_workers`: a count as given, or for 'auto' one worker per core the run
-    leaves free (`RUN_PROCESSES`), at most one per evaluation episode, with pixel observations
-    and `parallel` on (else 0: a state observation steps in microseconds, and 0 keeps a run
-    that shares the machine with others, e.g. a sweep's, to its cores). Fewer than two free
-    cores: 0."""
+    leaves free (`RUN_PROCESSES`) with pixel observations and `parallel` on (else 0: a state
+    observation steps in microseconds, and 0 keeps a run that shares the machine with others,
+    e.g. a sweep's, to its cores; fewer than two free cores: 0); either way at most one per
+    evaluation episode."""
     if setting != "auto":
-        return int(setting)
+        return min(int(setting), episodes)  # more would have nothing to step
     if obs_mode != "pixels" or not parallel:
         return 0
     free = available_cores() - RUN_PROCESSES
