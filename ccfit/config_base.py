@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import typing
 from typing import Any, ClassVar
 
@@ -64,9 +65,11 @@ _SIMPLE = {int: (int,), float: (int, float), bool: (bool,), str: (str,), type(No
 _HINTS: dict[type, dict[str, Any]] = {}
 
 
-def check_types(config: Any) -> None:
+def check_types(config: Any, finite: bool = False) -> None:
     """ConfigError naming the field when a value does not have its annotated simple type
-    (int, float, bool, str, or unions of them with None); other annotations are skipped."""
+    (int, float, bool, str, or unions of them with None); other annotations are skipped.
+    `finite`: a float must also be finite (a hyperparameter of inf or nan is never meant:
+    `--model.train_ratio=inf` looped forever, `--model.lr=inf` trained to NaN weights)."""
     cls = type(config)
     if cls not in _HINTS:
         _HINTS[cls] = typing.get_type_hints(cls)
@@ -81,6 +84,8 @@ def check_types(config: Any) -> None:
             allowed = ()  # True is an int to Python, not to a config
         check(isinstance(value, allowed),
               f"{cls.__name__}.{f.name} must be {f.type}, got {value!r}")  # fmt: skip
+        if finite and isinstance(value, float):
+            check(math.isfinite(value), f"{cls.__name__}.{f.name} must be finite, got {value!r}")
 
 
 class ChoiceConfig:

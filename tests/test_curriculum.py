@@ -461,6 +461,8 @@ def test_killed_run_resumes_to_the_uninterrupted_result(runs, tmp_path):
         (["--suite", SUITE, "--model.lr=fast"], "model.lr"),
         (["--suite", "BinPnP", "--model.type=pwm", "--model.max_tasks=3"], "max_tasks=4"),
         (["--suite", SUITE, "--seed=-1"], "seed must be in [0, 2**31), got -1"),
+        (["--suite", SUITE, "--model.train_ratio=inf"], "train_ratio must be finite, got inf"),
+        (["--suite", SUITE, "--method.type=ewc", "--method.lam=nan"], "lam must be finite"),
         (
             ["--suite", SUITE, "--method.type=packnet", "--method.keep_fraction=1.5"],
             "keep_fraction",

@@ -172,7 +172,7 @@ class MethodConfig(ChoiceConfig, draccus.ChoiceRegistry):
     """Capabilities the world model must declare (`WorldModel.capabilities`), e.g. 'experts'."""
 
     def __post_init__(self) -> None:
-        check_types(self)
+        check_types(self, finite=True)
 
     def check_curriculum(self, num_tasks: int) -> None:
         """ConfigError if the method cannot run a curriculum of `num_tasks` tasks."""

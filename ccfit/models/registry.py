@@ -64,7 +64,7 @@ class ModelConfig(ChoiceConfig, draccus.ChoiceRegistry):
     none, where the official one runs `seed_steps` updates at once when seeding ends."""
 
     def __post_init__(self) -> None:
-        check_types(self)
+        check_types(self, finite=True)
         name = type(self).__name__
         check(self.obs_mode in OBS_MODES, f"{name}.obs_mode must be one of {OBS_MODES}")
         for f in ("state_dim", "proprio_dim", "action_dim", "batch_size", "seq_len"):
