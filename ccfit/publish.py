@@ -29,8 +29,10 @@ from ccdata.errors import InputError
 from ccfit.analysis.learnability import finished_task_runs, write_learnability
 from ccfit.curriculum import METRICS_JSON
 from ccfit.report import group_metrics, group_runs, write_overview_of, write_report
+from ccfit.report_cost import run_cost
 from ccfit.report_runs import Run, find_runs, scratch_dir_of
 from ccfit.sweep.grid import SCRATCH, SCRATCH_DONE, SWEEP_JSON
+from ccfit.train.cost import COST
 
 RUN_FILES = ("config.json", "metrics.json", "metrics.jsonl", "cost.json", "routing.jsonl")
 """What a published run keeps (those of them it has): settings, metrics, records, cost."""
@@ -72,6 +74,9 @@ def publish(runs: Path, out: Path, root: Path | None = None) -> list[Path]:
     # Everything that can refuse is asked before the first file is written, so a refused
     # publish leaves `out` and the root's overview as they were.
     _check_sizes(copies)
+    for src, _ in copies:  # the report reads each run's cost (the rest `find_runs` has read)
+        if src.name == COST:
+            run_cost(src.parent)
     if root is not None:
         _check_overview(root, placed)
     written = []
@@ -94,7 +99,11 @@ def _rewrite_report(out: Path) -> list[Path]:
     earlier report (a figure of a group that no longer exists) outlives it."""
     fresh, report = out / f".{REPORT}.new", out / REPORT
     shutil.rmtree(fresh, ignore_errors=True)
-    written = write_report([out], fresh)
+    try:
+        written = write_report([out], fresh)
+    except BaseException:
+        shutil.rmtree(fresh, ignore_errors=True)
+        raise
     shutil.rmtree(report, ignore_errors=True)
     fresh.rename(report)
     return [report / p.relative_to(fresh) for p in written]

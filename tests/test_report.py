@@ -391,7 +391,8 @@ def test_publish_with_root_rewrites_the_overview_over_every_published_folder(tmp
 
 def test_a_refused_publish_writes_nothing(tmp_path, capsys, monkeypatch):
     """Every refusal comes before the first file is written: a seed the root already holds in
-    the same group (published from another folder), or a file over the size limit, leaves
+    the same group (published from another folder), a file over the size limit or a damaged
+    cost.json (named where it is, not in --out's copy), leaves
     --out unmade and the root as it was; the same folder published again where it was replaces
     its runs rather than counting them twice."""
     from ccfit import publish
@@ -412,8 +413,14 @@ def test_a_refused_publish_writes_nothing(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(publish, "MAX_FILE_BYTES", 100)
     assert main(argv("again", results / "small")) == 2
     assert "too large to publish" in capsys.readouterr().err
-    assert {p: p.read_bytes() for p in results.rglob("*") if p.is_file()} == before
     monkeypatch.undo()
+    cost = tmp_path / "again" / "ft-s0" / "cost.json"
+    cost.write_text('{"wall_s": 1')  # the report reads it: refused before any copy
+    alone = tmp_path / "alone"  # no root: nothing else refuses it
+    assert main(["publish", str(tmp_path / "again"), "--out", str(alone)]) == 2
+    assert f"ccfit: error: {cost}: missing or corrupt" in capsys.readouterr().err
+    assert {p: p.read_bytes() for p in results.rglob("*") if p.is_file()} == before
+    assert not alone.exists()
     assert main(argv("sweep", results / "ft")) == 0
 
 
