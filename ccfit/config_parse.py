@@ -133,6 +133,7 @@ def saved_config[C: BaseRunConfig](cls: type[C], run_dir: str | Path,
 def _saved_fields(cls: type, path: Path) -> dict:
     """A saved config.json as plain data, `cls`'s fields only: it also records what was derived
     (e.g. the resolved seed dataset), and a curriculum's config may seed a single-task run."""
+    check(not path.is_dir(), f"{path} is a folder: give its config.json")
     check(path.is_file(), f"config file not found: {path}")
     try:
         saved = json.loads(path.read_text())

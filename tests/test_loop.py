@@ -121,6 +121,14 @@ def test_load_task_run_reads_a_finished_run_back(tmp_path):
             read()
     with pytest.raises(ConfigError, match="config file not found"):
         parse_cli(TaskRunConfig, ["--config_path", str(tmp_path / "none.json")])
+    with pytest.raises(ConfigError, match="is a folder: give its config.json"):
+        parse_cli(TaskRunConfig, ["--config_path", str(out)])
+    # a whole record that is not JSON (a kill cuts only the last line, which is mended)
+    from ccfit.train.records import RunLogger
+
+    (out / "metrics.jsonl").write_text('{"global_step": 0}\n{"global_step": x}\n')
+    with pytest.raises(InputError, match="metrics.jsonl is corrupt .* delete its folder"):
+        RunLogger(out).read_evals()
 
 
 # With the evaluations in a worker, after `make test` (test_parallel covers that worker).

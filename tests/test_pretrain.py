@@ -441,3 +441,41 @@ def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeyp
                 "encoder": f"frozen:{path}",
             },
         )
+
+
+def test_a_damaged_encoder_file_is_one_value_error_naming_it(tmp_path):
+    """An encoder file with the right format tag but no settings or weights, settings that
+    are not JSON, or weights of another size than its settings say: one line naming the file
+    (before: a KeyError, an unnamed JSON error, torch's key list over several lines)."""
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    from ccfit.models.encoders import (
+        ENCODER_FORMAT,
+        build_encoder,
+        load_frozen_encoder,
+        save_encoder,
+    )
+    from ccfit.models.tdmpc2 import TDMPC2Config
+
+    cfg = TDMPC2Config.preset("smoke", obs_mode="pixels", image_size=SIZE)
+    good = tmp_path / "good.safetensors"
+    save_encoder(build_encoder(cfg), cfg, good)
+    with safe_open(str(good), framework="pt") as f:
+        state = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 - not a dict
+        spec = json.loads(f.metadata()["spec"])
+    wider = json.dumps({**spec, "latent_dim": spec["latent_dim"] * 2})
+    cases = {
+        "bare.pt": (lambda p: torch.save({"format": ENCODER_FORMAT}, p), "lacks its encoder"),
+        "spec.safetensors": (lambda p: save_file(
+            state, p, metadata={"format": ENCODER_FORMAT, "spec": "{nope"}),
+            "its settings are not JSON"),
+        "wider.safetensors": (lambda p: save_file(
+            state, p, metadata={"format": ENCODER_FORMAT, "spec": wider}),
+            "does not match its settings"),
+    }  # fmt: skip
+    for name, (write, needle) in cases.items():
+        write(tmp_path / name)
+        with pytest.raises(ValueError, match=needle) as err:
+            load_frozen_encoder(tmp_path / name)
+        assert str(tmp_path / name) in str(err.value) and "\n" not in str(err.value), name

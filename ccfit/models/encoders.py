@@ -279,7 +279,10 @@ def _read_checkpoint(path: Path) -> tuple[dict, dict]:
             raise ValueError(f"cannot read encoder checkpoint {path}: {err}") from err
         if not isinstance(ck, dict) or ck.get("format") != ENCODER_FORMAT:
             raise ValueError(f"{path} is not a {ENCODER_FORMAT} encoder checkpoint")
-        return dict(ck["spec"]), ck["state_dict"]
+        spec, state = ck.get("spec"), ck.get("state_dict")
+        if not isinstance(spec, dict) or not isinstance(state, dict):
+            raise ValueError(f"{path} lacks its encoder settings or weights (spec, state_dict)")
+        return dict(spec), state
     from safetensors import safe_open
 
     try:
@@ -290,7 +293,13 @@ def _read_checkpoint(path: Path) -> tuple[dict, dict]:
         raise ValueError(f"cannot read encoder checkpoint {path}: {err}") from err
     if header.get("format") != ENCODER_FORMAT or "spec" not in header:
         raise ValueError(f"{path} is not a {ENCODER_FORMAT} encoder checkpoint")
-    return json.loads(header["spec"]), state
+    try:
+        spec = json.loads(header["spec"])
+    except json.JSONDecodeError as err:
+        raise ValueError(f"encoder checkpoint {path}: its settings are not JSON ({err})") from None
+    if not isinstance(spec, dict):
+        raise ValueError(f"encoder checkpoint {path}: its settings are not a JSON object")
+    return spec, state
 
 
 def load_frozen_encoder(
@@ -312,6 +321,8 @@ def load_frozen_encoder(
     encoder = build_encoder(cfg)
     try:
         encoder.load_state_dict(state)
-    except RuntimeError as err:
-        raise ValueError(f"encoder checkpoint {path} does not match its settings: {err}") from err
+    except RuntimeError as err:  # torch lists the keys and shapes over several lines
+        detail = " ".join(str(err).split())
+        raise ValueError(f"encoder checkpoint {path} does not match its settings: {detail}"
+                         ) from err  # fmt: skip
     return FrozenEncoder(encoder, cfg).to(device), spec

@@ -8,6 +8,7 @@ import secrets
 from collections.abc import Sequence
 from pathlib import Path
 
+from ccdata.errors import InputError
 from ccfit.config import LogConfig
 from ccfit.io import atomic_write_text
 
@@ -123,7 +124,11 @@ class RunLogger:
     def read_evals(self) -> list[dict]:
         if not self.jsonl.exists():
             return []
-        return [json.loads(x) for x in self.jsonl.read_text().splitlines() if x.strip()]
+        try:
+            return [json.loads(x) for x in self.jsonl.read_text().splitlines() if x.strip()]
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:  # a cut last line is mended
+            raise InputError(f"{self.jsonl} is corrupt ({err}): the run cannot be read back; "
+                             f"delete its folder to start it over") from None  # fmt: skip
 
     def close(self) -> None:
         if self._tb is not None:
