@@ -74,17 +74,29 @@ def atomic_write_json(path: str | Path, obj: Any) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
 
-def read_run_json(path: Path, lines: bool = False, leave_out: str = "the report") -> Any:
-    """A run's JSON file (`lines`: one record per line); InputError when it is missing or
-    corrupt: a run directory damaged or copied in part is bad input, not a bug."""
+def read_run_json(path: Path, lines: bool = False, leave_out: str = "the report",
+                  records: bool = False) -> Any:  # fmt: skip
+    """A run's JSON file: an object, or a list of record objects (`lines`: one per line;
+    `records`: one JSON array, as a reference's done.json). InputError when it is missing or
+    corrupt, or of another shape: a run directory damaged or copied in part is bad input,
+    not a bug."""
     try:
         text = Path(path).read_text()
-        return [json.loads(x) for x in text.splitlines() if x.strip()] if lines else \
+        value = [json.loads(x) for x in text.splitlines() if x.strip()] if lines else \
             json.loads(text)  # fmt: skip
     except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        value, damage = None, str(err)
+    else:
+        if lines or records:
+            listed = isinstance(value, list) and all(isinstance(r, dict) for r in value)
+            damage = None if listed else "not a list of JSON objects"
+        else:
+            damage = None if isinstance(value, dict) else "not a JSON object"
+    if damage:
         raise InputError(
-            f"{path}: missing or corrupt ({err}); rerun the run or leave it out of {leave_out}"
-        ) from None
+            f"{path}: missing or corrupt ({damage}); rerun the run or leave it out of {leave_out}"
+        )
+    return value
 
 
 def out_dir(path: str | Path) -> Path:

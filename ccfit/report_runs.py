@@ -129,7 +129,7 @@ def find_runs(paths: list[Path]) -> list[Run]:
     for d in dict.fromkeys(dirs):
         metrics = read_run_json(d / METRICS_JSON)
         records = read_run_json(d / METRICS, lines=True)
-        scratch = read_run_json(scratch_dir_of(d, metrics) / REFERENCE_DONE)
+        scratch = read_run_json(scratch_dir_of(d, metrics) / REFERENCE_DONE, records=True)
         runs.append(Run(d, read_run_json(d / CONFIG), records, scratch, metrics))
         _check_records(runs[-1])
     return runs

@@ -184,17 +184,21 @@ def test_a_published_copy_reads_the_reference_beside_it(tmp_path):
 
 
 @pytest.mark.parametrize("damage", ["corrupt metrics.json", "missing metrics.jsonl",
-                                    "corrupt cost.json"])  # fmt: skip
+                                    "corrupt cost.json", "list metrics.json",
+                                    "list config.json", "number metrics.jsonl"])  # fmt: skip
 def test_a_damaged_run_directory_is_one_line_and_exit_2(damage, tmp_path, capsys):
     """A run copied in part or cut short is bad input: `ccfit report` names the file in one
     line (a corrupt metrics.json gave a JSONDecodeError traceback, a missing metrics.jsonl a
-    FileNotFoundError one)."""
+    FileNotFoundError one, valid JSON of another shape a TypeError or AttributeError)."""
     from ccfit.cli import main
 
     run = write_run(tmp_path / "runs", "s0", config(), 1.0)
     if damage.startswith("corrupt"):
         broken = run / damage.split()[1]
         broken.write_text('{"bwt": ')
+    elif damage.startswith(("list", "number")):
+        broken = run / damage.split()[1]
+        broken.write_text("[1]\n" if damage.startswith("list") else "1\n")
     else:
         broken = run / "metrics.jsonl"
         broken.unlink()
