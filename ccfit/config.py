@@ -30,6 +30,7 @@ from ccfit.config_base import (
     suite_tasks,
 )
 from ccfit.continual.base import MethodConfig, method_config_class
+from ccfit.io import out_dir
 from ccfit.models import DEFAULT_MODEL
 from ccfit.models.registry import ModelConfig, config_class, model_class
 from ccfit.obs import OBS_MODES
@@ -251,8 +252,8 @@ class BaseRunConfig:
                                       f"{', '.join(PRESETS)}")  # fmt: skip
         check(self.image_size >= 32, f"image_size must be >= 32, got {self.image_size}")
         check(0 <= self.seed < 2**31, f"seed must be in [0, 2**31), got {self.seed}")
-        check(self.out is None or not Path(self.out).exists() or Path(self.out).is_dir(),
-              f"--out {self.out} is a file, not a folder")  # fmt: skip
+        if self.out is not None:
+            out_dir(self.out)  # a file in its place is refused
         check(
             self.model.obs_mode == self.obs,
             f"model.obs_mode {self.model.obs_mode!r} != obs {self.obs!r}: set it with --obs",

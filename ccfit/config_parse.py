@@ -19,6 +19,7 @@ from typing import Any
 
 import draccus
 
+from ccdata.errors import InputError
 from ccfit.config import BaseRunConfig, TrainConfig
 from ccfit.config_base import DEFAULTS, PRESETS, ChoiceConfig, ConfigError, check
 from ccfit.continual.base import method_config_class
@@ -200,11 +201,12 @@ def _decode[C: BaseRunConfig](cls: type[C], data: dict) -> C:
 
 
 def _as_config_error(e: Exception) -> Exception:
-    """draccus wraps what __post_init__ raised: surface a ConfigError's own message; other
-    parsing problems (wrong type, unknown field) are bad input too; anything else is a bug."""
+    """draccus wraps what __post_init__ raised: surface a ConfigError's (any InputError's) own
+    message; other parsing problems (wrong type, unknown field) are bad input too; anything
+    else is a bug."""
     cause = e
     while cause is not None:
-        if isinstance(cause, ConfigError):
+        if isinstance(cause, InputError):
             return ConfigError(str(cause))
         cause = cause.__cause__
     root = e

@@ -75,17 +75,18 @@ def atomic_write_json(path: str | Path, obj: Any) -> None:
 
 
 def read_run_json(path: Path, lines: bool = False, leave_out: str = "the report",
-                  records: bool = False) -> Any:  # fmt: skip
+                  records: bool = False, remedy: str | None = None) -> Any:  # fmt: skip
     """A run's JSON file: an object, or a list of record objects (`lines`: one per line;
     `records`: one JSON array, as a reference's done.json). InputError when it is missing or
     corrupt, or of another shape: a run directory damaged or copied in part is bad input,
-    not a bug."""
+    not a bug. The message ends with `remedy`, by default to rerun the run or leave it out
+    of `leave_out`."""
     try:
         text = Path(path).read_text()
         value = [json.loads(x) for x in text.splitlines() if x.strip()] if lines else \
             json.loads(text)  # fmt: skip
     except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
-        value, damage = None, str(err)
+        damage = str(err)
     else:
         if lines or records:
             listed = isinstance(value, list) and all(isinstance(r, dict) for r in value)
@@ -93,9 +94,8 @@ def read_run_json(path: Path, lines: bool = False, leave_out: str = "the report"
         else:
             damage = None if isinstance(value, dict) else "not a JSON object"
     if damage:
-        raise InputError(
-            f"{path}: missing or corrupt ({damage}); rerun the run or leave it out of {leave_out}"
-        )
+        remedy = remedy or f"rerun the run or leave it out of {leave_out}"
+        raise InputError(f"{path}: missing or corrupt ({damage}); {remedy}")
     return value
 
 

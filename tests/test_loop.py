@@ -127,7 +127,7 @@ def test_load_task_run_reads_a_finished_run_back(tmp_path):
     from ccfit.train.records import RunLogger
 
     (out / "metrics.jsonl").write_text('{"global_step": 0}\n{"global_step": x}\n')
-    with pytest.raises(InputError, match="metrics.jsonl is corrupt .* delete its folder"):
+    with pytest.raises(InputError, match="metrics.jsonl: missing or corrupt .* delete its folder"):
         RunLogger(out).read_evals()
 
 

@@ -8,9 +8,8 @@ import secrets
 from collections.abc import Sequence
 from pathlib import Path
 
-from ccdata.errors import InputError
 from ccfit.config import LogConfig
-from ccfit.io import atomic_write_text
+from ccfit.io import atomic_write_text, read_run_json
 
 METRICS = "metrics.jsonl"
 TENSORBOARD = "tb"
@@ -124,11 +123,9 @@ class RunLogger:
     def read_evals(self) -> list[dict]:
         if not self.jsonl.exists():
             return []
-        try:
-            return [json.loads(x) for x in self.jsonl.read_text().splitlines() if x.strip()]
-        except (json.JSONDecodeError, UnicodeDecodeError) as err:  # a cut last line is mended
-            raise InputError(f"{self.jsonl} is corrupt ({err}): the run cannot be read back; "
-                             f"delete its folder to start it over") from None  # fmt: skip
+        # a cut last line (a kill) is mended before this; any other damage is refused
+        return read_run_json(self.jsonl, lines=True, remedy="the run cannot be read back; "
+                             "delete its folder to start it over")  # fmt: skip
 
     def close(self) -> None:
         if self._tb is not None:
