@@ -198,6 +198,10 @@ def test_config_validation_and_presets():
         TDMPC2Config(lr="fast")
     with pytest.raises(ConfigError, match="num_elites"):
         TDMPC2Config(num_elites=600)
+    with pytest.raises(ConfigError, match="discount_denom must be > 0"):
+        TDMPC2Config(discount_denom=0.0)
+    with pytest.raises(ConfigError, match="consistency_coef must be >= 0, got -1.0"):
+        TDMPC2Config(consistency_coef=-1.0)
     assert TDMPC2Config().discount == pytest.approx(0.98)
     assert TDMPC2Config().type == "tdmpc2"
     paper = TDMPC2Config.preset("paper", obs_mode="pixels")

@@ -204,8 +204,14 @@ class TDMPC2Config(ModelConfig):
             (self.num_elites <= self.num_samples, "num_elites must be <= num_samples"),
             (0.0 < self.min_std <= self.max_std, "need 0 < min_std <= max_std"),
             (self.temperature > 0, "temperature must be > 0"),
-            (self.demo_bc_coef >= 0, "demo_bc_coef must be >= 0"),
+            (self.discount_denom > 0, "discount_denom must be > 0"),
         ]  # fmt: skip
+        weights = (
+            "entropy_coef", "demo_bc_coef", "consistency_coef", "reward_coef", "value_coef",
+            "termination_coef",
+        )  # fmt: skip
+        for f in weights:
+            checks.append((getattr(self, f) >= 0, f"{f} must be >= 0, got {getattr(self, f)}"))
         for ok, msg in checks:
             check(ok, f"{name}: {msg}")
 
