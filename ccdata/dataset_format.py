@@ -44,6 +44,7 @@ __all__ = [  # the settings' constants are re-exported: older code imports them 
     "measure_dataset",
     "quiet_libraries",
     "read_ccdata_metadata",
+    "read_codebase_version",
     "write_json",
 ]
 
@@ -169,22 +170,37 @@ def read_ccdata_metadata(root: Path) -> dict:
     return meta
 
 
+def read_codebase_version(root: Path) -> str:
+    """The LeRobot format version that meta/info.json of the dataset at `root` states (ccdata
+    writes CODEBASE_VERSION); InputError naming the file if it is missing, corrupt or not a
+    LeRobot info.json."""
+    path = Path(root) / "meta" / "info.json"
+    try:
+        info = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path} is missing") from None
+    except (OSError, ValueError) as err:  # ValueError: not JSON, or not UTF-8
+        raise InputError(f"{path} is corrupt ({err})") from None
+    if not isinstance(info, dict) or "codebase_version" not in info:
+        raise InputError(f"{path} is not a LeRobot info.json (it has no codebase_version)")
+    return info["codebase_version"]
+
+
 def check_lerobot_info(root: Path) -> None:
     """A dataset already at `root` must have a readable LeRobot v3 meta/info.json: generation
     adds to it and trusts it, and a dataset whose info.json is damaged cannot be loaded
     (before this check such a dataset was reported complete)."""
-    path = Path(root) / "meta" / "info.json"
     try:
-        version = json.loads(path.read_text()).get("codebase_version")
-    except (OSError, json.JSONDecodeError, AttributeError) as err:
+        version = read_codebase_version(root)
+    except InputError as err:
         raise InputError(
-            f"{path} is missing or corrupt ({err}); `ccdata verify --root {root}` "
-            "lists what is damaged; remove the dataset to regenerate it"
+            f"{err}; `ccdata verify --root {root}` lists what is damaged; remove the dataset to "
+            "regenerate it"
         ) from None
     if version != CODEBASE_VERSION:
         raise InputError(
-            f"{path} says LeRobot codebase {version!r}, not {CODEBASE_VERSION!r}; "
-            "remove the dataset to regenerate it"
+            f"{Path(root) / 'meta' / 'info.json'} says LeRobot codebase {version!r}, not "
+            f"{CODEBASE_VERSION!r}; remove the dataset to regenerate it"
         )
 
 

@@ -17,12 +17,13 @@ the constants again before every operation (covers a process that imported it ea
 
 from __future__ import annotations
 
-import json
 import os
 import re
 from contextlib import contextmanager
 from pathlib import Path
 
+from ccdata.dataset_format import CODEBASE_VERSION, read_codebase_version
+from ccdata.errors import InputError
 from ccdata.repo_id import validate_repo_id
 
 os.environ["HF_HUB_DISABLE_XET"] = "1"
@@ -37,9 +38,6 @@ from huggingface_hub.errors import (  # noqa: E402
     RepositoryNotFoundError,
     RevisionNotFoundError,
 )
-
-CODEBASE_TAG = "v3.0"
-"""The tag LeRobot readers resolve (`LeRobotDataset` asks for its codebase version)."""
 
 DEFAULT_TIMEOUT = 30.0
 """Seconds to wait for the endpoint's first answer before calling it unreachable."""
@@ -140,15 +138,14 @@ def _http_message(err: HfHubHTTPError, endpoint: str, repo_id: str, token, actio
 
 
 def _check_local_dataset(root: Path) -> None:
-    info_path = root / "meta" / "info.json"
-    if not info_path.is_file():
-        raise HubError(f"no LeRobot dataset at {root}: {info_path} is missing")
     try:
-        version = json.loads(info_path.read_text())["codebase_version"]
-    except (ValueError, KeyError, TypeError) as exc:  # TypeError: JSON, not an object
-        raise HubError(f"{info_path} is not a LeRobot info.json ({exc!r})") from None
-    if version != CODEBASE_TAG:
-        raise HubError(f"{root} is a LeRobot {version} dataset; only {CODEBASE_TAG} can be pushed")
+        version = read_codebase_version(root)
+    except InputError as err:
+        raise HubError(f"no LeRobot dataset to push at {root}: {err}") from None
+    if version != CODEBASE_VERSION:
+        raise HubError(
+            f"{root} is a LeRobot {version} dataset; only {CODEBASE_VERSION} can be pushed"
+        )
 
 
 def _check_card(root: Path) -> None:
@@ -218,7 +215,7 @@ def push_dataset(
             repo_id=repo_id,
             repo_type="dataset",
             folder_path=root,
-            commit_message=f"Upload LeRobot {CODEBASE_TAG} dataset",
+            commit_message=f"Upload LeRobot {CODEBASE_VERSION} dataset",
             ignore_patterns=list(_IGNORE),
             delete_patterns="*",
         )
@@ -227,12 +224,13 @@ def push_dataset(
 
 
 def _tag_head(api: HfApi, repo_id: str, head: str) -> None:
+    # LeRobot's readers resolve the revision named by their codebase version.
     tags = {t.name: t.target_commit for t in api.list_repo_refs(repo_id, repo_type="dataset").tags}
-    if tags.get(CODEBASE_TAG) == head:
+    if tags.get(CODEBASE_VERSION) == head:
         return
-    if CODEBASE_TAG in tags:
-        api.delete_tag(repo_id, tag=CODEBASE_TAG, repo_type="dataset")
-    api.create_tag(repo_id, tag=CODEBASE_TAG, revision=head, repo_type="dataset")
+    if CODEBASE_VERSION in tags:
+        api.delete_tag(repo_id, tag=CODEBASE_VERSION, repo_type="dataset")
+    api.create_tag(repo_id, tag=CODEBASE_VERSION, revision=head, repo_type="dataset")
 
 
 def download_dataset(
@@ -267,7 +265,7 @@ def download_dataset(
         target = {"local_dir": root, "cache_dir": root / ".cache" / "huggingface" / "hub"}
 
     with _hub_errors(endpoint, repo_id, token, f"download {repo_id}"):
-        for revision in (CODEBASE_TAG, "main"):
+        for revision in (CODEBASE_VERSION, "main"):
             try:
                 path = snapshot_download(
                     repo_id,

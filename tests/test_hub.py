@@ -14,7 +14,8 @@ import pytest
 from huggingface_hub import constants
 from huggingface_hub.repocard import RepoCard
 
-from ccdata.hub import CODEBASE_TAG, HubError, download_dataset, push_dataset
+from ccdata.dataset_format import CODEBASE_VERSION
+from ccdata.hub import HubError, download_dataset, push_dataset
 from ccdata.repo_id import validate_repo_id
 
 REPO_ID = "ccbench-test/tiny"
@@ -165,12 +166,12 @@ def test_push_repush_then_lerobot_loads_from_empty_cache(
     try:
         url = push_dataset(local, REPO_ID, endpoint=hub_server.url)
         repo, head1, tree = _remote(hub_server)
-        assert repo.tags == {CODEBASE_TAG: head1}
+        assert repo.tags == {CODEBASE_VERSION: head1}
         n_commits = len(repo.commits)
         # Unchanged data: no new commit, the tag stays, nothing is deleted.
         n_requests = len(hub_server.requests)
         assert push_dataset(local, REPO_ID, endpoint=hub_server.url) == url
-        assert len(repo.commits) == n_commits and repo.tags == {CODEBASE_TAG: head1}
+        assert len(repo.commits) == n_commits and repo.tags == {CODEBASE_VERSION: head1}
         assert not [r for r in hub_server.requests[n_requests:] if r["method"] == "DELETE"]
         # Changed card, removed file: one new commit mirroring the folder, the tag follows it.
         (local / "README.md").write_text(CARD.replace("test dataset", "test dataset, v2"))
@@ -182,7 +183,7 @@ def test_push_repush_then_lerobot_loads_from_empty_cache(
         _CONNECTIONS = None
 
     assert url == f"{hub_server.url}/datasets/{REPO_ID}"
-    assert head3 != head1 and repo.tags == {CODEBASE_TAG: head3}
+    assert head3 != head1 and repo.tags == {CODEBASE_VERSION: head3}
     assert len(repo.commits) == n_commits + 1
     local_files = _local_files(local)
     assert set(tree) == set(local_files) | {".gitattributes"}
@@ -229,7 +230,7 @@ def test_push_repush_then_lerobot_loads_from_empty_cache(
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     report = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert report["episodes"] == 2 and report["revision"] == CODEBASE_TAG
+    assert report["episodes"] == 2 and report["revision"] == CODEBASE_VERSION
     assert report["root"].startswith(str(tmp_path / "lerobot-home" / "hub"))
     assert report["root"].endswith(head3)
     for event, target in report["seen"]:
@@ -260,7 +261,7 @@ def test_download_dataset_to_root_and_cache(
 
     monkeypatch.setattr(lr_constants, "HF_LEROBOT_HUB_CACHE", tmp_path / "cache")
     snap = download_dataset(REPO_ID, endpoint=hub_server.url)
-    _, head, _ = _remote(hub_server, CODEBASE_TAG)
+    _, head, _ = _remote(hub_server, CODEBASE_VERSION)
     cache_name = f"datasets--{REPO_ID.replace('/', '--')}"
     assert snap == tmp_path / "cache" / cache_name / "snapshots" / head
     assert _local_files(snap).items() >= _local_files(tiny_dataset).items()
