@@ -88,8 +88,8 @@ def sweep_lock(sweep: Sweep):
 
 
 def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel: int,
-                 threads: int | None = None, keep_stages: bool = False) -> dict:  # fmt: skip
-    """Run `work` here, at most `max_parallel` jobs at once; returns the report's status.
+                 threads: int | None = None, keep_stages: bool = False) -> None:  # fmt: skip
+    """Run `work` here, at most `max_parallel` jobs at once, then the sweep's report.
     keep_stages: the runs keep their state after each task (`RunJob`)."""
     entry = {"launcher": "local", "time": _now(), "code": sweep.code, "pid": os.getpid(),
              "jobs": {}}  # fmt: skip
@@ -183,10 +183,9 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
     pool.shutdown()
     jobs["report"] = {"state": "RUNNING", "start": _now()}
     write_record(sweep, submissions)
-    status = ReportJob()(str(sweep.root), plugins, code, errors)
+    ReportJob()(str(sweep.root), plugins, code, errors)
     jobs["report"].update(state="COMPLETED", end=_now())
     write_record(sweep, submissions)
-    return status
 
 
 # ================================================================================== SLURM
