@@ -208,6 +208,8 @@ class Curriculum:
         known = read_branch(self.out)
         if known is not None:
             resolved[BRANCH_RECORD] = known
+        if (self.out / CONFIG).exists():  # another run's state is refused, not restored
+            check_saved_config(self.out, resolved)
         model, method, stored, completed, pending, carried = restore(cfg, self.out, self.device)
         source = resolved["resolved_seed_dataset"]
         # What does not fit fails here, before anything runs.

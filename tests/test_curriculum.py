@@ -569,6 +569,27 @@ def test_a_foreign_or_old_run_state_is_one_line(runs, tmp_path, capsys, content)
     assert not marker.exists(), "the checkpoint's pickle ran code"
 
 
+def test_another_curriculum_in_a_finished_runs_folder_is_one_line(runs, tmp_path, capsys):
+    """`--out` holding another method's run is refused by its config before its state is read
+    (the method's state did not fit and ended in a traceback)."""
+    import shutil
+
+    from ccfit.cli import main
+
+    out = tmp_path / "run"
+    shutil.copytree(runs.runs["packnet"].dir, out)
+    saved = json.loads((out / CONFIG).read_text())
+    saved["out"] = str(out)
+    (out / CONFIG).write_text(json.dumps(saved))
+    state = (out / C.STATE).read_bytes()
+    with shorter_episodes(EPISODE_STEPS):
+        code = main(_cli_argv("ft", out, runs.scratch_root))
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert f"{out} holds a run with a different config (differs in method." in err
+    assert (out / C.STATE).read_bytes() == state
+
+
 class _Exploit:
     def __init__(self, path: str) -> None:
         self.path = path
