@@ -291,6 +291,8 @@ def _sort_stats(root: Path) -> None:
 def prepare(config: DatasetSettings) -> JournalPaths:
     """Check the target and the journal belong to these settings; repair leftovers."""
     paths = JournalPaths(config.dataset_root)
+    if paths.root.exists() and not paths.root.is_dir():
+        raise InputError(f"the dataset root {paths.root} is a file, not a folder")
     _recover(paths)
     if paths.root.exists():
         if not any(paths.root.iterdir()):

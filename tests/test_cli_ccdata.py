@@ -41,6 +41,7 @@ def test_list_prints_every_suite_with_its_matrix(capsys):
         # a path, not a Hub id: it would have written the dataset outside LeRobot's cache
         (["generate", "--suite", "Reach", "--repo-id", "../escape"], "repo id '../escape'"),
         (["generate", "--suite", "Reach", "--episodes", "abc"], "invalid int value: 'abc'"),
+        (["generate", "--suite", "Reach", "--root", __file__], f"root {__file__} is a file"),
         (
             ["render", "--task", "reach-xy", "--out", "x.png", "--image-size", "100000"],
             "image_size must be in [8, 16384], got 100000",
