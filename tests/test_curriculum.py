@@ -456,6 +456,8 @@ def test_killed_run_resumes_to_the_uninterrupted_result(runs, tmp_path):
         (["--suite", SUITE, "--encoder", "frozen:/missing", "--obs", "pixels"], "not found"),
         (["--suite", SUITE, "--encoder", "frozen:/missing"], "needs --obs pixels"),
         (["--suite", SUITE, "--method.type=ewc", "--method.lamda=1"], "lamda"),
+        (["--suite", SUITE, "--method", "packnet"], "chosen with --method.type=packnet"),
+        (["--suite", SUITE, "--model=pwm"], "chosen with --model.type=pwm"),
         (["--suite", SUITE, "--train.steps=150"], "multiple of eval_interval"),
         (["--suite", SUITE, "--train.steps=abc"], "train.steps"),
         (["--suite", SUITE, "--model.lr=fast"], "model.lr"),
