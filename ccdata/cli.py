@@ -23,7 +23,14 @@ import json
 import sys
 from pathlib import Path
 
-from ccdata.errors import EXIT_USAGE, InputError, OneLineParser, stdout_closed, stdout_reader_gone
+from ccdata.errors import (
+    EXIT_USAGE,
+    InputError,
+    OneLineParser,
+    add_command,
+    stdout_closed,
+    stdout_reader_gone,
+)
 from ccdata.slurm import OPTIONS as SLURM_OPTIONS
 from ccdata.slurm import add_options as add_slurm_options
 
@@ -82,7 +89,8 @@ def _cmd_render(args: argparse.Namespace) -> None:
 def _cmd_references(args: argparse.Namespace) -> None:
     from ccdata.references import write_references
 
-    path = write_references(tasks=args.task or None, episodes=args.episodes)
+    out = Path(args.out) if args.out else None
+    path = write_references(tasks=args.task or None, episodes=args.episodes, path=out)
     print(f"wrote {path}")
 
 
@@ -292,11 +300,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
 
-    p = sub.add_parser("list", help="suites, tasks and composition matrices")
+    p = add_command(
+        sub, "list", "suites, tasks and composition matrices", "ccdata list --suite Grasp"
+    )
     p.add_argument("--suite")
     p.set_defaults(func=_cmd_list)
 
-    p = sub.add_parser("render", help="render a task's three views (PNG) and an episode (MP4)")
+    p = add_command(
+        sub,
+        "render",
+        "render a task's three views (PNG) and an episode (MP4)",
+        "ccdata render --task stack-blocks --out views.png --video episode.mp4",
+    )
     p.add_argument("--task", required=True)
     p.add_argument("--out", required=True, help="PNG file for the first frame")
     p.add_argument("--video", help="also write an oracle episode as MP4")
@@ -304,12 +319,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--image-size", type=int, default=128)
     p.set_defaults(func=_cmd_render)
 
-    p = sub.add_parser("references", help="regenerate reference measurements (package data)")
+    p = add_command(
+        sub,
+        "references",
+        "regenerate the reference measurements (the package's "
+        "references.json, which normalised scores read, unless --out)",
+        "ccdata references --task reach-xy --episodes 5 --out refs.json",
+    )
     p.add_argument("--task", action="append", help="only these tasks (repeatable)")
     p.add_argument("--episodes", type=int, default=50)
+    p.add_argument("--out", help="write the references here (default: the package's own)")
     p.set_defaults(func=_cmd_references)
 
-    p = sub.add_parser("calibrate", help="find each task's noisy-oracle noise")
+    p = add_command(
+        sub,
+        "calibrate",
+        "find each task's noisy-oracle noise (prints it)",
+        "ccdata calibrate --task reach-xy --episodes 10 --iterations 2",
+    )
     p.add_argument("--task", action="append", help="only these tasks (repeatable)")
     p.add_argument("--episodes", type=int, default=40, help="episodes per evaluation")
     p.add_argument("--target", type=float, default=0.5, help="noisy-oracle success rate")
@@ -323,7 +350,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="also print the results as JSON")
     p.set_defaults(func=_cmd_calibrate)
 
-    p = sub.add_parser("generate", help="generate a suite's LeRobot dataset")
+    p = add_command(
+        sub, "generate", "generate a suite's LeRobot dataset", "ccdata generate --suite PnPBoxClose"
+    )
     p.add_argument("--suite", required=True)
     p.add_argument("--episodes", type=int, default=50, help="oracle episodes per task")
     p.add_argument(
@@ -373,18 +402,33 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=_cmd_generate)
 
-    p = sub.add_parser("card", help="render a suite's default card or a dataset's own card")
+    p = add_command(
+        sub,
+        "card",
+        "render a suite's default card or a dataset's own card",
+        "ccdata card --suite PnPBoxClose",
+    )
     p.add_argument("--suite", help="the suite's default card (cards/<Suite>.md)")
     p.add_argument("--root", help="the card of the dataset in this directory")
     p.add_argument("--out")
     p.set_defaults(func=_cmd_card)
 
-    p = sub.add_parser("verify", help="check a dataset end to end")
+    p = add_command(
+        sub,
+        "verify",
+        "check a dataset end to end (exit 1 with findings)",
+        "ccdata verify --suite PnPBoxClose",
+    )
     p.add_argument("--suite")
     p.add_argument("--root")
     p.set_defaults(func=_cmd_verify)
 
-    p = sub.add_parser("push", help="upload a dataset to a Hub-compatible endpoint")
+    p = add_command(
+        sub,
+        "push",
+        "upload a dataset to a Hub-compatible endpoint",
+        "ccdata push --suite PnPBoxClose --repo-id ORG/PnPBoxClose",
+    )
     p.add_argument("--suite", help="the suite's dataset in LeRobot's cache")
     p.add_argument("--repo-id", required=True)
     p.add_argument("--endpoint", help="default: HF_ENDPOINT or the public hub")

@@ -10,6 +10,7 @@ import argparse
 import os
 import select
 import sys
+import textwrap
 from collections.abc import Callable, Sequence
 
 EXIT_USAGE = 2
@@ -28,6 +29,14 @@ class OneLineParser(argparse.ArgumentParser):
     def error(self, message: str) -> None:
         print(f"{self.prog}: error: {message}", file=sys.stderr)
         sys.exit(EXIT_USAGE)
+
+
+def add_command(sub, name: str, summary: str, example: str) -> argparse.ArgumentParser:
+    """A subcommand of a console script whose --help opens with its summary and a runnable
+    example (`sub`: what `add_subparsers` returned)."""
+    description = f"{textwrap.fill(summary, 88)}\n\nExample:\n    {example}"
+    return sub.add_parser(name, help=summary, description=description,
+                          formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
 
 
 def run_script(main: Callable[[Sequence[str] | None], object], prog: str,

@@ -1,4 +1,4 @@
-"""ccfit: fit world models online on the benchmark's tasks.
+r"""ccfit: fit world models on the benchmark's tasks, online (model-based RL) or offline.
 
 Example:
     ccfit train --task reach-xy --preset smoke --out runs/smoke
@@ -40,30 +40,88 @@ from __future__ import annotations
 
 import argparse
 import sys
+import textwrap
+from dataclasses import dataclass
 from pathlib import Path
 
-from ccdata.errors import EXIT_USAGE, InputError, OneLineParser, stdout_closed, stdout_reader_gone
+from ccdata.errors import (
+    EXIT_USAGE,
+    InputError,
+    OneLineParser,
+    add_command,
+    stdout_closed,
+    stdout_reader_gone,
+)
 
 
 class CliError(Exception):
     """A problem with the user's input: one line on stderr, exit 2."""
 
 
-def _split_flags(argv: list[str], flags: dict[str, bool]) -> tuple[dict[str, str | bool], list]:
-    """Pull the non-config options `flags` (name -> takes a value) out of `argv`."""
+@dataclass(frozen=True)
+class Flag:
+    """An option of `train`, `run` or `fit` outside the config tree (parsed here, not by
+    draccus): where shared work goes, what is kept, where a branch starts."""
+
+    value: str | None
+    """What the option takes, as help shows it (`DIR`); None: it takes no value."""
+    help: str
+
+
+QUIET = {"quiet": Flag(None, "no progress bars")}
+SCRATCH_ROOT = {
+    "scratch_root": Flag("DIR", "where the from-scratch references (FWT's baselines) are kept "
+                         "and shared by runs of equal settings (default: scratch/ beside the "
+                         "run's folder)"),
+}  # fmt: skip
+BRANCHING = {
+    "keep_stages": Flag(None, "keep the state after each task too (stages/after-K.pt), for "
+                        "runs that branch off this one"),
+    "branch_from": Flag("RUN", "start as RUN up to task K (--branch-after K; RUN kept its "
+                        "stages) and go on from there with this command's options"),
+    "branch_after": Flag("K", "the tasks taken from --branch-from's run"),
+}  # fmt: skip
+
+
+def _split_flags(argv: list[str], flags: dict[str, Flag]) -> tuple[dict[str, str | bool], list]:
+    """Pull the options `flags` out of `argv` (`--scratch-root DIR`, `--scratch_root=DIR`)."""
     found: dict[str, str | bool] = {}
     rest, it = [], iter(argv)
     for a in it:
         name, sep, value = a.partition("=")
         key = name.lstrip("-").replace("-", "_")
-        if a.startswith("--") and key in flags:
-            if flags[key]:
-                found[key] = value if sep else next(it, "")
-            else:
-                found[key] = True
-        else:
+        if not a.startswith("--") or key not in flags:
             rest.append(a)
+        elif flags[key].value is None:
+            if sep:
+                raise CliError(f"{name} takes no value, got {a!r}")
+            found[key] = True
+        else:
+            if not sep:
+                value = next(it, "")
+            if not value or value.startswith("--"):
+                raise CliError(f"{name} takes a value: {name} {flags[key].value}")
+            found[key] = value
     return found, rest
+
+
+def _parse_config(cls, argv: list[str], prog: str, flags: dict[str, Flag]):
+    """The config of a config command and its other options; its --help lists both."""
+    from ccfit.config_parse import parse_cli
+
+    if "--help" not in argv and "-h" not in argv:
+        extra, argv = _split_flags(argv, flags)
+        return parse_cli(cls, argv, prog=prog), extra
+    try:
+        parse_cli(cls, argv, prog=prog)  # prints the config tree's help
+    except SystemExit:
+        print(f"\n{prog}'s options outside the config tree:")
+        for key, flag in flags.items():
+            spelt = "--" + key.replace("_", "-") + (f" {flag.value}" if flag.value else "")
+            print(textwrap.fill(flag.help, 80, initial_indent=f"  {spelt:22s}",
+                                subsequent_indent=" " * 24))  # fmt: skip
+        raise
+    raise AssertionError("--help did not exit")
 
 
 def _fmt(x) -> str:
@@ -73,11 +131,9 @@ def _fmt(x) -> str:
 def cmd_train(argv: list[str]) -> None:
     """ccfit train --task reach-xy --preset smoke --out runs/smoke  (see --help)"""
     from ccfit.config import TaskRunConfig
-    from ccfit.config_parse import parse_cli
     from ccfit.train.run import default_out, train_single
 
-    extra, argv = _split_flags(argv, {"quiet": False})
-    cfg = parse_cli(TaskRunConfig, argv, prog="ccfit train")
+    cfg, extra = _parse_config(TaskRunConfig, argv, "ccfit train", QUIET)
     record = train_single(cfg, progress=not extra.get("quiet"))
     norm = record["normalized_return"]
     print(
@@ -99,12 +155,11 @@ def cmd_run(argv: list[str]) -> None:
     """ccfit run --suite Reach --preset cpu --method.type=packnet  (see --help)"""
     from ccfit.analysis import stage_callbacks
     from ccfit.config import CurriculumConfig
-    from ccfit.config_parse import curriculum_notes, parse_cli
+    from ccfit.config_parse import curriculum_notes
     from ccfit.curriculum import Curriculum
 
-    extra, argv = _split_flags(argv, {"quiet": False, "scratch_root": True, "keep_stages": False,
-                                      "branch_from": True, "branch_after": True})  # fmt: skip
-    cfg = parse_cli(CurriculumConfig, argv, prog="ccfit run")
+    flags = QUIET | SCRATCH_ROOT | BRANCHING
+    cfg, extra = _parse_config(CurriculumConfig, argv, "ccfit run", flags)
     out = run_dir(cfg)
     for note in curriculum_notes(cfg.to_dict()):
         print(f"ccfit run: note: {note}", file=sys.stderr)
@@ -140,11 +195,10 @@ def _branch(extra: dict):
 
 def cmd_fit(argv: list[str]) -> None:
     """ccfit fit --suite Reach --preset cpu --method.type=ewc  (offline track; see --help)"""
-    from ccfit.config_parse import curriculum_notes, parse_cli
+    from ccfit.config_parse import curriculum_notes
     from ccfit.offline import OfflineConfig, OfflineCurriculum, default_out
 
-    extra, argv = _split_flags(argv, {"quiet": False, "scratch_root": True})
-    cfg = parse_cli(OfflineConfig, argv, prog="ccfit fit")
+    cfg, extra = _parse_config(OfflineConfig, argv, "ccfit fit", QUIET | SCRATCH_ROOT)
     out = Path(cfg.out) if cfg.out else default_out(cfg)
     for note in curriculum_notes(cfg.to_dict()):
         print(f"ccfit fit: note: {note}", file=sys.stderr)
@@ -227,7 +281,8 @@ def _cmd_ablate(args: argparse.Namespace) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = OneLineParser(prog="ccfit", description=__doc__.split("\n\n")[0])
+    parser = OneLineParser(prog="ccfit", description=__doc__,
+                          formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     for name, fn in CONFIG_COMMANDS.items():  # listed in --help; parsed by draccus in main()
         sub.add_parser(name, help=fn.__doc__.split("  (")[0], add_help=False)
@@ -235,14 +290,24 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_pretrain_parser(sub)
 
-    p = sub.add_parser("report", help="tables and plots over run directories")
+    p = add_command(
+        sub,
+        "report",
+        "tables and plots over run directories",
+        "ccfit report results/online/reach-tdmpc2 --out report/",
+    )
     p.add_argument("runs", nargs="+", help="run directories (or folders holding them)")
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=_cmd_report)
 
-    p = sub.add_parser("publish", help="copy finished runs' small files (config, metrics, "
-                       "cost) and write the report (curricula) or the learnability tables "
-                       "(single-task runs) over them, for a results folder")  # fmt: skip
+    p = add_command(
+        sub,
+        "publish",
+        "copy finished runs' small files (config, metrics, cost) and "
+        "write the report (curricula) or the learnability tables (single-task runs) "
+        "over them, for a results folder",
+        "ccfit publish runs/sweep1 --out results/online/my-sweep --root results",
+    )
     p.add_argument("runs", help="folder holding finished runs (a sweep's, or `ccfit train` runs)")
     p.add_argument(
         "--out", required=True, help="results folder (its report/ and learnability/ are rewritten)"
@@ -251,22 +316,37 @@ def build_parser() -> argparse.ArgumentParser:
                    "orderings.md, axes.md and cost.md are rewritten over all of them")  # fmt: skip
     p.set_defaults(func=_cmd_publish)
 
-    p = sub.add_parser("learnability", help="steps each task needs to reach 50 and 80, and the "
-                       "per-suite budgets, from single-task `ccfit train` runs")  # fmt: skip
+    p = add_command(
+        sub,
+        "learnability",
+        "steps each task needs to reach 50 and 80, and the "
+        "per-suite budgets, from single-task `ccfit train` runs",
+        "ccfit learnability results/single-task --out learn/",
+    )
     p.add_argument("runs", nargs="+", help="run directories (or folders holding them)")
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=_cmd_learnability)
 
-    p = sub.add_parser("compare", help="whether run B reproduces run A's records, the first "
-                       "that differs, and what differs between the runs (settings, code, "
-                       "machines, datasets); exit 1 when a record differs")  # fmt: skip
+    p = add_command(
+        sub,
+        "compare",
+        "whether run B reproduces run A's records, the first that "
+        "differs, and what differs between the runs (settings, code, machines, "
+        "datasets); exit 1 when a record differs",
+        "ccfit compare results/online/reach-tdmpc2/Reach-tdmpc2-ft-state-cpu-s0 runs/my-ft-s0",
+    )
     p.add_argument("a", help="run directory (a curriculum, a single-task or an offline run)")
     p.add_argument("b", help="run directory to compare with it")
     p.set_defaults(func=_cmd_compare)
 
-    p = sub.add_parser("probe-encoder", help="how well a frozen encoder's latent gives each "
-                       "task's hand, object and goal positions (held-out R^2 of linear probes, "
-                       "beside the same from the pixels)")  # fmt: skip
+    p = add_command(
+        sub,
+        "probe-encoder",
+        "how well a frozen encoder's latent gives each task's "
+        "hand, object and goal positions (held-out R^2 of linear probes, beside the "
+        "same from the pixels)",
+        "ccfit probe-encoder enc.safetensors --tasks reach-xy,pick-cube --out probe/",
+    )
     p.add_argument("encoder", help="weights file written by `ccfit pretrain-encoder`")
     p.add_argument("--tasks", required=True, help="comma list of task ids, e.g. reach-xy,pick-cube")
     p.add_argument("--frames", type=int, default=1000, help="frames per task (fresh layouts)")
@@ -274,9 +354,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output directory (probe.json, probe.md)")
     p.set_defaults(func=_cmd_probe_encoder)
 
-    p = sub.add_parser("ablate", help="expert ablation of a finished run of a model offering "
-                       "'routing' (prior / new / "
-                       "uniform routing on the composition task)")  # fmt: skip
+    p = add_command(
+        sub,
+        "ablate",
+        "expert ablation of a finished run of a model offering "
+        "'routing' (prior / new / uniform routing on the composition task)",
+        "ccfit ablate runs/Reach-pwm-experts-pixels-cpu-s0",
+    )
     p.add_argument("run", help="run directory of a finished curriculum of a routed model")
     p.add_argument("--episodes", type=int, default=None,
                    help="evaluation layouts (default: the run's eval_episodes)")  # fmt: skip

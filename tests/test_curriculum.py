@@ -611,6 +611,38 @@ def test_help_is_printed_whatever_values_the_other_options_have(flag, capsys):
     assert "--out" in out and "--model.experts_per_task" in out
 
 
+@pytest.mark.parametrize(
+    "command, flags",
+    [("train", ["--quiet"]), ("fit", ["--quiet", "--scratch-root DIR"]),
+     ("run", ["--quiet", "--scratch-root DIR", "--keep-stages", "--branch-from RUN",
+              "--branch-after K"])],
+)  # fmt: skip
+def test_help_lists_the_options_outside_the_config_tree(command, flags, capsys):
+    from ccfit.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main([command, "--keep-stages", "--help"])
+    assert stop.value.code == 0
+    out = capsys.readouterr().out
+    assert "--model.type" in out
+    listed = out.split("options outside the config tree:\n")[1]
+    assert [line.split("  ")[1].strip() for line in listed.splitlines() if line[2] == "-"] == flags
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [(["--keep-stages=false"], "--keep-stages takes no value, got '--keep-stages=false'"),
+     (["--branch-from", "--branch-after", "2"], "--branch-from takes a value: --branch-from RUN"),
+     (["--scratch-root"], "--scratch-root takes a value: --scratch-root DIR")],
+)  # fmt: skip
+def test_a_misspelt_option_outside_the_config_tree_is_one_line(argv, message, capsys, tmp_path):
+    from ccfit.cli import main
+
+    assert main(["run", "--suite", SUITE, "--out", str(tmp_path / "x"), *argv]) == 2
+    assert capsys.readouterr().err == f"ccfit: error: {message}\n"
+    assert not (tmp_path / "x").exists()
+
+
 def test_cli_run_model_and_method_options_reach_the_config():
     def config(*extra):
         return parse_cli(CurriculumConfig, ["--suite", SUITE, "--model.type=pwm",

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from ccdata.errors import add_command
 from ccfit.models import DEFAULT_MODEL
 from ccfit.pretrain.config import PretrainConfig
 from ccfit.pretrain.train import pretrain_encoder
@@ -20,9 +21,11 @@ _TRAINING_OVERRIDES = {"steps": int, "batch_size": int, "lr": float, "decoder_ch
 def add_pretrain_parser(subparsers) -> argparse.ArgumentParser:
     """Register `pretrain-encoder` on an argparse subparsers object; its handler is
     `args.func(args)` and raises InputError (one clear message) on bad input."""
-    p = subparsers.add_parser(
+    p = add_command(
+        subparsers,
         "pretrain-encoder",
-        help="pretrain the frozen encoder (autoencoder on every task's oracle episodes)",
+        "pretrain the frozen encoder (autoencoder on every task's oracle episodes)",
+        "ccfit pretrain-encoder --suites all --out enc.safetensors",
     )
     p.add_argument("--suites", default="all", help="'all' or a comma list, e.g. Reach,Grasp")
     p.add_argument("--preset", default="cpu", help="smoke | cpu | paper (default cpu); the "

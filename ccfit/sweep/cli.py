@@ -1,4 +1,4 @@
-"""`ccfit sweep`: a grid of continual runs, here or on SLURM, and the report over them.
+r"""`ccfit sweep`: a grid of continual runs, here or on SLURM, and the report over them.
 
     ccfit sweep --suites Reach,Grasp --methods ft,er,ewc,packnet --seeds 0,1,2 --preset cpu \
         --out runs/sweep1 [--models M1,M2] [--launcher slurm] [--max-parallel 4] \
@@ -68,7 +68,8 @@ def _seeds(text: str) -> tuple[int, ...]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="ccfit sweep", description=__doc__.split("\n\n")[0], allow_abbrev=False,
+    p = _Parser(prog="ccfit sweep", description=__doc__, allow_abbrev=False,
+                formatter_class=argparse.RawDescriptionHelpFormatter,
                 epilog="Any other option is a run option (`ccfit run --help`), set for every "
                        "run.")  # fmt: skip
     p.add_argument("--suites", type=_csv, help="suites, comma-separated (Reach,Grasp)")
