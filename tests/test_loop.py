@@ -515,6 +515,24 @@ def test_wandb_offline_logs_the_evaluations_and_resumes_the_same_run(tmp_path):
     assert subprocess.run(ccfit_command(plain), capture_output=True, timeout=300).returncode == 0
 
 
+def test_wandb_without_credentials_stops_the_run_before_it_trains(tmp_path):
+    """`--log.wandb=true` online with no W&B API key: one line naming the way out, exit 2,
+    before the first update (it ended in a traceback at the first evaluation)."""
+    pytest.importorskip("wandb")
+    out = tmp_path / "run"
+    argv = smoke_train_argv(out, "--train.steps=100", "--train.seed_steps=50",
+                            "--train.eval_interval=50", "--log.wandb=true")  # fmt: skip
+    env = {k: v for k, v in __import__("os").environ.items() if not k.startswith("WANDB_")}
+    env["HOME"] = str(tmp_path)  # no ~/.netrc
+    proc = subprocess.run(ccfit_command(argv), capture_output=True, text=True, timeout=300,
+                          env=env)  # fmt: skip
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+    assert "log.wandb: W&B could not start a run: UsageError: No API key" in proc.stderr
+    assert "--log.wandb_mode=offline" in proc.stderr
+    assert not (out / "metrics.jsonl").exists() and not (out / "checkpoint.pt").exists()
+
+
 def test_the_memory_check_counts_the_kept_demonstrations():
     """Demonstrations kept beside the ring (`--train.demo_fraction`) count in the memory
     check; the message names what to lower, the demonstrations themselves when they alone

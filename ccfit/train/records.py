@@ -8,6 +8,8 @@ import secrets
 from collections.abc import Sequence
 from pathlib import Path
 
+from ccdata.errors import InputError
+from ccdata.processes import one_line
 from ccfit.config import LogConfig
 from ccfit.io import atomic_write_text, read_run_json
 
@@ -41,6 +43,8 @@ class RunLogger:
             # An append cut short (the machine went down mid-write): drop the partial record,
             # which its resumed run logs again, before anything is appended after it.
             atomic_write_text(self.jsonl, "".join(x + "\n" for x in text.splitlines()[:-1]))
+        if self.log.wandb:  # now, so that missing credentials stop the run before it trains
+            self._start_wandb()
 
     def _writer(self, purge_step: int | None = None):
         if self._tb is None and self.log.tensorboard:
@@ -48,6 +52,17 @@ class RunLogger:
 
             self._tb = SummaryWriter(str(self.run_dir / TENSORBOARD), purge_step=purge_step)
         return self._tb
+
+    def _start_wandb(self) -> None:
+        import wandb
+
+        try:
+            self._wandb_run()
+        except wandb.errors.Error as err:  # no API key, an unreachable or refusing server
+            raise InputError(
+                f"log.wandb: W&B could not start a run: {one_line(err)} (--log.wandb_mode="
+                "offline writes it under the run's folder for `wandb sync` later)"
+            ) from None
 
     def _wandb_run(self):
         if self._wandb is None and self.log.wandb:
