@@ -24,7 +24,7 @@ from ccfit.config import BaseRunConfig, TrainConfig
 from ccfit.config_base import DEFAULTS, PRESETS, ChoiceConfig, ConfigError, check
 from ccfit.continual.base import method_config_class
 from ccfit.models import DEFAULT_MODEL
-from ccfit.models.registry import config_class
+from ccfit.models.registry import config_class, model_names
 
 
 def preset_defaults(cls: type[BaseRunConfig], choices: dict[str, Any]) -> dict:
@@ -55,23 +55,27 @@ def preset_defaults(cls: type[BaseRunConfig], choices: dict[str, Any]) -> dict:
 
 def budget_note(config: dict) -> str | None:
     """One line for a curriculum (`config`: its plain data, as config.json holds it) that trains
-    a suite its model has no measured budget for at a preset where it has measured others
+    a suite its model has no measured budget for at a preset where models measured budgets
     (`ModelConfig.SUITE_TRAIN`), with the preset's steps per task: those steps were never shown
-    to suffice. None where the budget is measured, the steps were given, or the model measured
-    none at this preset."""
+    to suffice. None where the budget is measured, the steps were given, or no model measured
+    any at this preset."""
     train, suite, preset = config.get("train"), config.get("suite"), config["preset"]
     model = config["model"]["type"]
-    budgets = vars(config_class(model)).get("SUITE_TRAIN", {}).get(preset)
-    if train is None or suite is None or not budgets:
+
+    def budgets(name: str) -> dict:
+        return vars(config_class(name)).get("SUITE_TRAIN", {}).get(preset) or {}
+
+    if train is None or suite is None or not any(budgets(m) for m in model_names()):
         return None
-    if config["obs"] == "state" and suite in budgets:
+    if config["obs"] == "state" and suite in budgets(model):
         return None
     steps = TrainConfig.PRESETS[preset]["steps"]
     if train["steps"] != steps:  # given: the user chose them
         return None
+    measured = ", ".join(budgets(model)) or "none"
     return (
         f"{model} has no measured {preset!r} budget for {suite} from {config['obs']} "
-        f"(measured from state: {', '.join(budgets)}); each task trains the preset's "
+        f"(measured from state: {measured}); each task trains the preset's "
         f"{steps} steps, which may not learn it (docs/learnability.md; "
         "--train.steps sets them)"
     )

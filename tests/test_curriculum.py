@@ -736,6 +736,10 @@ def test_a_suite_without_a_measured_budget_says_so_once_per_sweep_and_run(
     reach = note("--suite", "Reach")
     assert "no measured 'cpu' budget for Reach from state" in reach and "6000 steps" in reach
     assert "Grasp from pixels" in note("--suite", "Grasp", "--obs", "pixels")
+    pwm = note("--suite", "Grasp", "--model.type=pwm")  # PWM measured none
+    assert "pwm has no measured 'cpu' budget for Grasp from state (measured from state: none)" in (
+        pwm
+    )
 
     out = tmp_path / "sweep"
     code = main(["sweep", "--suites", "Reach,Grasp", "--methods", "ft,ewc", "--seeds", "0,1",
