@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -103,3 +104,59 @@ def test_sweep_status_reads_every_published_run_and_report_as_done(root):
     published = {f"run:{p.parent.name}" for p in root.glob("*/metrics.json")}
     assert published and published <= set(runs)
     assert {name for name, state in runs.items() if state == "done"} == published
+
+
+def _readme_sweeps() -> list[tuple[dict, list[tuple[str, str]]]]:
+    """The `ccfit sweep` commands of results/README.md's command block: (grid, run options)."""
+    import shlex
+
+    from ccfit.sweep.cli import build_parser
+
+    text = (RESULTS / "README.md").read_text()
+    block = text.split("```bash\n", 1)[1].split("```", 1)[0].replace("\\\n", " ")
+    names, found = {}, []
+    for line in block.splitlines():
+        line = line.split("#", 1)[0].strip()
+        if "=" in line.split(" ")[0] and not line.startswith("--"):  # ENC=...
+            key, value = line.split("=", 1)
+            names[key] = value.strip()
+            continue
+        line = re.sub(r"\$(\w+)", lambda m: names.get(m[1], m[0]), line)
+        if line.startswith("ccfit sweep "):
+            args, run_args = build_parser().parse_known_args(shlex.split(line)[2:])
+            grid = {k: list(getattr(args, k) or []) for k in ("suites", "models", "methods")}
+            grid.update(seeds=list(args.seeds), preset=args.preset, track=args.track)
+            found.append((grid, _options(run_args)))
+    return found
+
+
+def _options(args: list[str]) -> list[tuple[str, str]]:
+    """Run options as (name, value), `--a=b` and `--a b` alike; an encoder file by its name
+    (the README gives it relative to the checkout, the record absolute)."""
+    out, i = [], 0
+    while i < len(args):
+        name, sep, value = args[i].partition("=")
+        if not sep:
+            i += 1
+            value = args[i]
+        if value.startswith("frozen:"):
+            value = f"frozen:{Path(value.removeprefix('frozen:')).name}"
+        out.append((name, value))
+        i += 1
+    return sorted(out)
+
+
+@pytest.mark.parametrize("sweep", SWEEPS, ids=lambda p: str(p.relative_to(RESULTS)))
+def test_the_readme_gives_the_command_each_published_sweep_recorded(sweep):
+    """results/README.md's command block holds the `ccfit sweep` command that made each
+    published sweep: its grid and every run option its sweep.json records."""
+    grid = json.loads((sweep / SWEEP_JSON).read_text())["grid"]
+    recorded = {k: grid[k] for k in ("suites", "methods", "seeds", "preset", "track")}
+    commands = [(g, opts) for g, opts in _readme_sweeps()
+                if {k: g[k] for k in recorded} == recorded
+                and g["models"] in ([], grid["models"])]  # fmt: skip
+    assert commands, f"no command in results/README.md makes {sweep.name}'s grid {recorded}"
+    assert _options(grid["args"]) in [opts for _, opts in commands], (
+        f"{sweep.name} recorded {grid['args']}; the README's commands for its grid give "
+        f"{[opts for _, opts in commands]}"
+    )
