@@ -25,6 +25,7 @@ from ccfit.config_base import DEFAULTS, PRESETS, ChoiceConfig, ConfigError, chec
 from ccfit.continual.base import method_config_class
 from ccfit.models import DEFAULT_MODEL
 from ccfit.models.registry import config_class, model_names
+from ccfit.obs import OBS_MODES
 
 
 def preset_defaults(cls: type[BaseRunConfig], choices: dict[str, Any]) -> dict:
@@ -227,6 +228,9 @@ def parse_cli[C: BaseRunConfig](cls: type[C], argv: Sequence[str], prog: str | N
     `--preset` (or from `--config_path FILE`, a saved config.json), flags override them."""
     args = [_underscored(a) for a in argv]
     pre = _preparse(args)
+    # the preset's model is built for it before the run's own checks
+    check(pre.get("obs") in (None, *OBS_MODES), f"--obs must be one of {OBS_MODES}, got "
+                                                f"{pre.get('obs')!r}")  # fmt: skip
     if pre.get("config_path"):
         # what the file leaves out comes from the preset it names, as on the command line
         defaults = _under_preset_defaults(cls, _saved_fields(cls, Path(pre["config_path"])))

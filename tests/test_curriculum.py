@@ -458,6 +458,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(runs, tmp_path):
         (["--suite", SUITE, "--method.type=ewc", "--method.lamda=1"], "lamda"),
         (["--suite", SUITE, "--method", "packnet"], "chosen with --method.type=packnet"),
         (["--suite", SUITE, "--model=pwm"], "chosen with --model.type=pwm"),
+        (["--suite", SUITE, "--obs", "rgb"], "--obs must be one of ('state', 'pixels'), got 'rgb'"),
         (["--suite", SUITE, "--train.steps=150"], "multiple of eval_interval"),
         (["--suite", SUITE, "--train.steps=abc"], "train.steps"),
         (["--suite", SUITE, "--model.lr=fast"], "model.lr"),
