@@ -67,6 +67,7 @@ print(f(x).sum().item())
 """
 
 
+@pytest.mark.integration  # three compiles from scratch: ~150 s of a core
 def test_shared_objects_cut_short_by_a_killed_compile_are_built_again(tmp_path):
     """What torch 2.11 does with them, each compile a process of its own as runs are (a
     process that loaded a library gets it again whatever its file now holds): the libraries

@@ -341,8 +341,9 @@ class DreamerV3(WorldModel, Prediction):
         *,
         eval_mode: bool,
     ) -> tuple[np.ndarray, ActingState]:
-        """Posterior update with o_t and the previous actions, then the actor's mode (eval) or
-        a sample clipped to [-1, 1] (what the dynamics would see in imagination); n at once."""
+        """Posterior update with o_t and the previous actions, then the actor's mode (eval, as
+        the PyTorch port dreamerv3-torch does; the JAX release samples there too) or a sample
+        clipped to [-1, 1] (what the dynamics would see in imagination); n at once."""
         state = self._posterior(obs, state)
         mean, std = heads.actor(self.rssm.feat(state.deter, state.stoch))
         action = mean if eval_mode else (mean + std * torch.randn_like(std)).clamp(-1.0, 1.0)

@@ -231,7 +231,10 @@ class TDMPC2(WorldModel, Prediction):
             "mean": mean,
             "log_std": log_std,
             "entropy": entropy,
-            # As TD-MPC2: the entropy bonus scales with the action dimension.
+            # The bonus scales with the action dimension, as TD-MPC2's does. Unlike either of
+            # its releases, the tanh correction is scaled with it (the first added it unscaled,
+            # the current one leaves it out); at entropy_coef 1e-4 the difference is small, and
+            # the published runs were made with this form.
             "scaled_entropy": entropy * eps.shape[-1],
         }
         return action, info
