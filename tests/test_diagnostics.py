@@ -258,9 +258,31 @@ def test_er_branch(made, tmp_path, capsys):
     assert set(lines[0]["earlier_while_it_trains"]) == {"pick-cube", "place-cube"}
 
 
+def test_end_score_reads_each_published_curriculum_both_ways(capsys):
+    """As published (its metrics.json's BWT) and with C_i from the evaluation before b_i; the
+    committed output is what it gives over today's results (runs published since add lines)."""
+    results = DIAGNOSTICS.parent
+    out = _run(_script("end_score"), [str(results / "online")], capsys)
+    lines = [json.loads(x) for x in out.splitlines()]
+    runs, groups = lines[:-1], lines[-1]["groups"]
+    assert len(runs) >= 50 and sum(g["runs"] for g in groups) == len(runs)
+    for line in runs:
+        (path,) = results.glob(f"online/*/{line['run']}")
+        metrics = json.loads((path / "metrics.json").read_text())
+        assert line["bwt"] == pytest.approx(metrics["bwt"])
+        assert line["end_scores"] == pytest.approx(metrics["end_of_task"][:-1])
+        records = [json.loads(x) for x in (path / "metrics.jsonl").read_text().splitlines()]
+        shifted = line["end_scores_before_close"]
+        for i, (end, score) in enumerate(zip(metrics["task_ends"][:-1], shifted, strict=True)):
+            before = [r for r in records if r["task_index"] == i and r["global_step"] < end]
+            assert score == max(before, key=lambda r: r["global_step"])["normalized_return"]
+    published = (DIAGNOSTICS / "end_score.jsonl").read_text().splitlines()
+    assert set(published[:-1]) <= set(out.splitlines()[:-1])
+
+
 @pytest.mark.parametrize("name", ["grasp_er_pick", "packnet_prune", "dreamerv3_pick",
                                   "stage_reached", "er_branch", "task_reading",
-                                  "handover"])  # fmt: skip
+                                  "handover", "end_score"])  # fmt: skip
 def test_a_diagnostic_refuses_a_missing_run_in_one_line(name, tmp_path, capsys):
     script = _script(name)
     capsys.readouterr()
