@@ -114,7 +114,7 @@ class ContinualMethod:
 
     # ---- the five hooks
     def before_task(self, task_index: int, backbone: nn.Module) -> None:
-        """Task `task_index` starts (fresh heads already made)."""
+        """Task `task_index` starts (before its fresh heads are made)."""
 
     def penalty(self, backbone: nn.Module, backbone_loss: ReplayLosses) -> torch.Tensor:
         """Extra differentiable loss added to the update's total loss; zero by default."""

@@ -8,8 +8,12 @@ r = `replay_ratio`.
 Why that weight: mixing replay into a batch in proportion r gives the backbone loss
 (1 - r) * L_current + r * L_replay (each term a batch mean). The trainer already adds
 L_current with weight 1, so adding r / (1 - r) * L_replay gives the same mixture times
-1 / (1 - r): the same direction, the replay share exactly r. Only backbone terms are mixed:
-replayed transitions carry another task's rewards, so they never reach the current heads.
+1 / (1 - r): the same direction, the replay share of the backbone loss exactly r. Only backbone
+terms are mixed: replayed transitions carry another task's rewards, so they never reach the
+current heads. Online, the current task's head losses (reward, value, termination) also reach
+the backbone and are not scaled by 1 / (1 - r): beside them the backbone terms, replay included,
+weigh 1 / (1 - r) times what a batch mixed in proportion r would give them. Offline the
+backbone loss is all there is.
 The replay batch has its own size (`batch_size`); its gradient is unbiased for L_replay.
 
 What is kept are whole training windows, not single transitions: a sequence model (a recurrent

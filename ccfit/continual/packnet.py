@@ -18,9 +18,10 @@ explicit state machine:
 - Biases, norm parameters and any other non-prunable parameter train during task 0 and are
   frozen with task 0's weights (shared by all tasks, as in PackNet).
 
-Fixed entries do not move under Adam: a gradient hook zeroes their gradient (so clipping and
-Adam's moments ignore them), and since Adam's momentum would still move them, `after_step`
-writes them back from the stored copy exactly (free entries back to 0 while retraining).
+Fixed entries do not move under Adam: a gradient hook zeroes their gradient (so clipping
+ignores them and no new gradient enters Adam's moments for them), and since the moments they
+already hold would still move them, `after_step` writes them back from the stored copy exactly
+(free entries back to 0 while retraining).
 
 `evaluating(i)` sets the entries task i did not use (owned by later tasks, or free while a
 later task is training) to 0 and restores them exactly afterwards.

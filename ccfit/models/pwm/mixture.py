@@ -123,9 +123,8 @@ class MixtureDynamics(nn.Module, ExpertGroups):
         self.apply_trainability()
 
     def optimizer_parameters(self) -> list[nn.Parameter]:
-        """Router, head and every expert not frozen (inactive ones included, so experts
-        activated after the optimiser was built are in it; Adam skips them until they get
-        gradients)."""
+        """Router, head and every expert not frozen that trains now: inactive experts do not
+        (`requires_grad` off), so the optimiser is built again once a task's group is added."""
         unfrozen = self.named_expert_parameters(range(self._frozen, self.max_tasks))
         return [*self.router.parameters(), *self.head.parameters(), *(p for _, p in unfrozen)]
 
