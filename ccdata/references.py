@@ -60,6 +60,25 @@ def _versions() -> dict:
     return out
 
 
+def _existing(path: Path) -> dict:
+    """The references already at `path`, which the new ones are added to (checked before any
+    rollout: a path that cannot take them fails at once)."""
+    if path.is_dir() or not path.parent.is_dir():
+        raise InputError(
+            f"cannot write references to {path}: "
+            f"{'a folder' if path.is_dir() else 'no folder ' + str(path.parent)}"
+        )
+    if not path.exists():
+        return {"tasks": {}}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise InputError(f"{path} holds no references to add to ({err})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("tasks"), dict):
+        raise InputError(f"{path} holds no references to add to (no 'tasks' object)")
+    return data
+
+
 def write_references(tasks=None, episodes: int = 50, path: Path | None = None) -> Path:
     """Roll out the oracle on `episodes` fixed seeds per task and store the mean returns."""
     task_ids = list(tasks) if tasks else list(TASKS)
@@ -68,7 +87,7 @@ def write_references(tasks=None, episodes: int = 50, path: Path | None = None) -
     if episodes < 1:
         raise InputError("episodes must be >= 1")
     path = path or Path(__file__).with_name(REFERENCE_FILE)
-    data = json.loads(path.read_text()) if path.is_file() else {"tasks": {}}
+    data = _existing(path)
     seeds = [REFERENCE_SEED_BASE + i for i in range(episodes)]
     for task_id in task_ids:
         r = oracle_rollouts(task_id, seeds)

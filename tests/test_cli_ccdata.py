@@ -174,6 +174,23 @@ def test_references_are_reproducible(tmp_path):
     assert -5.0 < ref["mean_discounted_return"] < 0.0
 
 
+def test_references_out_that_cannot_take_them_is_one_line_before_any_rollout(tmp_path, capsys):
+    (tmp_path / "not-json.json").write_text("[1, 2")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    cases = {
+        tmp_path: f"cannot write references to {tmp_path}: a folder",
+        tmp_path / "absent" / "r.json": f"no folder {tmp_path / 'absent'}",
+        tmp_path / "not-json.json": "not-json.json holds no references to add to (Expecting",
+        tmp_path / "list.json": "list.json holds no references to add to (no 'tasks' object)",
+    }
+    for out, message in cases.items():
+        assert main(["references", "--task", "reach-xy", "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("ccdata references: error: ") and message in err
+        assert err.count("\n") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["list.json", "not-json.json"]
+
+
 @pytest.mark.parametrize(
     "suite", ["Reach", "Grasp", "BinPnP", "PnPBlock", "DrawerPnP", "PnPBoxClose"]
 )
