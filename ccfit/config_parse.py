@@ -246,9 +246,11 @@ def parse_cli[C: BaseRunConfig](cls: type[C], argv: Sequence[str], prog: str | N
     for nested, top in (("model.obs_mode", "obs"), ("model.image_size", "image_size")):
         check(nested not in pre, f"--{nested} follows the run's --{top}; set that instead")
     for name, kind in typing.get_type_hints(cls).items():
-        if name in pre and isinstance(kind, type) and issubclass(kind, ChoiceConfig):
-            check(pre[name] == "", f"--{name} is a group of options; its kind is chosen with "
-                                   f"--{name}.type={pre[name]}")  # fmt: skip
+        value = pre.get(name, "").strip()
+        if isinstance(kind, type) and issubclass(kind, ChoiceConfig) and value:
+            # a mapping (`--model '{type: pwm}'`) is draccus's; a bare name is a slip
+            check(value.startswith("{"), f"--{name} is a group of options; its kind is chosen "
+                                         f"with --{name}.type={value}")  # fmt: skip
     if "--help" in args or "-h" in args:
         # draccus converts every value even when asked for help, and fails on optional fields
         # (`--out DIR --help`); the help depends only on the chosen model and method.

@@ -653,6 +653,9 @@ def test_cli_run_model_and_method_options_reach_the_config():
     assert config("--model.router=state").model.router == "state"
     assert config("--model.experts_per_task=2").model.experts_per_task == 2
     assert config("--method.type=ewc", "--method.lam=7").method.lam == 7.0
+    # a group given as a mapping is draccus's own syntax, left to it
+    mapping = parse_cli(CurriculumConfig, ["--suite", SUITE, "--model", "{type: pwm}"])
+    assert mapping.model.type == "pwm"
 
 
 def test_a_models_suite_budget_sets_the_training_settings_unless_given(monkeypatch):
