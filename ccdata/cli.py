@@ -306,12 +306,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--suite")
     p.set_defaults(func=_cmd_list)
 
-    p = add_command(
-        sub,
-        "render",
-        "render a task's three views (PNG) and an episode (MP4)",
-        "ccdata render --task stack-blocks --out views.png --video episode.mp4",
-    )
+    p = add_command(sub, "render", "render a task's three views (PNG) and an episode (MP4)",
+                    "ccdata render --task stack-blocks --out views.png "
+                    "--video episode.mp4")  # fmt: skip
     p.add_argument("--task", required=True)
     p.add_argument("--out", required=True, help="PNG file for the first frame")
     p.add_argument("--video", help="also write an oracle episode as MP4")
@@ -319,24 +316,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--image-size", type=int, default=128)
     p.set_defaults(func=_cmd_render)
 
-    p = add_command(
-        sub,
-        "references",
-        "regenerate the reference measurements (the package's "
-        "references.json, which normalised scores read, unless --out)",
-        "ccdata references --task reach-xy --episodes 5 --out refs.json",
-    )
+    p = add_command(sub, "references", "regenerate the reference measurements (the package's "
+                    "references.json, which normalised scores read, unless --out)",
+                    "ccdata references --task reach-xy --episodes 5 --out refs.json")  # fmt: skip
     p.add_argument("--task", action="append", help="only these tasks (repeatable)")
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--out", help="write the references here (default: the package's own)")
     p.set_defaults(func=_cmd_references)
 
-    p = add_command(
-        sub,
-        "calibrate",
-        "find each task's noisy-oracle noise (prints it)",
-        "ccdata calibrate --task reach-xy --episodes 10 --iterations 2",
-    )
+    p = add_command(sub, "calibrate", "find each task's noisy-oracle noise (prints it)",
+                    "ccdata calibrate --task reach-xy --episodes 10 --iterations 2")  # fmt: skip
     p.add_argument("--task", action="append", help="only these tasks (repeatable)")
     p.add_argument("--episodes", type=int, default=40, help="episodes per evaluation")
     p.add_argument("--target", type=float, default=0.5, help="noisy-oracle success rate")
@@ -402,33 +391,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=_cmd_generate)
 
-    p = add_command(
-        sub,
-        "card",
-        "render a suite's default card or a dataset's own card",
-        "ccdata card --suite PnPBoxClose",
-    )
+    p = add_command(sub, "card", "render a suite's default card or a dataset's own card",
+                    "ccdata card --suite PnPBoxClose")  # fmt: skip
     p.add_argument("--suite", help="the suite's default card (cards/<Suite>.md)")
     p.add_argument("--root", help="the card of the dataset in this directory")
     p.add_argument("--out")
     p.set_defaults(func=_cmd_card)
 
-    p = add_command(
-        sub,
-        "verify",
-        "check a dataset end to end (exit 1 with findings)",
-        "ccdata verify --suite PnPBoxClose",
-    )
+    p = add_command(sub, "verify", "check a dataset end to end (exit 1 with findings)",
+                    "ccdata verify --suite PnPBoxClose")  # fmt: skip
     p.add_argument("--suite")
     p.add_argument("--root")
     p.set_defaults(func=_cmd_verify)
 
-    p = add_command(
-        sub,
-        "push",
-        "upload a dataset to a Hub-compatible endpoint",
-        "ccdata push --suite PnPBoxClose --repo-id ORG/PnPBoxClose",
-    )
+    p = add_command(sub, "push", "upload a dataset to a Hub-compatible endpoint",
+                    "ccdata push --suite PnPBoxClose --repo-id ORG/PnPBoxClose")  # fmt: skip
     p.add_argument("--suite", help="the suite's dataset in LeRobot's cache")
     p.add_argument("--repo-id", required=True)
     p.add_argument("--endpoint", help="default: HF_ENDPOINT or the public hub")

@@ -290,24 +290,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_pretrain_parser(sub)
 
-    p = add_command(
-        sub,
-        "report",
-        "tables and plots over run directories",
-        "ccfit report results/online/reach-tdmpc2 --out report/",
-    )
+    p = add_command(sub, "report", "tables and plots over run directories",
+                    "ccfit report results/online/reach-tdmpc2 --out report/")  # fmt: skip
     p.add_argument("runs", nargs="+", help="run directories (or folders holding them)")
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=_cmd_report)
 
-    p = add_command(
-        sub,
-        "publish",
-        "copy finished runs' small files (config, metrics, cost) and "
-        "write the report (curricula) or the learnability tables (single-task runs) "
-        "over them, for a results folder",
-        "ccfit publish runs/sweep1 --out results/online/my-sweep --root results",
-    )
+    p = add_command(sub, "publish", "copy finished runs' small files (config, metrics, cost) and "
+                    "write the report (curricula) or the learnability tables (single-task runs) "
+                    "over them, for a results folder",
+                    "ccfit publish runs/sweep1 --out results/online/my-sweep "
+                    "--root results")  # fmt: skip
     p.add_argument("runs", help="folder holding finished runs (a sweep's, or `ccfit train` runs)")
     p.add_argument(
         "--out", required=True, help="results folder (its report/ and learnability/ are rewritten)"
@@ -316,37 +309,27 @@ def build_parser() -> argparse.ArgumentParser:
                    "orderings.md, axes.md and cost.md are rewritten over all of them")  # fmt: skip
     p.set_defaults(func=_cmd_publish)
 
-    p = add_command(
-        sub,
-        "learnability",
-        "steps each task needs to reach 50 and 80, and the "
-        "per-suite budgets, from single-task `ccfit train` runs",
-        "ccfit learnability results/single-task --out learn/",
-    )
+    p = add_command(sub, "learnability", "steps each task needs to reach 50 and 80, and the "
+                    "per-suite budgets, from single-task `ccfit train` runs",
+                    "ccfit learnability results/single-task --out learn/")  # fmt: skip
     p.add_argument("runs", nargs="+", help="run directories (or folders holding them)")
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=_cmd_learnability)
 
-    p = add_command(
-        sub,
-        "compare",
-        "whether run B reproduces run A's records, the first that "
-        "differs, and what differs between the runs (settings, code, machines, "
-        "datasets); exit 1 when a record differs",
-        "ccfit compare results/online/reach-tdmpc2/Reach-tdmpc2-ft-state-cpu-s0 runs/my-ft-s0",
-    )
+    p = add_command(sub, "compare", "whether run B reproduces run A's records, the first that "
+                    "differs, and what differs between the runs (settings, code, machines, "
+                    "datasets); exit 1 when a record differs",
+                    "ccfit compare results/online/reach-tdmpc2/Reach-tdmpc2-ft-state-cpu-s0 "
+                    "runs/my-ft-s0")  # fmt: skip
     p.add_argument("a", help="run directory (a curriculum, a single-task or an offline run)")
     p.add_argument("b", help="run directory to compare with it")
     p.set_defaults(func=_cmd_compare)
 
-    p = add_command(
-        sub,
-        "probe-encoder",
-        "how well a frozen encoder's latent gives each task's "
-        "hand, object and goal positions (held-out R^2 of linear probes, beside the "
-        "same from the pixels)",
-        "ccfit probe-encoder enc.safetensors --tasks reach-xy,pick-cube --out probe/",
-    )
+    p = add_command(sub, "probe-encoder", "how well a frozen encoder's latent gives each task's "
+                    "hand, object and goal positions (held-out R^2 of linear probes, beside the "
+                    "same from the pixels)",
+                    "ccfit probe-encoder enc.safetensors --tasks reach-xy,pick-cube "
+                    "--out probe/")  # fmt: skip
     p.add_argument("encoder", help="weights file written by `ccfit pretrain-encoder`")
     p.add_argument("--tasks", required=True, help="comma list of task ids, e.g. reach-xy,pick-cube")
     p.add_argument("--frames", type=int, default=1000, help="frames per task (fresh layouts)")
@@ -354,13 +337,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output directory (probe.json, probe.md)")
     p.set_defaults(func=_cmd_probe_encoder)
 
-    p = add_command(
-        sub,
-        "ablate",
-        "expert ablation of a finished run of a model offering "
-        "'routing' (prior / new / uniform routing on the composition task)",
-        "ccfit ablate runs/Reach-pwm-experts-pixels-cpu-s0",
-    )
+    p = add_command(sub, "ablate", "expert ablation of a finished run of a model offering "
+                    "'routing' (prior / new / uniform routing on the composition task)",
+                    "ccfit ablate runs/Reach-pwm-experts-pixels-cpu-s0")  # fmt: skip
     p.add_argument("run", help="run directory of a finished curriculum of a routed model")
     p.add_argument("--episodes", type=int, default=None,
                    help="evaluation layouts (default: the run's eval_episodes)")  # fmt: skip
