@@ -331,22 +331,40 @@ def test_routing_overrides():
             pass
 
 
+def _schedule(cfg: PWMConfig, tau: float, count: int, hold: int, entropy: float, steps: int):
+    """The authors' schedule by hand: `steps` training forwards of the dynamics at `entropy`,
+    held while fewer than `hold` forwards have run, clipped. Returns (tau, count)."""
+    target = cfg.tau_target_frac * math.log(K)
+    for _ in range(steps):
+        if count >= hold:
+            tau = min(max(tau + cfg.tau_rate * math.tanh(target - entropy), cfg.tau_min),
+                      cfg.tau_max)  # fmt: skip
+        count += 1
+    return tau, count
+
+
 def test_temperature_schedule():
-    hold = 3
+    """The temperature steps once per training forward of the dynamics (seq_len - 1 per update),
+    the hold counted in those forwards, as the authors' router does."""
+    hold = 5  # forwards: the second update (3 forwards each at seq_len 4) crosses it
     model = build(tau_hold_min=hold, tau_hold_frac=0.0, tau_rate=0.05)
     heads = model.new_heads()
     cfg = model.cfg
+    forwards = cfg.seq_len - 1
+    assert forwards >= 2
     opt, popt = optimisers(model, heads)
-    target = 0.75 * math.log(K)
-    expected = cfg.tau_init
+    expected, count = cfg.tau_init, 0
     for i in range(8):
         out = update(model, heads, opt, popt, make_batch(cfg, seed=i))
-        if i >= hold:
-            step = cfg.tau_rate * math.tanh(target - float(out.logs["routing_entropy"]))
-            expected = min(max(expected + step, cfg.tau_min), cfg.tau_max)
-        else:
-            assert model.tau == pytest.approx(cfg.tau_init)
+        # With the 'task' router the weights depend on the task and tau alone: every forward of
+        # the update sees the same entropy.
+        entropies = out.aux["routing_entropies"]
+        assert entropies.shape == (forwards,) and torch.allclose(entropies, entropies[0])
+        expected, count = _schedule(cfg, expected, count, hold, float(entropies[0]), forwards)
         assert model.tau == pytest.approx(expected, abs=1e-6), i
+        if count <= hold:
+            assert model.tau == pytest.approx(cfg.tau_init)
+    assert int(model.dynamics.tau_updates[0]) == 8 * forwards
     assert model.tau < cfg.tau_init  # near-uniform routing: entropy above target, tau falls
     assert torch.all(model.dynamics.tau[1:] == cfg.tau_init)  # other tasks keep theirs
     # No update outside training updates.
@@ -366,11 +384,13 @@ def test_temperature_schedule():
 
 def test_an_offline_update_steps_the_temperature_as_an_online_one():
     """Offline (`ccfit fit`, no heads) the temperature steps in `after_backbone_update`, with the
-    schedule and entropy feedback of online training: held, then tau += rate * tanh(H* - H).
-    Before the hook existed an offline PWM never left tau_init."""
-    hold = 2
+    schedule and entropy feedback of online training: once per forward of the update's rollout,
+    held, then tau += rate * tanh(H* - H). Before the hook existed an offline PWM never left
+    tau_init."""
+    hold = 4
     model = build(tau_hold_min=hold, tau_hold_frac=0.0, tau_rate=0.05)
-    cfg, target, expected = model.cfg, 0.75 * math.log(K), model.cfg.tau_init
+    cfg, expected, count = model.cfg, model.cfg.tau_init, 0
+    forwards = cfg.seq_len - 1
     model.begin_task(0, task_steps=10)
     for i in range(6):
         batch = make_batch(cfg, seed=i)
@@ -378,12 +398,36 @@ def test_an_offline_update_steps_the_temperature_as_an_online_one():
         entropy = float(torch.special.entr(model.routing_weights(z, batch.action[0], 0)).sum(-1)
                         .mean())  # fmt: skip
         model.after_backbone_update(batch)
-        if i >= hold:
-            step = cfg.tau_rate * math.tanh(target - entropy)
-            expected = min(max(expected + step, cfg.tau_min), cfg.tau_max)
+        expected, count = _schedule(cfg, expected, count, hold, entropy, forwards)
         assert model.tau == pytest.approx(expected, abs=1e-6), i
-    assert int(model.dynamics.tau_updates[0]) == 6 and model.tau < cfg.tau_init
+    assert int(model.dynamics.tau_updates[0]) == 6 * forwards and model.tau < cfg.tau_init
     assert torch.all(model.dynamics.tau[1:] == cfg.tau_init)
+
+
+def test_a_task_routes_only_over_its_own_and_earlier_groups():
+    """Task t's softmax spans the groups 0..t: adding a group (fresh experts, router rows near
+    0) leaves a finished task's weights and next latent exactly as they were. Before the scope,
+    a new group took a large share of task 0's routing at once."""
+    model = build()
+    method = new_method("experts", num_tasks=3)
+    dyn = model.dynamics
+    z, a = latent_and_action(model)
+    method.before_task(0, model.backbone)
+    randomise_router(model)
+    weights0 = model.routing_weights(z, a, 0)
+    with model.routing_task(0):
+        next0 = model.next(z, a).detach()
+    for task in (1, 2):
+        method.before_task(task, model.backbone)
+        assert torch.equal(model.routing_weights(z, a, 0), weights0)
+        with model.routing_task(0):
+            assert torch.equal(model.next(z, a).detach(), next0)
+    for task in range(3):  # task t: weight on groups 0..t, exactly 0 beyond
+        w = model.routing_weights(z, a, task)
+        assert torch.all(w[:, : (task + 1) * K] > 0) and torch.all(w[:, (task + 1) * K :] == 0)
+    # A batch mixing tasks (replay) routes each row in its own task's scope.
+    mixed = model.routing_weights(z[:2], a[:2], torch.tensor([0, 2]))
+    assert torch.all(mixed[0, K:] == 0) and torch.all(mixed[1, : dyn.num_active] > 0)
 
 
 # ------------------------------------------------------------------------------ continual

@@ -3,8 +3,9 @@
 At `before_task(t)` the mixture gets K new trainable experts (group t; group 0 is active from
 the start) and the experts of groups 0..t-1 are frozen: requires_grad False, and, since Adam's
 momentum (or a stale zero gradient) can still move a parameter without gradient, written back
-exactly from a stored copy after every optimiser step. Frozen experts stay routable: the
-router spans every expert activated so far.
+exactly from a stored copy after every optimiser step. Frozen experts stay routable: task t
+routes over the groups 0..t (the model's scope), so the current task can reuse every earlier
+expert while a finished task never routes into the experts added after it.
 
 What keeps training: the router (so earlier experts can be reused and new ones weighted), the
 shared output head, and the encoder. The paper freezes previous experts only, so the shared

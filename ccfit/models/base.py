@@ -361,8 +361,8 @@ class Routing(ABC):
 
     @abstractmethod
     def routing_override(self, mode: str | None) -> contextlib.AbstractContextManager:
-        """Within the block, routing is replaced: 'prior' (earlier groups only), 'new' (the
-        newest group only), 'uniform', or None (learnt)."""
+        """Within the block, routing is replaced, relative to the routed task t: 'prior' (the
+        groups before t only), 'new' (t's own group only), 'uniform', or None (learnt)."""
 
     @abstractmethod
     def routing_weights(self, z: torch.Tensor, a: torch.Tensor, task=None) -> torch.Tensor:

@@ -17,27 +17,34 @@ the parameter set never changes shape (checkpoints and optimisers stay valid); o
 FT / ER / EWC / PackNet PWM is a fixed mixture of K experts; the 'experts' continual method
 (ccfit.continual.experts) activates one group per task and freezes the earlier ones.
 
+Scope: task t routes over the groups 0..t only (the experts that existed while it trained),
+in training, replay, planning and evaluation alike, as in the authors' progressive runs
+(task j evaluated with experts [0, (j+1)K)). Without it a finished task's softmax takes in
+every later group's fresh experts (router rows initialised near 0, so a large share of the
+weight) and its dynamics change the moment a group is added.
+
 Gate input, `router`:
 - 'task' (default, as in the authors' code): the one-hot task identity over `max_tasks`,
   followed by tau. With a bias-free router this is a learnt per-task logit table (one column
-  per task) plus a shared tau column: training task t only moves column t (and the tau
-  column), so earlier tasks' routing is left alone. A one-hot is used instead of a learnt
-  embedding because it keeps that separation exact and needs no extra parameters.
+  per task) plus a tau column shared by all tasks: training task t moves column t and the tau
+  column, so a finished task's routing over its own groups still drifts through the tau
+  column (as in the authors' default, which leaves the router trainable). A one-hot is used
+  instead of a learnt embedding because it needs no extra parameters.
 - 'state': [z, a, tau], routing that can change within an episode.
+Experts see [z, a]; the authors' code also feeds them the task one-hot (FACTS.md: [z, a]).
 
 The task of every sample is known: batches carry `task` per row and a window routes with
 the task of its row 0 (where its rollout starts); heads are stamped with the task they
 belong to (`PWMHeads.task_index`), which routes planning. A task's routing therefore never
 depends on which task is being trained.
 
-Temperature: one tau per task (a buffer, checkpointed). A task's tau starts at `tau_init`, is
-held for max(tau_hold_min, tau_hold_frac * task steps) training updates of that task, then
-after every update moves as tau <- clip(tau + tau_rate * tanh(H_target - H(w)), tau_min,
-tau_max), H_target = tau_target_frac * log(active experts), H(w) the mean routing entropy over
-the update's batch (all rollout steps). The authors keep a single tau reset at each new task;
-as tau enters every task's routing, that silently re-routes finished tasks (they added a
-switch to freeze it). One tau per task follows the same schedule while training a task and
-keeps finished tasks' routing a function of parameters only (what PackNet protects).
+Temperature: one tau per task (a buffer, checkpointed), as the authors' per-task snapshot.
+A task's tau starts at `tau_init`, is held for the first max(tau_hold_min, tau_hold_frac *
+task steps) dynamics steps of that task's training (each update rolls out seq_len - 1), then
+after every training forward of the dynamics moves as tau <- clip(tau + tau_rate *
+tanh(H_target - H(w)), tau_min, tau_max), as the authors' router does on every training
+forward; H_target = tau_target_frac * log(active experts), H(w) that forward's mean routing
+entropy. Finished tasks keep their tau.
 
 Continual use, per task i: `model.begin_task(i, task_steps)`, then `model.new_heads()`
 (stamped with task i); `with model.routing_override("prior" | "new" | "uniform")` ablates the

@@ -25,7 +25,8 @@ class PWMConfig(TDMPC2Config):
 
     Every TD-MPC2 field keeps its meaning; the fields below configure the mixture. Experts are
     allocated in groups of `experts_per_task` (one group per task under the 'experts' continual
-    method, a single group otherwise); the temperature schedule follows the authors' code.
+    method, a single group otherwise); the temperature schedule follows the authors' code (see
+    the package docstring).
     Presets: TD-MPC2's of the same name plus the mixture settings of `_PWM_EXTRAS`.
     """
 
@@ -55,7 +56,8 @@ class PWMConfig(TDMPC2Config):
     tau_target_frac: float = 0.75
     """H_target = tau_target_frac * log(active experts)."""
     tau_hold_min: int = 5000
-    """The temperature is held for max(tau_hold_min, tau_hold_frac * task_steps) updates."""
+    """The temperature is held for the first max(tau_hold_min, tau_hold_frac * task_steps)
+    dynamics steps of a task's training (seq_len - 1 per update)."""
     tau_hold_frac: float = 0.05
     """Share of a task's steps during which the temperature is held (see tau_hold_min)."""
     task_steps: int | None = None
@@ -87,7 +89,8 @@ class PWMConfig(TDMPC2Config):
               f"{num_tasks} tasks: set --model.max_tasks={num_tasks} or more")  # fmt: skip
 
     def hold_steps(self, task_steps: int | None = None) -> int:
-        """Updates during which the temperature is held for a task of `task_steps` steps."""
+        """Dynamics steps (seq_len - 1 per update) during which the temperature is held for a
+        task of `task_steps` steps."""
         steps = task_steps if task_steps is not None else self.task_steps
         frac = int(round(self.tau_hold_frac * steps)) if steps is not None else 0
         return max(self.tau_hold_min, frac)

@@ -10,13 +10,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ccfit.models.base import ExpertGroups, ExpertLayout
+from ccfit.models.base import ExpertGroups, ExpertLayout, check_on_device
 from ccfit.models.layers import NormedLinear, SimNorm, init_weights
 from ccfit.models.pwm.config import PWMConfig
 
 OVERRIDES: tuple[str | None, ...] = (None, "prior", "new", "uniform")
-"""Routing ablations: learnt (None); only experts of earlier groups ('prior'), only the newest
-group ('new'), both renormalised from the learnt weights; uniform over active experts."""
+"""Routing ablations, relative to the routed task t: learnt (None); only the experts of the
+groups before t ('prior') or of t's own group ('new'), both renormalised from the learnt
+weights; uniform over the groups 0..t ('uniform')."""
 
 
 def gram_schmidt(features: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
@@ -144,15 +145,19 @@ class MixtureDynamics(nn.Module, ExpertGroups):
         return self.cfg.tau_target_frac * math.log(self.num_active)
 
     @torch.no_grad()
-    def step_temperature(self, entropy: torch.Tensor | float, task: int) -> None:
-        """One training update of task `task` with mean routing entropy `entropy`. Tensor
+    def step_temperature(self, entropies: torch.Tensor, task: int) -> None:
+        """The temperature schedule of task `task` over one training update: one step per
+        dynamics forward of the update, `entropies` (one mean routing entropy per forward, in
+        rollout order), as the authors' router steps on every training forward. Tensor
         arithmetic on the buffers, so a GPU update never waits for the host."""
         cfg, task = self.cfg, self.check_task(task)
-        entropy = torch.as_tensor(entropy, dtype=self.tau.dtype, device=self.tau.device)
-        moved = self.tau[task] + cfg.tau_rate * torch.tanh(self.target_entropy() - entropy)
-        held = self.tau_updates[task] < self.tau_hold[task]
-        self.tau[task] = torch.where(held, self.tau[task], moved.clamp(cfg.tau_min, cfg.tau_max))
-        self.tau_updates[task] += 1
+        entropies = torch.as_tensor(entropies, dtype=self.tau.dtype, device=self.tau.device)
+        for entropy in entropies.reshape(-1).unbind():
+            moved = self.tau[task] + cfg.tau_rate * torch.tanh(self.target_entropy() - entropy)
+            held = self.tau_updates[task] < self.tau_hold[task]
+            self.tau[task] = torch.where(held, self.tau[task],
+                                         moved.clamp(cfg.tau_min, cfg.tau_max))  # fmt: skip
+            self.tau_updates[task] += 1
 
     @contextlib.contextmanager
     def recording_entropy(self) -> Iterator[list[torch.Tensor]]:
@@ -182,7 +187,9 @@ class MixtureDynamics(nn.Module, ExpertGroups):
         return torch.as_tensor(task, dtype=torch.long, device=device).expand(lead)
 
     def _weights(self, za: torch.Tensor, task: torch.Tensor) -> torch.Tensor:
-        """Routing weights over the active experts (..., num_active)."""
+        """Routing weights over the active experts (..., num_active). A task routes over the
+        groups up to its own (0..task): experts added for later tasks get weight exactly 0, so
+        a finished task's dynamics never mixes in experts trained after it."""
         n = self.num_active
         tau = self.tau[task].unsqueeze(-1)  # a copy: later in-place tau updates are safe
         if self.cfg.router == "task":
@@ -190,12 +197,18 @@ class MixtureDynamics(nn.Module, ExpertGroups):
         else:
             gate = za
         logits = F.linear(torch.cat([gate, tau], -1), self.router.weight[:n]) / tau
+        group = torch.arange(n, device=za.device) // self.k
+        own = task.unsqueeze(-1)
         if self.override == "uniform":
-            return torch.full_like(logits, 1.0 / n)
-        if self.override is not None:
-            newest = torch.arange(n, device=za.device) >= n - self.k
-            keep = ~newest if self.override == "prior" else newest
-            logits = logits.masked_fill(~keep, float("-inf"))
+            logits = torch.zeros_like(logits)
+        if self.override == "prior":
+            check_on_device((task > 0).all(), "routing override 'prior': task 0 has no earlier "
+                            "experts")  # fmt: skip
+            logits = logits.masked_fill(group >= own, float("-inf"))
+        elif self.override == "new":
+            logits = logits.masked_fill(group != own, float("-inf"))
+        else:
+            logits = logits.masked_fill(group > own, float("-inf"))
         return F.softmax(logits, dim=-1)
 
     def features(self, za: torch.Tensor) -> torch.Tensor:

@@ -146,8 +146,8 @@ class PWM(TDMPC2, Routing):
             out = super().loss(batch, h)
         # No side effect here (the contract): the temperature steps in `head_update`, once
         # per update of the task being trained, never when ER replays stored heads.
-        out.aux["routing_entropy"] = torch.stack(record).mean()
-        out.logs["routing_entropy"] = out.aux["routing_entropy"]
+        out.aux["routing_entropies"] = torch.stack(record)  # one per rollout step
+        out.logs["routing_entropy"] = out.aux["routing_entropies"].mean()
         out.logs["tau"] = self.dynamics.tau[own.view(1)].squeeze(0)  # a copy, by a 1-d index
         return out
 
@@ -157,15 +157,16 @@ class PWM(TDMPC2, Routing):
 
     @torch.no_grad()
     def after_backbone_update(self, batch: Batch) -> None:
-        """Offline, the temperature steps once per update of the current task, as online in
-        `head_update`, on the mean routing entropy of the batch's first rows under the updated
-        router (with the 'task' router the weights depend on the task alone: the entropy of the
-        update's own rollout)."""
+        """Offline, the temperature steps as online in `head_update`: once per dynamics forward
+        of the update's rollout (seq_len - 1), each on the mean routing entropy of the batch's
+        first rows under the updated router (with the 'task' router the weights depend on the
+        task alone, so that is the entropy of every forward of the rollout)."""
         batch = batch.to(self.device)
         z = self.encode({k: v[0] for k, v in batch.obs.items()})
         w = self.dynamics.routing_weights(z, batch.action[0], self._batch_task(batch))
         entropy = torch.special.entr(w).sum(-1).mean()
-        self.dynamics.step_temperature(entropy, int(self.dynamics.current_task))
+        self.dynamics.step_temperature(entropy.expand(batch.seq_len - 1),
+                                       int(self.dynamics.current_task))  # fmt: skip
 
     def open_loop(self, batch: Batch, context: int, horizon: int) -> OpenLoop:
         """TD-MPC2's, each window routed as its task."""
@@ -181,7 +182,7 @@ class PWM(TDMPC2, Routing):
         optimizers: dict[str, torch.optim.Optimizer],
     ) -> dict[str, float]:
         h = _pwm_heads(heads)
-        self.dynamics.step_temperature(out.aux["routing_entropy"], h.task)
+        self.dynamics.step_temperature(out.aux["routing_entropies"], h.task)
         with self.routing_task(self._batch_task(batch)):
             return super().head_update(batch, heads, out, optimizers)
 
