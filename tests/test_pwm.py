@@ -425,6 +425,17 @@ def test_a_task_routes_only_over_its_own_and_earlier_groups():
     for task in range(3):  # task t: weight on groups 0..t, exactly 0 beyond
         w = model.routing_weights(z, a, task)
         assert torch.all(w[:, : (task + 1) * K] > 0) and torch.all(w[:, (task + 1) * K :] == 0)
+    # routing_scope='all' (the toolkit before the scope): a new group takes task 0's weight.
+    wide = build(routing_scope="all")
+    wide_method = new_method("experts", num_tasks=2)
+    wide_method.before_task(0, wide.backbone)
+    randomise_router(wide)
+    before = wide.routing_weights(z, a, 0)
+    wide_method.before_task(1, wide.backbone)
+    after = wide.routing_weights(z, a, 0)
+    assert torch.all(after[:, K : 2 * K] > 0) and not torch.allclose(after[:, :K], before[:, :K])
+    with pytest.raises(ConfigError, match="routing_scope"):
+        make_cfg(routing_scope="every")
     # A batch mixing tasks (replay) routes each row in its own task's scope.
     mixed = model.routing_weights(z[:2], a[:2], torch.tensor([0, 2]))
     assert torch.all(mixed[0, K:] == 0) and torch.all(mixed[1, : dyn.num_active] > 0)
@@ -438,10 +449,15 @@ def _task_data(model: PWM, buf: ReplayBuffer, task: int) -> TaskData:
                                 backbone_loss=model.backbone_loss)  # fmt: skip
 
 
-def test_progressive_experts_freeze_prior_experts_exactly():
+@pytest.mark.parametrize("freeze_shared", [True, False])
+def test_progressive_experts_freeze_prior_experts_exactly(freeze_shared):
+    """Earlier experts stay exactly as they were through task 1's updates (stale gradients and
+    Adam state included); with `freeze_shared` so do the output head and the router's tau
+    column, and then task 0's dynamics is exactly what it was after task 0."""
     model = build()
-    method = new_method("experts", num_tasks=2)
+    method = new_method("experts", num_tasks=2, freeze_shared=freeze_shared)
     dyn = model.dynamics
+    z, a = latent_and_action(model)
     buffers = [make_buffer(0), make_buffer(1)]
     moved_before_restore = False
     for task in range(2):
@@ -452,6 +468,8 @@ def test_progressive_experts_freeze_prior_experts_exactly():
         if task == 1:
             prior = snapshot(dyn.experts[:K])
             router, head = snapshot(dyn.router), snapshot(dyn.head)
+            with model.routing_task(0):
+                next0 = model.next(z, a).detach()
             new = snapshot(dyn.experts[K : 2 * K])
             # Stale gradients + Adam state on the frozen experts: Adam would move them.
             for p in dyn.experts[:K].parameters():
@@ -477,10 +495,16 @@ def test_progressive_experts_freeze_prior_experts_exactly():
     assert moved_before_restore  # the restore is what keeps them fixed
     assert all(torch.equal(v, prior[k]) for k, v in dyn.experts[:K].named_parameters())
     assert not any(torch.equal(v, new[k]) for k, v in dyn.experts[K : 2 * K].named_parameters())
-    assert not torch.equal(dyn.router.weight, router["weight"])  # the router keeps training
-    assert not torch.equal(dyn.head.weight, head["weight"])  # and so does the shared head
+    weight = dyn.router.weight
+    assert not torch.equal(weight[:, 1], router["weight"][:, 1])  # task 1's column trains
+    assert torch.equal(weight[:, 0], router["weight"][:, 0])  # task 0's gets no gradient
+    tau_column = torch.equal(weight[:, -1], router["weight"][:, -1])
+    same_head = all(torch.equal(v, head[k]) for k, v in dyn.head.named_parameters())
+    with model.routing_task(0):
+        same_next0 = torch.equal(model.next(z, a).detach(), next0)
+    assert tau_column == same_head == same_next0 == freeze_shared
     state = method.state_dict()
-    fresh = new_method("experts", num_tasks=2)
+    fresh = new_method("experts", num_tasks=2, freeze_shared=freeze_shared)
     fresh.load_state_dict(state)
     assert fresh.task == 1 and set(fresh.stored) == set(method.stored)
 

@@ -7,10 +7,14 @@ exactly from a stored copy after every optimiser step. Frozen experts stay routa
 routes over the groups 0..t (the model's scope), so the current task can reuse every earlier
 expert while a finished task never routes into the experts added after it.
 
-What keeps training: the router (so earlier experts can be reused and new ones weighted), the
-shared output head, and the encoder. The paper freezes previous experts only, so the shared
-head is not frozen; finished tasks' dynamics can therefore still drift through the head, the
-router and the encoder (the frozen-encoder diagnostic removes the last one).
+What keeps training: the router's column of the current task, the encoder, and, unless
+`freeze_shared` (the default), the mixture's shared parts: its output head and the router's
+temperature column, through which every task's dynamics passes. With them held from the
+second task on (Wang et al.'s progressive mixture, which the paper transfers; the authors'
+`sdp_freeze`), a frozen encoder and task-scoped routing (PWM's `routing_scope='own'`), a
+finished task's dynamics is exactly the one it finished with. Without (`freeze_shared=False`,
+the authors' driver default) the head moves under the frozen experts, and finished tasks'
+dynamics drift through it.
 
 The method sees only the backbone; it finds the `ExpertGroups` inside it (a model offering the
 'experts' capability), so it names no model.
@@ -40,9 +44,14 @@ def _groups(backbone: nn.Module) -> tuple[str, ExpertGroups]:
 
 @dataclass
 class ProgressiveExpertsConfig(MethodConfig):
-    """Progressive experts has no options; the expert count per task is the model's."""
+    """Progressive experts; the expert count per task is the model's."""
 
     REQUIRES = frozenset({"experts"})
+
+    freeze_shared: bool = True
+    """From the second task on, also hold the mixture's shared parts (output head, the router's
+    temperature column) at their values after the first task, written back after every step
+    like the frozen experts. False: only the experts are frozen."""
 
 
 @register_method("experts", ProgressiveExpertsConfig)
@@ -73,19 +82,26 @@ class ProgressiveExperts(ContinualMethod):
                 f"has {active}"
             )
         groups.freeze_groups(task_index)
-        frozen = groups.named_expert_parameters(range(task_index))
-        self.stored = {name: p.detach().clone() for name, p in frozen}
-        self._frozen, self._values = [], []
         self.task = task_index
+        self.stored = {name: t.detach().clone() for name, t in self._held(groups).items()}
+        self._frozen, self._values = [], []
+
+    def _held(self, groups: ExpertGroups) -> dict[str, torch.Tensor]:
+        """What the current task must leave as it was: earlier tasks' experts and, with
+        `freeze_shared`, the shared parts once a first task has trained them."""
+        held = dict(groups.named_expert_parameters(range(self.task)))
+        if self.cfg.freeze_shared and self.task >= 1:
+            held.update(groups.shared_tensors())
+        return held
 
     @torch.no_grad()
     def after_step(self, backbone: nn.Module) -> None:
         if not self.stored:
             return
-        if not self._frozen:  # first step after a resume: match names to parameters once
-            params = dict(_groups(backbone)[1].named_parameters())
-            self._frozen = [params[name] for name in self.stored]
-            self._values = [v.to(p.device) for v, p in zip(self.stored.values(), self._frozen,
+        if not self._frozen:  # first step of a task or after a resume: match names once
+            held = self._held(_groups(backbone)[1])
+            self._frozen = [held[name] for name in self.stored]
+            self._values = [v.to(t.device) for v, t in zip(self.stored.values(), self._frozen,
                                                            strict=True)]  # fmt: skip
         torch._foreach_copy_(self._frozen, self._values)
 

@@ -325,6 +325,12 @@ class ExpertGroups(ABC):
     def named_expert_parameters(self, groups: range) -> Iterator[tuple[str, nn.Parameter]]:
         """(name within this module, parameter) of the experts of `groups`."""
 
+    @abstractmethod
+    def shared_tensors(self) -> dict[str, torch.Tensor]:
+        """What every task's dynamics passes through besides its experts (PWM: the output head
+        and the router's temperature column), by name, as tensors that write through to the
+        parameters (detached parameters or views of them)."""
+
 
 def find_expert_groups(backbone: nn.Module) -> tuple[str, ExpertGroups] | None:
     """(its name in the backbone, the module) of the backbone's `ExpertGroups`, or None."""

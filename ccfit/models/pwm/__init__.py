@@ -17,11 +17,11 @@ the parameter set never changes shape (checkpoints and optimisers stay valid); o
 FT / ER / EWC / PackNet PWM is a fixed mixture of K experts; the 'experts' continual method
 (ccfit.continual.experts) activates one group per task and freezes the earlier ones.
 
-Scope: task t routes over the groups 0..t only (the experts that existed while it trained),
-in training, replay, planning and evaluation alike, as in the authors' progressive runs
-(task j evaluated with experts [0, (j+1)K)). Without it a finished task's softmax takes in
-every later group's fresh experts (router rows initialised near 0, so a large share of the
-weight) and its dynamics change the moment a group is added.
+Scope (`routing_scope`, default 'own'): task t routes over the groups 0..t only (the experts
+that existed while it trained), in training, replay, planning and evaluation alike, as in the
+authors' progressive runs (task j evaluated with experts [0, (j+1)K)). With 'all' a finished
+task's softmax takes in every later group's fresh experts (router rows initialised near 0, so
+a large share of the weight) and its dynamics change the moment a group is added.
 
 Gate input, `router`:
 - 'task' (default, as in the authors' code): the one-hot task identity over `max_tasks`,
@@ -51,11 +51,11 @@ Continual use, per task i: `model.begin_task(i, task_steps)`, then `model.new_he
 routing for analysis, `model.routing_weights(z, a, task)` reads it.
 """
 
-from ccfit.models.pwm.config import PWM_ROUTERS, PWMConfig
+from ccfit.models.pwm.config import PWM_ROUTERS, PWM_SCOPES, PWMConfig
 from ccfit.models.pwm.mixture import OVERRIDES, MixtureDynamics, gram_schmidt
 from ccfit.models.pwm.model import PWM, PWMHeads
 
 __all__ = [
-    "OVERRIDES", "PWM", "PWMConfig", "PWMHeads", "PWM_ROUTERS", "MixtureDynamics",
+    "OVERRIDES", "PWM", "PWMConfig", "PWMHeads", "PWM_ROUTERS", "PWM_SCOPES", "MixtureDynamics",
     "gram_schmidt",
 ]  # fmt: skip

@@ -9,6 +9,8 @@ from ccfit.models.tdmpc2 import TDMPC2Config
 
 PWM_ROUTERS: tuple[str, ...] = ("task", "state")
 """Gate inputs of PWM's router: the task identity, or the latent and action."""
+PWM_SCOPES: tuple[str, ...] = ("own", "all")
+"""The expert groups a task routes over: its own and earlier ones, or every active group."""
 
 _PWM_EXTRAS: dict[str, dict] = {
     # Short runs get a short hold, so that the entropy feedback runs at all.
@@ -45,6 +47,11 @@ class PWMConfig(TDMPC2Config):
     before mixing them."""
     router: str = "task"
     """Gate input: 'task' (one-hot task identity, as the authors) or 'state' ([z, a])."""
+    routing_scope: str = "own"
+    """Experts a task routes over: 'own' (the groups of tasks 0..t, the experts that existed
+    while task t trained: the authors' progressive runs, which evaluate task j on experts
+    [0, (j+1)K)) or 'all' (every active group: a finished task also mixes in the experts of
+    later tasks; the authors' first progressive driver, and this toolkit before 51a4dde)."""
     tau_init: float = 1.8
     """Router temperature at the start of each task, held during the hold phase."""
     tau_min: float = 0.5
@@ -69,6 +76,9 @@ class PWMConfig(TDMPC2Config):
         name = type(self).__name__
         check(self.router in PWM_ROUTERS,
               f"{name}.router must be one of {PWM_ROUTERS}, got {self.router!r}")  # fmt: skip
+        check(self.routing_scope in PWM_SCOPES,
+              f"{name}.routing_scope must be one of {PWM_SCOPES}, "
+              f"got {self.routing_scope!r}")  # fmt: skip
         checks = [
             (self.experts_per_task >= 1, "experts_per_task must be >= 1"),
             (self.max_tasks >= 1, "max_tasks must be >= 1"),

@@ -96,6 +96,11 @@ class MixtureDynamics(nn.Module, ExpertGroups):
             for name, p in self.experts[e].named_parameters():
                 yield f"experts.{e}.{name}", p
 
+    def shared_tensors(self) -> dict[str, torch.Tensor]:
+        shared = {f"head.{name}": p.detach() for name, p in self.head.named_parameters()}
+        shared["router.weight[:, tau]"] = self.router.weight.detach()[:, -1]
+        return shared
+
     def apply_trainability(self) -> None:
         """requires_grad: True for active, unfrozen experts; False for frozen and inactive."""
         for e, expert in enumerate(self.experts):
@@ -187,9 +192,10 @@ class MixtureDynamics(nn.Module, ExpertGroups):
         return torch.as_tensor(task, dtype=torch.long, device=device).expand(lead)
 
     def _weights(self, za: torch.Tensor, task: torch.Tensor) -> torch.Tensor:
-        """Routing weights over the active experts (..., num_active). A task routes over the
-        groups up to its own (0..task): experts added for later tasks get weight exactly 0, so
-        a finished task's dynamics never mixes in experts trained after it."""
+        """Routing weights over the active experts (..., num_active). With `routing_scope`
+        'own' a task routes over the groups up to its own (0..task): experts added for later
+        tasks get weight exactly 0, so a finished task's dynamics never mixes in experts
+        trained after it; with 'all' over every active group."""
         n = self.num_active
         tau = self.tau[task].unsqueeze(-1)  # a copy: later in-place tau updates are safe
         if self.cfg.router == "task":
@@ -199,17 +205,16 @@ class MixtureDynamics(nn.Module, ExpertGroups):
         logits = F.linear(torch.cat([gate, tau], -1), self.router.weight[:n]) / tau
         group = torch.arange(n, device=za.device) // self.k
         own = task.unsqueeze(-1)
+        keep = group <= own if self.cfg.routing_scope == "own" else torch.ones_like(group <= own)
         if self.override == "uniform":
             logits = torch.zeros_like(logits)
-        if self.override == "prior":
+        elif self.override == "prior":
             check_on_device((task > 0).all(), "routing override 'prior': task 0 has no earlier "
                             "experts")  # fmt: skip
-            logits = logits.masked_fill(group >= own, float("-inf"))
+            keep = keep & (group < own)
         elif self.override == "new":
-            logits = logits.masked_fill(group != own, float("-inf"))
-        else:
-            logits = logits.masked_fill(group > own, float("-inf"))
-        return F.softmax(logits, dim=-1)
+            keep = group == own
+        return F.softmax(logits.masked_fill(~keep, float("-inf")), dim=-1)
 
     def features(self, za: torch.Tensor) -> torch.Tensor:
         """Active experts' features (..., num_active, mlp_dim), orthonormalised if set."""
