@@ -44,7 +44,8 @@ class PWMConfig(TDMPC2Config):
     by the router. Groups are allocated up front; only active ones are computed and trained."""
     orthogonalize: bool = False
     """Gram-Schmidt orthonormalise the expert features across experts (in activation order)
-    before mixing them."""
+    before mixing them. Off: the paper does not say, FACTS.md calls it optional; the authors'
+    later progressive driver turns it on."""
     router: str = "task"
     """Gate input: 'task' (one-hot task identity, as the authors) or 'state' ([z, a])."""
     routing_scope: str = "own"
