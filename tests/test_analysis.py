@@ -79,7 +79,8 @@ def test_routing_record_per_stage(pwm_run):
             assert t["routed_as"] == t["task_index"]
             assert t["samples"] > 0 and t["normalized_return"] is not None
             assert np.all(w[r["num_active"] :] == 0.0)  # inactive experts: exactly 0
-            assert np.all(w[: r["num_active"]] > 0.0)
+            scope = K * (t["task_index"] + 1)  # a task routes over its own and earlier groups
+            assert np.all(w[:scope] > 0.0) and np.all(w[scope:] == 0.0)
             assert w.sum() == pytest.approx(1.0, abs=1e-5)
 
 

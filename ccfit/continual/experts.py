@@ -11,10 +11,11 @@ What keeps training: the router's column of the current task, the encoder, and, 
 `freeze_shared` (the default), the mixture's shared parts: its output head and the router's
 temperature column, through which every task's dynamics passes. With them held from the
 second task on (Wang et al.'s progressive mixture, which the paper transfers; the authors'
-`sdp_freeze`), a frozen encoder and task-scoped routing (PWM's `routing_scope='own'`), a
-finished task's dynamics is exactly the one it finished with. Without (`freeze_shared=False`,
-the authors' driver default) the head moves under the frozen experts, and finished tasks'
-dynamics drift through it.
+`sdp_freeze`), a frozen encoder and PWM's defaults (the 'task' router, whose per-task columns
+no other task's update reaches, and `routing_scope='own'`), a finished task's dynamics is
+exactly the one it finished with; the 'state' router is shared by every task and keeps
+moving. Without (`freeze_shared=False`, the authors' driver default) the head moves under the
+frozen experts, and finished tasks' dynamics drift through it.
 
 The method sees only the backbone; it finds the `ExpertGroups` inside it (a model offering the
 'experts' capability), so it names no model.
