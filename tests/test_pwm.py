@@ -436,6 +436,12 @@ def test_a_task_routes_only_over_its_own_and_earlier_groups():
     assert torch.all(after[:, K : 2 * K] > 0) and not torch.allclose(after[:, :K], before[:, :K])
     with pytest.raises(ConfigError, match="routing_scope"):
         make_cfg(routing_scope="every")
+    # The temperature's entropy target counts the experts the task routes over.
+    assert dyn.target_entropy(0) == pytest.approx(0.75 * math.log(K))
+    assert dyn.target_entropy(2) == pytest.approx(0.75 * math.log(3 * K))
+    assert wide.dynamics.target_entropy(0) == pytest.approx(0.75 * math.log(2 * K))
+    with pytest.raises(ValueError, match="not active"), wide.routing_override("new"):
+        wide.routing_weights(z, a, 3)  # group 3 was never added
     # A batch mixing tasks (replay) routes each row in its own task's scope.
     mixed = model.routing_weights(z[:2], a[:2], torch.tensor([0, 2]))
     assert torch.all(mixed[0, K:] == 0) and torch.all(mixed[1, : dyn.num_active] > 0)
@@ -449,22 +455,28 @@ def _task_data(model: PWM, buf: ReplayBuffer, task: int) -> TaskData:
                                 backbone_loss=model.backbone_loss)  # fmt: skip
 
 
-@pytest.mark.parametrize("freeze_shared", [True, False])
-def test_progressive_experts_freeze_prior_experts_exactly(freeze_shared):
+@pytest.mark.parametrize("freeze_shared,keep_optimizer",
+                         [(True, False), (True, True), (False, False)])  # fmt: skip
+def test_progressive_experts_freeze_prior_experts_exactly(freeze_shared, keep_optimizer):
     """Earlier experts stay exactly as they were through task 1's updates (stale gradients and
-    Adam state included); with `freeze_shared` so do the output head and the router's tau
-    column, and then task 0's dynamics is exactly what it was after task 0."""
+    Adam state included); with `freeze_shared` so do the output head, the router's tau column
+    and task 0's router column, and then task 0's dynamics is exactly what it was after task
+    0, also when task 1 starts from task 0's Adam state (`keep_backbone_optimizer`)."""
+    from ccfit.train.update import backbone_optimizer_state, load_backbone_optimizer_state
+
     model = build()
     method = new_method("experts", num_tasks=2, freeze_shared=freeze_shared)
     dyn = model.dynamics
     z, a = latent_and_action(model)
     buffers = [make_buffer(0), make_buffer(1)]
-    moved_before_restore = False
+    moved_before_restore, carried = False, {}
     for task in range(2):
         model.begin_task(task)
         method.before_task(task, model.backbone)
         heads = model.new_heads()
         opt, popt = optimisers(model, heads)
+        if task == 1 and keep_optimizer:
+            load_backbone_optimizer_state(opt, model.backbone, carried)
         if task == 1:
             prior = snapshot(dyn.experts[:K])
             router, head = snapshot(dyn.router), snapshot(dyn.head)
@@ -492,6 +504,7 @@ def test_progressive_experts_freeze_prior_experts_exactly(freeze_shared):
             method.after_step(model.backbone)
             model.head_update(batch, heads, out, popt)
         method.after_task(task, model.backbone, _task_data(model, buffers[task], task))
+        carried = backbone_optimizer_state(opt, model.backbone)
     assert moved_before_restore  # the restore is what keeps them fixed
     assert all(torch.equal(v, prior[k]) for k, v in dyn.experts[:K].named_parameters())
     assert not any(torch.equal(v, new[k]) for k, v in dyn.experts[K : 2 * K].named_parameters())

@@ -9,7 +9,9 @@ expert while a finished task never routes into the experts added after it.
 
 What keeps training: the router's column of the current task, the encoder, and, unless
 `freeze_shared` (the default), the mixture's shared parts: its output head and the router's
-temperature column, through which every task's dynamics passes. With them held from the
+temperature column, through which every task's dynamics passes (`freeze_shared` also holds the
+finished tasks' router columns, which no gradient reaches but Adam's carried-over moments
+would move under `keep_backbone_optimizer`). With them held from the
 second task on (Wang et al.'s progressive mixture, which the paper transfers; the authors'
 `sdp_freeze`), a frozen encoder and PWM's defaults (the 'task' router, whose per-task columns
 no other task's update reaches, and `routing_scope='own'`), a finished task's dynamics is
@@ -51,8 +53,9 @@ class ProgressiveExpertsConfig(MethodConfig):
 
     freeze_shared: bool = True
     """From the second task on, also hold the mixture's shared parts (output head, the router's
-    temperature column) at their values after the first task, written back after every step
-    like the frozen experts. False: only the experts are frozen."""
+    temperature column) at their values after the first task, and finished tasks' router
+    columns, written back after every step like the frozen experts. False: only the experts
+    are frozen."""
 
 
 @register_method("experts", ProgressiveExpertsConfig)
@@ -92,7 +95,7 @@ class ProgressiveExperts(ContinualMethod):
         `freeze_shared`, the shared parts once a first task has trained them."""
         held = dict(groups.named_expert_parameters(range(self.task)))
         if self.cfg.freeze_shared and self.task >= 1:
-            held.update(groups.shared_tensors())
+            held.update(groups.shared_tensors(self.task))
         return held
 
     @torch.no_grad()

@@ -326,10 +326,11 @@ class ExpertGroups(ABC):
         """(name within this module, parameter) of the experts of `groups`."""
 
     @abstractmethod
-    def shared_tensors(self) -> dict[str, torch.Tensor]:
-        """What every task's dynamics passes through besides its experts (PWM: the output head
-        and the router's temperature column), by name, as tensors that write through to the
-        parameters (detached parameters or views of them)."""
+    def shared_tensors(self, finished: int) -> dict[str, torch.Tensor]:
+        """What the dynamics of tasks 0..finished-1 passes through besides their experts (PWM:
+        the output head, the router's temperature column and those tasks' router columns), by
+        name, as tensors that write through to the parameters (detached parameters or views of
+        them)."""
 
 
 def find_expert_groups(backbone: nn.Module) -> tuple[str, ExpertGroups] | None:

@@ -96,9 +96,14 @@ class MixtureDynamics(nn.Module, ExpertGroups):
             for name, p in self.experts[e].named_parameters():
                 yield f"experts.{e}.{name}", p
 
-    def shared_tensors(self) -> dict[str, torch.Tensor]:
+    def shared_tensors(self, finished: int) -> dict[str, torch.Tensor]:
         shared = {f"head.{name}": p.detach() for name, p in self.head.named_parameters()}
-        shared["router.weight[:, tau]"] = self.router.weight.detach()[:, -1]
+        weight = self.router.weight.detach()
+        shared["router.weight[:, tau]"] = weight[:, -1]
+        if self.cfg.router == "task" and finished > 0:
+            # No gradient reaches a finished task's column, but Adam's moments carried over
+            # from its own training (`keep_backbone_optimizer`) would still move it.
+            shared["router.weight[:, :finished]"] = weight[:, :finished]
         return shared
 
     def apply_trainability(self) -> None:
@@ -146,8 +151,12 @@ class MixtureDynamics(nn.Module, ExpertGroups):
         self.current_task.fill_(self.check_task(task))
         self.tau_hold[task] = self.cfg.hold_steps(task_steps)
 
-    def target_entropy(self) -> float:
-        return self.cfg.tau_target_frac * math.log(self.num_active)
+    def target_entropy(self, task: int) -> float:
+        """H_target of `task`: tau_target_frac * log(the experts it routes over)."""
+        scope = self.num_active
+        if self.cfg.routing_scope == "own":
+            scope = min(scope, (task + 1) * self.k)
+        return self.cfg.tau_target_frac * math.log(scope)
 
     @torch.no_grad()
     def step_temperature(self, entropies: torch.Tensor, task: int) -> None:
@@ -157,8 +166,9 @@ class MixtureDynamics(nn.Module, ExpertGroups):
         arithmetic on the buffers, so a GPU update never waits for the host."""
         cfg, task = self.cfg, self.check_task(task)
         entropies = torch.as_tensor(entropies, dtype=self.tau.dtype, device=self.tau.device)
+        target = self.target_entropy(task)
         for entropy in entropies.reshape(-1).unbind():
-            moved = self.tau[task] + cfg.tau_rate * torch.tanh(self.target_entropy() - entropy)
+            moved = self.tau[task] + cfg.tau_rate * torch.tanh(target - entropy)
             held = self.tau_updates[task] < self.tau_hold[task]
             self.tau[task] = torch.where(held, self.tau[task],
                                          moved.clamp(cfg.tau_min, cfg.tau_max))  # fmt: skip
@@ -213,6 +223,8 @@ class MixtureDynamics(nn.Module, ExpertGroups):
                             "experts")  # fmt: skip
             keep = keep & (group < own)
         elif self.override == "new":
+            check_on_device((task < self._groups).all(), "routing override 'new': the routed "
+                            "task's expert group is not active")  # fmt: skip
             keep = group == own
         return F.softmax(logits.masked_fill(~keep, float("-inf")), dim=-1)
 
