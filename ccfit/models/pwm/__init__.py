@@ -27,9 +27,10 @@ Gate input, `router`:
 - 'task' (default, as in the authors' code): the one-hot task identity over `max_tasks`,
   followed by tau. With a bias-free router this is a learnt per-task logit table (one column
   per task) plus a tau column shared by all tasks: training task t moves column t and the tau
-  column, so a finished task's routing over its own groups still drifts through the tau
-  column (as in the authors' default, which leaves the router trainable). A one-hot is used
-  instead of a learnt embedding because it needs no extra parameters.
+  column, so a finished task's routing over its own groups drifts through the tau column
+  unless the 'experts' method holds it (`freeze_shared`, its default; the authors' driver
+  leaves it trainable by default). A one-hot is used instead of a learnt embedding because it
+  needs no extra parameters.
 - 'state': [z, a, tau], routing that can change within an episode.
 Experts see [z, a]; the authors' code also feeds them the task one-hot (FACTS.md: [z, a]).
 
@@ -43,8 +44,8 @@ A task's tau starts at `tau_init`, is held for the first max(tau_hold_min, tau_h
 task steps) dynamics steps of that task's training (each update rolls out seq_len - 1), then
 after every training forward of the dynamics moves as tau <- clip(tau + tau_rate *
 tanh(H_target - H(w)), tau_min, tau_max), as the authors' router does on every training
-forward; H_target = tau_target_frac * log(active experts), H(w) that forward's mean routing
-entropy. Finished tasks keep their tau.
+forward; H_target = tau_target_frac * log(the experts the task routes over), H(w) that
+forward's mean routing entropy. Finished tasks keep their tau.
 
 Continual use, per task i: `model.begin_task(i, task_steps)`, then `model.new_heads()`
 (stamped with task i); `with model.routing_override("prior" | "new" | "uniform")` ablates the

@@ -62,7 +62,7 @@ class PWMConfig(TDMPC2Config):
     tau_rate: float = 0.02
     """Step of the entropy feedback: tau += tau_rate * tanh(H_target - H(w))."""
     tau_target_frac: float = 0.75
-    """H_target = tau_target_frac * log(active experts)."""
+    """H_target = tau_target_frac * log(the experts the task routes over)."""
     tau_hold_min: int = 5000
     """The temperature is held for the first max(tau_hold_min, tau_hold_frac * task_steps)
     dynamics steps of a task's training (seq_len - 1 per update)."""

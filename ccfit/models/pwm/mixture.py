@@ -215,7 +215,7 @@ class MixtureDynamics(nn.Module, ExpertGroups):
         logits = F.linear(torch.cat([gate, tau], -1), self.router.weight[:n]) / tau
         group = torch.arange(n, device=za.device) // self.k
         own = task.unsqueeze(-1)
-        keep = group <= own if self.cfg.routing_scope == "own" else torch.ones_like(group <= own)
+        keep = (group <= own) | (self.cfg.routing_scope == "all")
         if self.override == "uniform":
             logits = torch.zeros_like(logits)
         elif self.override == "prior":

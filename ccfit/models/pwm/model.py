@@ -144,8 +144,8 @@ class PWM(TDMPC2, Routing):
             )
         with self.routing_task(task), self.dynamics.recording_entropy() as record:
             out = super().loss(batch, h)
-        # No side effect here (the contract): the temperature steps in `head_update`, once
-        # per update of the task being trained, never when ER replays stored heads.
+        # No side effect here (the contract): the temperature steps in `head_update`, over the
+        # update of the task being trained (once per forward), never when ER replays stored heads.
         out.aux["routing_entropies"] = torch.stack(record)  # one per rollout step
         out.logs["routing_entropy"] = out.aux["routing_entropies"].mean()
         out.logs["tau"] = self.dynamics.tau[own.view(1)].squeeze(0)  # a copy, by a 1-d index
