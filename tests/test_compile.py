@@ -14,15 +14,17 @@ import numpy as np
 import pytest
 import torch
 
-from ccfit.models import make_model, model_names
+from ccfit.models import make_model
 from ccfit.models.registry import config_class, model_class
 from ccfit.train.compiled import compile_hot_paths, compiled_paths
 from ccfit.train.inductor_cache import pin_inductor_threads, pin_inductor_vector_width
 
 try:
     from replay_data import random_buffer
+    from shipped import shipped_models
 except ImportError:  # tests/ imported as a package
     from tests.replay_data import random_buffer
+    from tests.shipped import shipped_models
 
 
 SHORT_UNROLL = {
@@ -49,7 +51,7 @@ def _backends(fast_capture: set[str], later_inductor: set[str]) -> list:
     models of `fast_capture`, else `integration`; 'inductor' `integration` for the models of
     `later_inductor`, else slow."""
     params = []
-    for name in model_names():
+    for name in shipped_models():
         capture = () if name in fast_capture else (pytest.mark.integration,)
         inductor = pytest.mark.integration if name in later_inductor else pytest.mark.slow
         for backend, marks in (("aot_eager", capture), ("inductor", (inductor,))):
@@ -189,7 +191,7 @@ def test_a_kernel_compiled_for_one_vector_width_is_not_served_to_another(monkeyp
 
 def test_auto_compiles_only_what_was_measured_to_pay():
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
-    for name in model_names():
+    for name in shipped_models():
         cls = model_class(name)
         assert compiled_paths(cls, "off", cpu) == []
         assert compiled_paths(cls, "on", cpu) == list(cls.hot_paths)
@@ -238,7 +240,7 @@ def test_a_compiled_plan_stays_compiled_over_the_variants_a_run_meets(caplog):
 
 @pytest.mark.parametrize("name", [
     pytest.param(n, marks=() if n in FAST else pytest.mark.integration)
-    for n in model_names() if "plan" in model_class(n).hot_paths
+    for n in shipped_models() if "plan" in model_class(n).hot_paths
 ])  # fmt: skip
 def test_acting_compiles_one_plan_per_mode_and_batch_kind(name):
     # What a run meets: training acts on one episode, from a cold start and then warm;

@@ -18,6 +18,11 @@ from ccfit.continual.packnet import FREE, Phase
 from ccfit.models.base import Batch
 from ccfit.replay import ReplayBuffer
 
+try:
+    from shipped import shipped_methods
+except ImportError:  # tests/ imported as a package
+    from tests.shipped import shipped_methods
+
 STATE, ACT = 6, 2
 
 
@@ -497,7 +502,7 @@ def test_methods_on_tdmpc2_backbone(name):
         assert len(method_.owner) == len(linears) > 0
 
 
-@pytest.mark.parametrize("name,options", [*((n, {}) for n in method_names()),
+@pytest.mark.parametrize("name,options", [*((n, {}) for n in shipped_methods()),
                                           ("er", {"through_heads": True})])  # fmt: skip
 def test_an_update_under_a_method_reads_nothing_back_from_the_device(name, options, monkeypatch):
     """The second task's update under each method (its penalty, through the first task's

@@ -33,16 +33,17 @@ from ccfit.config import CurriculumConfig
 from ccfit.config_parse import parse_cli, resolve
 from ccfit.curriculum import Curriculum
 from ccfit.io import derived_seed
-from ccfit.models import model_names
 from ccfit.train import CONFIG, METRICS, build_model, resolved_config
 from ccfit.train.update import backbone_optimizer_state
 
 try:
     from metrics_by_hand import bwt_by_hand
+    from shipped import shipped_models
     from short_episodes import ccfit_command, shorter_episodes
     from stage_ends import assert_stage_ends_are_the_metrics
 except ImportError:  # tests/ imported as a package
     from tests.metrics_by_hand import bwt_by_hand
+    from tests.shipped import shipped_models
     from tests.short_episodes import ccfit_command, shorter_episodes
     from tests.stage_ends import assert_stage_ends_are_the_metrics
 
@@ -704,7 +705,7 @@ def test_a_models_suite_budget_sets_the_training_settings_unless_given(monkeypat
     assert pwm.train.steps == 6_000
 
 
-@pytest.mark.parametrize("model", model_names())
+@pytest.mark.parametrize("model", shipped_models())
 def test_every_measured_budget_names_a_suite_and_resolves(model):
     """Each registered model's `SUITE_TRAIN` entry names a real suite and preset and gives a
     valid state curriculum config holding those settings."""

@@ -14,14 +14,15 @@ import time
 
 import pytest
 
-from ccfit.models import model_names
 from ccfit.models.registry import model_class
 
 try:
+    from shipped import shipped_models
     from short_episodes import ccfit_command, smoke_curriculum
     from test_bench import update_rate
     from test_compile import test_compiled_hot_paths_compute_what_the_eager_ones_do as compiled
 except ImportError:  # tests/ imported as a package
+    from tests.shipped import shipped_models
     from tests.short_episodes import ccfit_command, smoke_curriculum
     from tests.test_bench import update_rate
     from tests.test_compile import (
@@ -35,7 +36,7 @@ TRAIN = {"steps": 100, "seed_steps": 50, "eval_interval": 50, "checkpoint_interv
 
 @pytest.mark.parametrize("compile, autocast", [("auto", "off"), ("graphs", "off"),
                                                ("auto", "bf16")])  # fmt: skip
-@pytest.mark.parametrize("name", model_names())
+@pytest.mark.parametrize("name", shipped_models())
 def test_smoke_curriculum_on_cuda(name, compile, autocast, tmp_path):
     # graphs: the loop keeps what hot paths return (logs, warm starts, latents) across calls;
     # bf16: what the `paper` preset's autocast=auto resolves to on a GPU
@@ -87,12 +88,12 @@ def test_killed_cuda_run_resumes_to_the_uninterrupted_result(method, tmp_path):
     assert (out / "metrics.jsonl").read_text() == (tmp_path / "full" / "metrics.jsonl").read_text()
 
 
-@pytest.mark.parametrize("name", model_names())
+@pytest.mark.parametrize("name", shipped_models())
 def test_compiled_equals_eager_on_cuda(name):
     compiled(name, "inductor", device="cuda")
 
 
-@pytest.mark.parametrize("name", model_names())
+@pytest.mark.parametrize("name", shipped_models())
 def test_cuda_graphs_equal_eager(name):
     # What `bench/update_rate.py --modes graphs` times must compute the same function.
     compiled(name, "inductor", device="cuda", setting="graphs")
@@ -106,5 +107,5 @@ def test_update_rate_bench_on_cuda():
     report = json.loads(done.stdout)
     assert report["device"].startswith("cuda") and report["device_name"]
     rows = {(r["model"], r["mode"]): r for r in report["results"]}
-    assert set(rows) == {(m, x) for m in model_names() for x in modes}
+    assert set(rows) == {(m, x) for m in shipped_models() for x in modes}
     assert all(r["update_s_median"] > 0 and r["act_s_median"] > 0 for r in rows.values())

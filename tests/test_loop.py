@@ -14,12 +14,14 @@ import torch
 from ccfit.config import TaskRunConfig, TrainConfig
 from ccfit.config_base import ConfigError
 from ccfit.config_parse import parse_cli, resolve
-from ccfit.models.registry import model_class, model_names
+from ccfit.models.registry import model_class
 from ccfit.replay import ReplayBuffer
 
 try:
+    from shipped import shipped_models
     from short_episodes import ccfit_command, smoke_train_argv
 except ImportError:  # tests/ imported as a package
+    from tests.shipped import shipped_models
     from tests.short_episodes import ccfit_command, smoke_train_argv
 
 pytestmark = pytest.mark.usefixtures("short_episodes")
@@ -169,7 +171,7 @@ def test_stop_score_ends_a_single_task_run_early_and_resumed_it_stays_ended(para
     assert read_run(out) is None
 
 
-@pytest.mark.parametrize("model", model_names())
+@pytest.mark.parametrize("model", shipped_models())
 def test_a_finished_run_extended_to_more_steps_ends_as_the_longer_run(model, tmp_path):
     """`ccfit train` again with a larger --train.steps goes on from the finished run's end;
     a model whose training reads the step budget (PWM's temperature hold) refuses."""

@@ -18,17 +18,19 @@ from torch import nn
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from ccfit.config_base import PRESETS, ConfigError
-from ccfit.models import ModelConfig, WorldModel, make_model, model_names
+from ccfit.models import ModelConfig, WorldModel, make_model
 from ccfit.models.base import LossOutput, select_state
 from ccfit.models.registry import config_class, model_class
 from ccfit.train.update import UpdateStep, backbone_optimizer_state, load_backbone_optimizer_state
 
 try:
     from replay_data import random_buffer
+    from shipped import shipped_models
 except ImportError:  # tests/ imported as a package
     from tests.replay_data import random_buffer
+    from tests.shipped import shipped_models
 
-NAMES = model_names()
+NAMES = shipped_models()
 MODES = ("state", "pixels")
 B = 8
 CLONING = [n for n in NAMES

@@ -174,6 +174,21 @@ def test_toy_is_registered_beside_the_builtin_models():
     assert {"toy", "tdmpc2", "pwm"} <= set(model_names())
 
 
+def test_the_toys_join_no_other_modules_cases():
+    # Registered on import, so present while later modules are collected: the tests
+    # parametrised over the shipped registries must not pick them up by collection order.
+    from ccfit.continual import method_names
+
+    try:
+        from shipped import shipped_methods, shipped_models
+    except ImportError:  # tests/ imported as a package
+        from tests.shipped import shipped_methods, shipped_models
+
+    assert "toy-anchor" in method_names() and "toy-anchor" not in shipped_methods()
+    assert "toy" not in shipped_models() and {"dreamerv3", "pwm", "tdmpc2"} <= set(shipped_models())
+    assert {"er", "ewc", "experts", "ft", "packnet"} <= set(shipped_methods())
+
+
 def test_loop_calls_the_model_as_its_contract_says(tmp_path, monkeypatch):
     import ccfit.train.evaluate
     from ccdata.env import make_env
