@@ -62,7 +62,9 @@ class TrainConfig:
     eval_episodes: int = 10
     """Episodes per evaluation, on a fixed set of layouts (the same at every evaluation)."""
     checkpoint_interval: int = 50_000
-    """Write a resumable checkpoint every this many task steps (and at the end)."""
+    """Write a resumable checkpoint every this many task steps (and at the end). One within the
+    run's first `seed_steps` that would wait for an evaluation still running in a worker is
+    written at the first episode end after it is done instead (or at the next one)."""
     checkpoint_minutes: float = 10.0
     """Also checkpoint at the first episode end after this many minutes of wall clock since
     the last checkpoint, so a killed job loses minutes at most (0 disables). Episode ends are

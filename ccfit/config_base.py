@@ -168,7 +168,10 @@ EXECUTION_SETTINGS = ("log", "train.parallel", "train.env_workers")
 """config.json settings of how a run is executed, not of what it computes: where it logs and how
 it spreads over processes (a parallel run's records equal the serial run's:
 `tests/test_parallel.py`). Runs that differ only in these are the same experiment."""
-NOT_IDENTITY = (*EXECUTION_SETTINGS, "out", *DATASET_RECORDS, ENCODER_RECORD)
+COMPILE_REASON = "resolved_compile_reason"
+"""config.json key of why `resolved_compile` holds what it does (`compile_choice`): a note for
+the reader, no part of the run's identity."""
+NOT_IDENTITY = (*EXECUTION_SETTINGS, "out", *DATASET_RECORDS, ENCODER_RECORD, COMPILE_REASON)
 """config.json settings a run may change when it is resumed (`EXECUTION_SETTINGS`, where its
 directory now is), and what it records of its datasets and encoder for the reader (runs made
 before those records existed resume; the encoder's is checked apart, where both configs hold

@@ -67,6 +67,7 @@ from ccfit.train.run import (
     build_model,
     check_same_encoder,
     check_saved_config,
+    compile_as_begun,
     encoder_record,
     make_evaluator,
     make_replay,
@@ -199,7 +200,7 @@ class Curriculum:
 
     def _run(self) -> dict:
         cfg, train = self.cfg, self.cfg.train
-        resolved = resolved_config(cfg, cfg.suite)
+        resolved = compile_as_begun(self.out, resolved_config(cfg, cfg.suite))
         if train.torch_threads > 0:
             torch.set_num_threads(train.torch_threads)
         tasks = cfg.tasks
@@ -210,7 +211,9 @@ class Curriculum:
             resolved[BRANCH_RECORD] = known
         if (self.out / CONFIG).exists():  # another run's state is refused, not restored
             check_saved_config(self.out, resolved)
-        model, method, stored, completed, pending, carried = restore(cfg, self.out, self.device)
+        model, method, stored, completed, pending, carried = restore(
+            cfg, self.out, self.device, resolved["resolved_compile"]
+        )
         source = resolved["resolved_seed_dataset"]
         # What does not fit fails here, before anything runs.
         plan = plan_run_replay(cfg, model, list(tasks), source)
@@ -226,7 +229,8 @@ class Curriculum:
         defer_scratch = bool(resolved["resolved_compile"]) and len(tasks) - completed > 1
         scratch_job = None if defer_scratch else start_scratch(cfg, scratch_dir)
         logger = RunLogger(self.out, cfg.log, resolved)
-        evaluator = make_evaluator(cfg, model, dict(enumerate(tasks)), method)
+        evaluator = make_evaluator(cfg, model, dict(enumerate(tasks)), method,
+                                   compiled=resolved["resolved_compile"])  # fmt: skip
         evaluator.heads.update(enumerate(stored))
         try:
             for request in logger.settle(pending)[1]:  # the saved weights are those it had
@@ -324,11 +328,13 @@ class Restored(NamedTuple):
     """The backbone's optimiser state the next task starts from (None: fresh)."""
 
 
-def restore(cfg: CurriculumConfig, run_dir: Path, device: torch.device) -> Restored:
-    """The saved state of `run_dir` (fresh when it has none yet). Global RNGs are seeded, or
-    restored from the saved state."""
+def restore(cfg: CurriculumConfig, run_dir: Path, device: torch.device,
+            compiled: list[str] | None = None) -> Restored:  # fmt: skip
+    """The saved state of `run_dir` (fresh when it has none yet), its model's hot paths
+    `compiled` (None: the config's choice, `build_model`). Global RNGs are seeded, or restored
+    from the saved state."""
     seed_everything(cfg.seed)
-    model = build_model(cfg, device)
+    model = build_model(cfg, device, compiled)
     method = make_method(cfg.method, len(cfg.tasks), cfg.seed)
     stored: list[torch.nn.Module] = []
     path = Path(run_dir) / STATE

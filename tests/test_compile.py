@@ -7,6 +7,7 @@ actions, compiled or eager, within floating-point tolerance (Inductor reassociat
 
 from __future__ import annotations
 
+import json
 import types
 import uuid
 
@@ -16,7 +17,7 @@ import torch
 
 from ccfit.models import make_model
 from ccfit.models.registry import config_class, model_class
-from ccfit.train.compiled import compile_hot_paths, compiled_paths
+from ccfit.train.compiled import compile_choice, compile_hot_paths, compiled_paths
 from ccfit.train.inductor_cache import pin_inductor_threads, pin_inductor_vector_width
 
 try:
@@ -197,6 +198,46 @@ def test_auto_compiles_only_what_was_measured_to_pay():
         assert compiled_paths(cls, "on", cpu) == list(cls.hot_paths)
         assert set(compiled_paths(cls, "auto", cpu)) <= set(cls.hot_paths)
         assert compiled_paths(cls, "auto", cuda) == list(cls.compile_pays.get("cuda", ()))
+
+
+def test_auto_compiles_only_in_a_run_long_enough_for_compiling_to_pay():
+    cpu = torch.device("cpu")
+    for name in shipped_models():
+        cls = model_class(name)
+        assert set(cls.compile_pays_from) <= set(cls.compile_pays), name
+        least = cls.compile_pays_from.get("cpu", 0)
+        paying = list(cls.compile_pays.get("cpu", ()))
+        if least:
+            paths, why = compile_choice(cls, "auto", cpu, least - 1)
+            assert paths == [] and f"{least - 1} steps per task, fewer than the {least}" in why
+        paths, why = compile_choice(cls, "auto", cpu, least)
+        assert paths == paying and why.startswith("auto: ")
+        assert compile_choice(cls, "on", cpu, 1)[0] == list(cls.hot_paths)  # asked for: done
+        assert compile_choice(cls, "off", cpu, 10**9) == ([], "train.compile=off: eager")
+
+
+def test_a_run_records_what_auto_chose_and_why_and_resumes_with_it(tmp_path):
+    from ccfit.config import TaskRunConfig
+    from ccfit.config_base import identity
+    from ccfit.config_parse import resolve
+    from ccfit.train.run import CONFIG, compile_as_begun, resolved_config
+
+    least = model_class("tdmpc2").compile_pays_from["cpu"]
+
+    def resolved(steps):
+        cfg = resolve(TaskRunConfig, {"task": "reach-xy", "preset": "cpu", "obs": "state",
+                                      "model": {"type": "tdmpc2"},
+                                      "train": {"steps": steps, "device": "cpu"}})  # fmt: skip
+        return resolved_config(cfg, None)
+
+    short, long = resolved(least // 2), resolved(least)
+    assert short["resolved_compile"] == [] and "fewer than" in short["resolved_compile_reason"]
+    assert long["resolved_compile"] == list(model_class("tdmpc2").compile_pays["cpu"])
+    assert "resolved_compile_reason" not in identity(long)  # a note for the reader
+    (tmp_path / CONFIG).write_text(json.dumps(short))
+    extended = compile_as_begun(tmp_path, long)  # `ccfit train --train.steps` raised
+    assert extended["resolved_compile"] == [] and extended["train"]["steps"] == least
+    assert compile_as_begun(tmp_path / "new", long) == long
 
 
 def test_autocast_auto_is_bf16_where_the_hardware_multiplies_in_bf16():

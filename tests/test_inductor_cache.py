@@ -4,7 +4,9 @@ removed and compiled again, not loaded ("file too short")."""
 from __future__ import annotations
 
 import _json
+import json
 import os
+import platform
 import shutil
 import subprocess
 import sys
@@ -13,7 +15,7 @@ from pathlib import Path
 import pytest
 from filelock import FileLock
 
-from ccfit.train.inductor_cache import drop_truncated_kernels, is_whole_elf
+from ccfit.train.inductor_cache import VEC_ISA_RECORD, drop_truncated_kernels, is_whole_elf
 
 pytestmark = pytest.mark.skipif(
     not sys.platform.startswith("linux"), reason="shared objects are ELF files on Linux only"
@@ -92,6 +94,9 @@ def test_shared_objects_cut_short_by_a_killed_compile_are_built_again(tmp_path):
         return set(tmp_path.rglob("*.so"))
 
     first = compile_in_a_process("prepare")
+    # Without its verdict on record, each process tests the instruction sets again (as a
+    # process does where a set failed): what those tests make of their libraries cut short.
+    (tmp_path / VEC_ISA_RECORD).unlink()
     built = shared_objects()  # the instruction set tests' libraries and the kernel's
     assert len(built) > 1 and all(map(is_whole_elf, built))
     for path in built:
@@ -102,3 +107,38 @@ def test_shared_objects_cut_short_by_a_killed_compile_are_built_again(tmp_path):
     assert again.stderr.count("cut short") == len(built)
     assert again.stdout == first.stdout
     assert built <= shared_objects() and all(map(is_whole_elf, built))
+
+
+ISA_CHILD = """
+import json, sys
+tests = []  # Inductor loads each instruction-set test's library in a fresh interpreter
+sys.addaudithook(lambda event, args: tests.append(1) if event == "subprocess.Popen"
+                 and "LoadLibrary" in " ".join(map(str, args[1] or ())) else None)
+from torch._inductor import cpu_vec_isa
+from ccfit.train.inductor_cache import settle_vec_isa_tests
+settle_vec_isa_tests()
+isas = [(str(isa), isa.build_arch_flags()) for isa in cpu_vec_isa.valid_vec_isa_list()]
+print(json.dumps({"tests": len(tests), "isas": isas, "picked": str(cpu_vec_isa.pick_vec_isa())}))
+"""
+
+
+@pytest.mark.skipif(
+    platform.machine() not in ("x86_64", "AMD64"),
+    reason="Inductor tests instruction sets in subprocesses on x86 alone",
+)
+def test_the_first_process_tests_the_instruction_sets_and_later_ones_read_its_record(tmp_path):
+    env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(tmp_path)}  # a cache of its own
+
+    def settle_in_a_process() -> dict:
+        done = subprocess.run([sys.executable, "-c", ISA_CHILD], env=env, capture_output=True,
+                              text=True, timeout=600)  # fmt: skip
+        assert done.returncode == 0, done.stderr
+        return json.loads(done.stdout.splitlines()[-1])
+
+    first = settle_in_a_process()
+    if not first["isas"]:
+        pytest.skip("no vector instruction set passes Inductor's tests here: nothing recorded")
+    assert first["tests"] > 0 and (tmp_path / VEC_ISA_RECORD).is_file()
+    later = settle_in_a_process()
+    assert later["tests"] == 0
+    assert later["isas"] == first["isas"] and later["picked"] == first["picked"]

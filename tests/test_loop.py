@@ -430,6 +430,85 @@ def test_trainer_calls_continual_hooks_once_per_update():
     assert any(not torch.equal(a, b) for a, b in zip(before, after, strict=True))
 
 
+class _HeldEvaluator:
+    """The in-line evaluator with the records of its step-0 evaluation held back until the
+    trainer reaches task step `release_at`, as a worker that is still starting holds them;
+    `waits`: the task steps at which the loop waited for held records."""
+
+    def __init__(self, inner, release_at: int) -> None:
+        self.inner, self.heads, self.release_at = inner, inner.heads, release_at
+        self.trainer, self.queue, self.waits = None, [], []
+
+    def submit(self, tasks, *, stage, global_step, task_step) -> None:
+        self.inner.submit(tasks, stage=stage, global_step=global_step, task_step=task_step)
+        request = {"tasks": list(tasks), "stage": stage, "global_step": global_step,
+                   "task_step": task_step}  # fmt: skip
+        self.queue.append((request, self.inner.results()))
+
+    def results(self, until=-1) -> list[dict]:
+        out = []
+        while self.queue:
+            request, records = self.queue[0]
+            ready = request["global_step"] > 0 or self.trainer.task_step >= self.release_at
+            must = until is None or (until >= 0 and request["global_step"] < until)
+            if not (ready or must):
+                break
+            if not ready:
+                self.waits.append(self.trainer.task_step)
+            out += records
+            self.queue.pop(0)
+        return out
+
+    @property
+    def pending(self) -> list[dict]:
+        return [request for request, _ in self.queue]
+
+
+@pytest.mark.parametrize(
+    "release_at, checkpoints, waits", [(70, [85, 120, 180], []), (150, [120, 180], [120])]
+)
+def test_the_seed_phase_checkpoint_does_not_wait_for_a_starting_evaluator(
+        release_at, checkpoints, waits, tmp_path):  # fmt: skip
+    """At the end of the run's seed phase (step 60), where the step-0 evaluation may still run
+    in a worker that is starting, the checkpoint is put off to the first episode end after its
+    records came (85; episodes of 25 steps, cut at 60 and 120), or waits at the next checkpoint
+    step (120) when they come later; the run computes what it computes with them in line."""
+    from ccdata import make_env
+    from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
+    from ccfit.train import Trainer
+
+    cfg = TrainConfig(steps=180, seed_steps=60, eval_interval=60, eval_episodes=1,
+                      checkpoint_interval=60, buffer_capacity=1000, device="cpu")  # fmt: skip
+
+    def run(out: Path, held: bool):
+        torch.manual_seed(0)
+        model = TDMPC2(TDMPC2Config.preset("smoke", batch_size=4), device="cpu")
+        evaluator = _HeldEvaluator(_evaluator(model), release_at) if held else _evaluator(model)
+        env = make_env("reach-xy", render=False)
+        trainer = Trainer(env=env, model=model, heads=model.new_heads(),
+                          buffer=ReplayBuffer(1000), config=cfg, seed=0, obs_mode="state",
+                          task_id="reach-xy", evaluator=evaluator, run_dir=out,
+                          progress=False)  # fmt: skip
+        written, real_checkpoint = [], trainer._checkpoint
+
+        def checkpoint() -> None:
+            written.append(trainer.task_step)
+            real_checkpoint()
+
+        trainer._checkpoint, evaluator.trainer = checkpoint, trainer
+        trainer.run()
+        env.close()
+        return written, evaluator, trainer
+
+    written, held, trainer = run(tmp_path / "held", held=True)
+    assert written == checkpoints and held.waits == waits
+    plain_written, _, plain = run(tmp_path / "plain", held=False)
+    assert plain_written == [60, 120, 180] and trainer.evals == plain.evals
+    assert _params(tmp_path / "held").keys() == _params(tmp_path / "plain").keys()
+    a, b = _params(tmp_path / "held"), _params(tmp_path / "plain")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
 @pytest.mark.parametrize("global_offset, burst", [(0, 5), (100, 0)])
 def test_pretrain_updates_run_once_on_the_runs_first_task_only(global_offset, burst):
     """`pretrain_updates` run at once when updates first become possible on a fresh model (the

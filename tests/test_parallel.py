@@ -178,6 +178,7 @@ def test_with_compiled_hot_paths_the_reference_starts_after_the_first_task(tmp_p
     # are then cached for it; an eager run's starts at once). The compiled paths are faked in
     # the resolved settings: compiling for real takes minutes, and the start reads only them.
     import ccfit.curriculum as curriculum
+    import ccfit.train.run as run_module
 
     real_resolved, real_start = curriculum.resolved_config, curriculum.start_scratch
     seen = []
@@ -191,6 +192,9 @@ def test_with_compiled_hot_paths_the_reference_starts_after_the_first_task(tmp_p
 
     monkeypatch.setattr(curriculum, "resolved_config", resolved)
     monkeypatch.setattr(curriculum, "start_scratch", start)
+    # The model is built with the faked paths; this process trains them eagerly.
+    monkeypatch.setattr(run_module, "compile_hot_paths",
+                        lambda model, setting, paths=None, **kw: list(paths or ()))  # fmt: skip
     torch.set_num_threads(1)
     with shorter_episodes():
         Curriculum(_config("on", "ft"), tmp_path / "run", tmp_path / "scratch",

@@ -169,6 +169,10 @@ class WorldModel(nn.Module, ABC):
     compile_pays: ClassVar[dict[str, tuple[str, ...]]] = {}
     """Per device type, the hot paths measured faster compiled (`bench/update_rate.py`):
     what `--train.compile=auto` compiles. A device type not listed was never measured."""
+    compile_pays_from: ClassVar[dict[str, int]] = {}
+    """Per device type of `compile_pays`, the fewest steps per task (`--train.steps`) from
+    which a run with those paths compiled measured faster than eager end to end, compiling
+    included (`bench/startup.py`): `auto` compiles nothing in a shorter run. Not listed: 0."""
     reads_task_budget: ClassVar[bool] = False
     """Whether training reads the task's step budget (`begin_task`'s `task_steps`) before the
     task ends. Where it does not, a finished `ccfit train` run can be extended to more steps

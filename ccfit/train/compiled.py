@@ -6,8 +6,9 @@
     graphs  every hot path compiled and replayed as CUDA graphs (`mode="reduce-overhead"`, as
             the official TD-MPC2's `compile=true`; CUDA only), its outputs copied out of the
             graphs' memory (`outputs_copied`)
-    auto    the hot paths measured to pay on this device type (`WorldModel.compile_pays`);
-            nothing on a device type never measured
+    auto    the hot paths measured to pay on this device type (`WorldModel.compile_pays`),
+            in a run long enough for compiling them to pay (`WorldModel.compile_pays_from`);
+            nothing on a device type never measured or in a shorter run
 
 The compiled functions are the model's own methods, traced by Dynamo and fused by Inductor;
 nothing is rewritten by hand. Random numbers inside compiled code come from torch's eager
@@ -29,13 +30,36 @@ from ccfit.models.base import WorldModel
 from ccfit.train.inductor_cache import prepare_inductor_cache
 
 
-def compiled_paths(model_class: type[WorldModel], setting: str, device: torch.device) -> list[str]:
-    """The methods `setting` compiles for `model_class` on `device` (what a run records)."""
+def compiled_paths(model_class: type[WorldModel], setting: str, device: torch.device,
+                   steps: int | None = None) -> list[str]:  # fmt: skip
+    """The methods `setting` compiles for `model_class` on `device` in a run of `steps` steps
+    per task (None: whatever its length); what a run records (`compile_choice`)."""
+    return compile_choice(model_class, setting, device, steps)[0]
+
+
+def compile_choice(model_class: type[WorldModel], setting: str, device: torch.device,
+                   steps: int | None = None) -> tuple[list[str], str]:  # fmt: skip
+    """What `setting` compiles for `model_class` on `device` in a run of `steps` steps per
+    task, and why, in a line (config.json records both). `auto` decides from the device type
+    and the run's length: compiling costs seconds (from Inductor's cache) to minutes (without)
+    per process, which only a long enough run wins back (`WorldModel.compile_pays_from`).
+    A function of the config alone, so a run resumes with what it began with."""
+    name = model_class.__name__
     if setting == "off":
-        return []
+        return [], "train.compile=off: eager"
     if setting in ("on", "graphs"):
-        return list(model_class.hot_paths)
-    return list(model_class.compile_pays.get(torch.device(device).type, ()))
+        return list(model_class.hot_paths), f"train.compile={setting}: every hot path"
+    kind = torch.device(device).type
+    paths = list(model_class.compile_pays.get(kind, ()))
+    if not paths:
+        return [], f"auto: no hot path of {name} was measured faster compiled on {kind}"
+    least = model_class.compile_pays_from.get(kind, 0)
+    if steps is not None and steps < least:
+        return [], (f"auto: {steps} steps per task, fewer than the {least} from which "
+                    f"compiling {name}'s {', '.join(paths)} measured faster than eager on "
+                    f"{kind}, compiling included")  # fmt: skip
+    size = f"{steps} steps per task, at least {least}" if steps is not None else "any length"
+    return paths, f"auto: {size}: {name}'s {', '.join(paths)} measured faster compiled on {kind}"
 
 
 def check_compile_device(setting: str, device: torch.device) -> None:

@@ -35,7 +35,9 @@ class WorkerSpec:
     encoder_path: str | None
     """The frozen pretrained encoder's file, if the run has one."""
     compile: str
-    """`--train.compile`: the worker compiles what the training process compiles."""
+    """`--train.compile` (how the paths compile: 'graphs' or not)."""
+    compiled: list[str]
+    """The hot paths the training process compiles: the worker compiles them too."""
     autocast: str
     """`--train.autocast`."""
     device: str
@@ -73,7 +75,7 @@ def _start(spec: WorkerSpec) -> None:
     if spec.encoder_path is not None:
         encoder, _ = load_frozen_encoder(spec.encoder_path, device=spec.device)
     model = make_model(spec.model, spec.device, encoder=encoder)
-    compile_hot_paths(model, spec.compile)
+    compile_hot_paths(model, spec.compile, paths=spec.compiled)
     method = make_method(spec.method, spec.num_tasks, spec.seed) if spec.method else None
     view = (lambda i: method.evaluating(i, model.backbone)) if method is not None else None
     _WORKER.update(model=model, method=method, heads={}, evaluator=Evaluator(

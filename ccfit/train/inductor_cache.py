@@ -11,10 +11,23 @@ Every process that compiles (`ccfit.train.compiled.compile_hot_paths`) calls
   Such files are removed (`drop_truncated_kernels`) and built again when next needed;
 - what it writes into a CPU kernel but leaves out of the kernel's cache key (the thread count,
   the vector width) is set explicitly, so that it is in the key (`pin_inductor_cache_key`).
-  The vector width is read from those tests, so the files cut short go first."""
+  The vector width is read from those tests, so the files cut short go first.
+
+It also spares every compiling process Inductor's instruction-set tests: to learn which vector
+instruction sets its kernels may use, Inductor builds a small library per candidate set and
+loads it in a fresh interpreter that imports torch (about 15 s per process on 2 cores, beside
+the run it delays). What they find is a fact of the machine, the compiler and torch, so the
+first process records each pass beside the cache and later ones read it
+(`settle_vec_isa_tests`)."""
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import json
+import os
+import platform
+import shutil
 import struct
 import sys
 from pathlib import Path
@@ -23,9 +36,15 @@ ELF_HEADER_BYTES = 64
 """An ELF64 header's size: a shorter shared object is cut short."""
 
 
+VEC_ISA_RECORD = "ccfit-vec-isa.json"
+"""The file in Inductor's cache directory that records the instruction-set tests passed."""
+
+
 def prepare_inductor_cache() -> list[Path]:
-    """Drop the shared objects cut short, then pin the cache key; returns the files dropped."""
+    """Drop the shared objects cut short, settle the instruction-set tests, then pin the cache
+    key; returns the files dropped."""
     dropped = drop_truncated_kernels()
+    settle_vec_isa_tests()
     pin_inductor_cache_key()
     return dropped
 
@@ -118,3 +137,79 @@ def pin_inductor_vector_width() -> int:
     config.simdlen = None  # what this process would pick unpinned (ATEN_CPU_CAPABILITY's)
     config.simdlen = cpu_vec_isa.pick_vec_isa().bit_width()
     return config.simdlen
+
+
+def settle_vec_isa_tests() -> None:
+    """Run each of Inductor's instruction-set tests once per machine, not once per process.
+
+    Inductor keeps an x86 vector instruction set that the CPU reports only if a small library
+    built with it (and one more per extension: AVX512-BF16, VNNI, AMX) loads in a fresh
+    interpreter (`VecISA.check_build`): a test of the compiler and of torch's build on this
+    CPU, which every compiling process repeats. Here each test's pass is recorded beside the
+    cache, keyed by what decides it (`vec_isa_key`, the compiler flags, the test's code), and
+    a test on record is not run again. A failure is not recorded: it may come from a test
+    library cut short, which `drop_truncated_kernels` removes, and the next process tests
+    again, as Inductor alone would. Installed once per process."""
+    from torch._inductor import cpu_vec_isa
+
+    tested = cpu_vec_isa.VecISA.check_build
+    if getattr(tested, "remembered", False):
+        return
+
+    def check_build(isa, code: str) -> bool:
+        record = _vec_isa_record()
+        key = hashlib.sha256(f"{vec_isa_key()}|{isa._arch_flags}|{code}".encode()).hexdigest()
+        if _read_json(record).get(key[:24]):
+            return True
+        passed = tested(isa, code)
+        if passed:
+            _add_vec_isa_pass(record, key[:24])
+        return passed
+
+    check_build.remembered = True
+    cpu_vec_isa.VecISA.check_build = check_build
+
+
+def _vec_isa_record() -> Path:
+    from torch._inductor.codecache import cache_dir
+
+    return Path(cache_dir()) / VEC_ISA_RECORD
+
+
+@functools.cache
+def vec_isa_key() -> str:
+    """What Inductor's instruction-set tests depend on beyond their own code and flags, hashed:
+    the instruction sets the CPU reports, the C++ compiler (its file's path, size and time;
+    asking it its version costs half a second) and torch's build."""
+    import torch
+    from torch._inductor import cpu_vec_isa
+    from torch._inductor.cpp_builder import get_cpp_compiler
+
+    compiler = shutil.which(get_cpp_compiler()) or get_cpp_compiler()
+    try:
+        stat = os.stat(compiler)
+        compiler_id = f"{os.path.realpath(compiler)}:{stat.st_size}:{stat.st_mtime_ns}"
+    except OSError:
+        compiler_id = compiler
+    reported = [*cpu_vec_isa.x86_isa_checker(), *(["avx512_bf16"] if
+                torch.cpu._is_avx512_bf16_supported() else [])]  # fmt: skip
+    parts = [platform.machine(), ",".join(reported), compiler_id, torch.__version__,
+             str(torch.version.git_version)]  # fmt: skip
+    return hashlib.sha256("|".join(parts).encode()).hexdigest()[:16]
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        value = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return value if isinstance(value, dict) else {}
+
+
+def _add_vec_isa_pass(record: Path, key: str) -> None:
+    """Add a passed test to `record`, atomically (processes testing at once each write what
+    they found; a pass another wrote meanwhile may be lost and is tested again later)."""
+    from ccdata.atomic import atomic_write_text
+
+    known = {**_read_json(record), key: True}
+    atomic_write_text(record, json.dumps(known, indent=2, sort_keys=True) + "\n")

@@ -12,7 +12,9 @@ C_i is that of the backbone the later tasks start from.
 Determinism: every episode's layout seed is derived from (seed, episode index), evaluation uses
 a fixed set of layouts, and the checkpoint stores every RNG state. The training episode in
 progress is cut (stored as truncated) at every evaluation and step-interval checkpoint, so a
-checkpoint never holds a half-played episode; wall-clock checkpoints wait for an episode end.
+checkpoint never holds a half-played episode; wall-clock checkpoints wait for an episode end, and
+so does a step-interval checkpoint at the end of the run's first seed phase while an evaluation
+from before it still runs in a worker (training goes on instead of waiting for it there).
 A resumed run therefore continues exactly as an uninterrupted one.
 """
 
@@ -111,6 +113,7 @@ class Trainer:
         self._episode: dict | None = None
         self._act_state: Any = None
         self._last_save = time.monotonic()
+        self._checkpoint_owed = False
         self._train_logs: dict[str, list] = defaultdict(list)
         self._replay_files: list[dict] = []
 
@@ -155,7 +158,10 @@ class Trainer:
                 if (self.task_step % cfg.checkpoint_interval == 0 and self.task_step > 0
                         and self.last_checkpoint != self.task_step):  # fmt: skip
                     self._cut_episode()
-                    self._checkpoint()
+                    if self._may_put_off_checkpoint():
+                        self._checkpoint_owed = True  # written once they are done, below
+                    else:
+                        self._checkpoint()
                 self._env_step()
                 if self.task_step >= cfg.seed_steps and self.buffer.can_sample(
                     self.model.cfg.seq_len
@@ -174,7 +180,7 @@ class Trainer:
                 # At an episode end (nothing is cut), and not at a step still to be evaluated:
                 # a run resumed from there would evaluate and log that step a second time.
                 if (self._episode is None and self.task_step % cfg.eval_interval != 0
-                        and self._wall_clock_due()):  # fmt: skip
+                        and (self._wall_clock_due() or self._owed_checkpoint_due())):  # fmt: skip
                     self._checkpoint()
             if not self.finished:
                 self._cut_episode()
@@ -227,7 +233,29 @@ class Trainer:
         minutes = self.cfg.checkpoint_minutes
         return minutes > 0 and time.monotonic() - self._last_save >= 60.0 * minutes
 
+    def _evaluations_before_now(self) -> bool:
+        """Whether evaluations submitted before this step are still running: a checkpoint
+        here would wait for them (it holds only this step's weights)."""
+        return any(r["global_step"] < self.global_step for r in self.evaluator.pending)
+
+    def _may_put_off_checkpoint(self) -> bool:
+        """Whether this step-interval checkpoint is put off instead of waiting for the
+        evaluations from before it: in the run's first seed phase only (its steps are random
+        actions, seconds to redo), where the worker is still starting and evaluating the
+        untrained model while training would otherwise wait for it. It is written at the
+        first episode end after they are done (`_owed_checkpoint_due`), or waits at the next
+        checkpoint step."""
+        return (not self._checkpoint_owed and self.global_step <= self.cfg.seed_steps
+                and self._evaluations_before_now())  # fmt: skip
+
+    def _owed_checkpoint_due(self) -> bool:
+        """Whether a put-off checkpoint can be written now, at an episode end, with no
+        evaluation from before this step left. Episode ends are natural cut points, so where
+        a checkpoint is written never changes what the run computes."""
+        return self._checkpoint_owed and not self._evaluations_before_now()
+
     def _checkpoint(self) -> None:
+        self._checkpoint_owed = False
         self.last_checkpoint = self.task_step
         self._last_save = time.monotonic()
         # Evaluations submitted at this step may still be running (their weights are the

@@ -21,6 +21,7 @@ from ccdata.errors import InputError
 from ccdata.render import RenderSettings
 from ccfit.config import BaseRunConfig, RunConfig, TaskRunConfig
 from ccfit.config_base import (
+    COMPILE_REASON,
     DATASET_RECORDS,
     ENCODER_RECORD,
     ConfigError,
@@ -36,6 +37,7 @@ from ccfit.replay import ReplayBuffer
 from ccfit.seeding import DEMO_POLICY, demonstration_rows, seed_buffer
 from ccfit.train.compiled import (
     check_compile_device,
+    compile_choice,
     compile_hot_paths,
     compiled_paths,
     resolve_autocast,
@@ -71,12 +73,15 @@ def resolved_config(cfg: RunConfig, suite: str | None, *, record_dataset: bool =
                           f"suite {suite} (`ccdata generate --suite {suite}`, name one, or "
                           f"--train.demo_fraction=0)")  # fmt: skip
     meta = dataset_meta(source, cfg.dataset_endpoint) if source and record_dataset else None
+    compiled, why = compile_choice(model_class(cfg.model.type), cfg.train.compile, device,
+                                   cfg.train.steps)  # fmt: skip
     return {
         **cfg.to_dict(),
         "resolved_seed_dataset": source,
         "resolved_seed_dataset_meta": meta,
         "resolved_device": str(device),
-        "resolved_compile": compiled_paths(model_class(cfg.model.type), cfg.train.compile, device),
+        "resolved_compile": compiled,
+        COMPILE_REASON: why,
         "resolved_autocast": resolve_autocast(cfg.train.autocast, device),
         "render": render_settings(cfg).to_dict(),
         **encoder_record(cfg),
@@ -93,12 +98,31 @@ def encoder_record(cfg: BaseRunConfig) -> dict:
     return {ENCODER_RECORD: weights_sha256(cfg.encoder_path)}
 
 
-def build_model(cfg: RunConfig, device: torch.device) -> WorldModel:
-    """The run's world model (`load_model`), its hot paths compiled as `cfg.train.compile`
-    says."""
+def build_model(cfg: RunConfig, device: torch.device, compiled: list[str] | None = None
+                ) -> WorldModel:  # fmt: skip
+    """The run's world model (`load_model`), its hot paths `compiled` (None: those
+    `cfg.train.compile` chooses for the run, `compile_choice`) compiled."""
     model = load_model(cfg, device)
-    compile_hot_paths(model, cfg.train.compile)
+    if compiled is None:
+        compiled = compiled_paths(type(model), cfg.train.compile, device, cfg.train.steps)
+    compile_hot_paths(model, cfg.train.compile, paths=compiled)
     return model
+
+
+def compile_as_begun(out: Path, resolved: dict) -> dict:
+    """`resolved` (a run's config.json) with the compile choice that the run in `out` began
+    with, where both chose with `auto`: a run extended (`ccfit train --train.steps`) or resumed
+    under code whose rule chooses otherwise goes on compiling what it compiled."""
+    saved = out / CONFIG
+    if not saved.is_file() or resolved["train"]["compile"] != "auto":
+        return resolved
+    old = json.loads(saved.read_text())
+    if old.get("train", {}).get("compile") != "auto" or "resolved_compile" not in old:
+        return resolved
+    if old["resolved_compile"] == resolved["resolved_compile"]:
+        return resolved
+    reason = old.get(COMPILE_REASON, "auto: as chosen when the run began")
+    return {**resolved, "resolved_compile": old["resolved_compile"], COMPILE_REASON: reason}
 
 
 def load_model(cfg: BaseRunConfig, device: torch.device) -> WorldModel:
@@ -169,9 +193,12 @@ def make_replay(cfg: RunConfig, model: WorldModel, task_id: str, task_index: int
 
 
 def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
-                   method=None) -> Evaluator | AsyncEvaluator:  # fmt: skip
+                   method=None, compiled: list[str] | None = None
+                   ) -> Evaluator | AsyncEvaluator:  # fmt: skip
     """The run's evaluator: in this process, or in a worker beside training
-    (`--train.parallel`); `method`: the continual method, whose view tasks are evaluated in."""
+    (`--train.parallel`); `method`: the continual method, whose view tasks are evaluated in;
+    `compiled`: the hot paths the run compiles (None: `build_model`'s choice), which a
+    worker compiles too."""
     parallel = parallel_on(cfg.train.parallel)
     env_workers = resolve_env_workers(cfg.train.env_workers, obs_mode=cfg.obs, parallel=parallel,
                                       episodes=cfg.train.eval_episodes)  # fmt: skip
@@ -180,6 +207,8 @@ def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
 
         spec = WorkerSpec(
             model=cfg.model, encoder_path=cfg.encoder_path, compile=cfg.train.compile,
+            compiled=compiled if compiled is not None else compiled_paths(
+                type(model), cfg.train.compile, model.device, cfg.train.steps),
             autocast=cfg.train.autocast,
             device=str(model.device), method=cfg.method if has_view(method) else None,
             num_tasks=len(getattr(cfg, "tasks", task_ids)), task_ids=task_ids, seed=cfg.seed,
@@ -304,6 +333,7 @@ def _train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, sav
     from ccdata.env import make_env
 
     extends = model_class(cfg.model.type) if extendable else None
+    saved = compile_as_begun(out, saved)
     if (out / CONFIG).exists():
         check_saved_config(out, saved, extends=extends)
     if cfg.train.torch_threads > 0:
@@ -311,7 +341,7 @@ def _train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, sav
     device = resolve_device(cfg.train.device)
     resumed = (out / CHECKPOINT).exists()
     seed_everything(cfg.seed)
-    model = build_model(cfg, device)
+    model = build_model(cfg, device, saved["resolved_compile"])
     model.begin_task(task_index, cfg.train.steps)
     # Seed data is read before anything is written: a bad dataset leaves no run directory. A
     # resumed run reads it no more (its checkpoint holds the replay, demonstrations included).
@@ -324,7 +354,8 @@ def _train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, sav
     if not resumed:  # records of a run killed before its first checkpoint
         logger.keep(lambda r: False)
     env = make_env(task_id, render=cfg.obs == "pixels", image_size=cfg.image_size)
-    evaluator = make_evaluator(cfg, model, {task_index: task_id})
+    evaluator = make_evaluator(cfg, model, {task_index: task_id},
+                               compiled=saved["resolved_compile"])  # fmt: skip
     trainer = Trainer(
         env=env, model=model, heads=model.new_heads(), buffer=buffer, evaluator=evaluator,
         config=cfg.train, seed=cfg.seed, obs_mode=cfg.obs, task_id=task_id,

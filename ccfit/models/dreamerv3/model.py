@@ -97,6 +97,10 @@ class DreamerV3(WorldModel, Prediction):
     # and optimiser steps break the graph; each task's new optimisers retrace it, ~3.5 s), both
     # 80.5 / 73.5. Acting costs ~0.3 ms either way.
     compile_pays = {"cpu": ("loss",)}
+    # A Reach curriculum of 2000 steps per task compiling the loss took 0.85x eager's time
+    # from an empty compile cache (docs/performance.md); 10 000, Reach's budget, lies above
+    # that point, not at a measured break-even.
+    compile_pays_from = {"cpu": 10_000}
 
     def __init__(
         self, cfg: DreamerV3Config, device: torch.device | str | None = None, encoder=None

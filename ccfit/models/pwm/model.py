@@ -49,6 +49,7 @@ class PWM(TDMPC2, Routing):
     # bench/update_rate.py, cpu preset, 1 thread: update 20.5 -> 17.1 ms and plan 7.5 ->
     # 5.1 ms compiled (the mixture's per-expert layers fuse).
     compile_pays = {"cpu": TDMPC2.hot_paths}
+    compile_pays_from = TDMPC2.compile_pays_from  # its update and plan cost more: pays sooner
     reads_task_budget = True  # the temperature hold is a share of the task's steps
 
     def __init__(

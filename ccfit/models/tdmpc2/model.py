@@ -111,6 +111,7 @@ class TDMPC2(WorldModel, Prediction):
     # bench/update_rate.py, cpu preset, 1 thread, Mish in closed form (layers.mish): update
     # (loss + backward + head_update) ~15 -> ~10 ms compiled, plan 5.2 -> 2.3 ms.
     compile_pays = {"cpu": hot_paths}
+    compile_pays_from = {"cpu": 5_000}  # bench/startup.py: see docs/performance.md
 
     def __init__(
         self,
