@@ -100,3 +100,19 @@ def test_eval_workers_bad_input_is_one_line_and_exit_2(args, message):
     done = subprocess.run([sys.executable, str(ROOT / "bench" / "eval_workers.py"), *args],
                           capture_output=True, text=True, timeout=120, cwd=ROOT)  # fmt: skip
     assert done.returncode == 2 and message in done.stderr.strip().splitlines()[-1]
+
+
+@pytest.mark.integration  # two short jobs in fresh interpreters, one with its cache filled
+def test_startup_times_the_first_steps_and_the_job_and_records_what_auto_chose(tmp_path):
+    done = subprocess.run([sys.executable, str(ROOT / "bench" / "startup.py"), "--variants",
+                           "auto", "--caches", "warm", "--rounds", "1", "--steps", "120",
+                           "--seed-steps", "60", "--eval-interval", "60", "--eval-episodes",
+                           "1", "--out", str(tmp_path)], capture_output=True, text=True,
+                          timeout=600, cwd=ROOT)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(done.stdout)
+    (run,) = report["runs"]["warm"]["auto"]
+    assert 0 < run["first_env_step_s"] < run["first_update_s"] < run["wall_s"]
+    assert run["compiled"] == [] and "120 steps per task, fewer than" in run["compile_reason"]
+    assert report["medians"]["warm"]["auto"]["wall_s"] == run["wall_s"]
+    assert "--train.steps=120" in report["job"]

@@ -122,6 +122,7 @@ print(json.dumps({"tests": len(tests), "isas": isas, "picked": str(cpu_vec_isa.p
 """
 
 
+@pytest.mark.integration  # Inductor's instruction-set tests from an empty cache: ~40 s
 @pytest.mark.skipif(
     platform.machine() not in ("x86_64", "AMD64"),
     reason="Inductor tests instruction sets in subprocesses on x86 alone",

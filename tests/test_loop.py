@@ -19,10 +19,10 @@ from ccfit.replay import ReplayBuffer
 
 try:
     from shipped import shipped_models
-    from short_episodes import ccfit_command, smoke_train_argv
+    from short_episodes import ccfit_command, shorter_episodes, smoke_train_argv
 except ImportError:  # tests/ imported as a package
     from tests.shipped import shipped_models
-    from tests.short_episodes import ccfit_command, smoke_train_argv
+    from tests.short_episodes import ccfit_command, shorter_episodes, smoke_train_argv
 
 pytestmark = pytest.mark.usefixtures("short_episodes")
 
@@ -464,49 +464,61 @@ class _HeldEvaluator:
         return [request for request, _ in self.queue]
 
 
-@pytest.mark.parametrize(
-    "release_at, checkpoints, waits", [(70, [85, 120, 180], []), (150, [120, 180], [120])]
-)
-def test_the_seed_phase_checkpoint_does_not_wait_for_a_starting_evaluator(
-        release_at, checkpoints, waits, tmp_path):  # fmt: skip
-    """At the end of the run's seed phase (step 60), where the step-0 evaluation may still run
-    in a worker that is starting, the checkpoint is put off to the first episode end after its
-    records came (85; episodes of 25 steps, cut at 60 and 120), or waits at the next checkpoint
-    step (120) when they come later; the run computes what it computes with them in line."""
+def _seed_phase_run(out: Path, release_at: int | None):
+    """A 180-step run (seed phase 60, evaluations and checkpoints every 60) into `out`, its
+    step-0 records held back until `release_at` (None: the in-line evaluator); returns the
+    steps its checkpoints were written at, its evaluator and its trainer."""
     from ccdata import make_env
     from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
     from ccfit.train import Trainer
 
     cfg = TrainConfig(steps=180, seed_steps=60, eval_interval=60, eval_episodes=1,
                       checkpoint_interval=60, buffer_capacity=1000, device="cpu")  # fmt: skip
+    torch.manual_seed(0)
+    model = TDMPC2(TDMPC2Config.preset("smoke", batch_size=4), device="cpu")
+    evaluator = _evaluator(model)
+    evaluator = evaluator if release_at is None else _HeldEvaluator(evaluator, release_at)
+    env = make_env("reach-xy", render=False)
+    trainer = Trainer(env=env, model=model, heads=model.new_heads(), buffer=ReplayBuffer(1000),
+                      config=cfg, seed=0, obs_mode="state", task_id="reach-xy",
+                      evaluator=evaluator, run_dir=out, progress=False)  # fmt: skip
+    written, real_checkpoint = [], trainer._checkpoint
 
-    def run(out: Path, held: bool):
-        torch.manual_seed(0)
-        model = TDMPC2(TDMPC2Config.preset("smoke", batch_size=4), device="cpu")
-        evaluator = _HeldEvaluator(_evaluator(model), release_at) if held else _evaluator(model)
-        env = make_env("reach-xy", render=False)
-        trainer = Trainer(env=env, model=model, heads=model.new_heads(),
-                          buffer=ReplayBuffer(1000), config=cfg, seed=0, obs_mode="state",
-                          task_id="reach-xy", evaluator=evaluator, run_dir=out,
-                          progress=False)  # fmt: skip
-        written, real_checkpoint = [], trainer._checkpoint
+    def checkpoint() -> None:
+        written.append(trainer.task_step)
+        real_checkpoint()
 
-        def checkpoint() -> None:
-            written.append(trainer.task_step)
-            real_checkpoint()
+    trainer._checkpoint, evaluator.trainer = checkpoint, trainer
+    trainer.run()
+    env.close()
+    return written, evaluator, trainer
 
-        trainer._checkpoint, evaluator.trainer = checkpoint, trainer
-        trainer.run()
-        env.close()
-        return written, evaluator, trainer
 
-    written, held, trainer = run(tmp_path / "held", held=True)
+@pytest.fixture(scope="module")
+def in_line_run(tmp_path_factory):
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)  # as the tests' own fixture sets it: the same reduction order
+    with shorter_episodes():
+        out = tmp_path_factory.mktemp("in-line")
+        written, _, trainer = _seed_phase_run(out, None)
+    torch.set_num_threads(before)
+    return out, written, trainer.evals
+
+
+@pytest.mark.parametrize("release_at, checkpoints, waits", [(70, [85, 120, 180], []),
+                                                            (150, [120, 180], [120])])  # fmt: skip
+def test_the_seed_phase_checkpoint_does_not_wait_for_a_starting_evaluator(
+        release_at, checkpoints, waits, in_line_run, tmp_path):  # fmt: skip
+    """At the end of the run's seed phase (step 60), where the step-0 evaluation may still run
+    in a worker that is starting, the checkpoint is put off to the first episode end after its
+    records came (85; episodes of 25 steps, cut at 60 and 120), or waits at the next checkpoint
+    step (120) when they come later; the run computes what it computes with them in line."""
+    written, held, trainer = _seed_phase_run(tmp_path, release_at)
     assert written == checkpoints and held.waits == waits
-    plain_written, _, plain = run(tmp_path / "plain", held=False)
-    assert plain_written == [60, 120, 180] and trainer.evals == plain.evals
-    assert _params(tmp_path / "held").keys() == _params(tmp_path / "plain").keys()
-    a, b = _params(tmp_path / "held"), _params(tmp_path / "plain")
-    assert all(torch.equal(a[k], b[k]) for k in a)
+    plain, plain_written, plain_evals = in_line_run
+    assert plain_written == [60, 120, 180] and trainer.evals == plain_evals
+    a, b = _params(tmp_path), _params(plain)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
 @pytest.mark.parametrize("global_offset, burst", [(0, 5), (100, 0)])
