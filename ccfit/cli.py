@@ -124,6 +124,15 @@ def _parse_config(cls, argv: list[str], prog: str, flags: dict[str, Flag]):
     raise AssertionError("--help did not exit")
 
 
+def _check_seed_dataset_as_run(cfg, suite: str | None, argv: list[str]) -> None:
+    """A run read back from a saved config.json seeds from the dataset it had (or stops)."""
+    from ccfit.config_parse import given_config_file
+    from ccfit.train.run import check_seed_dataset_as_run
+
+    if (given := given_config_file(argv)) is not None:
+        check_seed_dataset_as_run(cfg, suite, *given)
+
+
 def _fmt(x) -> str:
     return "n/a" if x is None else f"{x:.2f}"
 
@@ -131,9 +140,10 @@ def _fmt(x) -> str:
 def cmd_train(argv: list[str]) -> None:
     """ccfit train --task reach-xy --preset smoke --out runs/smoke  (see --help)"""
     from ccfit.config import TaskRunConfig
-    from ccfit.train.run import default_out, train_single
+    from ccfit.train.run import default_out, suite_of, train_single
 
     cfg, extra = _parse_config(TaskRunConfig, argv, "ccfit train", QUIET)
+    _check_seed_dataset_as_run(cfg, suite_of(cfg.task), argv)
     record = train_single(cfg, progress=not extra.get("quiet"))
     norm = record["normalized_return"]
     print(
@@ -160,6 +170,7 @@ def cmd_run(argv: list[str]) -> None:
 
     flags = QUIET | SCRATCH_ROOT | BRANCHING
     cfg, extra = _parse_config(CurriculumConfig, argv, "ccfit run", flags)
+    _check_seed_dataset_as_run(cfg, cfg.suite, argv)
     out = run_dir(cfg)
     for note in curriculum_notes(cfg.to_dict()):
         print(f"ccfit run: note: {note}", file=sys.stderr)

@@ -13,7 +13,9 @@ segment). This reads both runs' and prints, in this order:
 - the datasets' content digests, where either run recorded them;
 - the records: how many the runs share (an evaluation is keyed by stage, task and global step)
   and how many of those are equal, the first that differs, with every field that differs in
-  it, and how many only one run holds (a run still going, or stopped).
+  it, and how many only one run holds (a run still going, or stopped). Records are compared
+  on the fields both hold: a field one run's code did not record yet (e.g. `returns`, each
+  episode's return) is named, not counted as a difference.
 Any kind of run compares: curricula, single-task runs, offline runs (their evaluations are
 records too). `ccfit compare` exits 0 when the runs share records and every one is equal, 1
 when one differs or none is shared, 2 on bad input (a directory without config.json or
@@ -52,6 +54,8 @@ class Comparison:
     """The first shared record that differs: its key and the fields that differ."""
     only: tuple[int, int]
     """Records only A holds, only B holds."""
+    one_sided: tuple[list[str], list[str]] = ([], [])
+    """Record fields only A's shared records hold, only B's (left out of the comparison)."""
 
     @property
     def reproduces(self) -> bool:
@@ -95,10 +99,12 @@ def compare_runs(a: Path, b: Path) -> Comparison:
                                                    leave_out="the comparison")}
                for run in (a, b)]  # fmt: skip
     shared = sorted(records[0].keys() & records[1].keys())
-    differing = [k for k in shared if not _same(records[0][k], records[1][k])]
+    pairs = {k: _on_common_fields(records[0][k], records[1][k]) for k in shared}
+    differing = [k for k in shared if not _same(*pairs[k])]
+    held = [{f for k in shared for f in records[side][k]} for side in (0, 1)]
     first = None
     if differing:
-        ra, rb = records[0][differing[0]], records[1][differing[0]]
+        ra, rb = pairs[differing[0]]
         fields = {f: (ra.get(f), rb.get(f)) for f in sorted(ra.keys() | rb.keys())
                   if not _same(ra.get(f), rb.get(f))}  # fmt: skip
         stage, _, step = differing[0]
@@ -112,7 +118,14 @@ def compare_runs(a: Path, b: Path) -> Comparison:
         first_difference=first,
         only=(len(records[0].keys() - records[1].keys()),
               len(records[1].keys() - records[0].keys())),
+        one_sided=(sorted(held[0] - held[1]), sorted(held[1] - held[0])),
     )  # fmt: skip
+
+
+def _on_common_fields(a: dict, b: dict) -> tuple[dict, dict]:
+    """Two records on the fields both hold."""
+    both = a.keys() & b.keys()
+    return {k: a[k] for k in both}, {k: b[k] for k in both}
 
 
 def describe(comparison: Comparison, a: Path, b: Path) -> str:
@@ -131,6 +144,9 @@ def describe(comparison: Comparison, a: Path, b: Path) -> str:
         lines.append(f"{key}.content_sha256: {same} (A {_short(da)}; B {_short(db)})")
     lines.append(f"records: {c.shared} in both, {c.equal} equal; only in A {c.only[0]}, "
                  f"only in B {c.only[1]}")  # fmt: skip
+    for side, fields in zip("AB", c.one_sided, strict=True):
+        if fields:
+            lines.append(f"fields only {side}'s records hold (not compared): {', '.join(fields)}")
     if c.first_difference is not None:
         d = c.first_difference
         where = f"global step {d['global_step']}, {d['task']} (stage {d['stage']})"

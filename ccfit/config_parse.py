@@ -268,6 +268,14 @@ def parse_cli[C: BaseRunConfig](cls: type[C], argv: Sequence[str], prog: str | N
             raise ConfigError(f"{e}; see --help") from None
 
 
+def given_config_file(argv: Sequence[str]) -> tuple[dict, Path] | None:
+    """The saved config.json that `argv` reads defaults from (`--config_path FILE`), whole, with
+    what it recorded as resolved, and its path; None without one. Read after `parse_cli`,
+    which has refused a missing or malformed file."""
+    path = _preparse([_underscored(a) for a in argv]).get("config_path")
+    return (json.loads(Path(path).read_text()), Path(path)) if path else None
+
+
 def _underscored(arg: str) -> str:
     if not arg.startswith("--"):
         return arg

@@ -71,6 +71,7 @@ from ccfit.train.run import (
     encoder_record,
     make_evaluator,
     make_replay,
+    note_no_seed_dataset,
     plan_run_replay,
     resolved_config,
     train_task,
@@ -215,6 +216,7 @@ class Curriculum:
             cfg, self.out, self.device, resolved["resolved_compile"]
         )
         source = resolved["resolved_seed_dataset"]
+        note_no_seed_dataset(cfg, cfg.suite, source)
         # What does not fit fails here, before anything runs.
         plan = plan_run_replay(cfg, model, list(tasks), source)
         check_disk(plan, self.out)

@@ -17,6 +17,8 @@ import io
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from ccdata.errors import InputError
 from ccdata.suites import get_suite
 from ccfit.io import atomic_write_text
@@ -40,8 +42,13 @@ READING = (
     "the mean says more of how a task held up while another trained."
 )
 """How stages.md reads (printed under its title)."""
+READING_SE = (
+    "An end shown as `score ± SE` carries its standard error over its evaluation's episodes "
+    "(runs whose records hold each episode's return)."
+)
+"""Printed under `READING` where some end carries its standard error."""
 CSV_HEADER = ["backbone", "suite", "method", "variant", "seed", "run", "stage", "training",
-              "task", "evaluations", "mean", "successes", "episodes", "end"]  # fmt: skip
+              "task", "evaluations", "mean", "successes", "episodes", "end", "end_se"]  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -54,6 +61,9 @@ class StageCell:
     successes: int | None
     """Evaluation episodes that succeeded, None where the records do not say (offline)."""
     episodes: int | None
+    end_se: float | None = None
+    """The end's standard error over its evaluation's episodes (their normalised returns'
+    sample std / sqrt(episodes)), where its record holds each episode's return; else None."""
 
     @property
     def mean(self) -> float:
@@ -86,8 +96,23 @@ def stage_cells(records: list[dict], key: str, source: str = "records") -> list[
             stage, task, tuple(float(r[key]) for r in rs),
             sum(round(r["success_rate"] * r["episodes"]) for r in rs) if counted else None,
             sum(int(r["episodes"]) for r in rs) if counted else None,
+            end_standard_error(rs[-1]) if key == "normalized_return" else None,
         ))  # fmt: skip
     return cells
+
+
+def end_standard_error(record: dict) -> float | None:
+    """Standard error of an online record's normalised return over its episodes: the sample
+    std of the episodes' normalised returns / sqrt(episodes). None where the record holds no
+    per-episode returns (records before they were kept), fewer than two, or the task has no
+    oracle reference yet."""
+    from ccfit.train.evaluate import normalized_or_none
+
+    returns = record.get("returns") or []
+    scores = [normalized_or_none(record["task"], r) for r in returns]
+    if len(scores) < 2 or None in scores:
+        return None
+    return float(np.std(scores, ddof=1) / np.sqrt(len(scores)))
 
 
 def _ordered(run_groups: dict[GroupKey, list[Run]]) -> list[tuple[GroupKey, Run]]:
@@ -119,11 +144,14 @@ def write_stages(run_groups: dict[GroupKey, list[Run]], curve_keys: dict[str, st
         for c in stage_cells(run.records, curve_keys[run.track], str(run.path / METRICS)):
             n = len(c.scores)
             successes = "—" if c.successes is None else f"{c.successes}/{c.episodes}"
+            end = f"{c.end:.1f}" + ("" if c.end_se is None else f" ± {c.end_se:.1f}")
             lines.append(f"| {c.stage} | {names[c.stage]} | {names[c.task]} | {n} | "
-                         f"{c.mean:.1f} | {successes} | {c.end:.1f} |")  # fmt: skip
+                         f"{c.mean:.1f} | {successes} | {end} |")  # fmt: skip
             writer.writerow([backbone, suite, method, variant, run.seed, run.path.name, c.stage,
                              names[c.stage], names[c.task], n, c.mean, c.successes, c.episodes,
-                             c.end])  # fmt: skip
+                             c.end, c.end_se])  # fmt: skip
+    if any(" ± " in line for line in lines):
+        lines[2:3] = [READING, "", READING_SE]
     md, csv_path = out / STAGES_MD, out / STAGES_CSV
     atomic_write_text(md, "\n".join(lines) + "\n")
     atomic_write_text(csv_path, table.getvalue())

@@ -86,3 +86,23 @@ def test_a_directory_that_is_not_a_run_is_one_line_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith(f"ccfit: error: {tmp_path / 'empty' / 'config.json'}: missing")
     assert err.count("\n") == 1
+
+
+def test_a_field_only_one_runs_records_hold_is_named_and_not_compared(tmp_path, capsys):
+    """A run made by code that records each episode's return (`returns`) reproduces one made
+    before it recorded them, where their other fields agree; where those differ, it does not."""
+    a = write_run(tmp_path, "a", [10.0, 20.0, 30.0])
+    b = write_run(tmp_path, "b", [10.0, 20.0, 30.0])
+    c = write_run(tmp_path, "c", [10.0, 21.0, 30.0])
+    for run in (b, c):
+        lines = (run / "metrics.jsonl").read_text().splitlines()
+        with_returns = [{**json.loads(x), "returns": [-1.0, -2.0]} for x in lines]
+        (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in with_returns))
+    comparison = compare_runs(a, b)
+    assert comparison.reproduces and comparison.one_sided == ([], ["returns"])
+    assert main(["compare", str(a), str(b)]) == 0
+    assert "fields only B's records hold (not compared): returns" in capsys.readouterr().out
+    assert compare_runs(b, a).one_sided == (["returns"], [])
+    different = compare_runs(a, c)
+    assert not different.reproduces
+    assert different.first_difference["fields"] == {"normalized_return": (20.0, 21.0)}

@@ -323,3 +323,55 @@ def test_a_corrupt_ccdata_json_is_one_input_error(tiny_dataset, tmp_path):
     (root / "meta" / "info.json").write_text("{")
     with pytest.raises(InputError, match=r"cannot read LeRobot dataset at"):
         dataset_meta(root)
+
+
+def test_a_run_read_back_from_its_config_finds_its_seed_dataset_or_says_how_to_make_it(
+    tiny_dataset, tmp_path, capsys, monkeypatch
+):
+    """`--config_path` of a run whose `--seed_dataset auto` had found the suite's dataset: with
+    none there, or another one there, one line naming `ccdata generate`, exit 2; with the same
+    one, it runs. A run whose auto finds none says so at its start, in one line."""
+    import lerobot.utils.constants
+    import pyarrow.parquet as pq
+
+    from ccfit.cli import main
+    from ccfit.config import TaskRunConfig
+    from ccfit.config_parse import parse_cli
+    from ccfit.data import REWARD_KEY
+    from ccfit.train.run import check_seed_dataset_as_run, resolved_config
+
+    home = tmp_path / "home"
+    monkeypatch.setattr(lerobot.utils.constants, "HF_LEROBOT_HOME", home)
+    argv = ["train", "--task", "reach-xy", "--preset", "smoke", "--quiet", "--train.steps=60",
+            "--train.seed_steps=40", "--train.eval_interval=60",
+            "--train.eval_episodes=1"]  # fmt: skip
+    assert main([*argv, "--out", str(tmp_path / "none")]) == 0
+    (note,) = [x for x in capsys.readouterr().err.splitlines() if "seed_dataset" in x]
+    assert "found no Reach dataset" in note and "`ccdata generate --suite Reach`" in note
+
+    shutil.copytree(tiny_dataset[0], home / "ccdata" / "Reach")
+    cfg = parse_cli(TaskRunConfig, [a for a in argv[1:] if a != "--quiet"])
+    saved = resolved_config(cfg, "Reach")
+    assert saved["resolved_seed_dataset"] == str(home / "ccdata" / "Reach")
+    config = tmp_path / "config.json"
+    config.write_text(json.dumps(saved))
+    check_seed_dataset_as_run(cfg, "Reach", saved, config)  # the same dataset: runs
+    again = ["train", "--config_path", str(config), "--out", str(tmp_path / "again"), "--quiet"]
+
+    (frames,) = (home / "ccdata" / "Reach" / "data").rglob("*.parquet")
+    table = pq.read_table(frames)
+    rewards = table[REWARD_KEY].to_numpy().copy()
+    rewards[0] = np.nextafter(rewards[0], np.inf)
+    column = table.schema.get_field_index(REWARD_KEY)
+    pq.write_table(table.set_column(column, REWARD_KEY, [rewards]), frames)
+    assert main(again) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is not the one" in err and "(its data differ)" in err
+    assert "`ccdata generate --suite Reach`" in err and "--seed_dataset null" in err
+
+    shutil.rmtree(home / "ccdata" / "Reach")
+    assert main(again) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "which is not here" in err
+    assert "`ccdata generate --suite Reach`" in err and "--seed_dataset null" in err
+    assert not (tmp_path / "again").exists()

@@ -60,23 +60,32 @@ def test_only_shared_objects_cut_short_are_dropped_and_not_while_being_built(tmp
 
 
 CHILD = """
-import sys, torch
+import json, sys
+tests = []  # Inductor loads each instruction-set test's library in a fresh interpreter
+sys.addaudithook(lambda event, args: tests.append(1) if event == "subprocess.Popen"
+                 and "LoadLibrary" in " ".join(map(str, args[1] or ())) else None)
+import torch
+from torch._inductor import cpu_vec_isa
 from ccfit.train.inductor_cache import pin_inductor_cache_key, prepare_inductor_cache
 prepare_inductor_cache() if sys.argv[2] == "prepare" else pin_inductor_cache_key()
 x = torch.arange(64 * 64, dtype=torch.float32).reshape(64, 64) / 100
 f = torch.compile(lambda t: (t.sin() * float(sys.argv[1])).sum(0), backend="inductor")
-print(f(x).sum().item())
+value = f(x).sum().item()
+isas = [(str(isa), isa.build_arch_flags()) for isa in cpu_vec_isa.valid_vec_isa_list()]
+print(json.dumps({"value": value, "tests": len(tests), "isas": isas,
+                  "picked": str(cpu_vec_isa.pick_vec_isa())}))
 """
 
 
-@pytest.mark.integration  # three compiles from scratch: ~150 s of a core
+@pytest.mark.integration  # four compiling processes, three from an empty cache: ~150 s of a core
 def test_shared_objects_cut_short_by_a_killed_compile_are_built_again(tmp_path):
-    """What torch 2.11 does with them, each compile a process of its own as runs are (a
-    process that loaded a library gets it again whatever its file now holds): the libraries
-    that test each vector instruction set fail their tests silently when cut short, and the
-    kernel is compiled otherwise (a kernel cut short fails to load: "file too short", as the
-    PnPBoxClose reference met it). Dropped first, every file is built again under its name:
-    the same kernel, with the same instruction set."""
+    """Each compile a process of its own, as runs are (a process that loaded a library gets it
+    again whatever its file now holds). The first process in an empty cache runs Inductor's
+    instruction-set tests and records them; a later one starts none and picks the same set.
+    Then what torch 2.11 does with files cut short: the libraries that test each vector
+    instruction set fail their tests silently, and the kernel is compiled otherwise (a kernel
+    cut short fails to load: "file too short", as the PnPBoxClose reference met it). Dropped
+    first, every file is built again under its name: the same kernel, with the same set."""
     from torch._inductor import cpu_vec_isa
 
     if not cpu_vec_isa.valid_vec_isa_list():
@@ -84,16 +93,21 @@ def test_shared_objects_cut_short_by_a_killed_compile_are_built_again(tmp_path):
     env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(tmp_path)}  # a cache of its own
     scale = "1.25"
 
-    def compile_in_a_process(how: str) -> subprocess.CompletedProcess:
+    def compile_in_a_process(how: str) -> tuple[dict, str]:
         args = [sys.executable, "-c", CHILD, scale, how]
         done = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
         assert done.returncode == 0, done.stderr
-        return done
+        return json.loads(done.stdout.splitlines()[-1]), done.stderr
 
     def shared_objects() -> set[Path]:
         return set(tmp_path.rglob("*.so"))
 
-    first = compile_in_a_process("prepare")
+    first, _ = compile_in_a_process("prepare")
+    assert (tmp_path / VEC_ISA_RECORD).is_file()
+    if platform.machine() in ("x86_64", "AMD64"):  # Inductor tests sets in interpreters on x86
+        assert first["tests"] > 0
+    later, _ = compile_in_a_process("prepare")
+    assert later == {**first, "tests": 0}
     # Without its verdict on record, each process tests the instruction sets again (as a
     # process does where a set failed): what those tests make of their libraries cut short.
     (tmp_path / VEC_ISA_RECORD).unlink()
@@ -103,43 +117,7 @@ def test_shared_objects_cut_short_by_a_killed_compile_are_built_again(tmp_path):
         path.write_bytes(b"")  # a killed linker had created its output
     compile_in_a_process("pin")
     assert shared_objects() - built  # compiled otherwise, with the cut files left in place
-    again = compile_in_a_process("prepare")
-    assert again.stderr.count("cut short") == len(built)
-    assert again.stdout == first.stdout
+    again, stderr = compile_in_a_process("prepare")
+    assert stderr.count("cut short") == len(built)
+    assert again["value"] == first["value"] and again["isas"] == first["isas"]
     assert built <= shared_objects() and all(map(is_whole_elf, built))
-
-
-ISA_CHILD = """
-import json, sys
-tests = []  # Inductor loads each instruction-set test's library in a fresh interpreter
-sys.addaudithook(lambda event, args: tests.append(1) if event == "subprocess.Popen"
-                 and "LoadLibrary" in " ".join(map(str, args[1] or ())) else None)
-from torch._inductor import cpu_vec_isa
-from ccfit.train.inductor_cache import settle_vec_isa_tests
-settle_vec_isa_tests()
-isas = [(str(isa), isa.build_arch_flags()) for isa in cpu_vec_isa.valid_vec_isa_list()]
-print(json.dumps({"tests": len(tests), "isas": isas, "picked": str(cpu_vec_isa.pick_vec_isa())}))
-"""
-
-
-@pytest.mark.integration  # Inductor's instruction-set tests from an empty cache: ~40 s
-@pytest.mark.skipif(
-    platform.machine() not in ("x86_64", "AMD64"),
-    reason="Inductor tests instruction sets in subprocesses on x86 alone",
-)
-def test_the_first_process_tests_the_instruction_sets_and_later_ones_read_its_record(tmp_path):
-    env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(tmp_path)}  # a cache of its own
-
-    def settle_in_a_process() -> dict:
-        done = subprocess.run([sys.executable, "-c", ISA_CHILD], env=env, capture_output=True,
-                              text=True, timeout=600)  # fmt: skip
-        assert done.returncode == 0, done.stderr
-        return json.loads(done.stdout.splitlines()[-1])
-
-    first = settle_in_a_process()
-    if not first["isas"]:
-        pytest.skip("no vector instruction set passes Inductor's tests here: nothing recorded")
-    assert first["tests"] > 0 and (tmp_path / VEC_ISA_RECORD).is_file()
-    later = settle_in_a_process()
-    assert later["tests"] == 0
-    assert later["isas"] == first["isas"] and later["picked"] == first["picked"]

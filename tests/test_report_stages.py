@@ -79,3 +79,19 @@ def test_the_ends_are_the_end_of_task_and_final_scores(tmp_path):
     text = (tmp_path / "report" / STAGES_MD).read_text()
     assert "## tdmpc2, Reach, ft, seed 0 (`ft-s0`)" in text and "seed 1 (`ft-s1`)" in text
     assert text.index("seed 0") < text.index("seed 1")
+
+
+def test_an_end_carries_its_standard_error_where_its_record_holds_each_episodes_return():
+    """SE of an end: the sample std of its episodes' normalised returns / sqrt(episodes).
+    Returns -10, -20, -30 have std 10; normalising scales a return by 100 / (oracle - floor)."""
+    from ccdata.scoring import normalize
+
+    per_return = float(normalize("reach-xy", 1.0) - normalize("reach-xy", 0.0))
+    own = {**_record(0, 0, 100, 50.0, 0.4, 3), "task": "reach-xy", "returns": [-10.0, -20.0, -30.0]}
+    older = {**_record(0, 0, 0, 10.0, 0.0, 3), "task": "reach-xy"}  # kept no returns
+    (cell,) = stage_cells([older, own], "normalized_return")
+    assert abs(cell.end_se - per_return * 10.0 / 3**0.5) < 1e-9
+    (cell,) = stage_cells([own, {**own, "global_step": 200, "returns": None}], "normalized_return")
+    assert cell.end_se is None  # the end's own record says nothing of its episodes
+    (cell,) = stage_cells([{**own, "score": 1.0}], "score")  # offline scores: no episodes
+    assert cell.end_se is None

@@ -162,13 +162,16 @@ class EnvPool:
 
 def eval_record(task_id: str, task_index: int, stage: int, global_step: int,
                 task_step: int | None, res: EvalResult) -> dict:  # fmt: skip
-    """One line of metrics.jsonl."""
+    """One line of metrics.jsonl: the means over the episodes, and each episode's discounted
+    return (`returns`, in layout order), from which a score's spread and standard error
+    follow."""
     ret = res.discounted_return
     return {
         "task": task_id, "task_index": task_index, "stage": stage,
         "global_step": global_step, "task_step": task_step, "discounted_return": ret,
         "normalized_return": normalized_or_none(task_id, ret),
         "success_rate": res.success_rate, "episodes": len(res.returns),
+        "returns": [float(r) for r in res.returns],
     }  # fmt: skip
 
 

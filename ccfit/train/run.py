@@ -155,6 +155,47 @@ def dataset_source(cfg: RunConfig, suite: str | None) -> str | None:
     return str(root) if (root / "meta" / "info.json").is_file() else None
 
 
+def note_no_seed_dataset(cfg: RunConfig, suite: str | None, source: str | None) -> None:
+    """Say in one line, at a run's start, that `--seed_dataset auto` found no dataset: the
+    run then starts from an empty replay, which changes what it computes."""
+    if cfg.seed_dataset == "auto" and source is None and suite is not None:
+        from ccdata.settings import suite_dataset_root
+
+        print(f"ccfit: note: --seed_dataset auto found no {suite} dataset at "
+              f"{suite_dataset_root(suite)} (`ccdata generate --suite {suite}` makes it): replay "
+              "starts empty", file=sys.stderr)  # fmt: skip
+
+
+def check_seed_dataset_as_run(cfg: RunConfig, suite: str | None, saved: dict,
+                              path: Path) -> None:  # fmt: skip
+    """InputError unless a run made again from the config.json at `path` (read as `saved`)
+    seeds from the dataset it was run with: where that run's `--seed_dataset auto` found one,
+    the same one is found here, with the same content where the file records it (frames for
+    a state run, frames and videos for a pixel run). A rerun without it would part from the
+    recorded run at its first update, with no word why."""
+    if cfg.seed_dataset != "auto" or saved.get("seed_dataset") != "auto" or suite is None:
+        return
+    had = saved.get("resolved_seed_dataset")
+    if had is None:
+        return
+    make = (f"make it with `ccdata generate --suite {suite}` and the settings recorded in "
+            f"{path} (resolved_seed_dataset_meta.generated_with), or pass --seed_dataset null "
+            "to run without it")  # fmt: skip
+    source = dataset_source(cfg, suite)
+    if source is None:
+        raise InputError(f"{path} was run seeded from the {suite} dataset, which is not here "
+                         f"(it was at {had}): {make}")  # fmt: skip
+    recorded = (saved.get("resolved_seed_dataset_meta") or {}).get("content_sha256")
+    if not recorded:
+        return
+    parts = ("data",) if cfg.obs == "state" else ("data", "videos")
+    found = dataset_meta(source, cfg.dataset_endpoint)["content_sha256"]
+    differ = [part for part in parts if found.get(part) != recorded.get(part)]
+    if differ:
+        raise InputError(f"the {suite} dataset at {source} is not the one {path} was run with "
+                         f"(its {' and '.join(differ)} differ): {make}")  # fmt: skip
+
+
 def plan_run_replay(cfg: RunConfig, model: WorldModel, task_ids: list[str],
                     source: str | None) -> ReplayPlan:  # fmt: skip
     """`plan_replay` for a run over `task_ids` seeded from `source`, counting the
@@ -406,8 +447,9 @@ def train_single(cfg: TaskRunConfig, *, progress: bool = True) -> dict:
     it cost goes to `cost.json`. A run there of fewer `--train.steps` is extended to these
     (`train_task`)."""
     out = Path(cfg.out) if cfg.out else default_out(cfg)
+    resolved = resolved_config(cfg, suite_of(cfg.task))
+    note_no_seed_dataset(cfg, suite_of(cfg.task), resolved["resolved_seed_dataset"])
     with RunCost(out):
-        evals = train_task(cfg, out, task_id=cfg.task, task_index=0,
-                           saved=resolved_config(cfg, suite_of(cfg.task)),
+        evals = train_task(cfg, out, task_id=cfg.task, task_index=0, saved=resolved,
                            progress=progress, extendable=True)  # fmt: skip
     return evals[-1]
