@@ -61,6 +61,11 @@ class TrainConfig:
     """Evaluate every this many task steps (and at step 0 and at the end)."""
     eval_episodes: int = 10
     """Episodes per evaluation, on a fixed set of layouts (the same at every evaluation)."""
+    end_eval_episodes: int | None = None
+    """Episodes of the evaluation at each task's end, after the method closes the task (every
+    task evaluated there; the task's own is its end-of-task score C_i, one point where the
+    curves' other points are integrated): more episodes make C_i steadier. Its first
+    `eval_episodes` layouts are the other evaluations'. None: `eval_episodes`."""
     checkpoint_interval: int = 50_000
     """Write a resumable checkpoint every this many task steps (and at the end). One within the
     run's first `seed_steps` that would wait for an evaluation still running in a worker is
@@ -139,6 +144,9 @@ class TrainConfig:
                                        f"{self.torch_threads}")  # fmt: skip
         check(self.checkpoint_minutes >= 0, "train.checkpoint_minutes must be >= 0")
         check(self.stop_evals >= 1, f"train.stop_evals must be >= 1, got {self.stop_evals}")
+        check(self.end_eval_episodes is None or self.end_eval_episodes >= 1,
+              f"train.end_eval_episodes must be >= 1 (or null), got "
+              f"{self.end_eval_episodes}")  # fmt: skip
         check(0.0 <= self.demo_fraction < 1.0,
               f"train.demo_fraction must be in [0, 1), got {self.demo_fraction}")  # fmt: skip
         check(self.device in DEVICES, f"train.device must be one of {DEVICES}, got "

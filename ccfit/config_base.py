@@ -135,6 +135,7 @@ def resolve_device(name: str | torch.device) -> torch.device:
 LEGACY_VALUES: dict[str, Any] = {
     "train.demo_fraction": 0.0, "resolved_autocast": "off", "train.stop_score": None,
     "train.stop_evals": 3, "train.keep_backbone_optimizer": False,
+    "train.end_eval_episodes": None,
     "fit.keep_backbone_optimizer": False, "model.demo_bc_coef": 0.0,
 }  # fmt: skip
 """Settings added after runs were made, each with the value that reproduces what runs did

@@ -719,3 +719,33 @@ def test_a_second_process_on_the_same_run_directory_stops_in_one_line(tmp_path, 
     finally:
         first.kill()
         first.communicate()
+
+
+def test_the_task_end_evaluation_plays_end_eval_episodes_and_changes_nothing_else(tmp_path):
+    """`--train.end_eval_episodes 3` with `--train.eval_episodes 1`: the evaluation after the
+    task's close plays 3 layouts (3 returns kept), in line as in the evaluation worker; every
+    other evaluation and the trained weights are those of the run without it, and config.json
+    records the setting."""
+    from ccfit.cli import main
+
+    runs = {}
+    end3 = ["--train.end_eval_episodes=3"]
+    for name, extra in (("plain", []), ("end3", end3),
+                        ("worker", [*end3, "--train.parallel=on"])):  # fmt: skip
+        out = tmp_path / name
+        argv = smoke_train_argv(out, "--train.steps=120", "--train.seed_steps=60",
+                                "--train.eval_interval=60", "--train.eval_episodes=1",
+                                "--train.buffer_capacity=2000", *extra)  # fmt: skip
+        assert main(argv) == 0
+        records = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+        weights = torch.load(out / "checkpoint.pt", weights_only=False)["model"]
+        runs[name] = records, weights, json.loads((out / "config.json").read_text())
+    (plain, plain_weights, _), (end3, end3_weights, config) = runs["plain"], runs["end3"]
+    assert [r["global_step"] for r in end3] == [0, 60, 120]
+    assert [(r["episodes"], len(r["returns"])) for r in end3] == [(1, 1), (1, 1), (3, 3)]
+    assert end3[:2] == plain[:2]
+    assert all(torch.equal(plain_weights[k], end3_weights[k]) for k in plain_weights)
+    assert config["train"]["end_eval_episodes"] == 3
+    assert runs["worker"][0] == end3
+    assert main(["train", "--task", "reach-xy", "--preset", "smoke",
+                 "--train.end_eval_episodes=0"]) == 2  # fmt: skip

@@ -103,7 +103,8 @@ def _evaluate(request: dict, weights: dict, heads: dict[int, dict]) -> list[dict
         evaluator.heads[task] = _heads(task, state)
     return evaluator.evaluate(request["tasks"], stage=request["stage"],
                               global_step=request["global_step"],
-                              task_step=request["task_step"])  # fmt: skip
+                              task_step=request["task_step"],
+                              episodes=request.get("episodes"))  # fmt: skip
 
 
 def _copy(state: Mapping[str, Any]) -> dict:
@@ -134,9 +135,9 @@ class AsyncEvaluator:
         self._pool = worker_pool(1, initializer=_start, initargs=(spec,))
 
     def submit(self, tasks: Sequence[int], *, stage: int, global_step: int,
-               task_step: int | None) -> None:  # fmt: skip
+               task_step: int | None, episodes: int | None = None) -> None:  # fmt: skip
         request = {"tasks": list(tasks), "stage": stage, "global_step": global_step,
-                   "task_step": task_step}  # fmt: skip
+                   "task_step": task_step, "episodes": episodes}  # fmt: skip
         weights = {
             "model": _copy(self.model.state_dict()),
             "method": _copy(self.method.state_dict()) if self.method else None,

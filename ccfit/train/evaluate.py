@@ -202,10 +202,10 @@ class Evaluator:
         self._done: list[dict] = []
 
     def submit(self, tasks: Sequence[int], *, stage: int, global_step: int,
-               task_step: int | None) -> None:  # fmt: skip
+               task_step: int | None, episodes: int | None = None) -> None:  # fmt: skip
         """Evaluate `tasks` with the weights as they are now; see `evaluate`."""
         self._done += self.evaluate(tasks, stage=stage, global_step=global_step,
-                                    task_step=task_step)  # fmt: skip
+                                    task_step=task_step, episodes=episodes)  # fmt: skip
 
     def results(self, until: int | None = -1) -> list[dict]:
         """Records of submitted requests not returned yet, in submission order, after waiting
@@ -219,16 +219,17 @@ class Evaluator:
         return []
 
     def evaluate(self, tasks: Sequence[int], *, stage: int, global_step: int,
-                 task_step: int | None) -> list[dict]:  # fmt: skip
+                 task_step: int | None, episodes: int | None = None) -> list[dict]:  # fmt: skip
         """Records (metrics.jsonl lines) of `tasks` at this point; `task_step` is the step of
-        the task being trained, set on its own record only."""
+        the task being trained, set on its own record only; `episodes`: layouts each task
+        plays (None: the run's `episodes`; the first layouts are the same for any count)."""
         model = self.model
         was_training = model.training
         model.eval()
         records = []
         try:
             for i in tasks:
-                seeds = eval_seeds(self.seed, i, self.episodes)
+                seeds = eval_seeds(self.seed, i, episodes or self.episodes)
                 envs = self.envs.get(self.task_ids[i], len(seeds))
                 noise = derived_seed(self.seed, EVAL_NOISE_TAG, global_step, i)
                 with (

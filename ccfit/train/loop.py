@@ -185,7 +185,7 @@ class Trainer:
             if not self.finished:
                 self._cut_episode()
                 self._finish_task()
-                self._evaluate()
+                self._evaluate(episodes=self.cfg.end_eval_episodes)
                 self.finished = True
                 self._checkpoint()
             if not wait:
@@ -335,19 +335,23 @@ class Trainer:
             self.logger.log_scalars(dict(zip(keys, means, strict=True)), self.global_step)
         self._train_logs.clear()
 
-    def _evaluate(self) -> None:
+    def _evaluate(self, episodes: int | None = None) -> None:
         """Evaluate at this step: at a task's first step only the task itself (every earlier
         task was evaluated at this global step when the previous task ended), else every task
-        the evaluator holds heads for."""
+        the evaluator holds heads for; `episodes`: layouts per task (None: the run's)."""
         tasks = [self.task_index] if self.task_step == 0 else sorted(self.evaluator.heads)
-        self._submit({"tasks": tasks, "stage": self.task_index, "global_step": self.global_step,
-                      "task_step": self.task_step})  # fmt: skip
+        request = {"tasks": tasks, "stage": self.task_index, "global_step": self.global_step,
+                   "task_step": self.task_step}  # fmt: skip
+        self._submit(request if episodes is None else {**request, "episodes": episodes})
         self.last_eval = self.task_step
 
     def _submit(self, request: dict) -> None:
+        # Only a request that names its episodes passes them on, so an evaluator written to
+        # the interface before `end_eval_episodes` (a test double) still serves the others.
+        more = {"episodes": request["episodes"]} if request.get("episodes") else {}
         self.evaluator.submit(request["tasks"], stage=request["stage"],
                               global_step=request["global_step"],
-                              task_step=request["task_step"])  # fmt: skip
+                              task_step=request["task_step"], **more)  # fmt: skip
 
     def _collect(self, until: int | None = -1) -> int:
         """Log the evaluation records that are ready, in order; `until`: first wait for every
