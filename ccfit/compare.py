@@ -8,7 +8,8 @@ One config and seed give the same records on one kind of machine from the same d
 runs' records differ, the files beside them say what else did: config.json (the settings, and
 what the datasets held: `content_sha256`) and cost.json (the code and the machine of each
 segment). This reads both runs' and prints, in this order:
-- the settings that differ (flattened config.json keys; `out` and the dataset records aside);
+- the settings that differ (flattened config.json keys; `out` and the dataset records aside),
+  those that say only how a run was executed or why it chose what it did marked as such;
 - the code commits and machine kinds each run's segments ran on;
 - the datasets' content digests, where either run recorded them;
 - the records: how many the runs share (an evaluation is keyed by stage, task and global step)
@@ -27,7 +28,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from ccfit.config_base import DATASET_RECORDS
+from ccfit.config_base import DATASET_RECORDS, NOT_IDENTITY
 from ccfit.config_parse import flatten
 from ccfit.io import read_run_json
 from ccfit.report_cost import counted, machines_cell, run_cost
@@ -134,7 +135,7 @@ def describe(comparison: Comparison, a: Path, b: Path) -> str:
     lines = [f"A: {a}", f"B: {b}"]
     if c.settings:
         lines.append("settings that differ (A -> B):")
-        lines += [f"  {k}: {va!r} -> {vb!r}" for k, (va, vb) in c.settings.items()]
+        lines += [f"  {k}: {va!r} -> {vb!r}{_aside(k)}" for k, (va, vb) in c.settings.items()]
     else:
         lines.append("settings: the same")
     for part, (sa, sb) in c.segments.items():
@@ -158,6 +159,13 @@ def describe(comparison: Comparison, a: Path, b: Path) -> str:
         verdict = "B reproduces A's records" if c.reproduces else "B does not reproduce A's records"
         lines.append(f"{verdict} ({c.equal} of the {c.shared} both hold)")
     return "\n".join(lines) + "\n"
+
+
+def _aside(key: str) -> str:
+    """What a differing setting is, where it does not decide what a run computes."""
+    if any(key == path or key.startswith(path + ".") for path in NOT_IDENTITY):
+        return " (how it ran or a note: not part of the run's identity)"
+    return ""
 
 
 def _short(digests: dict | None) -> str:

@@ -103,6 +103,14 @@ def test_a_field_only_one_runs_records_hold_is_named_and_not_compared(tmp_path, 
     assert main(["compare", str(a), str(b)]) == 0
     assert "fields only B's records hold (not compared): returns" in capsys.readouterr().out
     assert compare_runs(b, a).one_sided == (["returns"], [])
+    # a setting that only says how a run ran, or why, is named as such
+    config = json.loads((b / "config.json").read_text())
+    config |= {"resolved_compile_reason": "auto: eager", "train": {"steps": 200, "parallel": "on"}}
+    (b / "config.json").write_text(json.dumps(config))
+    assert main(["compare", str(a), str(b)]) == 0
+    out = capsys.readouterr().out
+    assert "resolved_compile_reason: None -> 'auto: eager' (how it ran or a note: not" in out
+    assert "train.parallel: None -> 'on' (how it ran or a note: not part of the run's" in out
     different = compare_runs(a, c)
     assert not different.reproduces
     assert different.first_difference["fields"] == {"normalized_return": (20.0, 21.0)}
