@@ -124,12 +124,15 @@ def _parse_config(cls, argv: list[str], prog: str, flags: dict[str, Flag]):
     raise AssertionError("--help did not exit")
 
 
-def _check_seed_dataset_as_run(cfg, suite: str | None, argv: list[str]) -> None:
-    """A run read back from a saved config.json seeds from the dataset it had (or stops)."""
+def _check_seed_dataset_as_run(cfg, suite: str | None, argv: list[str], out: Path) -> None:
+    """A run made again from a saved config.json into `out` seeds from the dataset it had (or
+    stops). Where `out` already holds a run, it is resumed, and its own config.json is the
+    judge (`check_saved_config`: another dataset content there is a note)."""
     from ccfit.config_parse import given_config_file
-    from ccfit.train.run import check_seed_dataset_as_run
+    from ccfit.train.run import CONFIG, check_seed_dataset_as_run
 
-    if (given := given_config_file(argv)) is not None:
+    given = given_config_file(argv)
+    if given is not None and not (out / CONFIG).is_file():
         check_seed_dataset_as_run(cfg, suite, *given)
 
 
@@ -143,7 +146,7 @@ def cmd_train(argv: list[str]) -> None:
     from ccfit.train.run import default_out, suite_of, train_single
 
     cfg, extra = _parse_config(TaskRunConfig, argv, "ccfit train", QUIET)
-    _check_seed_dataset_as_run(cfg, suite_of(cfg.task), argv)
+    _check_seed_dataset_as_run(cfg, suite_of(cfg.task), argv, Path(cfg.out or default_out(cfg)))
     record = train_single(cfg, progress=not extra.get("quiet"))
     norm = record["normalized_return"]
     print(
@@ -170,8 +173,8 @@ def cmd_run(argv: list[str]) -> None:
 
     flags = QUIET | SCRATCH_ROOT | BRANCHING
     cfg, extra = _parse_config(CurriculumConfig, argv, "ccfit run", flags)
-    _check_seed_dataset_as_run(cfg, cfg.suite, argv)
     out = run_dir(cfg)
+    _check_seed_dataset_as_run(cfg, cfg.suite, argv, out)
     for note in curriculum_notes(cfg.to_dict()):
         print(f"ccfit run: note: {note}", file=sys.stderr)
     result = Curriculum(

@@ -132,6 +132,7 @@ def write_stages(run_groups: dict[GroupKey, list[Run]], curve_keys: dict[str, st
     """`stages.md` and `stages.csv` over `run_groups` (`ccfit.report.group_runs`), each run's
     scores read from the record field `curve_keys` names for its track."""
     lines = ["# Each task's score, stage by stage", "", READING]
+    with_se = False
     table = io.StringIO(newline="")
     writer = csv.writer(table)
     writer.writerow(CSV_HEADER)
@@ -145,13 +146,14 @@ def write_stages(run_groups: dict[GroupKey, list[Run]], curve_keys: dict[str, st
             n = len(c.scores)
             successes = "—" if c.successes is None else f"{c.successes}/{c.episodes}"
             end = f"{c.end:.1f}" + ("" if c.end_se is None else f" ± {c.end_se:.1f}")
+            with_se = with_se or c.end_se is not None
             lines.append(f"| {c.stage} | {names[c.stage]} | {names[c.task]} | {n} | "
                          f"{c.mean:.1f} | {successes} | {end} |")  # fmt: skip
             writer.writerow([backbone, suite, method, variant, run.seed, run.path.name, c.stage,
                              names[c.stage], names[c.task], n, c.mean, c.successes, c.episodes,
                              c.end, c.end_se])  # fmt: skip
-    if any(" ± " in line for line in lines):
-        lines[2:3] = [READING, "", READING_SE]
+    if with_se:
+        lines[3:3] = ["", READING_SE]
     md, csv_path = out / STAGES_MD, out / STAGES_CSV
     atomic_write_text(md, "\n".join(lines) + "\n")
     atomic_write_text(csv_path, table.getvalue())

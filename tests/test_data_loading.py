@@ -368,6 +368,12 @@ def test_a_run_read_back_from_its_config_finds_its_seed_dataset_or_says_how_to_m
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "is not the one" in err and "(its data differ)" in err
     assert "`ccdata generate --suite Reach`" in err and "--seed_dataset null" in err
+    # Into the directory that holds the run, it resumes: there the changed content is a note.
+    (tmp_path / "had").mkdir()
+    shutil.copy(config, tmp_path / "had" / "config.json")
+    assert main([*again[:3], "--out", str(tmp_path / "had"), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "holds other data than" in err and "is not the one" not in err
 
     shutil.rmtree(home / "ccdata" / "Reach")
     assert main(again) == 2
