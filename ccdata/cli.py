@@ -89,7 +89,7 @@ def _cmd_render(args: argparse.Namespace) -> None:
 def _cmd_references(args: argparse.Namespace) -> None:
     from ccdata.references import write_references
 
-    out = Path(args.out) if args.out else None
+    out = None if args.in_place else Path(args.out)
     path = write_references(tasks=args.task or None, episodes=args.episodes, path=out)
     print(f"wrote {path}")
 
@@ -316,12 +316,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--image-size", type=int, default=128)
     p.set_defaults(func=_cmd_render)
 
-    p = add_command(sub, "references", "regenerate the reference measurements (the package's "
-                    "references.json, which normalised scores read, unless --out)",
+    p = add_command(sub, "references", "regenerate the reference measurements into --out "
+                    "(or, with --in-place, the package's references.json, which normalised "
+                    "scores read)",
                     "ccdata references --task reach-xy --episodes 5 --out refs.json")  # fmt: skip
     p.add_argument("--task", action="append", help="only these tasks (repeatable)")
     p.add_argument("--episodes", type=int, default=50)
-    p.add_argument("--out", help="write the references here (default: the package's own)")
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--out", help="write the references here (a JSON file, added to if it "
+                       "holds references)")  # fmt: skip
+    where.add_argument("--in-place", action="store_true",
+                       help="rewrite the installed package's own references.json (a maintainer "
+                       "updating the published references)")  # fmt: skip
     p.set_defaults(func=_cmd_references)
 
     p = add_command(sub, "calibrate", "find each task's noisy-oracle noise (prints it)",

@@ -158,10 +158,12 @@ def cmd_train(argv: list[str]) -> None:
 
 def run_dir(cfg) -> Path:
     """Where a curriculum run goes: `--out`, else a name made from its config."""
+    from ccfit.run_files import run_name
+
     if cfg.out:
         return Path(cfg.out)
-    return Path("runs") / (f"{cfg.suite}-{cfg.model.type}-{cfg.method.type}-{cfg.obs}-"
-                           f"{cfg.preset}-s{cfg.seed}")  # fmt: skip
+    return Path("runs") / run_name(cfg.suite, cfg.model.type, cfg.method.type, cfg.obs,
+                                   cfg.preset, cfg.seed)  # fmt: skip
 
 
 def cmd_run(argv: list[str]) -> None:

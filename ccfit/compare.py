@@ -31,7 +31,7 @@ from pathlib import Path
 from ccfit.config_base import DATASET_RECORDS, NOT_IDENTITY
 from ccfit.config_parse import flatten
 from ccfit.io import read_run_json
-from ccfit.report_cost import counted, machines_cell, run_cost
+from ccfit.report.cost import counted, machines_cell, run_cost
 from ccfit.train import CONFIG, METRICS
 
 LEFT_ASIDE = ("out", *DATASET_RECORDS)

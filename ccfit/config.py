@@ -25,6 +25,7 @@ from ccfit.config_base import (
     DEVICES,
     PRESETS,
     ConfigError,
+    Presets,
     check,
     check_types,
     suite_tasks,
@@ -37,7 +38,7 @@ from ccfit.obs import OBS_MODES
 
 
 @dataclass
-class TrainConfig:
+class TrainConfig(Presets):
     """The online loop on one task (Algorithm 1's inner loop). Batch size, sequence length,
     update ratio and optimisers are the model's recipe (`--model.*`)."""
 
@@ -168,11 +169,6 @@ class TrainConfig:
         check(self.buffer_capacity >= EPISODE_STEPS + 1,
               f"train.buffer_capacity must be >= {EPISODE_STEPS + 1} (one episode), "
               f"got {self.buffer_capacity}")  # fmt: skip
-
-    @classmethod
-    def preset(cls, name: str, **overrides: Any) -> TrainConfig:
-        check(name in cls.PRESETS, f"unknown preset {name!r}; valid: {', '.join(PRESETS)}")
-        return cls(**{**cls.PRESETS[name], **overrides})
 
 
 COMPILE_SETTINGS: tuple[str, ...] = ("auto", "on", "off", "graphs")

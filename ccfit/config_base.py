@@ -88,22 +88,11 @@ def check_types(config: Any, finite: bool = False) -> None:
             check(math.isfinite(value), f"{cls.__name__}.{f.name} must be finite, got {value!r}")
 
 
-class ChoiceConfig:
-    """A config picked by its registered name (`--model.type=NAME`, `--method.type=ewc`):
-    the base of each kind's config, listed with `draccus.ChoiceRegistry` (draccus needs that
-    one as a direct base, and it gives each kind its own registry):
-
-        @dataclass
-        class ModelConfig(ChoiceConfig, draccus.ChoiceRegistry): ...
-
-    Subclasses are dataclasses; `PRESETS` maps a preset name to the fields it sets."""
+class Presets:
+    """A config dataclass with size presets (`--preset`): `PRESETS` maps a preset name to the
+    fields it sets; a name of `PRESETS` (the module's) that it does not list sets nothing."""
 
     PRESETS: ClassVar[dict[str, dict[str, Any]]] = {}
-
-    @property
-    def type(self) -> str:
-        """The registered name (what `--<group>.type` selects)."""
-        return self.get_choice_name(type(self))  # from draccus.ChoiceRegistry
 
     @classmethod
     def preset_fields(cls, name: str) -> dict[str, Any]:
@@ -111,12 +100,28 @@ class ChoiceConfig:
         return dict(cls.PRESETS.get(name, {}))
 
     @classmethod
-    def preset(cls, name: str, **overrides: Any) -> ChoiceConfig:
+    def preset(cls, name: str, **overrides: Any) -> Any:
         """This config at preset `name`, then `overrides`."""
         check(name in cls.PRESETS or name in PRESETS,
-              f"unknown preset {name!r} for {cls.__name__}; valid: "
+              f"unknown preset {name!r}; valid: "
               f"{', '.join(dict.fromkeys([*PRESETS, *cls.PRESETS]))}")  # fmt: skip
         return cls(**{**cls.preset_fields(name), **overrides})
+
+
+class ChoiceConfig(Presets):
+    """A config picked by its registered name (`--model.type=NAME`, `--method.type=ewc`):
+    the base of each kind's config, listed with `draccus.ChoiceRegistry` (draccus needs that
+    one as a direct base, and it gives each kind its own registry):
+
+        @dataclass
+        class ModelConfig(ChoiceConfig, draccus.ChoiceRegistry): ...
+
+    Subclasses are dataclasses with `PRESETS` (`Presets`)."""
+
+    @property
+    def type(self) -> str:
+        """The registered name (what `--<group>.type` selects)."""
+        return self.get_choice_name(type(self))  # from draccus.ChoiceRegistry
 
 
 def resolve_device(name: str | torch.device) -> torch.device:

@@ -1,4 +1,5 @@
-"""Algorithm 1: a suite's curriculum learnt continually, evaluated on every task seen so far.
+"""Algorithm 1 online: a suite's curriculum learnt in the environment, evaluated on every
+task seen so far (the track `ccfit.runner.CurriculumRunner` runs).
 
 For each task t in order: fresh heads; the continual method acts on the backbone only
 (`before_task`, `penalty`, `after_step`, `after_task`, `evaluating`); the heads train normally
@@ -27,45 +28,31 @@ Run directory:
 from __future__ import annotations
 
 import dataclasses
-import fcntl
-import hashlib
-import json
-import shutil
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
 
 import torch
 
 from ccdata.env import make_env
 from ccdata.processes import worker_pool
-from ccfit import metrics as M
 from ccfit.branch import RECORD as BRANCH_RECORD
 from ccfit.branch import STAGES, Branch, keep_stage, read_branch, start_branch
 from ccfit.config import CurriculumConfig
-from ccfit.config_base import ENCODER_RECORD, identity, resolve_device, without_setting
-from ccfit.continual.base import ContinualMethod, make_method
-from ccfit.io import (
-    atomic_torch_save,
-    atomic_write_json,
-    load_checkpoint,
-    rng_state,
-    seed_everything,  # fmt: skip
-    set_rng_state,
-)
+from ccfit.config_base import resolve_device
+from ccfit.continual.base import ContinualMethod
 from ccfit.models.base import WorldModel
-from ccfit.replay_store import ROWS_DIR
-from ccfit.train.cost import RunCost
+from ccfit.run_files import METRICS_JSON, ONLINE, ONLINE_STATE, REFERENCE_DONE
+from ccfit.runner import CurriculumRunner, Restored, Track, run_reference
+from ccfit.runner import restore as restore_run
 from ccfit.train.eval_worker import parallel_on
 from ccfit.train.loop import Trainer
-from ccfit.train.records import RunLogger, record_stage
+from ccfit.train.records import RunLogger
 from ccfit.train.resources import check_disk
 from ccfit.train.run import (
     CONFIG,
     build_model,
-    check_same_encoder,
     check_saved_config,
     compile_as_begun,
     encoder_record,
@@ -76,14 +63,13 @@ from ccfit.train.run import (
     resolved_config,
     train_task,
 )
-from ccfit.train.update import backbone_optimizer_state
 
-STATE = "curriculum.pt"
+STATE = ONLINE_STATE
 STATE_KIND = "ccfit-curriculum"
 STATE_VERSION = 3
-METRICS_JSON = "metrics.json"
-REFERENCE_DONE = "done.json"
-"""A from-scratch reference's records, written when it is finished (online and offline)."""
+
+__all__ = ["METRICS_JSON", "REFERENCE_DONE", "STATE", "Curriculum", "OnlineTrack", "load_run",
+           "run_scratch", "scratch_key"]  # fmt: skip
 
 
 @dataclass
@@ -102,55 +88,184 @@ StageCallback = Callable[[Stage], None]
 """Called after each finished task (before its state is saved), e.g. the routing record."""
 
 
+class OnlineTrack(Track):
+    """Each task trained in its environment by the shared `Trainer`, with fresh heads that are
+    frozen and stored when it ends; every task seen so far evaluated (in line, or in a worker
+    beside training with `--train.parallel`)."""
+
+    name = ONLINE
+    loop = "train"
+    state_file, state_kind, state_version = STATE, STATE_KIND, STATE_VERSION
+
+    def __init__(self, cfg: CurriculumConfig, callbacks: list[StageCallback] = (),
+                 keep_stages: bool = False, branch: Branch | None = None) -> None:  # fmt: skip
+        """`keep_stages`: keep the state after each task (`ccfit.branch`; a run that kept some
+        keeps the rest when resumed without it); `branch`: start the run as a branch of
+        another run (a new run directory; a resumed branch needs no `branch`)."""
+        super().__init__(cfg)
+        self.callbacks = list(callbacks)
+        self.keep_stages = keep_stages
+        self.branch = branch
+        self.evaluator = self.logger = None
+
+    @property
+    def budget(self) -> int:
+        return self.cfg.train.steps
+
+    def resolved_config(self, *, record_dataset: bool = True) -> dict:
+        return resolved_config(self.cfg, self.cfg.suite, record_dataset=record_dataset)
+
+    def begin(self, out: Path, progress: bool) -> dict:
+        cfg, train = self.cfg, self.cfg.train
+        self.out, self.progress = out, progress
+        self.keep_stages = self.keep_stages or (out / STAGES).is_dir()
+        resolved = compile_as_begun(out, self.resolved_config())
+        if train.torch_threads > 0:
+            torch.set_num_threads(train.torch_threads)
+        if self.branch is not None:
+            start_branch(self.branch, resolved, out, len(cfg.tasks), STATE)
+        known = read_branch(out)
+        if known is not None:
+            resolved[BRANCH_RECORD] = known
+        if (out / CONFIG).exists():  # another run's state is refused, not restored
+            check_saved_config(out, resolved)
+        return resolved
+
+    def build_model(self, device: torch.device, resolved: dict | None) -> WorldModel:
+        compiled = None if resolved is None else resolved["resolved_compile"]
+        return build_model(self.cfg, device, compiled)
+
+    def prepare(self, resolved: dict, restored: Restored, reference: Path) -> None:
+        cfg, out = self.cfg, self.out
+        self.resolved, self.restored, self.reference = resolved, restored, reference
+        self.source = resolved["resolved_seed_dataset"]
+        note_no_seed_dataset(cfg, cfg.suite, self.source)
+        # What does not fit fails here, before anything runs.
+        self.plan = plan_run_replay(cfg, restored.model, list(cfg.tasks), self.source)
+        check_disk(self.plan, out)
+        out.mkdir(parents=True, exist_ok=True)
+        check_saved_config(out, resolved)
+        # With compiled hot paths and tasks left after this one, the reference starts when this
+        # process has trained its first task: the compiled graphs are then in Inductor's cache,
+        # which the reference's process reads instead of compiling them beside this one.
+        self.defer_scratch = (bool(resolved["resolved_compile"])
+                              and len(cfg.tasks) - restored.completed > 1)  # fmt: skip
+        self.scratch_job = None if self.defer_scratch else start_scratch(cfg, reference)
+
+    def open(self, resolved: dict, restored: Restored) -> RunLogger:
+        cfg = self.cfg
+        self.stored = list(restored.stored_heads)
+        self.logger = RunLogger(self.out, cfg.log, resolved)
+        self.evaluator = make_evaluator(cfg, restored.model, dict(enumerate(cfg.tasks)),
+                                        restored.method,
+                                        compiled=resolved["resolved_compile"])  # fmt: skip
+        self.evaluator.heads.update(enumerate(self.stored))
+        for request in self.logger.settle(restored.pending)[1]:  # the weights it saved with
+            self.evaluator.submit(request["tasks"], stage=request["stage"],
+                                  global_step=request["global_step"],
+                                  task_step=request["task_step"])  # fmt: skip
+        return self.logger
+
+    def learn_task(self, index: int, folder: Path, resumed: bool,
+                   backbone_optim: dict | None) -> torch.optim.Optimizer:  # fmt: skip
+        cfg, train, model = self.cfg, self.cfg.train, self.restored.model
+        task = cfg.tasks[index]
+        heads = model.new_heads()
+        buffer = make_replay(cfg, model, task, index, None if resumed else self.source,
+                             self.plan)  # fmt: skip
+        env = make_env(task, render=cfg.obs == "pixels", image_size=cfg.image_size)
+        stored = self.stored
+        trainer = Trainer(
+            env=env, model=model, heads=heads, buffer=buffer, evaluator=self.evaluator,
+            config=train, seed=cfg.seed, obs_mode=cfg.obs, task_id=task, task_index=index,
+            logger=self.logger, method=self.restored.method, run_dir=folder,
+            global_offset=index * train.steps, progress=self.progress,
+            stored_heads_loss=lambda batch, j: model.loss(batch, stored[j]).total,
+            backbone_optim=backbone_optim,
+        )  # fmt: skip
+        try:
+            # The task's last evaluation runs on while the next task trains.
+            trainer.run(wait=False)
+        finally:
+            env.close()
+        if self.defer_scratch:
+            self.scratch_job, self.defer_scratch = start_scratch(cfg, self.reference), False
+        heads.requires_grad_(False)
+        heads.eval()
+        self.stored.append(heads)
+        # Only the optimiser leaves: this task's replay is released before the next task
+        # allocates its own (held, the two rings would coexist while the next one is seeded:
+        # twice the memory `plan_replay` checked).
+        return trainer.step.optim
+
+    def close_task(self, index: int) -> dict:
+        restored = self.restored
+        for callback in self.callbacks:
+            callback(Stage(self.out, self.cfg, restored.model, self.stored, restored.method,
+                           restored.model.device))  # fmt: skip
+        # The evaluation requests still running were all submitted with these weights (the
+        # task's checkpoint waited for earlier ones).
+        return {"heads": [h.state_dict() for h in self.stored],
+                "pending_evals": self.evaluator.pending}  # fmt: skip
+
+    def saved(self, state: Path, completed: int) -> None:
+        if self.keep_stages:
+            keep_stage(self.out, state, completed)
+
+    def finish(self) -> None:
+        for record in self.evaluator.results(until=None):
+            self.logger.log_eval(record)
+        if self.scratch_job is not None:
+            self.scratch_job.result()  # raises what the worker raised
+
+    def close(self) -> None:
+        try:
+            if self.evaluator is not None:
+                self.evaluator.close()
+        finally:
+            if self.logger is not None:
+                self.logger.close()
+
+    def describe(self) -> dict:
+        cfg = self.cfg
+        return dict(suite=cfg.suite, model=cfg.model.type, method=cfg.method.type,
+                    seed=cfg.seed, obs=cfg.obs, preset=cfg.preset)  # fmt: skip
+
+    def learn_reference(self, out: Path, progress: bool) -> list[dict]:
+        cfg = self.cfg
+        # Its config.json also records what the seed dataset and the encoder held (not part
+        # of the key).
+        meta = self.resolved_config()["resolved_seed_dataset_meta"]
+        saved = {**self.reference_config(), **encoder_record(cfg),
+                 "resolved_seed_dataset_meta": meta}  # fmt: skip
+        return train_task(cfg, out, task_id=cfg.tasks[-1], task_index=len(cfg.tasks) - 1,
+                          saved=saved, progress=progress)  # fmt: skip
+
+
+class Curriculum(CurriculumRunner):
+    """Runs (or resumes) one online continual run into `out` (`OnlineTrack`)."""
+
+    def __init__(self, cfg: CurriculumConfig, out: str | Path, scratch_root: str | Path | None,
+                 progress: bool = True, callbacks: list[StageCallback] = (),
+                 keep_stages: bool = False, branch: Branch | None = None) -> None:  # fmt: skip
+        super().__init__(OnlineTrack(cfg, callbacks, keep_stages, branch), out, scratch_root,
+                         progress)  # fmt: skip
+
+
 def scratch_config(cfg: CurriculumConfig) -> dict:
-    """config.json of the from-scratch reference: the run's, less what it does not depend
-    on (the method, the output directory, where the run logs)."""
-    resolved = identity(resolved_config(cfg, cfg.suite, record_dataset=False))
-    # A single task has no optimiser state to carry over.
-    resolved = without_setting(resolved, "train.keep_backbone_optimizer")
-    return {k: v for k, v in resolved.items() if k not in ("method", "out")}
+    """config.json of the from-scratch reference (`Track.reference_config`)."""
+    return OnlineTrack(cfg).reference_config()
 
 
 def scratch_key(cfg: CurriculumConfig) -> str:
-    """Runs with equal keys share one from-scratch reference: everything but the method and
-    the output directory (the device it ran on included)."""
-    digest = hashlib.sha1(json.dumps(scratch_config(cfg), sort_keys=True).encode()).hexdigest()
-    return f"{cfg.suite}-{cfg.model.type}-{cfg.obs}-{cfg.preset}-s{cfg.seed}-{digest[:8]}"
-
-
-# ============================================================================ the run
+    """The from-scratch reference's key (`Track.reference_key`)."""
+    return OnlineTrack(cfg).reference_key()
 
 
 def run_scratch(cfg: CurriculumConfig, out: Path, progress: bool = True) -> list[dict]:
-    """The composition task learnt from scratch with the curriculum's per-task budget.
-
-    Shared by every method's run: concurrent local runs take a file lock, so the first
-    trains it and the others wait and read its records (a cluster orders them by job
-    dependency instead)."""
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    done = out / REFERENCE_DONE
-    with open(out.parent / f".{out.name}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        try:
-            # A finished reference made through another encoder file is refused.
-            if done.is_file():
-                check_same_encoder(out, cfg.encoder, encoder_record(cfg).get(ENCODER_RECORD))
-                return json.loads(done.read_text())
-            n = len(cfg.tasks)
-            # Its config.json also records what the seed dataset and the encoder held (not
-            # part of the key).
-            meta = resolved_config(cfg, cfg.suite)["resolved_seed_dataset_meta"]
-            saved = {**scratch_config(cfg), **encoder_record(cfg),
-                     "resolved_seed_dataset_meta": meta}  # fmt: skip
-            evals = train_task(cfg, out, task_id=cfg.tasks[-1], task_index=n - 1, saved=saved,
-                               progress=progress)  # fmt: skip
-            atomic_write_json(done, evals)
-            (out / "checkpoint.pt").unlink(missing_ok=True)
-            shutil.rmtree(out / ROWS_DIR, ignore_errors=True)
-            return evals
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+    """The composition task learnt from scratch with the curriculum's per-task budget
+    (`ccfit.runner.run_reference`)."""
+    return run_reference(OnlineTrack(cfg), out, progress)
 
 
 def _scratch_worker(cfg: CurriculumConfig, out: Path, episode_steps: int) -> None:
@@ -175,194 +290,15 @@ def start_scratch(cfg: CurriculumConfig, out: Path) -> Future | None:
     return future
 
 
-class Curriculum:
-    """Runs (or resumes) one continual run into `out`."""
-
-    def __init__(self, cfg: CurriculumConfig, out: str | Path, scratch_root: str | Path | None,
-                 progress: bool = True, callbacks: list[StageCallback] = (),
-                 keep_stages: bool = False, branch: Branch | None = None) -> None:  # fmt: skip
-        """`keep_stages`: keep the state after each task (`ccfit.branch`; a run that kept some
-        keeps the rest when resumed without it); `branch`: start `out` as a branch of another
-        run (a new `out`; a resumed branch needs no `branch`)."""
-        self.cfg = cfg
-        self.out = Path(out)
-        self.scratch_root = Path(scratch_root) if scratch_root else self.out.parent / "scratch"
-        self.progress = progress
-        self.callbacks = list(callbacks)
-        self.keep_stages = keep_stages or (self.out / STAGES).is_dir()
-        self.branch = branch
-        self.device = resolve_device(cfg.train.device)
-
-    def run(self) -> dict:
-        """The curriculum to its end (resuming what `out` holds); what this call cost is
-        added to `out/cost.json` (the from-scratch reference's included when it ran here)."""
-        with RunCost(self.out):
-            return self._run()
-
-    def _run(self) -> dict:
-        cfg, train = self.cfg, self.cfg.train
-        resolved = compile_as_begun(self.out, resolved_config(cfg, cfg.suite))
-        if train.torch_threads > 0:
-            torch.set_num_threads(train.torch_threads)
-        tasks = cfg.tasks
-        if self.branch is not None:
-            start_branch(self.branch, resolved, self.out, len(tasks), STATE)
-        known = read_branch(self.out)
-        if known is not None:
-            resolved[BRANCH_RECORD] = known
-        if (self.out / CONFIG).exists():  # another run's state is refused, not restored
-            check_saved_config(self.out, resolved)
-        model, method, stored, completed, pending, carried = restore(
-            cfg, self.out, self.device, resolved["resolved_compile"]
-        )
-        source = resolved["resolved_seed_dataset"]
-        note_no_seed_dataset(cfg, cfg.suite, source)
-        # What does not fit fails here, before anything runs.
-        plan = plan_run_replay(cfg, model, list(tasks), source)
-        check_disk(plan, self.out)
-        self.out.mkdir(parents=True, exist_ok=True)
-        check_saved_config(self.out, resolved)
-        for i in range(completed):  # a run killed between saving a task and removing its folder
-            shutil.rmtree(self.out / "tasks" / f"{i}-{tasks[i]}", ignore_errors=True)
-        scratch_dir = (self.scratch_root / scratch_key(cfg)).resolve()
-        # With compiled hot paths and tasks left after this one, the reference starts when this
-        # process has trained its first task: the compiled graphs are then in Inductor's cache,
-        # which the reference's process reads instead of compiling them beside this one.
-        defer_scratch = bool(resolved["resolved_compile"]) and len(tasks) - completed > 1
-        scratch_job = None if defer_scratch else start_scratch(cfg, scratch_dir)
-        logger = RunLogger(self.out, cfg.log, resolved)
-        evaluator = make_evaluator(cfg, model, dict(enumerate(tasks)), method,
-                                   compiled=resolved["resolved_compile"])  # fmt: skip
-        evaluator.heads.update(enumerate(stored))
-        try:
-            for request in logger.settle(pending)[1]:  # the saved weights are those it had
-                evaluator.submit(request["tasks"], stage=request["stage"],
-                                 global_step=request["global_step"],
-                                 task_step=request["task_step"])  # fmt: skip
-            for i in range(completed, len(tasks)):
-                task_dir = self.out / "tasks" / f"{i}-{tasks[i]}"
-                resumed = (task_dir / "checkpoint.pt").exists()
-                if not resumed:  # forget stages a killed run had started but not checkpointed
-                    logger.keep(lambda r, i=i: record_stage(r) < i)
-                model.begin_task(i, train.steps)
-                method.before_task(i, model.backbone)
-                heads = model.new_heads()
-                buffer = make_replay(cfg, model, tasks[i], i, None if resumed else source, plan)
-                env = make_env(tasks[i], render=cfg.obs == "pixels", image_size=cfg.image_size)
-                trainer = Trainer(
-                    env=env, model=model, heads=heads, buffer=buffer, evaluator=evaluator,
-                    config=train, seed=cfg.seed, obs_mode=cfg.obs, task_id=tasks[i],
-                    task_index=i, logger=logger, method=method, run_dir=task_dir,
-                    global_offset=i * train.steps, progress=self.progress,
-                    stored_heads_loss=lambda batch, j: model.loss(batch, stored[j]).total,
-                    backbone_optim=carried,
-                )  # fmt: skip
-                try:
-                    # The task's last evaluation runs on while the next task trains.
-                    trainer.run(wait=False)
-                finally:
-                    env.close()
-                if defer_scratch:
-                    scratch_job, defer_scratch = start_scratch(cfg, scratch_dir), False
-                if train.keep_backbone_optimizer:
-                    carried = backbone_optimizer_state(trainer.step.optim, model.backbone)
-                heads.requires_grad_(False)
-                heads.eval()
-                stored.append(heads)
-                for callback in self.callbacks:
-                    callback(Stage(self.out, cfg, model, stored, method, self.device))
-                self._save(i + 1, model, method, stored, evaluator.pending, carried)
-                shutil.rmtree(task_dir, ignore_errors=True)
-                # Release this task's replay before the next task allocates its own: held here,
-                # the two rings would coexist while the next one is seeded (twice the memory
-                # `plan_replay` checked).
-                del trainer, buffer
-            for record in evaluator.results(until=None):
-                logger.log_eval(record)
-        finally:
-            evaluator.close()
-            logger.close()
-        if scratch_job is not None:
-            scratch_job.result()  # raises what the worker raised
-        scratch = run_scratch(cfg, scratch_dir, self.progress)
-        result = M.compute_metrics(logger.read_evals(), scratch, len(tasks), train.steps)
-        # Absolute: `ccfit report` may run from another working directory.
-        result.update(suite=cfg.suite, model=cfg.model.type, method=cfg.method.type,
-                      seed=cfg.seed, obs=cfg.obs, preset=cfg.preset,
-                      scratch_dir=str(scratch_dir))  # fmt: skip
-        atomic_write_json(self.out / METRICS_JSON, result)
-        return result
-
-    def _save(self, completed: int, model, method, stored, pending: list[dict],
-              backbone_optim: dict | None) -> None:  # fmt: skip
-        """The state after `completed` tasks; `pending`: evaluation requests still running,
-        all submitted with these weights (the task's checkpoint waited for earlier ones);
-        `backbone_optim`: the optimiser state the next task starts from (None: fresh)."""
-        atomic_torch_save({
-            "kind": STATE_KIND,
-            "version": STATE_VERSION,
-            "completed": completed,
-            "model": model.state_dict(),
-            "method": method.state_dict(),
-            "heads": [h.state_dict() for h in stored],
-            "pending_evals": pending,
-            "backbone_optim": backbone_optim,
-            "rng": rng_state(),
-        }, self.out / STATE)  # fmt: skip
-        if self.keep_stages:
-            keep_stage(self.out, self.out / STATE, completed)
-
-
 # ======================================================================= loading a run
-
-
-class Restored(NamedTuple):
-    """A run directory's saved state after its finished tasks (`restore`)."""
-
-    model: WorldModel
-    method: ContinualMethod
-    stored_heads: list[torch.nn.Module]
-    completed: int
-    """Tasks finished."""
-    pending: list[dict]
-    """Evaluation requests in flight when the state was saved."""
-    backbone_optim: dict | None
-    """The backbone's optimiser state the next task starts from (None: fresh)."""
 
 
 def restore(cfg: CurriculumConfig, run_dir: Path, device: torch.device,
             compiled: list[str] | None = None) -> Restored:  # fmt: skip
-    """The saved state of `run_dir` (fresh when it has none yet), its model's hot paths
-    `compiled` (None: the config's choice, `build_model`). Global RNGs are seeded, or restored
-    from the saved state."""
-    seed_everything(cfg.seed)
-    model = build_model(cfg, device, compiled)
-    method = make_method(cfg.method, len(cfg.tasks), cfg.seed)
-    stored: list[torch.nn.Module] = []
-    path = Path(run_dir) / STATE
-    if not path.exists():
-        return Restored(model, method, stored, 0, [], None)
-    state = load_checkpoint(path, STATE_KIND, STATE_VERSION)
-    # Model structure never changes shape (expert groups are allocated up front), so the
-    # states load directly; the next task's before_task continues from them.
-    model.load_state_dict(state["model"])
-    method.load_state_dict(state["method"])
-    for heads_state in state["heads"]:
-        heads = model.new_heads()
-        heads.load_state_dict(heads_state)
-        heads.requires_grad_(False)
-        heads.eval()
-        stored.append(heads)
-    set_rng_state(state["rng"])
-    # Older states were saved once their evaluations had finished.
-    return Restored(
-        model,
-        method,
-        stored,
-        int(state["completed"]),
-        list(state.get("pending_evals", [])),
-        state.get("backbone_optim"),
-    )
+    """The saved state of `run_dir` (`ccfit.runner.restore`), its model's hot paths
+    `compiled` (None: the config's choice, `build_model`)."""
+    resolved = None if compiled is None else {"resolved_compile": compiled}
+    return restore_run(OnlineTrack(cfg), run_dir, device, resolved)
 
 
 @dataclass

@@ -5,7 +5,7 @@ the layout from `LeRobotDatasetMetadata`, reads the parquet files with pyarrow, 
 camera's video file once, sequentially, with PyAV, cutting it into episodes by the episodes
 metadata (each episode's from/to timestamps inside its video file).
 
-`ccfit.seeding` turns the episodes into replay (the suite dataset seeds each task's replay).
+`ccfit.replay_prefill` turns the episodes into replay (the suite dataset seeds each task's replay).
 """
 
 from __future__ import annotations

@@ -27,19 +27,25 @@ from pathlib import Path
 
 from ccdata.errors import InputError
 from ccfit.analysis.learnability import finished_task_runs, write_learnability
-from ccfit.curriculum import METRICS_JSON
 from ccfit.report import group_metrics, group_runs, write_overview_of, write_report
-from ccfit.report_cost import run_cost
-from ccfit.report_runs import Run, find_runs, scratch_dir_of
-from ccfit.sweep.grid import SCRATCH, SCRATCH_DONE, SWEEP_JSON
-from ccfit.train.cost import COST
+from ccfit.report.cost import run_cost
+from ccfit.report.runs import Run, find_runs, scratch_dir_of
+from ccfit.run_files import (
+    CONFIG,
+    COST,
+    METRICS_JSON,
+    METRICS_JSONL,
+    REFERENCE_DONE,
+    SCRATCH,
+    SWEEP_JSON,
+)
 
-RUN_FILES = ("config.json", "metrics.json", "metrics.jsonl", "cost.json", "routing.jsonl")
+RUN_FILES = (CONFIG, METRICS_JSON, METRICS_JSONL, COST, "routing.jsonl")
 """What a published run keeps (those of them it has): settings, metrics, records, cost."""
-SCRATCH_FILES = ("config.json", SCRATCH_DONE, "metrics.jsonl", "cost.json")
+SCRATCH_FILES = (CONFIG, REFERENCE_DONE, METRICS_JSONL, COST)
 MAX_FILE_BYTES = 2_000_000
 """A published file larger than this is refused: results are for small files only."""
-TASK_RUN_FILES = ("config.json", "metrics.jsonl", "cost.json")
+TASK_RUN_FILES = (CONFIG, METRICS_JSONL, COST)
 """What a published single-task run keeps: all that `ccfit learnability` reads."""
 REPORT = "report"
 LEARNABILITY = "learnability"

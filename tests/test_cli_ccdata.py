@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import av
 import cv2
@@ -172,6 +173,22 @@ def test_references_are_reproducible(tmp_path):
     ref = a["tasks"]["reach-xy"]
     assert ref["success_rate"] == 1.0
     assert -5.0 < ref["mean_discounted_return"] < 0.0
+
+
+def test_references_write_into_the_package_only_when_asked(capsys):
+    """The maintainer command names where it writes: without --out or --in-place it stops in
+    one line, before any rollout, and the installed references.json stays as it was."""
+    import ccdata.references
+
+    package_file = Path(ccdata.references.__file__).with_name(ccdata.references.REFERENCE_FILE)
+    before = package_file.read_bytes()
+    for argv in (["references", "--task", "reach-xy"], ["references", "--out", "x.json",
+                                                          "--in-place"]):  # fmt: skip
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and "--in-place" in err and "--out" in err
+    assert package_file.read_bytes() == before
 
 
 def test_references_out_that_cannot_take_them_is_one_line_before_any_rollout(tmp_path, capsys):

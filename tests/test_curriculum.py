@@ -130,14 +130,14 @@ def runs(tmp_path_factory):
         current[-1].evals.append((envs[0].task_id, heads, trainable, heads.training))
         return real_play(envs, model, heads, **kwargs)
 
-    def spy_save(self, completed, model, method, stored, pending, backbone_optim):
+    def spy_save(self, completed, model, method, backbone_optim, extra):
         current[-1].saves.append({
             "completed": completed,
             "backbone": {n: p.detach().clone() for n, p in model.backbone.named_parameters()},
             "method": copy.deepcopy(method.state_dict()),
-            "heads": [copy.deepcopy(h.state_dict()) for h in stored],
+            "heads": copy.deepcopy(extra["heads"]),
         })  # fmt: skip
-        real_save(self, completed, model, method, stored, pending, backbone_optim)
+        real_save(self, completed, model, method, backbone_optim, extra)
 
     out = {}
     done_mtimes = []
@@ -806,7 +806,7 @@ def test_report_writes_tables_plots_and_summary(runs, tmp_path, capsys):
     assert {p.name for p in out.iterdir()} == expected
     assert printed == {str(out / name) for name in expected}
     # cost.md: each method's curricula, on this machine (every segment recorded)
-    from ccfit.report_cost import machine_label
+    from ccfit.report.cost import machine_label
     from ccfit.train.cost import running_machine
 
     lines = (out / "cost.md").read_text().splitlines()

@@ -18,7 +18,7 @@ from ccdata.render import RenderSettings
 from ccfit.data import load_episodes
 from ccfit.obs import stack_cameras
 from ccfit.replay import ReplayBuffer
-from ccfit.seeding import episode_to_replay, seed_buffer
+from ccfit.replay_prefill import episode_to_replay, seed_buffer
 
 TASK = "reach-xy"
 

@@ -111,7 +111,7 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 def test_load_episodes_matches_written_frames(tiny_dataset):
     from ccfit.data import load_episodes
-    from ccfit.seeding import episode_to_replay
+    from ccfit.replay_prefill import episode_to_replay
 
     root, written = tiny_dataset
     eps = load_episodes(root)
@@ -146,7 +146,7 @@ def test_load_episodes_matches_written_frames(tiny_dataset):
 
 def test_seed_buffer_preloads_the_tasks_episodes(tiny_dataset):
     from ccfit.data import load_episodes
-    from ccfit.seeding import final_observation, seed_buffer
+    from ccfit.replay_prefill import final_observation, seed_buffer
 
     root, written = tiny_dataset
     steps = len(written[0]["state"])
@@ -197,7 +197,7 @@ def test_demo_fraction_oversamples_the_oracle_episodes_of_the_seed_dataset(
     update's batch is drawn with it) and records the setting; without demonstrations to
     oversample it is one line, exit 2."""
     from ccfit.cli import main
-    from ccfit.seeding import demonstration_rows
+    from ccfit.replay_prefill import demonstration_rows
 
     root, _ = tiny_dataset
     sample, fractions = ReplayBuffer.sample, []
@@ -251,7 +251,7 @@ def test_demonstrations_are_kept_only_for_demo_fraction_and_counted_before_seedi
     """Oracle episodes are marked as demonstrations (kept beside the ring) only when asked;
     `demonstration_rows` counts, from the index columns alone, the rows they then take."""
     from ccfit.data import episode_lengths
-    from ccfit.seeding import demonstration_rows, seed_buffer
+    from ccfit.replay_prefill import demonstration_rows, seed_buffer
 
     root, written = tiny_dataset
     kept, plain = ReplayBuffer(1000), ReplayBuffer(1000)

@@ -141,7 +141,7 @@ def test_ccfit_reads_a_pushed_dataset_by_repo_id_from_the_endpoint(
     from ccdata.hub import push_dataset
     from ccfit import data
     from ccfit.replay import ReplayBuffer
-    from ccfit.seeding import seed_buffer
+    from ccfit.replay_prefill import seed_buffer
 
     push_dataset(tiny_reach, "org/reach-seed", endpoint=hub_server.url,
                  token=hub_server.token("write"))  # fmt: skip

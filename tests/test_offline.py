@@ -404,7 +404,7 @@ def test_no_local_dataset_is_one_line_naming_the_command(tmp_path, capsys, monke
 
 def test_cli_fits_pixels_and_the_report_keeps_the_track_apart(runs, dataset, tmp_path, capsys):
     from ccfit.cli import main
-    from ccfit.report_runs import find_runs
+    from ccfit.report.runs import find_runs
 
     out = tmp_path / "pixels"
     code = main(["fit", "--suite", SUITE, "--preset", "smoke", "--obs", "pixels",

@@ -138,12 +138,12 @@ def test_a_run_stopped_with_evaluations_in_flight_resumes_to_the_serial_result(
     # the state after task 0 (with those logged until then), was written.
     import shutil
 
-    import ccfit.curriculum as curriculum
+    import ccfit.runner as runner
     import ccfit.train.loop as loop
 
     out, snapshot = tmp_path / "run", tmp_path / "stopped"
     save = loop.atomic_torch_save
-    assert curriculum.atomic_torch_save is save
+    assert runner.atomic_torch_save is save
 
     def save_and_snapshot(state, path):
         save(state, path)
@@ -156,7 +156,7 @@ def test_a_run_stopped_with_evaluations_in_flight_resumes_to_the_serial_result(
             shutil.copytree(out, snapshot)
 
     monkeypatch.setattr(loop, "atomic_torch_save", save_and_snapshot)
-    monkeypatch.setattr(curriculum, "atomic_torch_save", save_and_snapshot)
+    monkeypatch.setattr(runner, "atomic_torch_save", save_and_snapshot)
     torch.set_num_threads(1)
     with shorter_episodes():
         Curriculum(_config("on"), out, tmp_path / "scratch", progress=False).run()
@@ -167,7 +167,7 @@ def test_a_run_stopped_with_evaluations_in_flight_resumes_to_the_serial_result(
             logged = [r for r in records if json.loads(r)["global_step"] <= step]
             (snapshot / "metrics.jsonl").write_text("".join(logged))
         monkeypatch.setattr(loop, "atomic_torch_save", save)
-        monkeypatch.setattr(curriculum, "atomic_torch_save", save)
+        monkeypatch.setattr(runner, "atomic_torch_save", save)
         Curriculum(_config("on"), snapshot, tmp_path / "scratch", progress=False).run()
     assert _outputs(snapshot) == _outputs(serial / "run")
 

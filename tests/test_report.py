@@ -17,7 +17,7 @@ import pytest
 from ccfit.config_parse import flatten
 from ccfit.metrics import compute_metrics
 from ccfit.report import group_metrics, group_runs, load_groups, write_report
-from ccfit.report_runs import find_runs
+from ccfit.report.runs import find_runs
 
 SUITE, TASKS, STEPS = "Reach", 4, 100
 
@@ -173,7 +173,7 @@ def test_step_budget_and_method_options_split_groups_but_output_paths_and_as_run
 def test_a_published_copy_reads_the_reference_beside_it(tmp_path):
     # metrics.json names where the sweep wrote the reference; a copy of the tree (what
     # `ccfit publish` makes) reads its own copy, even where the original still exists.
-    from ccfit.report_runs import scratch_dir_of
+    from ccfit.report.runs import scratch_dir_of
 
     write_run(tmp_path / "sweep", "a", config(), 1.0)
     shutil.copytree(tmp_path / "sweep", tmp_path / "published")
@@ -245,7 +245,7 @@ def test_an_evaluation_the_metrics_read_lost_is_refused_not_interpolated(lost, t
 
 
 def test_cost_md_counts_each_groups_hours_and_machines_and_each_reference_once(tmp_path):
-    from ccfit.report_cost import COST_MD
+    from ccfit.report.cost import COST_MD
 
     machine = {"cpu": "Some CPU", "cpu_capability": "AVX2", "cores": 2}
     runs = [write_run(tmp_path, f"s{seed}", config(seed=seed), 1.0) for seed in range(3)]
@@ -330,7 +330,7 @@ def test_a_seed_given_twice_is_one_line_and_exit_2(tmp_path, capsys):
 
 
 def test_a_range_over_fewer_seeds_than_the_value_says_so():
-    from ccfit.report_plots import metric_cell
+    from ccfit.report.plots import metric_cell
 
     group = {"seeds": [0, 1], "bwt": 75.0, "bwt_min": 50.0, "bwt_max": 50.0}
     assert (
@@ -347,7 +347,7 @@ def test_bar_whiskers_span_the_per_seed_range_even_where_the_value_lies_outside_
     max] (BWT clips each curve's drop at 0 before averaging): the whisker still spans min..max."""
     import matplotlib.pyplot as plt
 
-    from ccfit.report_plots import plot_bars
+    from ccfit.report.plots import plot_bars
 
     group = {"seeds": [0, 1, 2], "track": "online", "bwt": 0.04, "bwt_min": 0.07,
              "bwt_max": 1.33, "fwt": 10.0, "fwt_min": 5.0, "fwt_max": 12.0}  # fmt: skip
@@ -368,8 +368,8 @@ def test_publish_with_root_rewrites_the_overview_over_every_published_folder(tmp
     of every folder published under it, not only the one just published; a root that does not
     hold --out is bad input."""
     from ccfit.cli import main
-    from ccfit.report_cost import COST_MD
-    from ccfit.report_orderings import ORDERINGS_MD
+    from ccfit.report.cost import COST_MD
+    from ccfit.report.orderings import ORDERINGS_MD
 
     write_run(tmp_path / "sweep-ft", "ft-s0", config(), 1.0)
     write_run(tmp_path / "sweep-er", "er-s0", config(method="er"), 0.5)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from ccfit.report_axes import PAPER_AXES, axis_cells, write_axes
+from ccfit.report.axes import PAPER_AXES, axis_cells, write_axes
 
 
 def _group(bwt: float | None, fwt: float | None) -> dict:

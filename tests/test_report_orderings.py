@@ -3,7 +3,7 @@ known, only where the runs it needs exist, and 'n/a' where a metric is undefined
 
 from __future__ import annotations
 
-from ccfit.report_orderings import ORDERINGS, ordering_rows, write_orderings
+from ccfit.report.orderings import ORDERINGS, ordering_rows, write_orderings
 
 
 def _group(bwt: float | None, fwt: float = 10.0, seeds: int = 3) -> dict:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import csv
 import json
 
-from ccfit.report_stages import CSV_HEADER, STAGES_CSV, STAGES_MD, stage_cells
+from ccfit.report.stages import CSV_HEADER, STAGES_CSV, STAGES_MD, stage_cells
 
 try:
     from stage_ends import assert_stage_ends_are_the_metrics
@@ -63,8 +63,8 @@ def test_a_scored_record_without_its_stage_is_one_line_and_exit_2(tmp_path, caps
 
 def test_the_ends_are_the_end_of_task_and_final_scores(tmp_path):
     from ccfit.report import group_runs
-    from ccfit.report_runs import find_runs
-    from ccfit.report_stages import write_stages
+    from ccfit.report.runs import find_runs
+    from ccfit.report.stages import write_stages
 
     for seed in (0, 1):
         write_run(tmp_path / "runs", f"ft-s{seed}", config(seed=seed), 1.0 + seed / 10)

@@ -18,11 +18,11 @@ from ccfit.analysis.learnability import finished_task_runs, write_learnability
 from ccfit.metrics import compute_metrics
 from ccfit.publish import LEARNABILITY
 from ccfit.report import write_overview_of, write_report
-from ccfit.report_axes import AXES_MD
-from ccfit.report_cost import COST_MD
-from ccfit.report_orderings import ORDERINGS_MD
-from ccfit.report_runs import CURVE_KEYS, find_runs
-from ccfit.report_stages import STAGES_CSV, STAGES_MD
+from ccfit.report.axes import AXES_MD
+from ccfit.report.cost import COST_MD
+from ccfit.report.orderings import ORDERINGS_MD
+from ccfit.report.runs import CURVE_KEYS, find_runs
+from ccfit.report.stages import STAGES_CSV, STAGES_MD
 from ccfit.sweep.grid import SWEEP_JSON
 from ccfit.sweep.status import sweep_status
 

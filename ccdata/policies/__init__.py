@@ -8,7 +8,6 @@ import numpy as np
 
 from ccdata.errors import InputError
 from ccdata.policies.base import Oracle, Policy, State, move, pose_action
-from ccdata.tasks import get_task
 
 POLICIES = ("oracle", "noisy-oracle", "random")
 
@@ -67,6 +66,10 @@ def make_policy(
 
     The noisy oracle's `noise_std` and `random_prob` default to the task's calibrated values
     (`TaskSpec.exploration`)."""
+    # Here, not at the top: the tasks' oracles are written with `ccdata.policies.base`, so a
+    # package-level import of the tasks would make the two packages import each other.
+    from ccdata.tasks import get_task
+
     task = get_task(task_id)
     if name == "oracle":
         return task.oracle()

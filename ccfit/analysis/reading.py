@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 import torch
 
-from ccfit.seeding import episode_to_replay
+from ccfit.replay_prefill import episode_to_replay
 
 
 def discounted_returns(rewards: np.ndarray, discount: float) -> np.ndarray:

@@ -244,7 +244,7 @@ def plot_routing(run_dir: str | Path, out: str | Path) -> dict:
 
 
 def report_routing(runs, out: Path) -> tuple[list[Path], dict[tuple, dict]]:
-    """`ccfit report`'s part: Fig. 5 of every run (ccfit.report_runs.Run) with routing.jsonl.
+    """`ccfit report`'s part: Fig. 5 of every run (ccfit.report.runs.Run) with routing.jsonl.
 
     Returns the PNGs and, per (backbone, suite, method) key, {'s<seed>': top-expert summary}."""
     written, summary = [], {}

@@ -28,7 +28,7 @@ import torch
 from torch import nn
 
 from ccfit.config_base import ChoiceConfig, ConfigError, check, check_types
-from ccfit.models.base import Batch
+from ccfit.models.base import Batch, WorldModel
 from ccfit.replay import ReplayBuffer
 
 
@@ -144,6 +144,20 @@ class ContinualMethod:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if state:
             raise ValueError(f"{self.name}: unexpected state keys {sorted(state)}")
+
+
+def close_task(method: ContinualMethod | None, task_index: int, model: WorldModel,
+               buffer: ReplayBuffer, retrain: Callable[[int], None]) -> None:  # fmt: skip
+    """The method closes a task, online and offline alike: `after_task` on the task's replay,
+    then the updates it asks for (`retrain(n)`: PackNet's retraining), each a normal update."""
+    if method is None:
+        return
+    mcfg = model.cfg
+    data = TaskData.from_buffer(task_index, buffer, batch_size=mcfg.batch_size,
+                                seq_len=mcfg.seq_len, backbone_loss=model.backbone_loss,
+                                device=model.device)  # fmt: skip
+    method.after_task(task_index, model.backbone, data)
+    retrain(method.wants_retrain_steps)
 
 
 def zero_like_backbone(backbone: nn.Module) -> torch.Tensor:

@@ -14,7 +14,7 @@ from ccfit.config import BaseRunConfig, check_pairing, models_offering
 from ccfit.config_base import (
     DEFAULTS,
     DEVICES,
-    PRESETS,
+    Presets,
     check,
     check_types,
     suite_tasks,
@@ -28,7 +28,7 @@ PREDICTION = "prediction"
 
 
 @dataclass
-class FitConfig:
+class FitConfig(Presets):
     """The offline loop on one task: the backbone alone fitted on the task's dataset episodes
     for a budget of updates, open-loop prediction scored on held-out episodes at a fixed
     interval. Batch size, window length, learning rates and gradient clip are the model's
@@ -88,11 +88,6 @@ class FitConfig:
         check(self.updates % self.score_interval == 0,
               f"fit.updates ({self.updates}) must be a multiple of fit.score_interval "
               f"({self.score_interval}) so every task is scored at its end")  # fmt: skip
-
-    @classmethod
-    def preset(cls, name: str, **overrides: Any) -> FitConfig:
-        check(name in cls.PRESETS, f"unknown preset {name!r}; valid: {', '.join(PRESETS)}")
-        return cls(**{**cls.PRESETS[name], **overrides})
 
     @property
     def rows(self) -> int:

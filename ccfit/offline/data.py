@@ -26,7 +26,7 @@ from ccfit.io import atomic_write_json, derived_seed
 from ccfit.models.base import Batch, WorldModel
 from ccfit.offline.config import OfflineConfig
 from ccfit.replay import ReplayBuffer
-from ccfit.seeding import check_render, replay_items
+from ccfit.replay_prefill import check_render, replay_items
 from ccfit.train.evaluate import REPLAY_TAG
 from ccfit.train.run import render_settings
 

@@ -7,9 +7,9 @@ steps the model's `backbone_optimizer`, then calls the model's `after_backbone_u
 temperature) and the method's `after_step` (PackNet's and progressive experts' masks). Every
 `score_interval` updates each task with held-out windows is scored
 (`ccfit.offline.score`), inside the method's `evaluating(i, backbone)` view. When the task's
-updates are done the method closes it as online: `after_task(task, backbone,
-TaskData.from_buffer(...))` on the task's training replay, then the updates it asks for
-(PackNet's retraining); then every task is scored once more (the end-of-task score C_i).
+updates are done the method closes it as online (`ccfit.continual.base.close_task`):
+`after_task` on the task's training replay, then the updates it asks for (PackNet's
+retraining); then every task is scored once more (the end-of-task score C_i).
 
 Checkpoints (atomic, every `checkpoint_interval` updates, every `checkpoint_minutes` and at the
 end) hold the model, the optimiser, the method, the replay's sampling generator and every RNG:
@@ -29,19 +29,19 @@ from pathlib import Path
 import torch
 
 from ccdata.errors import InputError
-from ccfit.continual.base import ContinualMethod, ReplayLosses, TaskData
+from ccfit.continual.base import ContinualMethod, ReplayLosses, close_task
 from ccfit.io import atomic_torch_save, load_checkpoint, rng_state, set_rng_state
 from ccfit.models.base import Batch, WorldModel
 from ccfit.offline.config import FitConfig
 from ccfit.offline.score import score_windows
 from ccfit.replay import ReplayBuffer
+from ccfit.run_files import CHECKPOINT, OFFLINE
 from ccfit.train.records import RunLogger
 from ccfit.train.update import load_backbone_optimizer_state
 
-CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_KIND = "ccfit-offline-task"
 CHECKPOINT_VERSION = 1
-TRACK = "offline"
+TRACK = OFFLINE
 SCORE_KEY = "score"
 """What an offline record's curve is made of (online records: normalised returns)."""
 
@@ -150,15 +150,12 @@ class TaskFitter:
             method.after_step(model.backbone)
 
     def _finish_task(self) -> None:
-        """The method closes the task on its training replay, then the updates it asks for."""
-        if self.method is None:
-            return
-        mcfg = self.model.cfg
-        data = TaskData.from_buffer(self.task_index, self.buffer, batch_size=mcfg.batch_size,
-                                    seq_len=mcfg.seq_len, backbone_loss=self.model.backbone_loss,
-                                    device=self.model.device)  # fmt: skip
-        self.method.after_task(self.task_index, self.model.backbone, data)
-        for _ in range(self.method.wants_retrain_steps):
+        """The method closes the task on its training replay (`close_task`), then the updates
+        it asks for."""
+        close_task(self.method, self.task_index, self.model, self.buffer, self._steps)
+
+    def _steps(self, n: int) -> None:
+        for _ in range(n):
             self._step()
 
     def _score(self) -> None:

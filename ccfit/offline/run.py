@@ -1,5 +1,6 @@
 """A suite's curriculum fitted offline: the backbone on each task's dataset episodes in order,
-every task seen so far scored on its held-out episodes at a fixed interval of updates.
+every task seen so far scored on its held-out episodes at a fixed interval of updates (the
+track `ccfit.runner.CurriculumRunner` runs).
 
 For each task t in order: `model.begin_task`, the method's `before_task`, the task's training
 replay and held-out windows (`ccfit.offline.data`), then `TaskFitter` (updates, scoring, the
@@ -21,51 +22,31 @@ Run directory (as `ccfit run`'s, plus split.json):
 
 from __future__ import annotations
 
-import fcntl
-import hashlib
-import json
-import shutil
 from pathlib import Path
 
 import torch
 
-from ccfit import metrics as M
-from ccfit.config_base import ENCODER_RECORD, identity, resolve_device, without_setting
-from ccfit.continual.base import ContinualMethod, make_method
-from ccfit.curriculum import METRICS_JSON, REFERENCE_DONE
+from ccfit.config_base import resolve_device
 from ccfit.data import dataset_meta
-from ccfit.io import (
-    atomic_torch_save,
-    atomic_write_json,
-    load_checkpoint,
-    rng_state,
-    seed_everything,
-    set_rng_state,
-)
+from ccfit.io import seed_everything
 from ccfit.models.base import WorldModel
 from ccfit.offline.config import OfflineConfig
 from ccfit.offline.data import dataset_source, load_task, make_splits, write_split
 from ccfit.offline.fit import SCORE_KEY, TRACK, OfflineLogger, TaskFitter
-from ccfit.train.cost import RunCost
-from ccfit.train.run import (
-    CONFIG,
-    check_same_encoder,
-    check_saved_config,
-    encoder_record,
-    load_model,
-    render_settings,
-)
-from ccfit.train.update import backbone_optimizer_state
+from ccfit.run_files import CHECKPOINT, CONFIG, METRICS_JSON, OFFLINE_STATE, run_name
+from ccfit.runner import CurriculumRunner, Restored, Track, run_reference
+from ccfit.runner import restore as restore_run
+from ccfit.train.run import check_saved_config, encoder_record, load_model, render_settings
 
-STATE = "fit.pt"
+STATE = OFFLINE_STATE
 STATE_KIND = "ccfit-offline"
 STATE_VERSION = 1
 
 
 def default_out(cfg: OfflineConfig) -> Path:
     """Where an offline run goes without --out: a name made from its config."""
-    return Path("runs") / (f"{cfg.suite}-{cfg.model.type}-{cfg.method.type}-{cfg.obs}-"
-                           f"{cfg.preset}-s{cfg.seed}-{TRACK}")  # fmt: skip
+    return Path("runs") / run_name(cfg.suite, cfg.model.type, cfg.method.type, cfg.obs,
+                                   cfg.preset, cfg.seed, track=TRACK)  # fmt: skip
 
 
 def resolved_config(cfg: OfflineConfig, source: str, *, record_dataset: bool = True) -> dict:
@@ -84,22 +65,6 @@ def resolved_config(cfg: OfflineConfig, source: str, *, record_dataset: bool = T
     }
 
 
-def scratch_config(cfg: OfflineConfig, source: str) -> dict:
-    """config.json of the from-scratch reference: the run's, less the method and `out`."""
-    resolved = identity(resolved_config(cfg, source, record_dataset=False))
-    # A single task has no optimiser state to carry over.
-    resolved = without_setting(resolved, "fit.keep_backbone_optimizer")
-    return {k: v for k, v in resolved.items() if k not in ("method", "out")}
-
-
-def scratch_key(cfg: OfflineConfig) -> str:
-    """Runs with equal keys share one from-scratch reference (all but method and out)."""
-    text = json.dumps(scratch_config(cfg, dataset_source(cfg)), sort_keys=True)
-    digest = hashlib.sha1(text.encode()).hexdigest()
-    return (f"{TRACK}-{cfg.suite}-{cfg.model.type}-{cfg.obs}-{cfg.preset}-s{cfg.seed}-"
-            f"{digest[:8]}")  # fmt: skip
-
-
 def _prepare(cfg: OfflineConfig, out: Path, saved: dict, source: str):
     """Check the dataset and write config.json and split.json (bad input leaves nothing)."""
     splits = make_splits(cfg, source)
@@ -111,131 +76,122 @@ def _prepare(cfg: OfflineConfig, out: Path, saved: dict, source: str):
     return splits
 
 
-def run_scratch(cfg: OfflineConfig, out: Path, progress: bool = True) -> list[dict]:
-    """The composition task fitted from scratch with the per-task budget and no method; shared
-    by every method's run (a file lock: the first fits it, the others read its records)."""
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out.parent / f".{out.name}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
+class OfflineTrack(Track):
+    """Each task's backbone fitted on its dataset episodes by `TaskFitter` (no heads, no
+    environment); every task seen so far scored on its held-out windows."""
+
+    name = TRACK
+    loop = "fit"
+    state_file, state_kind, state_version = STATE, STATE_KIND, STATE_VERSION
+    score_key = SCORE_KEY
+
+    def __init__(self, cfg: OfflineConfig) -> None:
+        super().__init__(cfg)
+        self.logger = None
+
+    @property
+    def budget(self) -> int:
+        return self.cfg.fit.updates
+
+    def resolved_config(self, *, record_dataset: bool = True) -> dict:
+        return resolved_config(self.cfg, dataset_source(self.cfg), record_dataset=record_dataset)
+
+    def begin(self, out: Path, progress: bool) -> dict:
+        self.out, self.progress = out, progress
+        self.source = dataset_source(self.cfg)
+        resolved = resolved_config(self.cfg, self.source)
+        self.splits = _prepare(self.cfg, out, resolved, self.source)
+        return resolved
+
+    def build_model(self, device: torch.device, resolved: dict | None) -> WorldModel:
+        return load_model(self.cfg, device)
+
+    def open(self, resolved: dict, restored: Restored) -> OfflineLogger:
+        cfg, tasks = self.cfg, self.cfg.tasks
+        self.model, self.method = restored.model, restored.method
+        self.logger = OfflineLogger(self.out, cfg.log, resolved)
+        self.scored = {j: load_task(cfg, self.source, self.model, j, self.splits[tasks[j]],
+                                    train=False)[1]
+                       for j in range(restored.completed)}  # fmt: skip
+        return self.logger
+
+    def learn_task(self, index: int, folder: Path, resumed: bool,
+                   backbone_optim: dict | None) -> torch.optim.Optimizer:  # fmt: skip
+        cfg, tasks = self.cfg, self.cfg.tasks
+        buffer, self.scored[index] = load_task(cfg, self.source, self.model, index,
+                                               self.splits[tasks[index]])  # fmt: skip
+        folder.mkdir(parents=True, exist_ok=True)
+        fitter = TaskFitter(
+            model=self.model, buffer=buffer, scored=self.scored, fit=cfg.fit, seed=cfg.seed,
+            task_ids=tasks, task_index=index, method=self.method, logger=self.logger,
+            run_dir=folder, global_offset=index * cfg.fit.updates, progress=self.progress,
+            backbone_optim=backbone_optim,
+        )  # fmt: skip
+        fitter.run()
+        return fitter.optim
+
+    def close(self) -> None:
+        if self.logger is not None:
+            self.logger.close()
+
+    def describe(self) -> dict:
+        cfg = self.cfg
+        return dict(track=TRACK, suite=cfg.suite, model=cfg.model.type, method=cfg.method.type,
+                    seed=cfg.seed, obs=cfg.obs, preset=cfg.preset,
+                    measurement_space=cfg.measurement_space)  # fmt: skip
+
+    def learn_reference(self, out: Path, progress: bool) -> list[dict]:
+        cfg, n, tasks = self.cfg, len(self.cfg.tasks), self.cfg.tasks
+        source = dataset_source(cfg)
+        # Its config.json also records what the dataset and the encoder held (not part of the
+        # key).
+        saved = {**self.reference_config(), **encoder_record(cfg),
+                 "resolved_dataset_meta": dataset_meta(source, cfg.dataset_endpoint)}  # fmt: skip
+        splits = _prepare(cfg, out, saved, source)
+        seed_everything(cfg.seed)
+        model = load_model(cfg, resolve_device(cfg.fit.device))
+        model.begin_task(n - 1, cfg.fit.updates)
+        buffer, windows = load_task(cfg, source, model, n - 1, splits[tasks[-1]])
+        logger = OfflineLogger(out, cfg.log, saved)
+        if not (out / CHECKPOINT).exists():
+            logger.keep(lambda r: False)
         try:
-            # A finished reference made through another encoder file is refused.
-            if (out / REFERENCE_DONE).is_file():
-                check_same_encoder(out, cfg.encoder, encoder_record(cfg).get(ENCODER_RECORD))
-                return json.loads((out / REFERENCE_DONE).read_text())
-            source = dataset_source(cfg)
-            # Its config.json also records what the dataset and the encoder held (not part of
-            # the key).
-            meta = dataset_meta(source, cfg.dataset_endpoint)
-            saved = {**scratch_config(cfg, source), **encoder_record(cfg),
-                     "resolved_dataset_meta": meta}  # fmt: skip
-            splits = _prepare(cfg, out, saved, source)
-            n, tasks = len(cfg.tasks), cfg.tasks
-            seed_everything(cfg.seed)
-            model = load_model(cfg, resolve_device(cfg.fit.device))
-            model.begin_task(n - 1, cfg.fit.updates)
-            buffer, windows = load_task(cfg, source, model, n - 1, splits[tasks[-1]])
-            logger = OfflineLogger(out, cfg.log, saved)
-            if not (out / "checkpoint.pt").exists():
-                logger.keep(lambda r: False)
-            try:
-                records = TaskFitter(
-                    model=model, buffer=buffer, scored={n - 1: windows}, fit=cfg.fit,
-                    seed=cfg.seed, task_ids=tasks, task_index=n - 1, method=None,
-                    logger=logger, run_dir=out, progress=progress,
-                ).run()  # fmt: skip
-            finally:
-                logger.close()
-            atomic_write_json(out / REFERENCE_DONE, records)
-            (out / "checkpoint.pt").unlink(missing_ok=True)
-            return records
+            return TaskFitter(
+                model=model, buffer=buffer, scored={n - 1: windows}, fit=cfg.fit, seed=cfg.seed,
+                task_ids=tasks, task_index=n - 1, method=None, logger=logger, run_dir=out,
+                progress=progress,
+            ).run()  # fmt: skip
         finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+            logger.close()
 
 
-class OfflineCurriculum:
-    """Fits (or resumes) one offline run into `out`."""
+class OfflineCurriculum(CurriculumRunner):
+    """Fits (or resumes) one offline run into `out` (`OfflineTrack`)."""
 
     def __init__(self, cfg: OfflineConfig, out: str | Path, scratch_root: str | Path | None = None,
                  progress: bool = True) -> None:  # fmt: skip
-        self.cfg, self.out, self.progress = cfg, Path(out), progress
-        self.scratch_root = Path(scratch_root) if scratch_root else self.out.parent / "scratch"
-        self.device = resolve_device(cfg.fit.device)
-
-    def run(self) -> dict:
-        """The offline curriculum to its end (resuming what `out` holds); what this call cost
-        is added to `out/cost.json` (the from-scratch reference's included when it ran here,
-        as online)."""
-        with RunCost(self.out):
-            return self._run()
-
-    def _run(self) -> dict:
-        cfg, fit, tasks = self.cfg, self.cfg.fit, self.cfg.tasks
-        source = dataset_source(cfg)
-        resolved = resolved_config(cfg, source)
-        splits = _prepare(cfg, self.out, resolved, source)
-        model, method, completed, carried = restore(cfg, self.out, self.device)
-        logger = OfflineLogger(self.out, cfg.log, resolved)
-        scored = {j: load_task(cfg, source, model, j, splits[tasks[j]], train=False)[1]
-                  for j in range(completed)}  # fmt: skip
-        try:
-            for i in range(completed, len(tasks)):
-                task_dir = self.out / "tasks" / f"{i}-{tasks[i]}"
-                if not (task_dir / "checkpoint.pt").exists():  # a killed stage's records
-                    logger.keep(lambda r, i=i: r["stage"] < i)
-                model.begin_task(i, fit.updates)
-                method.before_task(i, model.backbone)
-                buffer, scored[i] = load_task(cfg, source, model, i, splits[tasks[i]])
-                task_dir.mkdir(parents=True, exist_ok=True)
-                fitter = TaskFitter(
-                    model=model, buffer=buffer, scored=scored, fit=fit, seed=cfg.seed,
-                    task_ids=tasks, task_index=i, method=method, logger=logger,
-                    run_dir=task_dir, global_offset=i * fit.updates, progress=self.progress,
-                    backbone_optim=carried,
-                )  # fmt: skip
-                fitter.run()
-                if fit.keep_backbone_optimizer:
-                    carried = backbone_optimizer_state(fitter.optim, model.backbone)
-                del buffer, fitter
-                self._save(i + 1, model, method, carried)
-                shutil.rmtree(task_dir, ignore_errors=True)
-        finally:
-            logger.close()
-        scratch_dir = (self.scratch_root / scratch_key(cfg)).resolve()
-        scratch = run_scratch(cfg, scratch_dir, self.progress)
-        result = M.compute_metrics(logger.read_evals(), scratch, len(tasks), fit.updates,
-                                   key=SCORE_KEY)  # fmt: skip
-        result.update(track=TRACK, suite=cfg.suite, model=cfg.model.type,
-                      method=cfg.method.type, seed=cfg.seed, obs=cfg.obs, preset=cfg.preset,
-                      measurement_space=cfg.measurement_space,
-                      scratch_dir=str(scratch_dir))  # fmt: skip
-        atomic_write_json(self.out / METRICS_JSON, result)
-        return result
-
-    def _save(self, completed: int, model: WorldModel, method: ContinualMethod,
-              backbone_optim: dict | None) -> None:  # fmt: skip
-        atomic_torch_save({"kind": STATE_KIND, "version": STATE_VERSION, "completed": completed,
-                           "model": model.state_dict(), "method": method.state_dict(),
-                           "backbone_optim": backbone_optim,
-                           "rng": rng_state()}, self.out / STATE)  # fmt: skip
+        super().__init__(OfflineTrack(cfg), out, scratch_root, progress)
 
 
-def restore(cfg: OfflineConfig, run_dir: Path, device: torch.device
-            ) -> tuple[WorldModel, ContinualMethod, int, dict | None]:  # fmt: skip
-    """Model, method, finished task count and the optimiser state the next task starts from
-    (None: fresh) of `run_dir` (fresh when it has no state yet); global RNGs seeded, or
-    restored from the saved state."""
-    seed_everything(cfg.seed)
-    model = load_model(cfg, device)
-    method = make_method(cfg.method, len(cfg.tasks), cfg.seed)
-    path = Path(run_dir) / STATE
-    if not path.exists():
-        return model, method, 0, None
-    state = load_checkpoint(path, STATE_KIND, STATE_VERSION)
-    model.load_state_dict(state["model"])
-    method.load_state_dict(state["method"])
-    set_rng_state(state["rng"])
-    return model, method, int(state["completed"]), state.get("backbone_optim")
+def scratch_config(cfg: OfflineConfig) -> dict:
+    """config.json of the from-scratch reference (`Track.reference_config`)."""
+    return OfflineTrack(cfg).reference_config()
+
+
+def scratch_key(cfg: OfflineConfig) -> str:
+    """The from-scratch reference's key (`Track.reference_key`)."""
+    return OfflineTrack(cfg).reference_key()
+
+
+def run_scratch(cfg: OfflineConfig, out: Path, progress: bool = True) -> list[dict]:
+    """The composition task fitted from scratch with the per-task budget and no method
+    (`ccfit.runner.run_reference`)."""
+    return run_reference(OfflineTrack(cfg), out, progress)
+
+
+def restore(cfg: OfflineConfig, run_dir: Path, device: torch.device) -> Restored:
+    """The saved state of `run_dir` (`ccfit.runner.restore`)."""
+    return restore_run(OfflineTrack(cfg), run_dir, device)
 
 
 __all__ = [
@@ -243,6 +199,7 @@ __all__ = [
     "METRICS_JSON",
     "STATE",
     "OfflineCurriculum",
+    "OfflineTrack",
     "default_out",
     "restore",
     "run_scratch",

@@ -5,14 +5,14 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from ccdata.errors import InputError
 from ccdata.suites import SUITES
-from ccfit.config_base import ConfigError
+from ccfit.config_base import ConfigError, Presets
 from ccfit.models import DEFAULT_MODEL
 from ccfit.models.encoders import EncoderSpec
-from ccfit.models.registry import PRESETS, model_class, model_names
+from ccfit.models.registry import model_class, model_names
 
 KIND = "ccfit-pretrained-encoder"
 """The sidecar's 'kind': an encoder made by this module."""
@@ -33,7 +33,7 @@ OBJECTIVE = (
 
 
 @dataclass
-class PretrainConfig:
+class PretrainConfig(Presets):
     """Autoencoder pretraining of the frozen encoder. Validated on construction.
 
     The encoder's sizes are not fields: they come from the config of `model` at
@@ -42,6 +42,19 @@ class PretrainConfig:
     'pixel-encoder'). Preset values for steps, batch size, learning rate and decoder width are
     this project's choices (the paper gives none).
     """
+
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        # smoke: seconds (CI); cpu: minutes to an hour on 2 cores; paper: GPU scale. The
+        # encoder's sizes follow the model's preset of the same name.
+        "smoke": dict(model_preset="smoke", steps=100, batch_size=16, lr=1e-3,
+                      decoder_channels=16, checkpoint_interval=50, log_interval=10),
+        "cpu": dict(model_preset="cpu", steps=10_000, batch_size=64, lr=5e-4,
+                    decoder_channels=16, augment_shift=4, checkpoint_interval=1_000,
+                    log_interval=100),
+        "paper": dict(model_preset="paper", steps=100_000, batch_size=256, lr=3e-4,
+                      decoder_channels=64, augment_shift=4, checkpoint_interval=5_000,
+                      log_interval=500),
+    }  # fmt: skip
 
     model: str = DEFAULT_MODEL
     """The registered world model whose pixel encoder is pretrained (one offering
@@ -137,22 +150,6 @@ class PretrainConfig:
         cfg = cls.config_class.preset(self.model_preset, obs_mode="pixels",
                                       image_size=self.image_size)  # fmt: skip
         return EncoderSpec.of(cfg)
-
-    @classmethod
-    def preset(cls, name: str, **overrides: Any) -> PretrainConfig:
-        """`smoke`: seconds (CI); `cpu`: minutes to an hour on 2 cores; `paper`: GPU scale.
-        The encoder's sizes follow the model's preset of the same name."""
-        if name not in PRESETS:
-            raise InputError(f"unknown preset {name!r}; valid: {', '.join(PRESETS)}")
-        base = {
-            "smoke": dict(steps=100, batch_size=16, lr=1e-3, decoder_channels=16,
-                          checkpoint_interval=50, log_interval=10),
-            "cpu": dict(steps=10_000, batch_size=64, lr=5e-4, decoder_channels=16,
-                        augment_shift=4, checkpoint_interval=1_000, log_interval=100),
-            "paper": dict(steps=100_000, batch_size=256, lr=3e-4, decoder_channels=64,
-                          augment_shift=4, checkpoint_interval=5_000, log_interval=500),
-        }[name]  # fmt: skip
-        return cls(**{"model_preset": name, **base, **overrides})
 
     def resolved_roots(self) -> dict[str, Path]:
         """Suite -> dataset directory for every suite of the run."""

@@ -26,19 +26,17 @@ from ccdata.errors import InputError
 from ccdata.slurm import code_version
 from ccfit.config_base import LEGACY_VALUES, identity
 from ccfit.io import atomic_write_json
+from ccfit.run_files import METRICS_JSON, OFFLINE, ONLINE, REFERENCE_DONE, SCRATCH, SWEEP_JSON
+from ccfit.run_files import run_name as name_of
 
-SWEEP_JSON = "sweep.json"
 SWEEP_VERSION = 1
-SCRATCH = "scratch"
-SCRATCH_DONE = "done.json"  # ccfit.curriculum.REFERENCE_DONE (kept import-free here)
 REPORT = "report"
 STATUS_JSON = "status.json"
-METRICS_JSON = "metrics.json"  # ccfit.curriculum.METRICS_JSON (kept import-free here)
 
 GRID_FLAGS = ("suite", "seed", "model.type", "method.type", "preset")
 """Run options the grid sets itself: giving them as common options is an error."""
 REFUSED_FLAGS = ("out", "config_path")
-TRACKS = ("online", "offline")
+TRACKS = (ONLINE, OFFLINE)
 """`ccfit run` curricula, or `ccfit fit` offline ones (`ccfit.offline`)."""
 
 
@@ -67,7 +65,7 @@ class Grid:
     plugins: tuple[str, ...] = ()
     """Modules imported before configs are built, here and in every job: they register world
     models or methods defined outside ccfit."""
-    track: str = "online"
+    track: str = ONLINE
     """'online' (`ccfit run` curricula) or 'offline' (`ccfit fit`)."""
 
     def __post_init__(self) -> None:
@@ -138,7 +136,7 @@ class Sweep:
         return (self.run_dir(run) / METRICS_JSON).is_file()
 
     def scratch_done(self, key: str) -> bool:
-        return (self.scratch_dir(key) / SCRATCH_DONE).is_file()
+        return (self.scratch_dir(key) / REFERENCE_DONE).is_file()
 
     def scratch_configs(self) -> dict[str, dict]:
         """Scratch key -> the config of the first run that needs it (the method is ignored)."""
@@ -177,11 +175,11 @@ def import_plugins(plugins: tuple[str, ...] | list[str]) -> None:
             raise InputError(f"plugin module {module!r} not found ({e})") from None
 
 
-def run_name(cfg, track: str = "online") -> str:
+def run_name(cfg, track: str = ONLINE) -> str:
     """A run's directory name: the grid values plus the shared obs and preset (and the track
     when offline)."""
-    name = f"{cfg.suite}-{cfg.model.type}-{cfg.method.type}-{cfg.obs}-{cfg.preset}-s{cfg.seed}"
-    return name if track == "online" else f"{name}-{track}"
+    return name_of(cfg.suite, cfg.model.type, cfg.method.type, cfg.obs, cfg.preset, cfg.seed,
+                   track=track)  # fmt: skip
 
 
 def expand(grid: Grid, root: str | Path) -> Sweep:
@@ -189,7 +187,7 @@ def expand(grid: Grid, root: str | Path) -> Sweep:
     does it."""
     from ccfit.config_parse import parse_cli
 
-    if grid.track == "offline":
+    if grid.track == OFFLINE:
         from ccfit.offline import OfflineConfig as config_class
         from ccfit.offline import scratch_key
     else:

@@ -23,10 +23,16 @@ import submitit
 from ccdata.errors import InputError
 from ccdata.slurm import code_version
 from ccfit.io import atomic_write_json
-from ccfit.sweep.grid import (
+from ccfit.run_files import (
+    CHECKPOINT,
+    CONFIG,
     METRICS_JSON,
+    OFFLINE_STATE,
+    ONLINE_STATE,
+    REFERENCE_DONE,
+)
+from ccfit.sweep.grid import (
     REPORT,
-    SCRATCH_DONE,
     STATUS_JSON,
     Sweep,
     import_plugins,
@@ -120,7 +126,7 @@ class RunJob(_Job):
                 f"the run's from-scratch key is {key_of(cfg)} here but was "
                 f"{scratch_key} at submission: run the sweep again"
             )
-        done = Path(scratch_root) / scratch_key / SCRATCH_DONE
+        done = Path(scratch_root) / scratch_key / REFERENCE_DONE
         if not done.is_file():
             raise ScratchMissing(f"from-scratch reference {done.parent} did not finish (see its "
                                  f"job's log); run the sweep again")  # fmt: skip
@@ -141,11 +147,7 @@ class RunJob(_Job):
 def resume_point(run_dir: Path) -> str:
     """Where a run continues from: its saved curriculum state (online or offline) and task
     checkpoint, if any."""
-    from ccfit.curriculum import STATE
-    from ccfit.offline.run import STATE as OFFLINE_STATE
-    from ccfit.train.loop import CHECKPOINT
-
-    states = [run_dir / STATE, run_dir / OFFLINE_STATE]
+    states = [run_dir / ONLINE_STATE, run_dir / OFFLINE_STATE]
     found = [p for p in [*states, *sorted(run_dir.glob(f"tasks/*/{CHECKPOINT}"))]
              if p.is_file()]  # fmt: skip
     if not found:
@@ -177,7 +179,7 @@ def write_status(root: str | Path, errors: dict[str, str]) -> dict:
     missing = [
         {
             "name": r.name,
-            "started": (sweep.run_dir(r) / "config.json").is_file(),
+            "started": (sweep.run_dir(r) / CONFIG).is_file(),
             "error": errors.get(r.name),
         }
         for r in sweep.runs

@@ -28,7 +28,8 @@ from datetime import UTC, datetime
 from ccdata.errors import InputError
 from ccdata.processes import one_line, worker_pool
 from ccdata.slurm import SlurmSettings, active_jobs, check_array_size, submitting
-from ccfit.sweep.grid import SCRATCH, RunSpec, Sweep, write_record
+from ccfit.run_files import SCRATCH
+from ccfit.sweep.grid import RunSpec, Sweep, write_record
 from ccfit.sweep.jobs import ReportJob, RunJob, ScratchJob, report_current
 
 

@@ -36,18 +36,18 @@ from ccdata.errors import InputError
 from ccdata.scoring import discounted_return
 from ccfit.config import TrainConfig, stop_reached
 from ccfit.config_base import identity
-from ccfit.continual.base import ContinualMethod, TaskData
+from ccfit.continual.base import ContinualMethod, close_task
 from ccfit.io import atomic_torch_save, derived_seed, load_checkpoint, rng_state, set_rng_state
 from ccfit.models.base import Batch, WorldModel
 from ccfit.obs import model_input, obs_to_arrays
 from ccfit.replay import ReplayBuffer
 from ccfit.replay_store import ROWS_DIR, load_rows, save_rows
+from ccfit.run_files import CHECKPOINT
 from ccfit.train.compiled import autocast
 from ccfit.train.evaluate import ACTION_TAG, TRAIN_TAG, Evaluator
 from ccfit.train.records import RunLogger
 from ccfit.train.update import UpdateStep, load_backbone_optimizer_state
 
-CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_KIND = "ccfit-task"
 CHECKPOINT_VERSION = 4
 TRAIN_LOG_EVERY = 250
@@ -215,16 +215,9 @@ class Trainer:
         return stop_reached(scores, self.cfg.stop_score, self.cfg.stop_evals)
 
     def _finish_task(self) -> None:
-        """The method closes the task: `after_task` on this task's replay, then the extra
-        updates it asks for (PackNet's retraining), each a normal update."""
-        if self.method is None:
-            return
-        mcfg = self.model.cfg
-        data = TaskData.from_buffer(self.task_index, self.buffer, batch_size=mcfg.batch_size,
-                                    seq_len=mcfg.seq_len, backbone_loss=self.model.backbone_loss,
-                                    device=self.device)  # fmt: skip
-        self.method.after_task(self.task_index, self.model.backbone, data)
-        self.extra_updates(self.method.wants_retrain_steps)
+        """The method closes the task (`close_task`): its retraining updates are normal
+        updates."""
+        close_task(self.method, self.task_index, self.model, self.buffer, self.extra_updates)
 
     def _autocast(self):
         return autocast(self.device, self.cfg.autocast)

@@ -12,8 +12,9 @@ from ccdata.errors import InputError
 from ccdata.processes import one_line
 from ccfit.config import LogConfig
 from ccfit.io import atomic_write_text, read_run_json
+from ccfit.run_files import METRICS_JSONL
 
-METRICS = "metrics.jsonl"
+METRICS = METRICS_JSONL
 TENSORBOARD = "tb"
 WANDB_ID = "wandb_id"
 """File in the run directory holding its W&B run id, so a resumed run continues the same W&B

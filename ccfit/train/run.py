@@ -34,7 +34,8 @@ from ccfit.io import atomic_write_json, derived_seed, seed_everything
 from ccfit.models.base import WorldModel
 from ccfit.models.registry import make_model, model_class
 from ccfit.replay import ReplayBuffer
-from ccfit.seeding import DEMO_POLICY, demonstration_rows, seed_buffer
+from ccfit.replay_prefill import DEMO_POLICY, demonstration_rows, seed_buffer
+from ccfit.run_files import CONFIG, task_run_name
 from ccfit.train.compiled import (
     check_compile_device,
     compile_choice,
@@ -49,8 +50,6 @@ from ccfit.train.evaluate import REPLAY_TAG, Evaluator
 from ccfit.train.loop import CHECKPOINT, Trainer
 from ccfit.train.records import RunLogger
 from ccfit.train.resources import ReplayPlan, check_disk, plan_replay
-
-CONFIG = "config.json"
 
 
 def render_settings(cfg: BaseRunConfig) -> RenderSettings:
@@ -336,7 +335,8 @@ def check_same_encoder(out: Path, encoder: str | None, sha256: str | None) -> No
 
 
 def default_out(cfg: TaskRunConfig) -> Path:
-    return Path("runs") / f"{cfg.task}-{cfg.model.type}-{cfg.obs}-{cfg.preset}-s{cfg.seed}"
+    """Where a `ccfit train` run goes without --out: a name made from its config."""
+    return Path("runs") / task_run_name(cfg.task, cfg.model.type, cfg.obs, cfg.preset, cfg.seed)
 
 
 @contextlib.contextmanager

@@ -27,7 +27,7 @@ import torch
 from ccdata.errors import OneLineParser, run_script
 from ccdata.settings import default_repo_id
 from ccfit.data import load_episodes
-from ccfit.seeding import episode_to_replay
+from ccfit.replay_prefill import episode_to_replay
 from ccfit.train import load_task_run
 
 DATASET = default_repo_id("Grasp")  # LeRobot's cache, where `ccdata generate` writes, or the Hub

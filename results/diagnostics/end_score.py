@@ -27,7 +27,7 @@ import numpy as np
 
 from ccdata.errors import OneLineParser, run_script
 from ccfit.metrics import compute_metrics
-from ccfit.report_runs import CURVE_KEYS, find_runs
+from ccfit.report.runs import CURVE_KEYS, find_runs
 
 
 def read_before_close(records: list[dict], ends: list[int], key: str) -> list[dict]:

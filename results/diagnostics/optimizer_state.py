@@ -20,7 +20,7 @@ from pathlib import Path
 
 from ccdata.errors import InputError, OneLineParser, run_script
 from ccfit.report import METRICS_SHOWN, group_metrics, group_runs
-from ccfit.report_runs import find_runs
+from ccfit.report.runs import find_runs
 
 
 def _mean(xs: list[float]) -> float:

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from ccfit.io import atomic_write_text
-from ccfit.report_plots import metric_cell, ordered_methods, row_label
+from ccfit.report.plots import metric_cell, ordered_methods, row_label
 
 Group = dict
 Key = tuple[str, str, str, str]  # backbone, suite, method, variant
@@ -24,7 +24,7 @@ Row = tuple[str, str, str, str]  # backbones, suite [variant], verdict, evidence
 
 ORDERINGS_MD = "orderings.md"
 TRACK_SUFFIXES = ("", "-offline")
-"""Backbone label endings of the two tracks (`ccfit.report_runs.Run.backbone`): a comparison
+"""Backbone label endings of the two tracks (`ccfit.report.runs.Run.backbone`): a comparison
 across backbones stays inside one track."""
 
 

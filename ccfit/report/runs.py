@@ -1,7 +1,7 @@
 """The runs `ccfit report` reads: a finished run's files (`Run`), how its config names the
 table's axes (backbone, suite, method) and which of its settings may differ between the seeds
-of one experiment (`PER_SEED`, `AS_RUN`). Apart from `ccfit.report` so that the report's
-parts (`report_stages`, `publish`) can name a run without importing the report."""
+of one experiment (`PER_SEED`, `AS_RUN`): the one module the report's parts (`stages`,
+`ccfit.publish`) share to name a run."""
 
 from __future__ import annotations
 
@@ -13,11 +13,11 @@ from typing import Any
 from ccdata.errors import InputError
 from ccfit.config_base import DATASET_RECORDS, EXECUTION_SETTINGS
 from ccfit.config_parse import flatten
-from ccfit.curriculum import METRICS_JSON, REFERENCE_DONE
 from ccfit.io import read_run_json
 from ccfit.metrics import check_evaluated, task_curves
 from ccfit.offline.fit import SCORE_KEY, TRACK
-from ccfit.train import CONFIG, METRICS
+from ccfit.run_files import CONFIG, METRICS_JSON, ONLINE, REFERENCE_DONE
+from ccfit.run_files import METRICS_JSONL as METRICS
 
 PER_SEED = (
     "seed",
@@ -43,7 +43,7 @@ dataset lay on the machine that ran it and what the run recorded of its datasets
 before that record existed have none), how it spread over processes and where it logged. Seeds
 run by two code versions, on two machines or with and without worker processes still
 average."""
-CURVE_KEYS = {"online": "normalized_return", TRACK: SCORE_KEY}
+CURVE_KEYS = {ONLINE: "normalized_return", TRACK: SCORE_KEY}
 """Per track, what a record's curve value is."""
 AXES = ("suite", "model", "method", "encoder", "track")
 """Settings that are the table's own axes (backbone, suite, method), never variant labels."""
@@ -79,7 +79,7 @@ class Run:
     @property
     def track(self) -> str:
         """'online' (`ccfit run`) or 'offline' (`ccfit fit`)."""
-        return self.metrics.get("track", "online")
+        return self.metrics.get("track", ONLINE)
 
     @property
     def backbone(self) -> str:

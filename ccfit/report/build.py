@@ -3,7 +3,7 @@
 Runs are grouped by their whole resolved config (config.json, flattened to dotted keys) except
 what legitimately differs between the seeds of one experiment: the seed itself, seeds derived
 from it and output paths (`PER_SEED`), and records of how a run was computed rather than what
-(`AS_RUN`: compilation, worker processes, the dataset's location; both in `ccfit.report_runs`).
+(`AS_RUN`: compilation, worker processes, the dataset's location; both in `ccfit.report.runs`).
 Only runs of one group are averaged; seeds within a group are averaged *before* a metric (the
 paper's protocol), and the per-seed metrics give the min/max. A group is named by (backbone,
 suite, method) and, when groups of one table differ in anything else (observation mode, preset,
@@ -15,12 +15,12 @@ router, method options, step budget, ...), by a variant label naming those setti
 - `curves_<backbone>_<suite>_<method>[_<variant>].png`: every task's normalised return over the
   curriculum, the forgetting (BWT) region shaded after each task's end and the forward
   transfer (FWT) region between the composition curve and its from-scratch reference.
-- `orderings.md`: the paper's four orderings checked on these groups (`ccfit.report_orderings`);
-- `axes.md`: BWT and FWT by composition axis beside the paper's table (`ccfit.report_axes`);
+- `orderings.md`: the paper's four orderings checked on these groups (`ccfit.report.orderings`);
+- `axes.md`: BWT and FWT by composition axis beside the paper's table (`ccfit.report.axes`);
 - `cost.md`: CPU-hours per group and reference, and the machines that ran them
-  (`ccfit.report_cost`);
+  (`ccfit.report.cost`);
 - `stages.md` / `.csv`: every run's scores stage by stage, each task's mean and end-of-stage
-  score while each task trains (`ccfit.report_stages`);
+  score while each task trains (`ccfit.report.stages`);
 - `routing_<backbone>_<suite>_<method>_s<seed>.png`: the paper's Fig. 5 for every run with a
   `routing.jsonl` (`ccfit.analysis`); summary.json gets the top-expert statement per seed.
 
@@ -46,10 +46,10 @@ from ccfit.analysis import report_routing
 from ccfit.io import atomic_write_text
 from ccfit.metrics import metrics_from_curves, task_curves
 from ccfit.offline.fit import TRACK
-from ccfit.report_axes import write_axes
-from ccfit.report_cost import write_cost
-from ccfit.report_orderings import write_orderings
-from ccfit.report_plots import (
+from ccfit.report.axes import write_axes
+from ccfit.report.cost import write_cost
+from ccfit.report.orderings import write_orderings
+from ccfit.report.plots import (
     METHOD_ORDER,
     method_columns,
     metric_cell,
@@ -58,8 +58,8 @@ from ccfit.report_plots import (
     row_label,
     slug,
 )
-from ccfit.report_runs import CURVE_KEYS, Run, find_runs, is_axis, scratch_dir_of
-from ccfit.report_stages import write_stages
+from ccfit.report.runs import CURVE_KEYS, Run, find_runs, is_axis, scratch_dir_of
+from ccfit.report.stages import write_stages
 
 SUMMARY_JSON = "summary.json"
 """Every report's summary: its groups' metrics (numbers, what the tables print)."""

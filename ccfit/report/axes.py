@@ -18,7 +18,7 @@ from pathlib import Path
 
 from ccdata.suites import AXES, SUITES
 from ccfit.io import atomic_write_text
-from ccfit.report_plots import row_label
+from ccfit.report.plots import row_label
 
 AXES_MD = "axes.md"
 AXIS_METHODS = ("ft", "er", "ewc", "packnet")

@@ -10,7 +10,7 @@ from collections import Counter
 from pathlib import Path
 
 from ccfit.io import atomic_write_text, read_run_json
-from ccfit.report_plots import row_label
+from ccfit.report.plots import row_label
 from ccfit.train.cost import COST, read_cost
 
 COST_MD = "cost.md"

@@ -22,8 +22,8 @@ import numpy as np
 from ccdata.errors import InputError
 from ccdata.suites import get_suite
 from ccfit.io import atomic_write_text
-from ccfit.report_plots import METHOD_ORDER, row_label
-from ccfit.report_runs import Run
+from ccfit.report.plots import METHOD_ORDER, row_label
+from ccfit.report.runs import Run
 from ccfit.train import METRICS
 
 GroupKey = tuple[str, str, str, str]

@@ -1,0 +1,61 @@
+"""What a run directory holds, by file name, and how runs are named.
+
+The one place the trainers, both curriculum tracks, the sweep, `ccfit publish` and the reports
+read these names from. It imports nothing, so the light modules (the sweep's grid, the report)
+can use it without importing torch.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+CONFIG = "config.json"
+"""The resolved config of a run, plus what it resolved to where it ran."""
+METRICS_JSONL = "metrics.jsonl"
+"""Every evaluation (online) or scoring (offline) record, one line each."""
+METRICS_JSON = "metrics.json"
+"""A finished curriculum's BWT, FWT and standard metrics."""
+COST = "cost.json"
+"""What a run cost, summed over the calls that ran it."""
+CHECKPOINT = "checkpoint.pt"
+"""A single task's trainer (online) or fitter (offline) state while it learns."""
+REFERENCE_DONE = "done.json"
+"""A from-scratch reference's records, written when it is finished (online and offline)."""
+ONLINE_STATE = "curriculum.pt"
+"""An online curriculum's state after its last finished task."""
+OFFLINE_STATE = "fit.pt"
+"""An offline curriculum's state after its last finished task."""
+TASKS = "tasks"
+"""Where a curriculum's task being learnt keeps its checkpoint (`task_dir`)."""
+SCRATCH = "scratch"
+"""Beside a sweep's (or a lone curriculum's) runs: the from-scratch references, by key."""
+SWEEP_JSON = "sweep.json"
+"""A sweep's record: its grid, its runs and their submissions."""
+
+ONLINE, OFFLINE = "online", "offline"
+"""The curriculum tracks: learnt in the environment, or fitted on the dataset."""
+
+
+def task_dir(run_dir: Path, index: int, task_id: str) -> Path:
+    """Where task `index` of a curriculum keeps its checkpoint while it learns."""
+    return Path(run_dir) / TASKS / f"{index}-{task_id}"
+
+
+def run_name(suite: str, model: str, method: str, obs: str, preset: str, seed: int,
+             track: str = ONLINE) -> str:  # fmt: skip
+    """A curriculum run's directory name (`ccfit run`, `ccfit fit`, a sweep's runs)."""
+    name = f"{suite}-{model}-{method}-{obs}-{preset}-s{seed}"
+    return name if track == ONLINE else f"{name}-{track}"
+
+
+def task_run_name(task: str, model: str, obs: str, preset: str, seed: int) -> str:
+    """A single-task run's directory name (`ccfit train`)."""
+    return f"{task}-{model}-{obs}-{preset}-s{seed}"
+
+
+def reference_name(suite: str, model: str, obs: str, preset: str, seed: int, digest: str,
+                   track: str = ONLINE) -> str:  # fmt: skip
+    """A from-scratch reference's directory name: what its key shows, then the first eight
+    hex digits of the digest of its config (all a reference's records depend on)."""
+    name = f"{suite}-{model}-{obs}-{preset}-s{seed}-{digest[:8]}"
+    return name if track == ONLINE else f"{track}-{name}"
