@@ -18,6 +18,10 @@ EXIT_PIPE_CLOSED = 128 + 13
 """What a shell reports for a process that SIGPIPE ended: what `head` leaves its writer."""
 
 
+class CliError(Exception):
+    """A problem with the user's input or environment: one line, non-zero exit."""
+
+
 class InputError(ValueError):
     """Bad input from the user; the message says what and how to fix it."""
 

@@ -68,8 +68,8 @@ STATE = ONLINE_STATE
 STATE_KIND = "ccfit-curriculum"
 STATE_VERSION = 3
 
-__all__ = ["METRICS_JSON", "REFERENCE_DONE", "STATE", "Curriculum", "OnlineTrack", "load_run",
-           "run_scratch", "scratch_key"]  # fmt: skip
+__all__ = ["METRICS_JSON", "REFERENCE_DONE", "STATE", "Curriculum", "OnlineTrack",
+           "load_run"]  # fmt: skip
 
 
 @dataclass
@@ -96,6 +96,7 @@ class OnlineTrack(Track):
     name = ONLINE
     loop = "train"
     state_file, state_kind, state_version = STATE, STATE_KIND, STATE_VERSION
+    config_class = CurriculumConfig
 
     def __init__(self, cfg: CurriculumConfig, callbacks: list[StageCallback] = (),
                  keep_stages: bool = False, branch: Branch | None = None) -> None:  # fmt: skip
@@ -107,6 +108,14 @@ class OnlineTrack(Track):
         self.keep_stages = keep_stages
         self.branch = branch
         self.evaluator = self.logger = None
+
+    @classmethod
+    def in_sweep(cls, cfg: CurriculumConfig, keep_stages: bool = False) -> OnlineTrack:
+        """With the analyses its model offers (`ccfit.analysis.stage_callbacks`), as
+        `ccfit run`."""
+        from ccfit.analysis import stage_callbacks
+
+        return cls(cfg, stage_callbacks(cfg), keep_stages)
 
     @property
     def budget(self) -> int:
@@ -252,28 +261,13 @@ class Curriculum(CurriculumRunner):
                          progress)  # fmt: skip
 
 
-def scratch_config(cfg: CurriculumConfig) -> dict:
-    """config.json of the from-scratch reference (`Track.reference_config`)."""
-    return OnlineTrack(cfg).reference_config()
-
-
-def scratch_key(cfg: CurriculumConfig) -> str:
-    """The from-scratch reference's key (`Track.reference_key`)."""
-    return OnlineTrack(cfg).reference_key()
-
-
-def run_scratch(cfg: CurriculumConfig, out: Path, progress: bool = True) -> list[dict]:
-    """The composition task learnt from scratch with the curriculum's per-task budget
-    (`ccfit.runner.run_reference`)."""
-    return run_reference(OnlineTrack(cfg), out, progress)
-
-
 def _scratch_worker(cfg: CurriculumConfig, out: Path, episode_steps: int) -> None:
-    """`run_scratch` in a worker process (it sees the parent's episode length)."""
+    """The from-scratch reference in a worker process (it sees the parent's episode
+    length)."""
     import ccdata.env
 
     ccdata.env.EPISODE_STEPS = episode_steps
-    run_scratch(cfg, out, progress=False)
+    run_reference(OnlineTrack(cfg), out, progress=False)
 
 
 def start_scratch(cfg: CurriculumConfig, out: Path) -> Future | None:

@@ -19,7 +19,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ccfit.io import atomic_torch_save, load_checkpoint
-from ccfit.replay import ReplayBuffer, uncovered
+from ccfit.replay import ReplayBuffer
+from ccfit.replay_state import uncovered
 
 ROWS_DIR = "replay"
 ROWS_KIND = "ccfit-replay-rows"

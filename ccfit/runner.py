@@ -78,11 +78,19 @@ class Track(abc.ABC):
     state_version: ClassVar[int]
     score_key: ClassVar[str] = "normalized_return"
     """What a record's curve is made of (`ccfit.metrics.compute_metrics`)."""
+    config_class: ClassVar[type]
+    """The run config it takes (`ccfit run`'s, `ccfit fit`'s)."""
 
     def __init__(self, cfg: Any) -> None:
         self.cfg = cfg
         self.out = Path()
         self.progress = True
+
+    @classmethod
+    def in_sweep(cls, cfg: Any, keep_stages: bool = False) -> Track:
+        """The track of one run of a sweep (`ccfit.sweep.jobs`); `keep_stages`: the run keeps
+        its state after each task, where the track can."""
+        return cls(cfg)
 
     @property
     def settings(self) -> Any:

@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 
 import ccdata
-from ccdata.cli import CliError, build_parser, generate_config, main
+from ccdata.cli import build_parser, main
+from ccdata.cli_generate import generate_config
+from ccdata.errors import CliError
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:
@@ -104,7 +106,7 @@ def test_generate_runs_a_worker_per_available_core_by_default():
     one_core = min(os.sched_getaffinity(0))
     code = (
         f"import os; os.sched_setaffinity(0, {{{one_core}}}); "
-        "from ccdata.cli import build_parser, generate_config; "
+        "from ccdata.cli import build_parser; from ccdata.cli_generate import generate_config; "
         f"print(generate_config(build_parser().parse_args({reach!r})).workers)"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

@@ -1024,4 +1024,4 @@ def test_kept_backbone_optimiser_state_crosses_tasks_and_a_stop_between_them(tmp
     fresh = dataclasses.replace(
         cfg, train=dataclasses.replace(cfg.train, keep_backbone_optimizer=False)
     )
-    assert C.scratch_key(fresh) == C.scratch_key(cfg)
+    assert C.OnlineTrack(fresh).reference_key() == C.OnlineTrack(cfg).reference_key()

@@ -387,6 +387,7 @@ def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeyp
     from ccfit.models.base import LATENT_KEY
     from ccfit.models.encoders import build_encoder, load_frozen_encoder, save_encoder
     from ccfit.models.tdmpc2 import TDMPC2Config
+    from ccfit.runner import run_reference
 
     enc_cfg = TDMPC2Config.preset("smoke", obs_mode="pixels", image_size=SIZE)
     torch.manual_seed(0)
@@ -427,7 +428,7 @@ def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeyp
     save_encoder(build_encoder(enc_cfg), enc_cfg, path)
     for run in (lambda: C.Curriculum(cfg, tmp_path / "run", tmp_path / "scratch",
                                      progress=False).run(),
-                lambda: C.run_scratch(cfg, reference, progress=False)):  # fmt: skip
+                lambda: run_reference(C.OnlineTrack(cfg), reference, progress=False)):  # fmt: skip
         with pytest.raises(ConfigError, match="through another encoder file: .*enc.safetensors"):
             run()
     with pytest.raises(ValueError, match="reads 32 px images but the run renders 48 px"):

@@ -17,7 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from ccdata.cli import SLURM_TIME, main
+from ccdata.cli import main
+from ccdata.cli_generate import SLURM_TIME
 from ccdata.episode_plan import plan
 from ccdata.journal import JournalPaths, finished_pieces
 from ccdata.launch import SUBMISSION_RECORD

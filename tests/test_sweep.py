@@ -145,7 +145,7 @@ def test_a_folder_holding_another_sweep_is_refused(tmp_path, capsys):
 def test_a_sweep_written_before_a_setting_existed_is_the_same_sweep(tmp_path):
     """sweep.json of an older version lacks `train.demo_fraction`: at its legacy value the
     runs, and their from-scratch keys, are the same."""
-    from ccfit.curriculum import scratch_key
+    from ccfit.curriculum import OnlineTrack
     from ccfit.sweep.grid import check_same_sweep
     from ccfit.sweep.jobs import config_from_dict
 
@@ -156,7 +156,7 @@ def test_a_sweep_written_before_a_setting_existed_is_the_same_sweep(tmp_path):
         assert run["config"]["train"].pop("demo_fraction") == 0.0
     check_same_sweep(sweep, record)
     old = config_from_dict(record["runs"][0]["config"])
-    assert scratch_key(old) == sweep.runs[0].scratch_key
+    assert OnlineTrack(old).reference_key() == sweep.runs[0].scratch_key
     record["runs"][0]["config"]["train"]["demo_fraction"] = 0.25
     with pytest.raises(InputError, match="train.demo_fraction is 0.0, was 0.25"):
         check_same_sweep(sweep, record)

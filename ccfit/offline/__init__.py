@@ -18,14 +18,13 @@ reference, metrics).
 
 from ccfit.offline.config import FitConfig, OfflineConfig
 from ccfit.offline.fit import TRACK
-from ccfit.offline.run import OfflineCurriculum, default_out, run_scratch, scratch_key
+from ccfit.offline.run import OfflineCurriculum, OfflineTrack, default_out
 
 __all__ = [
     "TRACK",
     "FitConfig",
     "OfflineConfig",
     "OfflineCurriculum",
+    "OfflineTrack",
     "default_out",
-    "run_scratch",
-    "scratch_key",
 ]

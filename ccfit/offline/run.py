@@ -34,7 +34,7 @@ from ccfit.offline.config import OfflineConfig
 from ccfit.offline.data import dataset_source, load_task, make_splits, write_split
 from ccfit.offline.fit import SCORE_KEY, TRACK, OfflineLogger, TaskFitter
 from ccfit.run_files import CHECKPOINT, CONFIG, METRICS_JSON, OFFLINE_STATE, run_name
-from ccfit.runner import CurriculumRunner, Restored, Track, run_reference
+from ccfit.runner import CurriculumRunner, Restored, Track
 from ccfit.runner import restore as restore_run
 from ccfit.train.run import check_saved_config, encoder_record, load_model, render_settings
 
@@ -84,6 +84,7 @@ class OfflineTrack(Track):
     loop = "fit"
     state_file, state_kind, state_version = STATE, STATE_KIND, STATE_VERSION
     score_key = SCORE_KEY
+    config_class = OfflineConfig
 
     def __init__(self, cfg: OfflineConfig) -> None:
         super().__init__(cfg)
@@ -173,22 +174,6 @@ class OfflineCurriculum(CurriculumRunner):
         super().__init__(OfflineTrack(cfg), out, scratch_root, progress)
 
 
-def scratch_config(cfg: OfflineConfig) -> dict:
-    """config.json of the from-scratch reference (`Track.reference_config`)."""
-    return OfflineTrack(cfg).reference_config()
-
-
-def scratch_key(cfg: OfflineConfig) -> str:
-    """The from-scratch reference's key (`Track.reference_key`)."""
-    return OfflineTrack(cfg).reference_key()
-
-
-def run_scratch(cfg: OfflineConfig, out: Path, progress: bool = True) -> list[dict]:
-    """The composition task fitted from scratch with the per-task budget and no method
-    (`ccfit.runner.run_reference`)."""
-    return run_reference(OfflineTrack(cfg), out, progress)
-
-
 def restore(cfg: OfflineConfig, run_dir: Path, device: torch.device) -> Restored:
     """The saved state of `run_dir` (`ccfit.runner.restore`)."""
     return restore_run(OfflineTrack(cfg), run_dir, device)
@@ -202,6 +187,4 @@ __all__ = [
     "OfflineTrack",
     "default_out",
     "restore",
-    "run_scratch",
-    "scratch_key",
 ]

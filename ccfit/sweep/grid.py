@@ -186,13 +186,9 @@ def expand(grid: Grid, root: str | Path) -> Sweep:
     """Every grid point's config, resolved and validated as `ccfit run` (or `ccfit fit`)
     does it."""
     from ccfit.config_parse import parse_cli
+    from ccfit.tracks import TRACKS
 
-    if grid.track == OFFLINE:
-        from ccfit.offline import OfflineConfig as config_class
-        from ccfit.offline import scratch_key
-    else:
-        from ccfit.config import CurriculumConfig as config_class
-        from ccfit.curriculum import scratch_key
+    track = TRACKS[grid.track]
 
     import_plugins(grid.plugins)
     root = Path(root).resolve()
@@ -205,10 +201,10 @@ def expand(grid: Grid, root: str | Path) -> Sweep:
         argv = [f"--preset={grid.preset}", f"--suite={suite}", f"--seed={seed}",
                 f"--model.type={model}", f"--method.type={method}",
                 *point_args(grid.args, scoped, {"model": model, "method": method})]  # fmt: skip
-        cfg = parse_cli(config_class, argv, prog="ccfit sweep")
+        cfg = parse_cli(track.config_class, argv, prog="ccfit sweep")
         name = run_name(cfg, grid.track)
         cfg.out = str(root / name)
-        runs.append(RunSpec(name, cfg.to_dict(), scratch_key(cfg)))
+        runs.append(RunSpec(name, cfg.to_dict(), track(cfg).reference_key()))
     return Sweep(root, grid, runs, code_version())
 
 

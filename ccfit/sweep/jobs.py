@@ -36,7 +36,6 @@ from ccfit.sweep.grid import (
     STATUS_JSON,
     Sweep,
     import_plugins,
-    is_offline,
     load_sweep,
 )
 
@@ -49,11 +48,10 @@ def config_from_dict(d: dict):
     """A `CurriculumConfig` (or, for an offline run, an `OfflineConfig`) from its plain data
     (config.json or sweep.json), ignoring keys that are not config fields
     (`resolved_seed_dataset`)."""
-    from ccfit.config import CurriculumConfig
     from ccfit.config_parse import resolve
-    from ccfit.offline import OfflineConfig
+    from ccfit.tracks import track_of
 
-    cls = OfflineConfig if is_offline(d) else CurriculumConfig
+    cls = track_of(d).config_class
     names = {f.name for f in dataclasses.fields(cls)}
     return resolve(cls, {k: v for k, v in d.items() if k in names})
 
@@ -86,18 +84,16 @@ class ScratchJob(_Job):
 
     def __call__(self, config: dict, scratch_dir: str, plugins: list[str], code: dict,
                  threads: int | None = None) -> dict:  # fmt: skip
+        from ccfit.runner import run_reference
+        from ccfit.tracks import track_of
         from ccfit.train.cost import RunCost
-
-        if is_offline(config):
-            from ccfit.offline import run_scratch
-        else:
-            from ccfit.curriculum import run_scratch
 
         job_start(f"scratch reference {scratch_dir}", plugins, code, threads)
         # Trained here, the reference has a cost of its own; one a curriculum trains counts in
         # the curriculum's cost.json.
         with RunCost(scratch_dir):
-            evals = run_scratch(config_from_dict(config), Path(scratch_dir), progress=False)
+            track = track_of(config)(config_from_dict(config))
+            evals = run_reference(track, Path(scratch_dir), progress=False)
         return {"scratch_dir": scratch_dir, "evaluations": len(evals)}
 
 
@@ -111,19 +107,18 @@ class RunJob(_Job):
 
     def __call__(self, config: dict, run_dir: str, scratch_root: str, scratch_key: str,
                  plugins: list[str], code: dict, threads: int | None = None) -> dict:  # fmt: skip
-        if is_offline(config):
-            from ccfit.offline import scratch_key as key_of
-        else:
-            from ccfit.curriculum import scratch_key as key_of
+        from ccfit.runner import CurriculumRunner
+        from ccfit.tracks import track_of
 
         job_start(f"run {run_dir}", plugins, code, threads)
         metrics = Path(run_dir) / METRICS_JSON
         if metrics.is_file():  # finished by an earlier attempt: nothing to do
             return _summary(json.loads(metrics.read_text()))
-        cfg = config_from_dict(config)
-        if key_of(cfg) != scratch_key:  # e.g. seed_dataset 'auto' found another dataset here
+        track = track_of(config).in_sweep(config_from_dict(config), self.keep_stages)
+        key = track.reference_key()
+        if key != scratch_key:  # e.g. seed_dataset 'auto' found another dataset here
             raise RuntimeError(
-                f"the run's from-scratch key is {key_of(cfg)} here but was "
+                f"the run's from-scratch key is {key} here but was "
                 f"{scratch_key} at submission: run the sweep again"
             )
         done = Path(scratch_root) / scratch_key / REFERENCE_DONE
@@ -131,17 +126,7 @@ class RunJob(_Job):
             raise ScratchMissing(f"from-scratch reference {done.parent} did not finish (see its "
                                  f"job's log); run the sweep again")  # fmt: skip
         print(f"ccfit sweep: {resume_point(Path(run_dir))}", flush=True)
-        if is_offline(config):
-            from ccfit.offline import OfflineCurriculum
-
-            return _summary(OfflineCurriculum(cfg, run_dir, scratch_root, progress=False).run())
-        from ccfit.analysis import stage_callbacks
-        from ccfit.curriculum import Curriculum
-
-        result = Curriculum(cfg, run_dir, scratch_root, progress=False,
-                            callbacks=stage_callbacks(cfg),
-                            keep_stages=self.keep_stages).run()  # fmt: skip
-        return _summary(result)
+        return _summary(CurriculumRunner(track, run_dir, scratch_root, progress=False).run())
 
 
 def resume_point(run_dir: Path) -> str:

@@ -17,12 +17,8 @@ from the previous plan's mean, which is the acting state.
 """
 
 from ccfit.models.tdmpc2.config import Q_RETURN_TYPES, TDMPC2_SIZES, TDMPC2Config
-from ccfit.models.tdmpc2.model import (
-    TDMPC2,
-    TDMPC2Backbone,
-    TDMPC2Heads,
-    modules_in_eval,
-)
+from ccfit.models.tdmpc2.model import TDMPC2
+from ccfit.models.tdmpc2.networks import TDMPC2Backbone, TDMPC2Heads, modules_in_eval
 
 __all__ = [
     "Q_RETURN_TYPES", "TDMPC2", "TDMPC2Backbone", "TDMPC2Config", "TDMPC2Heads", "TDMPC2_SIZES",
