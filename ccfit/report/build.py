@@ -50,7 +50,6 @@ from ccfit.report.axes import write_axes
 from ccfit.report.cost import write_cost
 from ccfit.report.orderings import write_orderings
 from ccfit.report.plots import (
-    METHOD_ORDER,
     method_columns,
     metric_cell,
     plot_bars,
@@ -63,18 +62,6 @@ from ccfit.report.stages import write_stages
 
 SUMMARY_JSON = "summary.json"
 """Every report's summary: its groups' metrics (numbers, what the tables print)."""
-
-__all__ = [
-    "METHOD_ORDER",
-    "group_metrics",
-    "group_runs",
-    "load_groups",
-    "plot_bars",
-    "plot_curves",
-    "table_frame",
-    "write_report",
-    "write_tables",
-]
 
 
 def group_metrics(runs: list[Run]) -> dict:
