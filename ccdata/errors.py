@@ -28,11 +28,27 @@ class InputError(ValueError):
 
 class OneLineParser(argparse.ArgumentParser):
     """argparse whose usage error is one line on stderr and exit 2, not the usage block: the
-    console scripts' and the repository's scripts' (diagnostics) parser."""
+    console scripts' and the repository's scripts' (diagnostics) parser.
+
+    An option is taken spelt with `_` as with `-` between its words (`--repo_id` is
+    `--repo-id`), as the config commands of ccfit take theirs: one rule for both CLIs."""
 
     def error(self, message: str) -> None:
         print(f"{self.prog}: error: {message}", file=sys.stderr)
         sys.exit(EXIT_USAGE)
+
+    def parse_known_args(self, args=None, namespace=None):
+        args = sys.argv[1:] if args is None else list(args)
+        return super().parse_known_args([self._dashed(a) for a in args], namespace)
+
+    def _dashed(self, arg: str) -> str:
+        """`arg` with the spelling this parser registered, where it names one of its options
+        with `_` for `-`."""
+        name, sep, value = arg.partition("=")
+        if not name.startswith("--") or "_" not in name:
+            return arg
+        dashed = name.replace("_", "-")
+        return dashed + sep + value if dashed in self._option_string_actions else arg
 
 
 def add_command(sub, name: str, summary: str, example: str) -> argparse.ArgumentParser:

@@ -263,3 +263,27 @@ def test_a_corrupt_dataset_record_is_one_line_and_a_bug_keeps_its_traceback(
     monkeypatch.setattr("ccdata.cli._cmd_list", broken)
     with pytest.raises(ValueError, match="an internal inconsistency"):
         main(["list"])
+
+
+def test_every_option_is_taken_with_either_spelling():
+    """One rule for both CLIs: `--a_b` is `--a-b` (ccfit's config commands take both too)."""
+    import argparse
+
+    from ccfit.sweep.cli import build_parser as sweep_parser
+
+    parse = build_parser().parse_args
+    dashed = ["generate", "--suite", "Reach", "--image-size", "32", "--repo-id", "me/Reach",
+              "--explore-episodes", "3", "--max-steps", "20"]  # fmt: skip
+    under = ["--" + a[2:].replace("-", "_") if a.startswith("--") else a for a in dashed]
+    assert under != dashed and parse(under) == parse(dashed)
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    checked = 0
+    for parser in [*sub.choices.values(), sweep_parser()]:
+        for action in parser._actions:
+            for option in action.option_strings:
+                if option.startswith("--") and "-" in option[2:]:
+                    assert parser._dashed("--" + option[2:].replace("-", "_") + "=1") == (
+                        option + "=1"
+                    )
+                    checked += 1
+    assert checked >= 15

@@ -21,7 +21,7 @@ import argparse
 import shutil
 import sys
 
-from ccdata.errors import InputError
+from ccdata.errors import InputError, OneLineParser
 from ccdata.processes import available_cores
 from ccdata.slurm import REQUEUE_SAFE_MIN, LaunchError, check_slurm, settings_from_options
 from ccdata.slurm import add_options as add_slurm_options
@@ -51,7 +51,10 @@ SLURM_TIME = "1-00:00:00"
 """Time limit of every run and reference job when `--time` is not given."""
 
 
-class _Parser(argparse.ArgumentParser):
+class _Parser(OneLineParser):
+    """The sweep's own options (either spelling, `OneLineParser`); a usage error is raised as
+    `InputError` for the command to report."""
+
     def error(self, message: str) -> None:
         raise InputError(message)
 
