@@ -617,6 +617,60 @@ def test_demo_cloning_alone_moves_the_actors_mean_to_the_demonstrated_action():
     assert (mean[real] - target).abs().mean() < 0.05  # the posteriors are sampled: not exact
 
 
+def test_option_demo_bc_loss_nll_is_the_demonstrated_actions_negative_log_likelihood():
+    """`demo_bc_loss='nll'`: the mean over the cloned rows of -log N(a_t; mean, std) under
+    the actor's distribution at row t's posterior; unlike 'mse' it moves the actor's std."""
+    batch = dataclasses.replace(make_batch(), demos=2)
+    model, heads = make(demo_bc_coef=1.0, demo_bc_loss="nll")
+    aux = model.loss(batch, heads).aux
+    with torch.no_grad():
+        mean, std = heads.actor(model.rssm.feat(aux.deter[:-1, :2], aux.stoch[:-1, :2]))
+        nll = -normal_log_prob(batch.action[:-1, :2], mean, std).squeeze(-1)
+        err = (mean - batch.action[:-1, :2]).pow(2).sum(-1)
+    real = torch.ones(L - 1, 2)
+    real[5, 1] = 0.0  # the episode's last observation in window 1: no transition
+    by_hand = (nll * real).sum() / real.sum()
+    torch.testing.assert_close(model._demo_cloning(batch, heads, aux), by_hand)
+    mse_model, mse_heads = make(demo_bc_coef=1.0)  # the same seed: the same actor
+    torch.testing.assert_close(
+        mse_model._demo_cloning(batch, mse_heads, aux), (err * real).sum() / real.sum()
+    )
+    # The std's gradient: none from 'mse', some from 'nll'.
+    for loss, moved in (("mse", False), ("nll", True)):
+        model, heads = make(demo_bc_coef=1.0, demo_bc_loss=loss)
+        aux = model.loss(batch, heads).aux
+        bc = model._demo_cloning(batch, heads, aux)
+        (grad,) = torch.autograd.grad(bc, heads.actor.out.bias)
+        std_grad = grad[4:]  # the output's second half parameterises the std
+        assert bool(std_grad.abs().max() > 0) is moved
+
+
+@pytest.mark.parametrize("imag_cont", ["mode", "prob"])
+def test_option_imag_cont_uses_the_continue_heads_mode_or_probability(imag_cont):
+    """Imagined continue flags c_1..c_H: the continue head's prediction thresholded at 0.5
+    ('mode', the recipe) or its probability ('prob'); the weights follow them."""
+    model, heads = make(imag_cont=imag_cont)
+    with torch.no_grad():  # a continue head whose probabilities are spread over (0, 1)
+        heads.cont.out.weight.normal_(0, 2.0)
+    n = 16
+    deter, stoch = model.rssm.initial_state(n)
+    with torch.no_grad():
+        deter = deter + 0.5 * torch.randn_like(deter)
+        torch.manual_seed(4)
+        traj = imagine(model.rssm, heads, deter, stoch, torch.ones(n, 1), model.cfg.horizon,
+                       model.cfg.discount, model.cfg.imag_cont)  # fmt: skip
+        prob = torch.sigmoid(heads.cont(traj.feat[1:]))
+    assert ((prob > 0.05) & (prob < 0.95)).any()  # the two forms differ here
+    expected = prob if imag_cont == "prob" else (prob > 0.5).float()
+    torch.testing.assert_close(traj.cont[1:], expected)
+    weight = torch.cumprod(model.cfg.discount * traj.cont, 0) / model.cfg.discount
+    torch.testing.assert_close(traj.weight, weight)
+    with pytest.raises(ConfigError):
+        tiny(imag_cont="sample")
+    with pytest.raises(ConfigError):
+        tiny(demo_bc_loss="l1")
+
+
 # ------------------------------------------------------------------------------ 2025 options
 
 

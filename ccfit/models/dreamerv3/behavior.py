@@ -38,7 +38,8 @@ class Trajectory:
     action: torch.Tensor
     """Actions a_0..a_{H-1} as sampled (before the dynamics' clipping), (H, N, A)."""
     cont: torch.Tensor
-    """Continue flags of s_0..s_H (c_0 from the start, then the continue head's mode)."""
+    """Continue flags of s_0..s_H (c_0 from the start, then the continue head's mode or
+    probability, `imag_cont`)."""
     weight: torch.Tensor
     """Loss weights cumprod(discount * c) / discount, (H + 1, N, 1), no gradient."""
     mean: torch.Tensor
@@ -55,11 +56,13 @@ def imagine(
     start_cont: torch.Tensor,
     horizon: int,
     discount: float,
+    cont_from: str = "mode",
 ) -> Trajectory:
     """Roll the actor through the prior from starts (N, D), (N, S, C); gradients flow from
     the actor's reparameterised samples through the dynamics (use no_grad when not needed).
     The actor reads detached states, as in the recipe: its gradient is the path through
-    its sampled actions only."""
+    its sampled actions only. `cont_from`: the continue flags of s_1..s_H are the continue
+    head's mode ('mode', the recipe) or its probability ('prob'), without gradient."""
     feats = [rssm.feat(deter, stoch)]
     actions, means, stds = [], [], []
     for _ in range(horizon):
@@ -72,7 +75,8 @@ def imagine(
         feats.append(rssm.feat(deter, stoch))
     feat = torch.stack(feats)
     with torch.no_grad():
-        cont = (heads.cont(feat[1:]) > 0).to(feat.dtype)
+        logit = heads.cont(feat[1:])
+        cont = torch.sigmoid(logit) if cont_from == "prob" else (logit > 0).to(feat.dtype)
         cont = torch.cat([start_cont[None], cont])
         weight = torch.cumprod(discount * cont, 0) / discount
     stack = torch.stack
@@ -142,13 +146,21 @@ def behavior_losses(
 
 
 def demo_cloning(
-    heads: DreamerV3Heads, feat: torch.Tensor, action: torch.Tensor, valid: torch.Tensor
+    heads: DreamerV3Heads,
+    feat: torch.Tensor,
+    action: torch.Tensor,
+    valid: torch.Tensor,
+    loss: str = "mse",
 ) -> torch.Tensor:
     """Mean over the rows with a real transition (`valid` (T, k, 1)) of the squared distance
     of the actor's mean at posteriors `feat` (T, k, F) to the demonstrated `action` (T, k, A)
-    taken from each row (its posterior has read the row's observation and the action before)."""
-    mean, _ = heads.actor(feat)
-    err = (mean - action).pow(2).sum(-1, keepdim=True)
+    taken from each row (its posterior has read the row's observation and the action before);
+    `loss='nll'`: of -log N(action; mean, std) under the actor's distribution instead."""
+    mean, std = heads.actor(feat)
+    if loss == "nll":
+        err = -normal_log_prob(action, mean, std)
+    else:
+        err = (mean - action).pow(2).sum(-1, keepdim=True)
     return (err * valid).sum() / valid.sum().clamp(min=1.0)
 
 

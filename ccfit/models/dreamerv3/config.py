@@ -15,6 +15,8 @@ from ccfit.config_base import check
 from ccfit.models.registry import ModelConfig
 
 ACTOR_GRADS: tuple[str, ...] = ("dynamics", "reinforce")
+IMAG_CONTS: tuple[str, ...] = ("mode", "prob")
+DEMO_BC_LOSSES: tuple[str, ...] = ("mse", "nll")
 
 
 @dataclass
@@ -136,6 +138,11 @@ class DreamerV3Config(ModelConfig):
     """Agent discount in imagination (1 - 1/333); the benchmark scores with 0.99."""
     return_lambda: float = 0.95
     """lambda of the lambda-returns."""
+    imag_cont: str = "mode"
+    """Continue flags of imagined states: 'mode' (the 2023 recipe: the continue head's
+    prediction thresholded at 0.5) or 'prob' (its probability): a state the model thinks
+    ends the episode with chance 0.3 then counts for 0.3 of a termination in the returns
+    and weights, instead of none."""
     actor_grad: str = "dynamics"
     """'dynamics': backpropagate returns through the imagined dynamics (recipe); 'reinforce':
     score-function gradient with the normalised advantage (2025)."""
@@ -159,6 +166,11 @@ class DreamerV3Config(ModelConfig):
     real transition. The critic learns on-policy in imagination, so demonstrations in replay
     teach the world model what a grasp pays but never show the actor how; 0 (every preset):
     the recipe's objective."""
+    demo_bc_loss: str = "mse"
+    """The cloning term's form: 'mse', the squared distance of the actor's mean (tanh) to the
+    demonstrated action (its gradient shrinks by 1 - tanh^2 toward saturated targets such as
+    the gripper's +-1, and the std is left alone); 'nll', the negative log-likelihood of the
+    demonstrated action under the actor's Normal(mean, std), which also trains the std."""
     retnorm_rate: float = 0.01
     """EMA rate of the return normaliser's 5th and 95th return percentiles."""
     retnorm_low: float = 0.05
@@ -223,6 +235,9 @@ class DreamerV3Config(ModelConfig):
             0 <= self.retnorm_low < self.retnorm_high <= 1,
             f"{name}: need 0 <= retnorm_low < retnorm_high <= 1",
         )
+        for f, allowed in (("imag_cont", IMAG_CONTS), ("demo_bc_loss", DEMO_BC_LOSSES)):
+            v = getattr(self, f)
+            check(v in allowed, f"{name}.{f} must be one of {allowed}, got {v!r}")
         check(
             self.actor_grad in ACTOR_GRADS,
             f"{name}.actor_grad must be one of {ACTOR_GRADS}, got {self.actor_grad!r}",

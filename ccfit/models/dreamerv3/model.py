@@ -208,7 +208,9 @@ class DreamerV3(WorldModel, Prediction):
         cfg = self.cfg
         k = cfg.imag_last or batch.seq_len
         with torch.no_grad():
-            traj = imagine(self.rssm, heads, *self._starts(aux), cfg.horizon, cfg.discount)
+            traj = imagine(
+                self.rssm, heads, *self._starts(aux), cfg.horizon, cfg.discount, cfg.imag_cont
+            )
             boot = imagined_returns(cfg, heads, traj)[0][0].reshape(k, batch.size, 1)
             valid = torch.cat([batch.valid(), torch.zeros_like(batch.valid()[:1])])[-k:]
             target = replay_lambda_return(
@@ -273,7 +275,9 @@ class DreamerV3(WorldModel, Prediction):
         cfg = self.cfg
         aux: DreamerV3Aux = out.aux
         with torch.set_grad_enabled(cfg.actor_grad == "dynamics"):
-            traj = imagine(self.rssm, heads, *self._starts(aux), cfg.horizon, cfg.discount)
+            traj = imagine(
+                self.rssm, heads, *self._starts(aux), cfg.horizon, cfg.discount, cfg.imag_cont
+            )
         actor_loss, critic_loss, logs = behavior_losses(cfg, heads, traj)
         if cfg.demo_bc_coef > 0 and batch.demos > 0:
             bc = self._demo_cloning(batch, heads, aux)
@@ -295,7 +299,7 @@ class DreamerV3(WorldModel, Prediction):
         k, batch = batch.demos, batch.to(self.device)
         feat = self.rssm.feat(aux.deter[:-1, :k], aux.stoch[:-1, :k])
         action = clip_action(batch.action[:-1, :k])
-        return demo_cloning(heads, feat, action, batch.valid()[:, :k])
+        return demo_cloning(heads, feat, action, batch.valid()[:, :k], self.cfg.demo_bc_loss)
 
     def _step(self, loss: torch.Tensor, module: nn.Module, opt: torch.optim.Optimizer,
               retain_graph: bool = False):  # fmt: skip
