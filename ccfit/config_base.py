@@ -142,6 +142,7 @@ LEGACY_VALUES: dict[str, Any] = {
     "train.stop_evals": 3, "train.keep_backbone_optimizer": False,
     "train.end_eval_episodes": None,
     "fit.keep_backbone_optimizer": False, "model.demo_bc_coef": 0.0,
+    "model.imag_cont": "mode", "model.demo_bc_loss": "mse",
 }  # fmt: skip
 """Settings added after runs were made, each with the value that reproduces what runs did
 before it existed. A setting at that value is left out wherever configs are compared or hashed
