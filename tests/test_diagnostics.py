@@ -147,6 +147,19 @@ def test_dreamerv3_pick(made, monkeypatch, capsys):
         assert out[policy]["reward_abs_err_per_step"] >= 0
 
 
+def test_dreamerv3_imagination(made, capsys):
+    script = _script("dreamerv3_imagination")
+    run = made.runs["dreamerv3"]
+    out = json.loads(_run(script, [str(run), "--dataset", str(made.dataset)], capsys))
+    assert out["run"] == str(run) and out["task_step"] == 100
+    for policy in ("random", "oracle"):
+        got = out[policy]
+        assert got["starts"] > 0 and got["rollouts"] == script.ROLLOUTS * got["starts"]
+        assert all(0 <= got[k] <= 1 for k in ("term_mode", "term_prob", "imag_cont_mode_mean"))
+        assert _finite(got["imag_reward_mean"])
+        assert got["imag_reward_max"] >= got["imag_reward_mean"]
+
+
 @pytest.mark.integration
 def test_stage_reached(made, capsys):
     script = _script("stage_reached")
