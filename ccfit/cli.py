@@ -162,8 +162,7 @@ def run_dir(cfg) -> Path:
 
     if cfg.out:
         return Path(cfg.out)
-    return Path("runs") / run_name(cfg.suite, cfg.model.type, cfg.method.type, cfg.obs,
-                                   cfg.preset, cfg.seed)  # fmt: skip
+    return Path("runs") / run_name(cfg)
 
 
 def cmd_run(argv: list[str]) -> None:

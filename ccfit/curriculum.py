@@ -110,12 +110,9 @@ class OnlineTrack(Track):
         self.evaluator = self.logger = None
 
     @classmethod
-    def in_sweep(cls, cfg: CurriculumConfig, keep_stages: bool = False) -> OnlineTrack:
-        """With the analyses its model offers (`ccfit.analysis.stage_callbacks`), as
-        `ccfit run`."""
-        from ccfit.analysis import stage_callbacks
-
-        return cls(cfg, stage_callbacks(cfg), keep_stages)
+    def in_sweep(cls, cfg: CurriculumConfig, keep_stages: bool = False,
+                 callbacks: list[StageCallback] = ()) -> OnlineTrack:  # fmt: skip
+        return cls(cfg, callbacks, keep_stages)
 
     @property
     def budget(self) -> int:
@@ -146,7 +143,7 @@ class OnlineTrack(Track):
 
     def prepare(self, resolved: dict, restored: Restored, reference: Path) -> None:
         cfg, out = self.cfg, self.out
-        self.resolved, self.restored, self.reference = resolved, restored, reference
+        self.restored, self.reference = restored, reference
         self.source = resolved["resolved_seed_dataset"]
         note_no_seed_dataset(cfg, cfg.suite, self.source)
         # What does not fit fails here, before anything runs.

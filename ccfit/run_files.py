@@ -41,16 +41,16 @@ def task_dir(run_dir: Path, index: int, task_id: str) -> Path:
     return Path(run_dir) / TASKS / f"{index}-{task_id}"
 
 
-def run_name(suite: str, model: str, method: str, obs: str, preset: str, seed: int,
-             track: str = ONLINE) -> str:  # fmt: skip
-    """A curriculum run's directory name (`ccfit run`, `ccfit fit`, a sweep's runs)."""
-    name = f"{suite}-{model}-{method}-{obs}-{preset}-s{seed}"
+def run_name(cfg, track: str = ONLINE) -> str:
+    """A curriculum run's directory name (`ccfit run`, `ccfit fit`, a sweep's runs) from its
+    config: the grid values plus the shared obs and preset, and the track when not online."""
+    name = f"{cfg.suite}-{cfg.model.type}-{cfg.method.type}-{cfg.obs}-{cfg.preset}-s{cfg.seed}"
     return name if track == ONLINE else f"{name}-{track}"
 
 
-def task_run_name(task: str, model: str, obs: str, preset: str, seed: int) -> str:
-    """A single-task run's directory name (`ccfit train`)."""
-    return f"{task}-{model}-{obs}-{preset}-s{seed}"
+def task_run_name(cfg) -> str:
+    """A single-task run's directory name (`ccfit train`) from its config."""
+    return f"{cfg.task}-{cfg.model.type}-{cfg.obs}-{cfg.preset}-s{cfg.seed}"
 
 
 def reference_name(suite: str, model: str, obs: str, preset: str, seed: int, digest: str,

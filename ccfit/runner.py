@@ -87,9 +87,10 @@ class Track(abc.ABC):
         self.progress = True
 
     @classmethod
-    def in_sweep(cls, cfg: Any, keep_stages: bool = False) -> Track:
+    def in_sweep(cls, cfg: Any, keep_stages: bool = False, callbacks: list = ()) -> Track:
         """The track of one run of a sweep (`ccfit.sweep.jobs`); `keep_stages`: the run keeps
-        its state after each task, where the track can."""
+        its state after each task, and `callbacks` (`ccfit.analysis.stage_callbacks`) are
+        called after each, where the track can."""
         return cls(cfg)
 
     @property

@@ -437,7 +437,8 @@ def test_sweep_track_offline_expands_fit_runs_and_runs_their_jobs(dataset, tmp_p
     them and the report job reports them on the offline track."""
     from ccfit.cli import main
     from ccfit.sweep import Grid, ReportJob, RunJob, ScratchJob, expand
-    from ccfit.sweep.grid import is_offline, write_record
+    from ccfit.sweep.grid import write_record
+    from ccfit.tracks import track_of
 
     root = tmp_path / "sweep"
     common = ["--suites", SUITE, "--methods", "ft,ewc", "--preset", "smoke", "--out", str(root),
@@ -452,7 +453,8 @@ def test_sweep_track_offline_expands_fit_runs_and_runs_their_jobs(dataset, tmp_p
     grid = Grid((SUITE,), ("dreamerv3",), ("ft", "ewc"), (0,), "smoke",
                 ("--dataset", str(dataset)), (), "offline")  # fmt: skip
     sweep = expand(grid, root)
-    assert all(is_offline(r.config) and r.name.endswith("-offline") for r in sweep.runs)
+    assert all(track_of(r.config).name == "offline" and r.name.endswith("-offline")
+               for r in sweep.runs)  # fmt: skip
     (key,) = {r.scratch_key for r in sweep.runs}
     write_record(sweep, [])
     ScratchJob()(sweep.scratch_configs()[key], str(sweep.scratch_dir(key)), [], sweep.code)

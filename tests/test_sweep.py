@@ -490,3 +490,14 @@ def test_a_failed_reference_fails_its_runs_unstarted(tmp_path, capsys):
     (root / "report" / "status.json").write_text('{"done": [], "miss')  # damaged: bad input
     code, _, err = sweep_cli(capsys, "--status", str(root))
     assert "report/status.json is not a sweep's report status" in one_line_error(code, err)
+
+
+def test_a_config_of_no_track_is_one_line():
+    """A sweep.json or config.json that is not a ccfit run's (no `train`, no `fit`) names the
+    problem instead of a traceback."""
+    from ccfit.tracks import track_of
+
+    assert track_of({"train": {}}).name == "online" and track_of({"fit": {}}).name == "offline"
+    for config in ({}, {"train": {}, "fit": {}}):
+        with pytest.raises(InputError, match="not a ccfit run's config"):
+            track_of(config)

@@ -45,8 +45,7 @@ STATE_VERSION = 1
 
 def default_out(cfg: OfflineConfig) -> Path:
     """Where an offline run goes without --out: a name made from its config."""
-    return Path("runs") / run_name(cfg.suite, cfg.model.type, cfg.method.type, cfg.obs,
-                                   cfg.preset, cfg.seed, track=TRACK)  # fmt: skip
+    return Path("runs") / run_name(cfg, track=TRACK)
 
 
 def resolved_config(cfg: OfflineConfig, source: str, *, record_dataset: bool = True) -> dict:

@@ -26,8 +26,15 @@ from ccdata.errors import InputError
 from ccdata.slurm import code_version
 from ccfit.config_base import LEGACY_VALUES, identity
 from ccfit.io import atomic_write_json
-from ccfit.run_files import METRICS_JSON, OFFLINE, ONLINE, REFERENCE_DONE, SCRATCH, SWEEP_JSON
-from ccfit.run_files import run_name as name_of
+from ccfit.run_files import (
+    METRICS_JSON,
+    OFFLINE,
+    ONLINE,
+    REFERENCE_DONE,
+    SCRATCH,
+    SWEEP_JSON,
+    run_name,
+)
 
 SWEEP_VERSION = 1
 REPORT = "report"
@@ -38,12 +45,6 @@ GRID_FLAGS = ("suite", "seed", "model.type", "method.type", "preset")
 REFUSED_FLAGS = ("out", "config_path")
 TRACKS = (ONLINE, OFFLINE)
 """`ccfit run` curricula, or `ccfit fit` offline ones (`ccfit.offline`)."""
-
-
-def is_offline(config: dict) -> bool:
-    """Whether a run's config (plain data) is an offline one: it has the offline loop `fit`
-    where an online one has `train`."""
-    return "fit" in config
 
 
 @dataclass(frozen=True)
@@ -173,13 +174,6 @@ def import_plugins(plugins: tuple[str, ...] | list[str]) -> None:
             importlib.import_module(module)
         except ModuleNotFoundError as e:
             raise InputError(f"plugin module {module!r} not found ({e})") from None
-
-
-def run_name(cfg, track: str = ONLINE) -> str:
-    """A run's directory name: the grid values plus the shared obs and preset (and the track
-    when offline)."""
-    return name_of(cfg.suite, cfg.model.type, cfg.method.type, cfg.obs, cfg.preset, cfg.seed,
-                   track=track)  # fmt: skip
 
 
 def expand(grid: Grid, root: str | Path) -> Sweep:

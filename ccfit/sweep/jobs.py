@@ -107,6 +107,7 @@ class RunJob(_Job):
 
     def __call__(self, config: dict, run_dir: str, scratch_root: str, scratch_key: str,
                  plugins: list[str], code: dict, threads: int | None = None) -> dict:  # fmt: skip
+        from ccfit.analysis import stage_callbacks
         from ccfit.runner import CurriculumRunner
         from ccfit.tracks import track_of
 
@@ -114,7 +115,9 @@ class RunJob(_Job):
         metrics = Path(run_dir) / METRICS_JSON
         if metrics.is_file():  # finished by an earlier attempt: nothing to do
             return _summary(json.loads(metrics.read_text()))
-        track = track_of(config).in_sweep(config_from_dict(config), self.keep_stages)
+        cfg = config_from_dict(config)
+        # The analyses its model offers, as `ccfit run` records them (offline: none run).
+        track = track_of(config).in_sweep(cfg, self.keep_stages, stage_callbacks(cfg))
         key = track.reference_key()
         if key != scratch_key:  # e.g. seed_dataset 'auto' found another dataset here
             raise RuntimeError(

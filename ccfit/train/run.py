@@ -336,7 +336,7 @@ def check_same_encoder(out: Path, encoder: str | None, sha256: str | None) -> No
 
 def default_out(cfg: TaskRunConfig) -> Path:
     """Where a `ccfit train` run goes without --out: a name made from its config."""
-    return Path("runs") / task_run_name(cfg.task, cfg.model.type, cfg.obs, cfg.preset, cfg.seed)
+    return Path("runs") / task_run_name(cfg)
 
 
 @contextlib.contextmanager
