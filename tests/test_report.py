@@ -329,28 +329,35 @@ def test_a_seed_given_twice_is_one_line_and_exit_2(tmp_path, capsys):
     assert err.count("\n") == 1
 
 
-def test_a_range_over_fewer_seeds_than_the_value_says_so():
+def test_a_cell_gives_the_ci_and_how_many_seeds_define_the_metric():
     from ccfit.report.plots import metric_cell
 
-    group = {"seeds": [0, 1], "bwt": 75.0, "bwt_min": 50.0, "bwt_max": 50.0}
+    group = {"seeds": [0, 1], "bwt": 75.0, "bwt_lo": 50.0, "bwt_hi": 80.0,
+             "bwt_seed_mean": 60.0, "bwt_seed_mean_lo": 55.0, "bwt_seed_mean_hi": 65.0}  # fmt: skip
     assert (
         metric_cell({**group, "bwt_seeds_defined": 1}, "bwt")
-        == "75.00 [50.00, 50.00; 1 of 2 seeds]"
+        == "75.00 [50.00, 80.00; 1 of 2 seeds]"
     )
-    assert metric_cell({**group, "bwt_seeds_defined": 2}, "bwt") == "75.00 [50.00, 50.00]"
+    assert metric_cell({**group, "bwt_seeds_defined": 2}, "bwt") == "75.00 [50.00, 80.00]"
+    assert metric_cell({**group, "bwt_seeds_defined": 2}, "bwt", "_seed_mean") == (
+        "60.00 [55.00, 65.00]"
+    )
+    undefined = {"seeds": [0, 1], "bwt": None, "bwt_reason": "no task learnt above 0"}
+    assert metric_cell(undefined, "bwt") == "n/a (no task learnt above 0)"
 
 
-def test_bar_whiskers_span_the_per_seed_range_even_where_the_value_lies_outside_it(
+def test_bar_whiskers_span_the_ci_of_the_bar_even_where_it_lies_outside_the_seeds_range(
     tmp_path, monkeypatch
 ):
     """The bar is the seed-averaged curves' metric, which may fall outside the per-seed [min,
-    max] (BWT clips each curve's drop at 0 before averaging): the whisker still spans min..max."""
+    max] (BWT clips each curve's drop at 0 before averaging): the whisker is its bootstrap CI."""
     import matplotlib.pyplot as plt
 
     from ccfit.report.plots import plot_bars
 
     group = {"seeds": [0, 1, 2], "track": "online", "bwt": 0.04, "bwt_min": 0.07,
-             "bwt_max": 1.33, "fwt": 10.0, "fwt_min": 5.0, "fwt_max": 12.0}  # fmt: skip
+             "bwt_max": 1.33, "bwt_lo": 0.0, "bwt_hi": 0.9, "fwt": 10.0, "fwt_min": 5.0,
+             "fwt_max": 12.0, "fwt_lo": 6.0, "fwt_hi": 11.5}  # fmt: skip
     figures = []
     monkeypatch.setattr(plt, "close", lambda fig=None: figures.append(fig))
     plot_bars({("tdmpc2", SUITE, "packnet", ""): group}, tmp_path)
@@ -360,7 +367,7 @@ def test_bar_whiskers_span_the_per_seed_range_even_where_the_value_lies_outside_
         assert bar.get_height() == pytest.approx(group[name])
         (whisker,) = [c for c in ax.collections if len(c.get_segments()) == 1]
         (segment,) = whisker.get_segments()
-        assert sorted(segment[:, 1]) == pytest.approx([group[f"{name}_min"], group[f"{name}_max"]])
+        assert sorted(segment[:, 1]) == pytest.approx([group[f"{name}_lo"], group[f"{name}_hi"]])
 
 
 def test_publish_with_root_rewrites_the_overview_over_every_published_folder(tmp_path, capsys):

@@ -5,13 +5,15 @@ what legitimately differs between the seeds of one experiment: the seed itself, 
 from it and output paths (`PER_SEED`), and records of how a run was computed rather than what
 (`AS_RUN`: compilation, worker processes, the dataset's location; both in `ccfit.report.runs`).
 Only runs of one group are averaged; seeds within a group are averaged *before* a metric (the
-paper's protocol), and the per-seed metrics give the min/max. A group is named by (backbone,
+paper's protocol), with a 95% bootstrap CI over seeds; the per-seed metrics give their mean (and
+its CI) and the min/max. A group is named by (backbone,
 suite, method) and, when groups of one table differ in anything else (observation mode, preset,
 router, method options, step budget, ...), by a variant label naming those settings
 ("obs=pixels, preset=cpu"). Outputs:
-- `table_<backbone>.md` / `.csv`: (suite, variant) x methods, BWT and FWT as mean [min, max]
-  (the paper's Appendix B layout), with the settings the variants differ in;
-- `bars_<backbone>.png`: BWT and FWT bars per suite and method with min-max whiskers (Fig. 4);
+- `table_<backbone>.md` / `.csv`: (suite, variant) x methods, BWT and FWT as the metric of the
+  seed-averaged curves [95% bootstrap CI over seeds] (the paper's Appendix B layout), with the
+  settings the variants differ in;
+- `bars_<backbone>.png`: BWT and FWT bars per suite and method with CI whiskers (Fig. 4);
 - `curves_<backbone>_<suite>_<method>[_<variant>].png`: every task's normalised return over the
   curriculum, the forgetting (BWT) region shaded after each task's end and the forward
   transfer (FWT) region between the composition curve and its from-scratch reference.
@@ -32,6 +34,7 @@ its prediction score (0 = persistence, 100 = perfect), not normalised returns.
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import json
 from collections import defaultdict
@@ -59,6 +62,7 @@ from ccfit.report.plots import (
 )
 from ccfit.report.runs import CURVE_KEYS, Run, find_runs, is_axis, scratch_dir_of
 from ccfit.report.stages import write_stages
+from ccfit.report.stats import curve_interval, metric_fields
 
 SUMMARY_JSON = "summary.json"
 """Every report's summary: its groups' metrics (numbers, what the tables print)."""
@@ -89,18 +93,25 @@ def group_metrics(runs: list[Run]) -> dict:
     track = runs[0].track
     key = CURVE_KEYS[track]
     per_seed = [task_curves(r.records, num_tasks, key) for r in runs]
-    curves = [M.average_curves([c[t] for c in per_seed]) for t in range(num_tasks)]
-    scratch = M.average_curves([task_curves(r.scratch, num_tasks, key)[-1] for r in runs])
-    mean = metrics_from_curves(curves, ends, scratch, budget)
+    scratches = [task_curves(r.scratch, num_tasks, key)[-1] for r in runs]
+
+    @functools.cache
+    def averaged(multiset: tuple[int, ...]) -> tuple[list, Any, dict]:
+        """The curves of the seeds at `multiset` averaged, and their metrics."""
+        curves = [M.average_curves([per_seed[i][t] for i in multiset]) for t in range(num_tasks)]
+        scratch = M.average_curves([scratches[i] for i in multiset])
+        return curves, scratch, metrics_from_curves(curves, ends, scratch, budget)
+
+    curves, scratch, mean = averaged(tuple(range(len(runs))))
     out = {"seeds": sorted(seeds), "curves": curves, "scratch": scratch,
            "ends": ends, "budget": budget, "runs": [str(r.path) for r in runs],
            "track": track, "obs": runs[0].config.get("obs")}  # fmt: skip
+    if mean["bwt"] is None:
+        out["bwt_reason"] = M.bwt(curves, ends).reason
     for name, source in METRICS_SHOWN.items():
-        values = [r.metrics[source] for r in runs if r.metrics.get(source) is not None]
-        out[name] = mean[source]
-        out[f"{name}_min"] = min(values) if values else None
-        out[f"{name}_max"] = max(values) if values else None
-        out[f"{name}_seeds_defined"] = len(values)
+        ci = curve_interval(len(runs), lambda m, s=source: averaged(m)[2][s])
+        by_seed = {r.seed: r.metrics.get(source) for r in runs}
+        out |= metric_fields(name, mean[source], ci, by_seed)
     return out
 
 
@@ -112,8 +123,13 @@ end-of-task score minus final score, averaged over every task but the last, in s
 shown beside BWT because it needs no floor: BWT leaves out a task whose end-of-task score is at
 or below 0 (never learnt), which offline means no better than persistence."""
 COLUMN_NAMES = {"bwt": "BWT", "forgetting": "F", "fwt": "FWT"}
-GROUP_VALUES = [f"{x}{end}" for x in METRICS_SHOWN for end in ("", "_min", "_max")]
-"""What a group reports per metric: its value and the per-seed min and max (csv, summary)."""
+GROUP_VALUES = [
+    f"{x}{end}"
+    for x in METRICS_SHOWN
+    for end in ("", "_lo", "_hi", "_seed_mean", "_seed_mean_lo", "_seed_mean_hi", "_min", "_max")
+]
+"""What a group reports per metric (csv, summary): the metric of the seed-averaged curves and
+its 95% CI, the mean of the per-seed metrics and its CI, and the per-seed min and max."""
 
 
 def _distinguishing_keys(identities: list[dict[str, Any]]) -> list[str]:
@@ -194,7 +210,8 @@ def write_tables(groups: dict, out: Path) -> list[Path]:
         lines = [
             f"# {backbone}: BWT and F (lower is better), FWT (higher is better)",
             "",
-            "The metric of the seed-averaged curves, [min, max] of the per-seed metrics. "
+            "The metric of the seed-averaged curves (the paper's convention) and its 95% "
+            "bootstrap confidence interval over seeds (rliable; `ccfit.report.stats`). "
             "F: Continual World's forgetting, end-of-task minus final score in score "
             "points, averaged over every task but the last (defined where BWT leaves out "
             "a task never learnt above 0).",
@@ -243,7 +260,7 @@ def _grouped(paths: list[Path]) -> tuple[dict, dict]:
 
 def table_frame(groups: dict, backbone: str):
     """One backbone's table as a pandas DataFrame: (suite [variant]) x (method, BWT / FWT), the
-    metric of the seed-averaged curves (numbers; `table_<backbone>.md` adds [min, max])."""
+    metric of the seed-averaged curves (numbers; `table_<backbone>.md` adds the CI)."""
     import pandas as pd
 
     if not any(k[0] == backbone for k in groups):

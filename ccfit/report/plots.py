@@ -20,17 +20,22 @@ def row_label(suite: str, variant: str) -> str:
     return f"{suite} [{variant}]" if variant else suite
 
 
-def metric_cell(g: dict, name: str) -> str:
-    """A group's metric as tables print it: the seed-averaged value, [min, max] over seeds when
-    there are several (naming how many where the metric is undefined for some), 'n/a' when
-    undefined."""
-    if g[name] is None:
-        return "n/a"
+def metric_cell(g: dict, name: str, convention: str = "") -> str:
+    """A group's metric as tables print it: the metric of the seed-averaged curves (the paper's
+    convention; `convention="_seed_mean"`: the mean of the per-seed metrics) and its 95%
+    bootstrap CI over seeds when there are several (naming how many seeds define it where some
+    do not), 'n/a' with the reason when undefined."""
+    value = g[f"{name}{convention}"]
+    if value is None:
+        reason = g.get(f"{name}_reason")
+        return f"n/a ({reason})" if reason and not convention else "n/a"
     if len(g["seeds"]) == 1:
-        return f"{g[name]:.2f}"
+        return f"{value:.2f}"
     defined = g[f"{name}_seeds_defined"]
     of = "" if defined == len(g["seeds"]) else f"; {defined} of {len(g['seeds'])} seeds"
-    return f"{g[name]:.2f} [{g[f'{name}_min']:.2f}, {g[f'{name}_max']:.2f}{of}]"
+    lo, hi = g[f"{name}{convention}_lo"], g[f"{name}{convention}_hi"]
+    ci = "CI n/a" if lo is None or hi is None else f"{lo:.2f}, {hi:.2f}"
+    return f"{value:.2f} [{ci}{of}]"
 
 
 def slug(variant: str) -> str:
@@ -75,11 +80,12 @@ def plot_bars(groups: dict, out: Path) -> list[Path]:
                         continue
                     xs.append(r + (k - (len(methods) - 1) / 2) * width)
                     ys.append(g[name])
-                    lows.append(g[f"{name}_min"])
-                    highs.append(g[f"{name}_max"])
+                    # One seed, or a CI undefined on some resample: no whisker.
+                    lows.append(g[name] if g[f"{name}_lo"] is None else g[f"{name}_lo"])
+                    highs.append(g[name] if g[f"{name}_hi"] is None else g[f"{name}_hi"])
                 ax.bar(xs, ys, width, label=m)
-                # The whisker spans the per-seed [min, max] wherever the bar's value (the
-                # seed-averaged curves' metric) lies, inside that range or not.
+                # The whisker is the 95% bootstrap CI of the bar's value (the seed-averaged
+                # curves' metric).
                 lows, highs = np.asarray(lows, dtype=float), np.asarray(highs, dtype=float)
                 ax.errorbar(xs, (lows + highs) / 2, yerr=(highs - lows) / 2, fmt="none",
                             ecolor="k", elinewidth=0.8, capsize=2)  # fmt: skip
