@@ -9,7 +9,10 @@ runs' records differ, the files beside them say what else did: config.json (the 
 what the datasets held: `content_sha256`) and cost.json (the code and the machine of each
 segment). This reads both runs' and prints, in this order:
 - the settings that differ (flattened config.json keys; `out` and the dataset records aside),
-  those that say only how a run was executed or why it chose what it did marked as such;
+  those that say only how a run was executed or why it chose what it did marked as such; a
+  path is compared as `ccfit publish` writes it (`ccfit.portable`: a dataset by where it lies
+  under the LeRobot home, a file outside the run by its name), so a published run and the same
+  run where it was made have the same settings;
 - the code commits and machine kinds each run's segments ran on;
 - the datasets' content digests, where either run recorded them;
 - the records: how many the runs share (an evaluation is keyed by stage, task and global step)
@@ -31,6 +34,7 @@ from pathlib import Path
 from ccfit.config_base import DATASET_RECORDS, NOT_IDENTITY
 from ccfit.config_parse import flatten
 from ccfit.io import read_run_json
+from ccfit.portable import same_as_published
 from ccfit.report.cost import counted, machines_cell, run_cost
 from ccfit.train import CONFIG, METRICS
 
@@ -91,7 +95,7 @@ def compare_runs(a: Path, b: Path) -> Comparison:
             for c in configs]  # fmt: skip
     keys = sorted(flat[0].keys() | flat[1].keys())
     settings = {k: (flat[0].get(k), flat[1].get(k)) for k in keys
-                if not _same(flat[0].get(k), flat[1].get(k))}  # fmt: skip
+                if not same_as_published(flat[0].get(k), flat[1].get(k))}  # fmt: skip
     segments = [_segments(Path(run)) for run in (a, b)]
     digests = [_digests(c) for c in configs]
     datasets = {key: (digests[0][key], digests[1][key]) for key in DATASET_RECORDS

@@ -17,16 +17,23 @@ were set. Anything large is refused rather than silently committed. With `--root
 holding every published result, its `orderings.md`, `axes.md` and `cost.md` are rewritten over
 all of them, so comparisons across published folders stay current; a publish after which the
 root's runs could not be averaged (a seed published twice in one group) is refused. A refused
-publish writes nothing.
+publish writes nothing. The copies hold no path of the machine that made them
+(`ccfit.portable`): a path under RUNS is written relative to it (`out`, `scratch_dir`: the
+layout the copy keeps), a dataset relative to the LeRobot home (its repo id), any other file
+by its name (a frozen encoder, the code snapshot); the rest of each file is copied byte for
+byte.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import os
 import shutil
 from pathlib import Path
 
 from ccdata.errors import InputError
 from ccfit.analysis.learnability import finished_task_runs, write_learnability
+from ccfit.portable import portable, portable_json
 from ccfit.report import group_metrics, group_runs, write_overview_of, write_report
 from ccfit.report.cost import run_cost
 from ccfit.report.runs import Run, find_runs, scratch_dir_of
@@ -83,12 +90,13 @@ def publish(runs: Path, out: Path, root: Path | None = None) -> list[Path]:
     for src, _ in copies:  # the report reads each run's cost (the rest `find_runs` has read)
         if src.name == COST:
             run_cost(src.parent)
+    machine_roots = (runs.resolve(), Path(os.path.abspath(runs)))
     if root is not None:
-        _check_overview(root, placed)
+        _check_overview(root, placed, machine_roots)
     written = []
     for src, dst in copies:
         dst.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(src, dst)
+        _copy(src, dst, machine_roots)
         written.append(dst)
     written = sorted(set(written))
     if curricula:
@@ -125,6 +133,15 @@ def _files(src: Path, dst: Path, names: tuple[str, ...]) -> list[tuple[Path, Pat
     return [(src / name, dst / name) for name in names if (src / name).is_file()]
 
 
+def _copy(src: Path, dst: Path, roots: tuple[Path, ...]) -> None:
+    """`src` copied to `dst`, a JSON (lines) file with its paths as published (`portable_json`:
+    relative to `roots`, the run folder published, where they lie under it)."""
+    if src.suffix in (".json", ".jsonl"):
+        dst.write_text(portable_json(src.read_text(), roots))
+    else:
+        shutil.copyfile(src, dst)
+
+
 def _check_sizes(copies: list[tuple[Path, Path]]) -> None:
     for src, _ in copies:
         size = src.stat().st_size
@@ -133,11 +150,15 @@ def _check_sizes(copies: list[tuple[Path, Path]]) -> None:
                              f"(limit {MAX_FILE_BYTES})")  # fmt: skip
 
 
-def _check_overview(root: Path, placed: list[tuple[Run, Path]]) -> None:
+def _check_overview(root: Path, placed: list[tuple[Run, Path]],
+                    machine_roots: tuple[Path, ...]) -> None:  # fmt: skip
     """Refuses (InputError) a publish after which the runs under `root` could not be averaged
     together (`group_metrics`: a seed twice in one group, say, from another folder under the
-    root), each curriculum of `placed` taking the place of what its destination holds now."""
+    root), each curriculum of `placed` taking the place of what its destination holds now,
+    with its config as published (`portable`, paths relative to `machine_roots`)."""
     gone = {dst.resolve() for _, dst in placed}
     kept = [r for r in _curricula_under(root) if r.path.resolve() not in gone]
-    for group in group_runs(kept + [run for run, _ in placed]).values():
+    new = [dataclasses.replace(run, config=portable(run.config, machine_roots))
+           for run, _ in placed]  # fmt: skip
+    for group in group_runs(kept + new).values():
         group_metrics(group)

@@ -160,3 +160,18 @@ def test_the_readme_gives_the_command_each_published_sweep_recorded(sweep):
         f"{sweep.name} recorded {grid['args']}; the README's commands for its grid give "
         f"{[opts for _, opts in commands]}"
     )
+
+
+MACHINE_PATH = re.compile(r"/(work|root|tmp|home)/")
+"""A path of the machine a result was made on (`ccfit publish` writes none: `ccfit.portable`)."""
+UNCHECKED = ("README.md", "NOTES.md")
+"""Prose at the top of results/, which may quote a command's folder."""
+
+
+def test_published_files_hold_no_path_of_the_machine_that_made_them():
+    files = [p for p in sorted(RESULTS.rglob("*")) if p.is_file() and p.suffix != ".png"
+             and p.relative_to(RESULTS).as_posix() not in UNCHECKED]  # fmt: skip
+    assert len(files) > 100
+    naming = [str(p.relative_to(RESULTS)) for p in files
+              if MACHINE_PATH.search(p.read_text(errors="replace"))]  # fmt: skip
+    assert not naming, f"{len(naming)} files under results/ name a machine's path: {naming}"
