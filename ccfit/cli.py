@@ -11,7 +11,8 @@ Commands:
              one method, scored by open-loop prediction on held-out episodes; metrics.json
     sweep    a grid of runs (suites x models x methods x seeds), locally or on SLURM, and the
              report over them; again: submits only unfinished work; --status RUNS
-    report   tables and plots over run directories (BWT / FWT per backbone, suite, method)
+    report   tables and plots over run directories (BWT / FWT per backbone, suite, method);
+             `ccfit report results/` rewrites the results page over every published run
     compare  whether run B reproduces run A's records, and what differs between them
     publish  finished runs' small files (config, metrics, cost) and the report over them (the
              learnability tables over single-task runs), for a results folder under version
@@ -228,9 +229,17 @@ def cmd_fit(argv: list[str]) -> None:
 
 def _cmd_report(args: argparse.Namespace) -> None:
     from ccfit.io import out_dir
-    from ccfit.report import write_report
+    from ccfit.report import write_page, write_report
 
-    paths = write_report([Path(p) for p in args.runs], out_dir(args.out))
+    if args.out is None:
+        if len(args.runs) != 1 or not Path(args.runs[0]).is_dir():
+            raise InputError(
+                "without --out, give one folder of published runs (its README.md, the results "
+                f"page, is rewritten); got {' '.join(args.runs)}"
+            )
+        paths = write_page(Path(args.runs[0]))
+    else:
+        paths = write_report([Path(p) for p in args.runs], out_dir(args.out))
     for path in paths:
         print(path)
 
@@ -305,10 +314,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_pretrain_parser(sub)
 
-    p = add_command(sub, "report", "tables and plots over run directories",
-                    "ccfit report results/online/reach-tdmpc2 --out report/")  # fmt: skip
+    p = add_command(sub, "report", "tables and plots over run directories; without --out, the "
+                    "results page (README.md) of a folder of published runs",
+                    "ccfit report results/online/reach-tdmpc2 --out report/\n"
+                    "    ccfit report results/")  # fmt: skip
     p.add_argument("runs", nargs="+", help="run directories (or folders holding them)")
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--out", help="output directory (tables and plots); without it, RUNS is one "
+                   "folder whose README.md, orderings.md, axes.md, cost.md and intervals.png "
+                   "are rewritten over every run under it")  # fmt: skip
     p.set_defaults(func=_cmd_report)
 
     p = add_command(sub, "publish", "copy finished runs' small files (config, metrics, cost) and "

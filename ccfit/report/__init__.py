@@ -2,7 +2,8 @@
 
 `build` writes the report (`write_report`); the runs it reads and how they group are `runs`;
 its parts are `stages` (scores stage by stage), `orderings` (the paper's four orderings),
-`axes` (by composition axis), `cost` (CPU-hours) and `plots` (figures and cell formats).
+`axes` (by composition axis), `cost` (CPU-hours), `stats` (rliable's intervals) and `plots`
+(figures and cell formats). `page` writes the results page over a folder of published runs.
 """
 
 from ccfit.report.build import (
@@ -15,6 +16,7 @@ from ccfit.report.build import (
     write_overview_of,
     write_report,
 )
+from ccfit.report.page import write_page
 from ccfit.report.plots import plot_bars, plot_curves
 
 __all__ = [
@@ -27,5 +29,6 @@ __all__ = [
     "plot_curves",
     "table_frame",
     "write_overview_of",
+    "write_page",
     "write_report",
 ]

@@ -249,10 +249,10 @@ def write_tables(groups: dict, out: Path) -> list[Path]:
 def load_groups(paths: list[Path]) -> dict[tuple[str, str, str, str], dict]:
     """Finished runs under `paths` grouped by (backbone, suite, method, variant)
     (`group_runs`), each group's metrics (`group_metrics`)."""
-    return _grouped(paths)[1]
+    return grouped(paths)[1]
 
 
-def _grouped(paths: list[Path]) -> tuple[dict, dict]:
+def grouped(paths: list[Path]) -> tuple[dict, dict]:
     """Finished runs under `paths` by group (`group_runs`), and each group's metrics."""
     run_groups = group_runs(find_runs([Path(p) for p in paths]))
     return run_groups, {k: group_metrics(v) for k, v in run_groups.items()}
@@ -302,12 +302,12 @@ def write_overview(run_groups: dict, groups: dict, out: Path) -> list[Path]:
 
 def write_overview_of(paths: list[Path], out: Path) -> list[Path]:
     """`write_overview` over every finished run under `paths` (`ccfit publish --root`)."""
-    return write_overview(*_grouped(paths), out)
+    return write_overview(*grouped(paths), out)
 
 
 def write_report(paths: list[Path], out: Path) -> list[Path]:
     """Tables and plots for every (backbone, suite, method, variant) group of finished runs."""
-    run_groups, groups = _grouped(paths)
+    run_groups, groups = grouped(paths)
     out.mkdir(parents=True, exist_ok=True)
     written = write_tables(groups, out) + write_overview(run_groups, groups, out)
     written += plot_bars(groups, out) + write_stages(run_groups, CURVE_KEYS, out)

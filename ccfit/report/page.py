@@ -1,0 +1,413 @@
+"""`ccfit report results/`: the results page, `README.md` of a folder of published runs.
+
+Its first screen is one table: a row per suite x backbone x observation and track, a column per
+continual method, each cell BWT and FWT of the seed-averaged curves with their 95% bootstrap CIs
+(`ccfit.report.stats`), beside the row's seeds, steps per task, preset and status (complete:
+every run its sweep's grid names is published; partial; not run: a row of the paper's design
+with no run here). Then the paper's own figures beside ours, the orderings, the figures and the
+commands that made every published sweep (from its `sweep.json`). Everything on the page is
+computed from the files under the folder, so it is rebuilt byte for byte from them.
+"""
+
+from __future__ import annotations
+
+import json
+import shlex
+from collections import defaultdict
+from pathlib import Path
+
+from ccdata.suites import SUITES
+from ccfit.io import atomic_write_text
+from ccfit.report.axes import axis_cells
+from ccfit.report.orderings import ORDERINGS_MD, is_offline, ordering_rows
+from ccfit.report.plots import ordered_methods
+from ccfit.report.runs import Run
+from ccfit.sweep.grid import SWEEP_JSON
+
+PAGE = "README.md"
+NOTES = "NOTES.md"
+INTERVALS_PNG = "intervals.png"
+
+PAPER_DESIGN = {"dreamerv3": "state", "tdmpc2": "state",
+                "pwm+frozen-enc": "pixels", "tdmpc2+frozen-enc": "pixels"}  # fmt: skip
+"""The online rows the paper reports on every suite (backbone label -> observation): a row
+with no run here is listed as not run."""
+PAPER_FROZEN = {("pwm+frozen-enc", "experts"): (3.85, 36.18),
+                ("tdmpc2+frozen-enc", "ft"): (34.97, 38.11)}  # fmt: skip
+"""(backbone, method) -> (BWT, FWT) averaged over the six suites, the paper's Sec. 5 (PWM with
+progressive experts against TD-MPC2 fine-tuned, both through a frozen pretrained encoder)."""
+
+Row = tuple[str, str, str]  # backbone, suite, variant
+METHOD_COLORS = {"ft": "#0173b2", "er": "#de8f05", "ewc": "#029e73", "packnet": "#d55e00",
+                 "experts": "#cc78bc"}  # fmt: skip
+"""One colour per method in the interval plot (seaborn's colorblind palette)."""
+
+
+def _num(x: float | None) -> str:
+    if x is None:
+        return "n/a"
+    return f"{x:.1f}" if abs(x) >= 10 else f"{x:.2f}"
+
+
+def _interval(g: dict, name: str) -> str:
+    if g[name] is None:
+        return "n/a"
+    lo, hi = g[f"{name}_lo"], g[f"{name}_hi"]
+    if len(g["seeds"]) == 1:
+        return _num(g[name])
+    return f"{_num(g[name])} [{_num(lo)}, {_num(hi)}]" if lo is not None else f"{_num(g[name])}"
+
+
+def _settings(runs: list[Run]) -> tuple[str, str, str]:
+    """(observation, steps per task, preset) of a row's runs."""
+    config = runs[0].config
+    obs = config.get("obs", "state")
+    encoder = str(config.get("encoder") or "")
+    if encoder.startswith("frozen:"):
+        obs += ", frozen encoder"
+    if "fit" in config:
+        steps = f"{config['fit']['updates']:,} updates"
+    else:
+        steps = f"{config['train']['steps']:,}"
+    return obs, steps, str(config.get("preset"))
+
+
+def _grids(root: Path) -> dict[Path, dict]:
+    """Every published sweep folder under `root` -> the grid its sweep.json records, online
+    folders first."""
+    paths = sorted(root.rglob(SWEEP_JSON), key=lambda p: (p.parent.parent.name != "online", p))
+    return {p.parent: json.loads(p.read_text())["grid"] for p in paths}
+
+
+def _planned(grids: dict[Path, dict], runs: list[Run], backbone_model: str, suite: str
+             ) -> dict[str, set[int]]:  # fmt: skip
+    """method -> seeds the sweeps holding `runs` set out to run for this row."""
+    planned: dict[str, set[int]] = defaultdict(set)
+    for folder in {r.path.parent for r in runs}:
+        grid = grids.get(folder)
+        if grid and suite in grid["suites"] and backbone_model in (grid["models"] or []):
+            for method in grid["methods"]:
+                planned[method] |= set(grid["seeds"])
+    return planned
+
+
+def _status(planned: dict[str, set[int]], done: dict[str, set[int]]) -> str:
+    if not planned:
+        return "as published (no sweep record)"
+    missing = []
+    for method in ordered_methods(set(planned) | set(done)):
+        want = planned.get(method, set()) | done.get(method, set())
+        have = done.get(method, set())
+        if not have:
+            missing.append(f"{method} not run")
+        elif have != want:
+            missing.append(f"{method} {len(have)} of {len(want)} seeds")
+    return "complete" if not missing else "partial: " + ", ".join(missing)
+
+
+def headline_table(run_groups: dict, groups: dict, root: Path) -> list[str]:
+    """The page's first table (see the module's docstring) and the notes under it."""
+    grids = _grids(root)
+    methods = ordered_methods(
+        {k[2] for k in groups} | {m for g in grids.values() for m in g["methods"]}
+    )
+    rows: dict[Row, dict[str, tuple]] = defaultdict(dict)
+    for key, g in groups.items():
+        rows[(key[0], key[1], key[3])][key[2]] = (g, run_groups[key])
+    suite_order = {s: i for i, s in enumerate(SUITES)}
+    for backbone in PAPER_DESIGN:
+        for suite in SUITES:
+            if not any(b == backbone and s == suite for b, s, _ in rows):
+                rows[(backbone, suite, "")] = {}
+    order = sorted(rows, key=lambda r: (r[0].endswith("-offline"), suite_order.get(r[1], 99),
+                                        not rows[r], r[0], r[2]))  # fmt: skip
+    header = ["suite", "backbone", "observation", "track", "steps / task", "preset", "seeds",
+              "status", *methods]  # fmt: skip
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    reasons: dict[str, int] = {}
+    for backbone, suite, variant in order:
+        cells = rows[(backbone, suite, variant)]
+        track = "offline" if backbone.endswith("-offline") else "online"
+        model = backbone.removesuffix("-offline").split("+")[0]
+        if not cells:
+            obs = PAPER_DESIGN[backbone] + (", frozen encoder" if "+" in backbone else "")
+            lines.append(f"| {suite} | {model} | {obs} | {track} | | | | not run |"
+                         + " |" * len(methods))  # fmt: skip
+            continue
+        all_runs = [r for _, runs in cells.values() for r in runs]
+        obs, steps, preset = _settings(all_runs)
+        if variant:
+            obs += f" ({variant})"
+        done = {m: {r.seed for r in runs} for m, (_, runs) in cells.items()}
+        planned = _planned(grids, all_runs, model, suite)
+        counts = sorted({len(s) for s in done.values()})
+        seeds = str(counts[0]) if len(counts) == 1 else "-".join(map(str, (counts[0], counts[-1])))
+        row = [suite, model, obs, track, steps, preset, seeds, _status(planned, done)]
+        for method in methods:
+            if method not in cells:
+                row.append("not run" if method in planned else "")
+                continue
+            g = cells[method][0]
+            text = f"{_interval(g, 'bwt')} / {_interval(g, 'fwt')}"
+            if g["bwt"] is None and g.get("bwt_reason"):
+                mark = reasons.setdefault(g["bwt_reason"], len(reasons) + 1)
+                text += f" ({mark})"
+            row.append(text)
+        lines.append("| " + " | ".join(row) + " |")
+    lines.append("")
+    if reasons:
+        lines += [f"({n}) BWT undefined: {reason}." for reason, n in reasons.items()] + [""]
+    return lines
+
+
+def _frozen_encoders(run_groups: dict) -> set[str]:
+    return {str(r.config["encoder"]).removeprefix("frozen:")
+            for runs in run_groups.values() for r in runs
+            if str(r.config.get("encoder") or "").startswith("frozen:")}  # fmt: skip
+
+
+SEES_TASK_R2 = 0.5
+"""Below this held-out R^2 on every goal and object coordinate, a probed encoder's latent is
+said not to hold them (its rows then measure what the arm alone tells)."""
+
+
+def encoder_notes(run_groups: dict, root: Path) -> list[str]:
+    """A line per frozen encoder the runs read whose probe (`ccfit probe-encoder`) is published:
+    how well its latent gives the hand and the task's other positions."""
+    lines = []
+    for probe in sorted(root.glob("probe/*/probe.json")):
+        found = json.loads(probe.read_text())
+        if found.get("encoder") not in _frozen_encoders(run_groups):
+            continue
+        hand = [v for r in found["rows"] if r["position"] == "hand" for v in r["latent_r2"]]
+        task = [v for r in found["rows"] if r["position"] != "hand" for v in r["latent_r2"]]
+        where = probe.parent.relative_to(root) / "probe.md"
+        text = (f"Rows through the frozen encoder `{found['encoder']}`: its latent gives the hand "
+                f"with held-out R^2 >= {min(hand):.2f} and the goals and objects with R^2 <= "
+                f"{max(task):.2f} ([probe]({where}))")  # fmt: skip
+        if max(task) < SEES_TASK_R2:
+            text += ", so they measure what the arm alone tells"
+        lines += [text + ".", ""]
+    return lines
+
+
+def paper_table(groups: dict) -> list[str]:
+    """Ours beside the figures the paper's text gives: its composition-axis table and the
+    frozen-encoder comparison's six-suite averages."""
+    lines = ["| backbone | averaged over | BWT | FWT | paper BWT | paper FWT |",
+             "|---|---|---|---|---|---|"]  # fmt: skip
+    for c in axis_cells(groups):
+        if c["paper"] is None or c["variant"]:
+            continue
+        suites = sorted({s for s, _ in c["members"]}, key=list(SUITES).index)
+        over = f"{c['axis']} axis: {', '.join(suites)}, {len(c['members'])} groups"
+        lines.append(f"| {c['backbone']} | {over} | {_num(c['bwt'])} | {_num(c['fwt'])} | "
+                     f"{c['paper'][0]:.2f} | {c['paper'][1]:.2f} |")  # fmt: skip
+    for (backbone, method), (bwt, fwt) in PAPER_FROZEN.items():
+        here = [(k[1], g) for k, g in groups.items()
+                if k[0] == backbone and k[2] == method and not k[3]]  # fmt: skip
+        if not here:
+            continue
+        values = {x: [g[x] for _, g in here if g[x] is not None] for x in ("bwt", "fwt")}
+        ours = {x: sum(v) / len(v) if v else None for x, v in values.items()}
+        over = f"{method}: {', '.join(s for s, _ in here)} (the paper: six suites)"
+        lines.append(f"| {backbone} | {over} | {_num(ours['bwt'])} | {_num(ours['fwt'])} | "
+                     f"{bwt:.2f} | {fwt:.2f} |")  # fmt: skip
+    return lines
+
+
+def orderings_summary(groups: dict) -> list[str]:
+    """The online orderings' verdicts (the values and the offline rows: `orderings.md`)."""
+    header = ("ordering", "backbone", "suite", "holds (seed-averaged curves)",
+              "holds (mean of per-seed metrics)", "on every seed", "P(holds) [95% CI]")  # fmt: skip
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for name, row in ordering_rows(groups):
+        if not is_offline(row):
+            lines.append(f"| {name} | {' | '.join(row[:6])} |")
+    return lines
+
+
+def _wrapped(words: list[str]) -> list[str]:
+    """A command over lines of about 92 characters, each new line at an option."""
+    chunks, line = [], words[0]
+    for word in map(shlex.quote, words[1:]):
+        if len(line) + len(word) > 92 and word.startswith("--"):
+            chunks.append(line + " \\")
+            line = "   "
+        line += " " + word
+    return chunks + [line]
+
+
+ENCODER_OPTIONS = ("steps", "batch_size", "lr", "decoder_channels", "augment_shift", "seed",
+                   "image_size")  # fmt: skip
+"""The settings of an encoder's sidecar (`encoder.json`) that `ccfit pretrain-encoder` takes."""
+
+
+def setup_commands(run_groups: dict, root: Path) -> list[str]:
+    """The datasets the published runs read (`ccdata generate`, its defaults) and the frozen
+    encoders they read, pretrained with the settings their probe folder's sidecar records."""
+    suites = {
+        r.config["suite"]
+        for runs in run_groups.values()
+        for r in runs
+        if r.config.get("resolved_seed_dataset") or r.config.get("resolved_dataset")
+    }
+    encoders = _frozen_encoders(run_groups)
+    lines = []
+    for name in sorted(encoders):
+        sidecar = root / "probe" / Path(name).stem / "encoder.json"
+        if not sidecar.is_file():
+            lines.append(f"# {name}: a frozen encoder whose settings are not published here")
+            continue
+        config = json.loads(sidecar.read_text())["config"]
+        suites |= set(config["suites"])
+        words = ["ccfit", "pretrain-encoder", "--suites", ",".join(config["suites"]),
+                 "--preset", config["model_preset"], "--model", config["model"]]  # fmt: skip
+        for option in ENCODER_OPTIONS:
+            words += [f"--{option.replace('_', '-')}", str(config[option])]
+        lines += _wrapped([*words, "--out", name])
+    generate = [f"ccdata generate --suite {s}" for s in SUITES if s in suites]
+    return generate + lines
+
+
+def sweep_commands(root: Path) -> list[str]:
+    """The `ccfit sweep` and `ccfit publish` commands that made every published sweep, from
+    the grid and run options each sweep.json records."""
+    lines, grids = [], _grids(root)
+    for folder, grid in grids.items():
+        rel = folder.relative_to(root)
+        args = ["--suites", ",".join(grid["suites"])]
+        if grid["models"]:
+            args += ["--models", ",".join(grid["models"])]
+        seeds = ",".join(map(str, grid["seeds"]))
+        args += ["--methods", ",".join(grid["methods"]), "--seeds", seeds,
+                 "--preset", grid["preset"]]  # fmt: skip
+        if grid["track"] != "online":
+            args += ["--track", grid["track"]]
+        args += [*grid["args"], "--out", f"../runs/results/{folder.name}"]
+        lines += _wrapped(["ccfit", "sweep", *args])
+        lines.append(f"ccfit publish ../runs/results/{folder.name} --out {root.name}/{rel} "
+                     f"--root {root.name}")  # fmt: skip
+    for folder in sorted(p.parent for p in root.rglob("report") if p.is_dir()):
+        if folder not in grids:
+            lines.append(f"# {folder.relative_to(root)}: published without its sweep's "
+                         "record; each run again: ccfit run --config_path RUN/config.json "
+                         "--out DIR")  # fmt: skip
+    return lines
+
+
+def plot_intervals(groups: dict, out: Path) -> Path:
+    """rliable's interval plot of every online group: BWT and FWT with their 95% CIs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    from rliable import plot_utils
+
+    suite_order = list(SUITES)
+    online = sorted(((k, g) for k, g in groups.items() if not k[0].endswith("-offline")),
+                    key=lambda kg: (suite_order.index(kg[0][1]), kg[0][0], kg[0][3],
+                                    ordered_methods(METHOD_COLORS).index(kg[0][2])
+                                    if kg[0][2] in METHOD_COLORS else 99))  # fmt: skip
+    names, points, intervals, colors = [], {}, {}, {}
+    for (backbone, suite, method, variant), g in online:
+        name = f"{suite} {backbone} {method}" + (f" [{variant}]" if variant else "")
+        names.append(name)
+        colors[name] = METHOD_COLORS.get(method, "0.5")
+        points[name] = np.array([np.nan if g[x] is None else g[x] for x in ("bwt", "fwt")])
+        bounds = [[g[x] if g[f"{x}_lo"] is None else g[f"{x}_{end}"] for x in ("bwt", "fwt")]
+                  for end in ("lo", "hi")]  # fmt: skip
+        intervals[name] = np.array(bounds, dtype=float)
+    # rliable draws its first algorithm at the bottom: reversed, the figure reads as the table
+    fig, _ = plot_utils.plot_interval_estimates(
+        points, intervals, metric_names=["BWT (lower: less forgetting)", "FWT (higher)"],
+        algorithms=names[::-1], colors=colors, xlabel="score points", subfigure_width=4.0,
+    )  # fmt: skip
+    path = out / INTERVALS_PNG
+    fig.savefig(path, dpi=90, bbox_inches="tight", metadata={"Software": None})
+    plt.close(fig)
+    return path
+
+
+INTRO = (
+    "The toolkit's published numbers, generated by `ccfit report results/` from the runs under "
+    "this folder (do not edit by hand). Each cell is **BWT / FWT** (BWT: lower forgets less; "
+    "FWT: higher transfers more) of the seed-averaged curves, the paper's convention, with its "
+    "95% stratified-bootstrap CI over seeds (rliable). Online the curves are normalised returns "
+    "(0 = failure, 100 = the scripted oracle); offline they are the world model's open-loop "
+    "prediction score on held-out dataset episodes, a measure of fidelity, not of returns. "
+    "Status: complete (every run its sweep's grid names is here), partial (what is missing), "
+    "not run (a row of the paper's design with no run here)."
+)
+PAPER_TEXT = (
+    "The paper's text gives its composition-axis table (each backbone's BWT and FWT averaged "
+    "over FT, ER, EWC and PackNet and the two suites of an axis) and the frozen-encoder "
+    "comparison's averages over six suites; its per-suite figures are bars only. Its numbers "
+    "are from pixels at its own scale, ours from the settings in each row: they compare in "
+    "direction more than in size. [axes.md](axes.md) lists each axis cell's groups."
+)
+ORDERINGS_TEXT = (
+    "Each of the paper's findings, checked where the runs it needs are here, under both "
+    "conventions (the metric of the seed-averaged curves; the mean of the per-seed metrics), on "
+    "every seed, and as rliable's probability of improvement of the ordering's weakest pair. "
+    f"The values with their CIs, the offline rows and the reasons a metric is undefined: "
+    f"[{ORDERINGS_MD}]({ORDERINGS_MD})."
+)
+REPRODUCE_TEXT = (
+    "A published run made again by the same code on the same kind of CPU (model and vector "
+    "instruction set; `cost.json` records the machine of each segment) equals it evaluation for "
+    "evaluation: `ccfit compare PUBLISHED RERUN` says so or names the first record that "
+    "differs. Elsewhere a rerun's records part after the first updates; its group's BWT and FWT "
+    "should then land within the CIs above. A sweep resumes where it stopped, and a folder "
+    "copied here to its `--out` counts as done, so only what is missing runs "
+    f"([{NOTES}]({NOTES}#reproducing-and-resuming-a-sweep) says more). The commands that made "
+    "every sweep published here:"
+)
+
+
+def _reports(root: Path) -> list[str]:
+    folders = sorted(p.parent for p in root.rglob("report") if p.is_dir())
+    return [f"[{f.relative_to(root)}]({f.relative_to(root)}/report/)" for f in folders]
+
+
+def page_text(run_groups: dict, groups: dict, root: Path) -> str:
+    lines = ["# Reference results", "", INTRO, ""]
+    lines += headline_table(run_groups, groups, root) + encoder_notes(run_groups, root)
+    lines += ["## Beside the paper", "", PAPER_TEXT, "", *paper_table(groups), ""]
+    lines += ["## The paper's orderings", "", ORDERINGS_TEXT, "", *orderings_summary(groups), ""]
+    lines += [
+        "## Figures", "",
+        f"![BWT and FWT with 95% CIs, every online group]({INTERVALS_PNG})", "",
+        "Each published folder's `report/` holds its tables (with Continual World's "
+        "forgetting F), bars, every task's curves, and `stages.md`: each task's score stage "
+        "by stage, every end-of-task score C_i with its standard error where its records "
+        "hold the episodes' returns. " + ", ".join(_reports(root)) + ".", "",
+        "## Reproducing", "", REPRODUCE_TEXT, "", "```bash",
+        *setup_commands(run_groups, root), *sweep_commands(root),
+        f"ccfit report {root.name}/   # this page", "```", "",
+        "## Also here", "",
+        f"- [{NOTES}]({NOTES}): what each sweep showed beyond its numbers, the diagnostics "
+        "and what is not published yet.",
+        "- [cost.md](cost.md): CPU-hours per run and group, and the machines that ran them.",
+        "- [axes.md](axes.md), [orderings.md](orderings.md): the tables above in full.",
+    ]  # fmt: skip
+    for name, what in (("single-task", "single-task runs and the learnability tables"),
+                       ("probe", "what the frozen encoder's latent holds"),
+                       ("diagnostics", "the scripts and outputs the notes cite")):  # fmt: skip
+        if (root / name).is_dir():
+            lines.append(f"- [{name}/]({name}/): {what}.")
+    return "\n".join(lines) + "\n"
+
+
+def write_page(root: Path) -> list[Path]:
+    """The results page over every finished run under `root`, with the overview it links to
+    (`orderings.md`, `axes.md`, `cost.md`) and the interval plot. Returns the files written."""
+    from ccfit.report.build import grouped, write_overview
+
+    run_groups, groups = grouped([root])
+    written = write_overview(run_groups, groups, root)
+    written.append(plot_intervals(groups, root))
+    path = root / PAGE
+    atomic_write_text(path, page_text(run_groups, groups, root))
+    return [*written, path]

@@ -1,0 +1,83 @@
+"""The results page (`ccfit report results/`): rebuilt byte for byte from the published files,
+its headline table on the first screen, every link resolving, and made from the records
+themselves (a planted change to one run's record changes it)."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+from ccfit.report.page import PAGE, write_page
+from ccfit.sweep.grid import SWEEP_JSON
+
+try:
+    from test_report import config, write_run
+except ImportError:
+    from tests.test_report import config, write_run
+
+RESULTS = Path(__file__).resolve().parents[1] / "results"
+FIRST_SCREEN, MOST_LINES = 60, 250
+
+
+def test_the_published_page_is_what_the_files_beside_it_give(tmp_path):
+    copy = tmp_path / "results"
+    shutil.copytree(RESULTS, copy)
+    write_page(copy)
+    assert (copy / PAGE).read_text() == (RESULTS / PAGE).read_text(), (
+        "results/README.md is stale: `ccfit report results/` rewrites it"
+    )
+
+
+def test_the_headline_table_is_on_the_first_screen_and_the_page_is_short():
+    lines = (RESULTS / PAGE).read_text().splitlines()
+    assert len(lines) <= MOST_LINES
+    table = [i for i, line in enumerate(lines) if line.startswith("| suite | backbone |")]
+    assert table, "no headline table"
+    end = next(i for i in range(table[0], len(lines)) if not lines[i].startswith("|"))
+    assert end <= FIRST_SCREEN, f"the headline table ends at line {end}"
+
+
+def test_every_link_on_the_page_resolves():
+    text = (RESULTS / PAGE).read_text()
+    for target in re.findall(r"\]\(([^)#]+)\)", text):
+        assert (RESULTS / target).exists(), target
+
+
+def _results(root: Path) -> Path:
+    """A published folder of three seeds of FT and ER whose sweep also named EWC."""
+    folder = root / "online" / "reach-tiny"
+    for method, scale in (("ft", 1.0), ("er", 0.8)):
+        for seed in range(3):
+            write_run(folder, f"{method}-s{seed}", config(seed=seed, method=method),
+                      scale + 0.05 * seed)  # fmt: skip
+    (folder / "report").mkdir()
+    grid = {"suites": ["Reach"], "models": ["tdmpc2"], "methods": ["ft", "er", "ewc"],
+            "seeds": [0, 1, 2], "preset": "smoke", "track": "online", "args": []}  # fmt: skip
+    (folder / SWEEP_JSON).write_text(json.dumps({"grid": grid}))
+    return root
+
+
+def test_the_page_is_made_from_the_records_and_is_deterministic(tmp_path):
+    root = _results(tmp_path / "results")
+    write_page(root)
+    first = (root / PAGE).read_text()
+    row = next(line for line in first.splitlines() if line.startswith("| Reach | tdmpc2 |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[6:8] == ["3", "partial: ewc not run"]
+    assert cells[8].count("[") == 2 and cells[10] == "not run"  # ft: BWT and FWT with CIs
+    assert "| Grasp | dreamerv3 | state | online | | | | not run |" in first
+    assert "--methods ft,er,ewc --seeds 0,1,2 --preset smoke" in first
+    write_page(root)
+    assert (root / PAGE).read_text() == first  # the bootstrap is seeded
+
+    records = root / "online" / "reach-tiny" / "ft-s1" / "metrics.jsonl"
+    lines = [json.loads(line) for line in records.read_text().splitlines()]
+    lines[-1]["normalized_return"] -= 30.0  # seed 1 forgets its first tasks more at the end
+    records.write_text("".join(json.dumps(r) + "\n" for r in lines))
+    write_page(root)
+    changed = (root / PAGE).read_text()
+    assert changed != first
+    new_row = next(line for line in changed.splitlines() if line.startswith("| Reach | tdmpc2 |"))
+    assert new_row != row
