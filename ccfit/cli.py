@@ -61,8 +61,8 @@ class CliError(Exception):
 
 @dataclass(frozen=True)
 class Flag:
-    """An option of `train`, `run` or `fit` outside the config tree (parsed here, not by
-    draccus): where shared work goes, what is kept, where a branch starts."""
+    """An option of `train`, `run` or `fit` outside the config tree (read with its options,
+    kept out of the config): where shared work goes, what is kept, where a branch starts."""
 
     value: str | None
     """What the option takes, as help shows it (`DIR`); None: it takes no value."""
@@ -84,55 +84,40 @@ BRANCHING = {
 }  # fmt: skip
 
 
-def _split_flags(argv: list[str], flags: dict[str, Flag]) -> tuple[dict[str, str | bool], list]:
-    """Pull the options `flags` out of `argv` (`--scratch-root DIR`, `--scratch_root=DIR`)."""
-    found: dict[str, str | bool] = {}
-    rest, it = [], iter(argv)
-    for a in it:
-        name, sep, value = a.partition("=")
-        key = name.lstrip("-").replace("-", "_")
-        if not a.startswith("--") or key not in flags:
-            rest.append(a)
-        elif flags[key].value is None:
-            if sep:
-                raise CliError(f"{name} takes no value, got {a!r}")
-            found[key] = True
-        else:
-            if not sep:
-                value = next(it, "")
-            if not value or value.startswith("--"):
-                raise CliError(f"{name} takes a value: {name} {flags[key].value}")
-            found[key] = value
-    return found, rest
-
-
 def _parse_config(cls, argv: list[str], prog: str, flags: dict[str, Flag]):
-    """The config of a config command and its other options; its --help lists both."""
-    from ccfit.config_parse import parse_cli
+    """The config of a config command and its other options (`flags`, and `config_path` when
+    given), from one reading of `argv`; its --help lists both."""
+    from ccfit.config_argv import asks_for_help, missing_value, read_argv
+    from ccfit.config_parse import parse_options, print_help
 
-    if "--help" not in argv and "-h" not in argv:
-        extra, argv = _split_flags(argv, flags)
-        return parse_cli(cls, argv, prog=prog), extra
-    try:
-        parse_cli(cls, argv, prog=prog)  # prints the config tree's help
-    except SystemExit:
-        print(f"\n{prog}'s options outside the config tree:")
-        for key, flag in flags.items():
-            spelt = "--" + key.replace("_", "-") + (f" {flag.value}" if flag.value else "")
-            print(textwrap.fill(flag.help, 80, initial_indent=f"  {spelt:22s}",
-                                subsequent_indent=" " * 24))  # fmt: skip
-        raise
-    raise AssertionError("--help did not exit")
+    switches = {key: flag.value for key, flag in flags.items()}
+    if asks_for_help(argv):
+        try:
+            print_help(cls, argv, prog, switches)  # the config tree's help
+        except SystemExit:
+            print(f"\n{prog}'s options outside the config tree:")
+            for key, flag in flags.items():
+                spelt = "--" + key.replace("_", "-") + (f" {flag.value}" if flag.value else "")
+                print(textwrap.fill(flag.help, 80, initial_indent=f"  {spelt:22s}",
+                                    subsequent_indent=" " * 24))  # fmt: skip
+            raise
+    options = read_argv(argv, switches)
+    extra = {key: options.pop(key) for key in flags if key in options}
+    for key, value in extra.items():
+        if value is None:
+            raise missing_value(key.replace("_", "-"), flags[key].value)
+    cfg = parse_options(cls, options, prog)
+    return cfg, {**extra, "config_path": options.get("config_path")}
 
 
-def _check_seed_dataset_as_run(cfg, suite: str | None, argv: list[str], out: Path) -> None:
-    """A run made again from a saved config.json into `out` seeds from the dataset it had (or
-    stops). Where `out` already holds a run, it is resumed, and its own config.json is the
-    judge (`check_saved_config`: another dataset content there is a note)."""
+def _check_seed_dataset_as_run(cfg, suite: str | None, config_path: str | None, out: Path):
+    """A run made again from a saved config.json (`config_path`) into `out` seeds from the
+    dataset it had (or stops). Where `out` already holds a run, it is resumed, and its own
+    config.json is the judge (`check_saved_config`: another dataset content there is a note)."""
     from ccfit.config_parse import given_config_file
     from ccfit.train.run import CONFIG, check_seed_dataset_as_run
 
-    given = given_config_file(argv)
+    given = given_config_file(config_path)
     if given is not None and not (out / CONFIG).is_file():
         check_seed_dataset_as_run(cfg, suite, *given)
 
@@ -147,13 +132,14 @@ def cmd_train(argv: list[str]) -> None:
     from ccfit.train.run import default_out, suite_of, train_single
 
     cfg, extra = _parse_config(TaskRunConfig, argv, "ccfit train", QUIET)
-    _check_seed_dataset_as_run(cfg, suite_of(cfg.task), argv, Path(cfg.out or default_out(cfg)))
+    out = Path(cfg.out or default_out(cfg))
+    _check_seed_dataset_as_run(cfg, suite_of(cfg.task), extra["config_path"], out)
     record = train_single(cfg, progress=not extra.get("quiet"))
     norm = record["normalized_return"]
     print(
         f"{cfg.task} step {record['global_step']}: return {record['discounted_return']:.2f}, "
         f"normalised {'n/a' if norm is None else f'{norm:.1f}'}, "
-        f"success {record['success_rate']:.2f}  ->  {cfg.out or default_out(cfg)}"
+        f"success {record['success_rate']:.2f}  ->  {out}"
     )
 
 
@@ -176,7 +162,7 @@ def cmd_run(argv: list[str]) -> None:
     flags = QUIET | SCRATCH_ROOT | BRANCHING
     cfg, extra = _parse_config(CurriculumConfig, argv, "ccfit run", flags)
     out = run_dir(cfg)
-    _check_seed_dataset_as_run(cfg, cfg.suite, argv, out)
+    _check_seed_dataset_as_run(cfg, cfg.suite, extra["config_path"], out)
     for note in curriculum_notes(cfg.to_dict()):
         print(f"ccfit run: note: {note}", file=sys.stderr)
     result = Curriculum(

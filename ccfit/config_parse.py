@@ -7,20 +7,20 @@ from a saved config.json (`--config_path`): the preset's defaults first, what is
 
 from __future__ import annotations
 
-import argparse
 import copy
 import dataclasses
 import json
-import tempfile
 import typing
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import draccus
+from draccus.cfgparsing import parse_string
 
 from ccdata.errors import InputError
 from ccfit.config import BaseRunConfig, TrainConfig
+from ccfit.config_argv import HELP, asks_for_help, missing_value, read_argv
 from ccfit.config_base import DEFAULTS, PRESETS, ChoiceConfig, ConfigError, check
 from ccfit.continual.base import method_config_class
 from ccfit.models import DEFAULT_MODEL
@@ -118,14 +118,18 @@ def _under_preset_defaults(cls: type[BaseRunConfig], overrides: dict[str, Any]) 
     """`overrides` on top of the preset's defaults that its own choices (preset, obs, image
     size, suite, model and method types) select; a section given as anything but an object is
     refused."""
-    sections = [n for n, t in typing.get_type_hints(cls).items() if dataclasses.is_dataclass(t)]
-    for name in sections:
+    for name in _sections(cls):
         check(isinstance(overrides.get(name, {}), dict),
               f"{name} must be an object of settings, got {overrides.get(name)!r}")  # fmt: skip
     choices = {k: overrides.get(k) for k in ("preset", "obs", "image_size", "suite")}
     choices.update(model=overrides.get("model", {}).get("type"),
                    method=overrides.get("method", {}).get("type"))  # fmt: skip
     return _deep_merge(preset_defaults(cls, choices), overrides)
+
+
+def _sections(cls: type) -> list[str]:
+    """The fields of `cls` that are groups of settings (dataclasses: model, method, train)."""
+    return [n for n, t in typing.get_type_hints(cls).items() if dataclasses.is_dataclass(t)]
 
 
 def saved_config[C: BaseRunConfig](cls: type[C], run_dir: str | Path,
@@ -222,89 +226,119 @@ def _as_config_error(e: Exception) -> Exception:
     return root
 
 
+MISPLACED = {
+    "seed_dataset": "the offline track reads --dataset (a Hub repo id or a folder; default: "
+                    "auto, the suite's own); --seed_dataset fills an online run's replay "
+                    "(ccfit train, ccfit run)",
+}  # fmt: skip
+"""Options of one config command that scripts give another, and what that one reads instead."""
+
+
 def parse_cli[C: BaseRunConfig](cls: type[C], argv: Sequence[str], prog: str | None = None) -> C:
     """`cls` from command-line arguments in draccus syntax (`--model.type=NAME --train.steps=10`;
-    top-level options may also be spelt with dashes, `--image-size 32`). Defaults come from
-    `--preset` (or from `--config_path FILE`, a saved config.json), flags override them."""
-    args = [_underscored(a) for a in argv]
-    pre = _preparse(args)
-    # the preset's model is built for it before the run's own checks
-    check(pre.get("obs") in (None, *OBS_MODES), f"--obs must be one of {OBS_MODES}, got "
-                                                f"{pre.get('obs')!r}")  # fmt: skip
-    if pre.get("config_path"):
+    words in a name joined with `_` or `-`, `--image-size 32`). Defaults come from `--preset`
+    (or from `--config_path FILE`, a saved config.json), flags override them. `--help` prints
+    the config tree (draccus) and exits."""
+    if asks_for_help(argv):
+        print_help(cls, argv, prog)
+    return parse_options(cls, read_argv(argv), prog)
+
+
+def parse_options[C: BaseRunConfig](cls: type[C], options: dict[str, str | None],
+                                    prog: str | None = None) -> C:  # fmt: skip
+    """`cls` from the options `read_argv` read (name -> text): the preset's defaults (or those
+    of `options["config_path"]`) as plain data, the options on top, typed by draccus."""
+    options = dict(options)
+    check(options.get("obs") in (None, *OBS_MODES), f"--obs must be one of {OBS_MODES}, got "
+                                                    f"{options.get('obs')!r}")  # fmt: skip
+    path = options.pop("config_path", None)
+    if path:
         # what the file leaves out comes from the preset it names, as on the command line
-        defaults = _under_preset_defaults(cls, _saved_fields(cls, Path(pre["config_path"])))
-        args = _without(args, "config_path")
+        defaults = _under_preset_defaults(cls, _saved_fields(cls, Path(path)))
     else:
-        size = pre.get("image_size")  # a bad value is reported by draccus below
+        size = options.get("image_size")  # a bad value is reported when typed below
         defaults = preset_defaults(cls, {
-            "preset": pre.get("preset"), "obs": pre.get("obs"),
+            "preset": options.get("preset"), "obs": options.get("obs"),
             "image_size": int(size) if size is not None and size.isdigit() else None,
-            "model": pre.get("model.type"), "method": pre.get("method.type"),
-            "suite": pre.get("suite"),
+            "model": options.get("model.type"), "method": options.get("method.type"),
+            "suite": options.get("suite"),
         })  # fmt: skip
     for nested, top in (("model.obs_mode", "obs"), ("model.image_size", "image_size")):
-        check(nested not in pre, f"--{nested} follows the run's --{top}; set that instead")
+        check(nested not in options, f"--{nested} follows the run's --{top}; set that instead")
+    for name, value in options.items():
+        if value is None:
+            raise missing_value(name)
     for name, kind in typing.get_type_hints(cls).items():
-        value = pre.get(name, "").strip()
+        value = options.get(name, "").strip()
         if isinstance(kind, type) and issubclass(kind, ChoiceConfig) and value:
             # a mapping (`--model '{type: pwm}'`) is draccus's; a bare name is a slip
             check(value.startswith("{"), f"--{name} is a group of options; its kind is chosen "
                                          f"with --{name}.type={value}")  # fmt: skip
-    if "--help" in args or "-h" in args:
-        # draccus converts every value even when asked for help, and fails on optional fields
-        # (`--out DIR --help`); the help depends only on the chosen model and method.
-        args = [f"--{k}={pre[k]}" for k in ("model.type", "method.type") if k in pre]
-        args.append("--help")
-    with tempfile.NamedTemporaryFile("w", suffix=".json") as f:
-        json.dump(defaults, f)
-        f.flush()
-        try:
-            return draccus.parse(cls, config_path=f.name, args=args, prog=prog,
-                                 exit_on_error=False)  # fmt: skip
-        except draccus.utils.ParsingError as e:
-            raise _as_config_error(e) from None
-        except (draccus.utils.DraccusException, argparse.ArgumentError) as e:
-            raise ConfigError(f"{e}; see --help") from None
+    # each value is read as draccus reads a command line's (YAML: `10` a number, `{type: pwm}`
+    # a mapping), then typed with the defaults by the same decoder as `resolve`
+    given = draccus.utils.deflatten({k: parse_string(v) for k, v in options.items()})
+    for name in _sections(cls):
+        check(isinstance(given.get(name, {}), dict),
+              f"--{name} is a group of options; set its fields (--{name}.FIELD=VALUE)")  # fmt: skip
+    # through JSON as the defaults were read before (a tuple a list), so configs stay equal
+    data = _overlaid(json.loads(json.dumps(defaults)), given)
+    unknown = _unknown_option(cls, given, data)
+    if unknown is not None:
+        where = f" of {prog}" if prog else ""
+        raise ConfigError(f"--{unknown} is not an option{where}: "
+                          f"{MISPLACED.get(unknown, 'see --help')}")  # fmt: skip
+    return _decode(cls, data)
 
 
-def given_config_file(argv: Sequence[str]) -> tuple[dict, Path] | None:
-    """The saved config.json that `argv` reads defaults from (`--config_path FILE`), whole, with
-    what it recorded as resolved, and its path; None without one. Read after `parse_cli`,
-    which has refused a missing or malformed file."""
-    path = _preparse([_underscored(a) for a in argv]).get("config_path")
-    return (json.loads(Path(path).read_text()), Path(path)) if path else None
-
-
-def _underscored(arg: str) -> str:
-    if not arg.startswith("--"):
-        return arg
-    name, sep, value = arg[2:].partition("=")
-    return "--" + name.replace("-", "_") + sep + value
-
-
-def _preparse(args: list[str]) -> dict[str, str]:
-    """Values of `--key=value` / `--key value` options, last one winning."""
-    out: dict[str, str] = {}
-    for i, a in enumerate(args):
-        if not a.startswith("--"):
+def _unknown_option(cls: type, given: dict, data: dict, prefix: str = "") -> str | None:
+    """The first option in `given` (nested, as `data` holds it with the defaults) that is no
+    field of `cls`'s tree, the model and method as `data` chooses them; None if all are."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    hints = typing.get_type_hints(cls)
+    for key, value in given.items():
+        if key not in names:
+            return prefix + key
+        kind, sub = hints[key], data.get(key)
+        if not (isinstance(value, dict) and isinstance(sub, dict) and isinstance(kind, type)
+                and dataclasses.is_dataclass(kind)):  # fmt: skip
             continue
-        name, sep, value = a[2:].partition("=")
-        if not sep:
-            nxt = args[i + 1] if i + 1 < len(args) else ""
-            value = "" if nxt.startswith("--") else nxt
-        out[name] = value
+        if issubclass(kind, draccus.ChoiceRegistry):
+            if sub.get("type") not in kind.get_known_choices():
+                continue  # an unknown kind: named as such when the config is built
+            kind = kind.get_choice_class(sub["type"])
+            value = {k: v for k, v in value.items() if k != "type"}
+        found = _unknown_option(kind, value, sub, f"{prefix}{key}.")
+        if found is not None:
+            return found
+    return None
+
+
+def _overlaid(base: dict, top: dict) -> dict:
+    """`top` over `base`, nested mappings merged key by key, anything else replaced (draccus's
+    merge of a command line over a config file)."""
+    out = dict(base)
+    for k, v in top.items():
+        both = isinstance(v, dict) and isinstance(out.get(k), dict)
+        out[k] = _overlaid(out[k], v) if both else v
     return out
 
 
-def _without(args: list[str], name: str) -> list[str]:
-    """`args` without `--name=value` / `--name value`."""
-    out, skip = [], False
-    for a in args:
-        if skip:
-            skip = False
-        elif a == f"--{name}":
-            skip = True
-        elif not a.startswith(f"--{name}="):
-            out.append(a)
-    return out
+def print_help(cls: type, argv: Sequence[str], prog: str | None = None,
+               switches: dict[str, str | None] | None = None) -> NoReturn:  # fmt: skip
+    """Print `cls`'s config tree (draccus's help) for the model and method `argv` chooses, and
+    exit 0. Only those choices are passed: draccus converts every value even when asked for
+    help, and fails on optional fields (`--out DIR --help`)."""
+    try:
+        given = read_argv([a for a in argv if a not in HELP], switches)
+    except InputError:  # a slip beside --help: the help is still what was asked for
+        given = {}
+    args = [f"--{k}={given[k]}" for k in ("model.type", "method.type") if k in given]
+    draccus.parse(cls, args=[*args, "--help"], prog=prog)
+    raise AssertionError("draccus --help did not exit")
+
+
+def given_config_file(path: str | None) -> tuple[dict, Path] | None:
+    """The saved config.json given as `--config_path` (`path`), whole, with what it recorded
+    as resolved, and its path; None without one. Read after `parse_options`, which has refused
+    a missing or malformed file."""
+    return (json.loads(Path(path).read_text()), Path(path)) if path else None

@@ -99,9 +99,8 @@ def _parse(argv: list[str]):
     of a config command (None for the others)."""
     import ccdata.cli
     import ccfit.cli
-    from ccfit.cli import BRANCHING, QUIET, SCRATCH_ROOT, _split_flags
+    from ccfit.cli import BRANCHING, QUIET, SCRATCH_ROOT, _parse_config
     from ccfit.config import CurriculumConfig, TaskRunConfig
-    from ccfit.config_parse import parse_cli
     from ccfit.models import DEFAULT_MODEL
     from ccfit.offline.config import OfflineConfig
     from ccfit.sweep.cli import DEFAULT_OFFLINE_MODEL
@@ -123,8 +122,8 @@ def _parse(argv: list[str]):
                         tuple(run_args), args.plugins, args.track), "runs/docs-sweep")  # fmt: skip
         return None
     cls = {"train": TaskRunConfig, "run": CurriculumConfig, "fit": OfflineConfig}[name]
-    _, rest = _split_flags(argv[2:], QUIET | SCRATCH_ROOT | BRANCHING)
-    return parse_cli(cls, rest)
+    cfg, _ = _parse_config(cls, argv[2:], f"ccfit {name}", QUIET | SCRATCH_ROOT | BRANCHING)
+    return cfg
 
 
 def test_every_documented_command_parses(tmp_path, monkeypatch):
