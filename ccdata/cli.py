@@ -22,7 +22,8 @@ import json
 import sys
 from pathlib import Path
 
-from ccdata.cli_generate import SLURM_TIME, run_generate
+from ccdata.cli_generate import GENERATE_FIELDS, GENERATE_UNSET, SLURM_TIME, run_generate
+from ccdata.cli_options import add_field_options
 from ccdata.errors import (
     EXIT_USAGE,
     CliError,
@@ -32,6 +33,7 @@ from ccdata.errors import (
     stdout_closed,
     stdout_reader_gone,
 )
+from ccdata.record import GenerateConfig
 from ccdata.slurm import add_options as add_slurm_options
 
 EXIT_FINDINGS = 1
@@ -237,37 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add_command(
         sub, "generate", "generate a suite's LeRobot dataset", "ccdata generate --suite PnPBoxClose"
     )
-    p.add_argument("--suite", required=True)
-    p.add_argument("--episodes", type=int, default=50, help="oracle episodes per task")
-    p.add_argument(
-        "--explore-episodes", type=int, default=25, help="per task and exploration policy"
-    )
-    p.add_argument("--image-size", type=int, default=64)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument(
-        "--max-steps",
-        type=int,
-        help="cut episodes after this many steps (tests, previews; default: full)",
-    )
-    p.add_argument(
-        "--workers",
-        type=int,
-        help="rollout processes (default: one per core this process may use); the "
-        "episodes are identical with any number of workers",
-    )
-    p.add_argument("--root", help="dataset directory (default: LeRobot's cache for the repo id)")
-    p.add_argument("--repo-id", help="default ccdata/<Suite>")
-    p.add_argument(
-        "--noise-std",
-        type=float,
-        help="noisy-oracle noise std for every task (default: each task's calibration)",
-    )
-    p.add_argument(
-        "--random-prob",
-        type=float,
-        help="noisy-oracle random-action probability for every task (default: "
-        "each task's calibration)",
-    )
+    add_field_options(p, GenerateConfig, GENERATE_FIELDS, unset=GENERATE_UNSET)
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument(
         "--launcher",

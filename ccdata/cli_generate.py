@@ -7,8 +7,17 @@ import argparse
 import dataclasses
 import json
 
+from ccdata.cli_options import field_values
 from ccdata.errors import CliError
 from ccdata.slurm import OPTIONS as SLURM_OPTIONS
+
+GENERATE_FIELDS = ("suite", "episodes", "explore_episodes", "image_size", "seed", "max_steps",
+                   "workers", "root", "repo_id", "noise_std", "random_prob")  # fmt: skip
+"""The fields of `GenerateConfig` that `generate` takes as options (`--explore-episodes`), their
+defaults and help the fields' own; the render's look (shadows, ...) stays the benchmark's."""
+GENERATE_UNSET = {"workers": "one per core this process may use; the episodes are identical "
+                             "with any number of workers"}  # fmt: skip
+"""What `generate` decides where its option is not given, unlike the field's default."""
 
 
 def generate_config(args: argparse.Namespace):
@@ -22,19 +31,10 @@ def generate_config(args: argparse.Namespace):
             raise CliError(f"{', '.join(given)} need --launcher slurm (locally: --workers)")
     elif args.workers is not None:  # None: not given
         raise CliError("--workers is for --launcher local; with slurm use --shards")
-    return GenerateConfig(
-        suite=args.suite,
-        episodes=args.episodes,
-        explore_episodes=args.explore_episodes,
-        image_size=args.image_size,
-        seed=args.seed,
-        max_steps=args.max_steps,
-        workers=available_cores() if args.workers is None else args.workers,
-        root=args.root,
-        repo_id=args.repo_id,
-        noise_std=args.noise_std,
-        random_prob=args.random_prob,
-    )
+    values = field_values(args, GENERATE_FIELDS)
+    if values["workers"] is None:
+        values["workers"] = available_cores()
+    return GenerateConfig(**values)
 
 
 def run_generate(args: argparse.Namespace) -> None:

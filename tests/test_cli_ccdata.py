@@ -287,3 +287,56 @@ def test_every_option_is_taken_with_either_spelling():
                     )
                     checked += 1
     assert checked >= 15
+
+
+def _generate_parser():
+    import argparse
+
+    (sub,) = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)]
+    return sub.choices["generate"]
+
+
+def test_generate_options_are_the_settings_fields_with_their_defaults_and_help():
+    """`ccdata generate`'s options are made from `GenerateConfig`'s fields: a default or a
+    help text changed on the field is the option's, never restated."""
+    import dataclasses
+
+    from ccdata.cli_generate import GENERATE_FIELDS, GENERATE_UNSET
+    from ccdata.cli_options import field_docs
+    from ccdata.record import GenerateConfig
+
+    fields = {f.name: f for f in dataclasses.fields(GenerateConfig)}
+    docs = field_docs(GenerateConfig)
+    actions = {a.dest: a for a in _generate_parser()._actions}
+    defaults = vars(build_parser().parse_args(["generate", "--suite", "Reach"]))
+    for name in GENERATE_FIELDS:
+        action = actions[name]
+        assert action.option_strings[0] == "--" + name.replace("_", "-")
+        assert action.help.startswith(docs[name].replace("%", "%%"))
+        if name in GENERATE_UNSET:
+            assert defaults[name] is None
+        elif fields[name].default is dataclasses.MISSING:
+            assert action.required
+        else:
+            assert defaults[name] == fields[name].default, name
+            assert fields[name].default is None or f"(default: {fields[name].default})" in (
+                action.help
+            )
+    config = generate_config(build_parser().parse_args(["generate", "--suite", "Reach",
+                                                        "--workers", "1"]))  # fmt: skip
+    assert config == GenerateConfig(suite="Reach", workers=1)
+
+
+def test_generate_help_lists_every_option_with_its_default():
+    text = " ".join(_generate_parser().format_help().split())
+    assert "--explore-episodes EXPLORE_EPISODES Episodes per task for each exploration" in text
+    assert "(default: 25)" in text and "(default: 64)" in text
+
+
+def test_field_docs_reads_each_fields_docstring_over_the_bases():
+    from ccdata.cli_options import field_docs
+    from ccdata.record import GenerateConfig
+
+    docs = field_docs(GenerateConfig)
+    assert docs["episodes"] == "Oracle episodes per task."  # DatasetSettings'
+    assert docs["workers"].startswith("Processes rolling out episodes")  # GenerateConfig's own
