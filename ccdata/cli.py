@@ -22,8 +22,9 @@ import json
 import sys
 from pathlib import Path
 
+from ccdata.calibration import calibrate
 from ccdata.cli_generate import GENERATE_FIELDS, GENERATE_UNSET, SLURM_TIME, run_generate
-from ccdata.cli_options import add_field_options
+from ccdata.cli_options import add_field_options, parameter_default
 from ccdata.errors import (
     EXIT_USAGE,
     CliError,
@@ -34,6 +35,7 @@ from ccdata.errors import (
     stdout_reader_gone,
 )
 from ccdata.record import GenerateConfig
+from ccdata.references import write_references
 from ccdata.slurm import add_options as add_slurm_options
 
 EXIT_FINDINGS = 1
@@ -85,8 +87,6 @@ def _cmd_render(args: argparse.Namespace) -> None:
 
 
 def _cmd_references(args: argparse.Namespace) -> None:
-    from ccdata.references import write_references
-
     out = None if args.in_place else Path(args.out)
     path = write_references(tasks=args.task or None, episodes=args.episodes, path=out)
     print(f"wrote {path}")
@@ -135,7 +135,7 @@ def _cmd_card(args: argparse.Namespace) -> None:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> None:
-    from ccdata.calibration import calibrate, level_of
+    from ccdata.calibration import level_of
     from ccdata.tasks import TASKS, get_task
 
     tasks = args.task or list(TASKS)
@@ -212,7 +212,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "scores read)",
                     "ccdata references --task reach-xy --episodes 5 --out refs.json")  # fmt: skip
     p.add_argument("--task", action="append", help="only these tasks (repeatable)")
-    p.add_argument("--episodes", type=int, default=50)
+    p.add_argument("--episodes", type=int, default=parameter_default(write_references, "episodes"),
+                   help="oracle episodes per task (default: %(default)s)")  # fmt: skip
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--out", help="write the references here (a JSON file, added to if it "
                        "holds references)")  # fmt: skip
@@ -224,10 +225,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = add_command(sub, "calibrate", "find each task's noisy-oracle noise (prints it)",
                     "ccdata calibrate --task reach-xy --episodes 10 --iterations 2")  # fmt: skip
     p.add_argument("--task", action="append", help="only these tasks (repeatable)")
-    p.add_argument("--episodes", type=int, default=40, help="episodes per evaluation")
-    p.add_argument("--target", type=float, default=0.5, help="noisy-oracle success rate")
-    p.add_argument("--iterations", type=int, default=8, help="evaluations at most, per task")
-    p.add_argument("--tolerance", type=float, default=0.1, help="accepted |rate - target|")
+    for name, kind, text in (("episodes", int, "episodes per evaluation"),
+                             ("target", float, "noisy-oracle success rate"),
+                             ("iterations", int, "evaluations at most, per task"),
+                             ("tolerance", float, "accepted |rate - target|")):  # fmt: skip
+        p.add_argument(f"--{name}", type=kind, default=parameter_default(calibrate, name),
+                       help=f"{text} (default: %(default)s)")  # fmt: skip
     p.add_argument(
         "--refine",
         action="store_true",

@@ -16,7 +16,7 @@ import inspect
 import textwrap
 import types
 import typing
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -86,3 +86,9 @@ def add_field_options(parser, cls: type, names: Sequence[str],
 def field_values(args: argparse.Namespace, names: Sequence[str]) -> dict[str, Any]:
     """The parsed values of the options `add_field_options` added for `names`."""
     return {name: getattr(args, name) for name in names}
+
+
+def parameter_default(fn: Callable, name: str) -> Any:
+    """The default of `fn`'s parameter `name`: an option's default where a function, not a
+    settings class, holds the setting (`ccdata calibrate --episodes`)."""
+    return inspect.signature(fn).parameters[name].default

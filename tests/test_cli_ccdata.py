@@ -340,3 +340,19 @@ def test_field_docs_reads_each_fields_docstring_over_the_bases():
     docs = field_docs(GenerateConfig)
     assert docs["episodes"] == "Oracle episodes per task."  # DatasetSettings'
     assert docs["workers"].startswith("Processes rolling out episodes")  # GenerateConfig's own
+
+
+def test_calibrate_and_references_defaults_are_their_functions():
+    import inspect
+
+    from ccdata.calibration import calibrate
+    from ccdata.references import write_references
+
+    def default(fn, name):
+        return inspect.signature(fn).parameters[name].default
+
+    args = build_parser().parse_args(["calibrate"])
+    for name in ("episodes", "target", "iterations", "tolerance"):
+        assert getattr(args, name) == default(calibrate, name)
+    args = build_parser().parse_args(["references", "--out", "refs.json"])
+    assert args.episodes == default(write_references, "episodes")
