@@ -265,18 +265,17 @@ def parse_options[C: BaseRunConfig](cls: type[C], options: dict[str, str | None]
         })  # fmt: skip
     for nested, top in (("model.obs_mode", "obs"), ("model.image_size", "image_size")):
         check(nested not in options, f"--{nested} follows the run's --{top}; set that instead")
-    for name, value in options.items():
-        if value is None:
-            raise missing_value(name)
     for name, kind in typing.get_type_hints(cls).items():
-        value = options.get(name, "").strip()
+        value = (options.get(name) or "").strip()
         if isinstance(kind, type) and issubclass(kind, ChoiceConfig) and value:
             # a mapping (`--model '{type: pwm}'`) is draccus's; a bare name is a slip
             check(value.startswith("{"), f"--{name} is a group of options; its kind is chosen "
                                          f"with --{name}.type={value}")  # fmt: skip
     # each value is read as draccus reads a command line's (YAML: `10` a number, `{type: pwm}`
     # a mapping), then typed with the defaults by the same decoder as `resolve`
-    given = draccus.utils.deflatten({k: parse_string(v) for k, v in options.items()})
+    given = draccus.utils.deflatten(
+        {k: None if v is None else parse_string(v) for k, v in options.items()}
+    )
     for name in _sections(cls):
         check(isinstance(given.get(name, {}), dict),
               f"--{name} is a group of options; set its fields (--{name}.FIELD=VALUE)")  # fmt: skip
@@ -287,6 +286,9 @@ def parse_options[C: BaseRunConfig](cls: type[C], options: dict[str, str | None]
         where = f" of {prog}" if prog else ""
         raise ConfigError(f"--{unknown} is not an option{where}: "
                           f"{MISPLACED.get(unknown, 'see --help')}")  # fmt: skip
+    for name, value in options.items():  # after: an option that does not exist needs nothing
+        if value is None:
+            raise missing_value(name)
     return _decode(cls, data)
 
 
