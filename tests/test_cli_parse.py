@@ -92,3 +92,12 @@ def test_an_unknown_model_is_named_before_its_options():
 
     with pytest.raises(ConfigError, match="unknown model"):
         parse_cli(CurriculumConfig, ["--suite", "Reach", "--model.type=nope", "--model.x=1"])
+
+
+def test_an_option_of_another_command_is_named_as_not_an_option(capsys):
+    from ccfit.cli import main
+
+    assert main(["train", "--task", "reach-xy", "--keep-stages", "--out", "runs/x"]) == 2
+    assert capsys.readouterr().err == (
+        "ccfit: error: --keep_stages is not an option of ccfit train: see --help\n"
+    )
