@@ -139,7 +139,7 @@ def cmd_train(argv: list[str]) -> None:
     print(
         f"{cfg.task} step {record['global_step']}: return {record['discounted_return']:.2f}, "
         f"normalised {'n/a' if norm is None else f'{norm:.1f}'}, "
-        f"success {record['success_rate']:.2f}  ->  {out}"
+        f"success {record['success_rate']:.2f}  ->  {cfg.out or default_out(cfg)}"
     )
 
 
