@@ -294,7 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(prog="ccfit", description=__doc__,
                           formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
-    for name, fn in CONFIG_COMMANDS.items():  # listed in --help; parsed by draccus in main()
+    for name, fn in CONFIG_COMMANDS.items():  # listed in --help; each parses its own in main()
         sub.add_parser(name, help=fn.__doc__.split("  (")[0], add_help=False)
     from ccfit.pretrain import add_pretrain_parser
 
