@@ -431,17 +431,19 @@ def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeyp
                 lambda: run_reference(C.OnlineTrack(cfg), reference, progress=False)):  # fmt: skip
         with pytest.raises(ConfigError, match="through another encoder file: .*enc.safetensors"):
             run()
+    # validation reads no file: the run's start does
+    other_size = resolve(
+        CurriculumConfig,
+        {
+            "suite": "Reach",
+            "obs": "pixels",
+            "image_size": 48,
+            "preset": "smoke",
+            "encoder": f"frozen:{path}",
+        },
+    )
     with pytest.raises(ValueError, match="reads 32 px images but the run renders 48 px"):
-        resolve(
-            CurriculumConfig,
-            {
-                "suite": "Reach",
-                "obs": "pixels",
-                "image_size": 48,
-                "preset": "smoke",
-                "encoder": f"frozen:{path}",
-            },
-        )
+        C.OnlineTrack(other_size)
 
 
 def test_a_damaged_encoder_file_is_one_value_error_naming_it(tmp_path):

@@ -43,7 +43,7 @@ def add_pretrain_parser(subparsers) -> argparse.ArgumentParser:
                        help=f"override the preset's {name}")  # fmt: skip
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--image-size", type=int, default=64, help="camera image side of the datasets")
-    p.add_argument("--device", default="auto", help="auto | cpu | cuda")
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_pretrain)
     return p
