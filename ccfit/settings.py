@@ -85,8 +85,10 @@ def resolve_execution(loop: Any, device: str | torch.device | None = None) -> Ex
     """The `Execution` of a loop's settings (`TrainConfig`, `FitConfig`, `PretrainConfig`:
     `device`, `torch_threads`, and `compile`/`autocast` where it has them, else 'off'):
     the one place a device name and 'auto' are resolved. `device`: another device than the
-    config's (a run read back for analysis). ConfigError, in one line, for a device that is
-    not here (CUDA absent, `cuda:N` past the GPUs) or graphs without CUDA."""
+    config's, for a run read back (analyses load GPU runs on a CPU: its compile setting is
+    then taken as it is, as loading always did). ConfigError, in one line, for a device that
+    is not here (CUDA absent, `cuda:N` past the GPUs), or for a run's own graphs without
+    CUDA."""
     from ccfit.train.compiled import check_compile_device, resolve_autocast
 
     dev = resolve_device(loop.device if device is None else device)
@@ -95,7 +97,8 @@ def resolve_execution(loop: Any, device: str | torch.device | None = None) -> Ex
         check(dev.index < count, f"device {str(dev)!r} requested but this machine has "
                                  f"{count} CUDA device(s); use 'cuda' or 'cuda:0'")  # fmt: skip
     compile_setting = getattr(loop, "compile", "off")
-    check_compile_device(compile_setting, dev)
+    if device is None:
+        check_compile_device(compile_setting, dev)
     return Execution(device=dev, compile=compile_setting,
                      autocast=resolve_autocast(getattr(loop, "autocast", "off"), dev),
                      torch_threads=loop.torch_threads)  # fmt: skip
