@@ -205,3 +205,20 @@ def test_a_published_runs_config_reads_back_to_its_identity():
     assert differ <= {"resolved_seed_dataset", "resolved_compile"}, differ
     assert new["model"]["obs_mode"] == saved["model"]["obs_mode"] == saved["obs"]
     assert new["model"]["image_size"] == saved["model"]["image_size"] == saved["image_size"]
+
+
+def test_pretraining_takes_the_device_and_threads_under_the_same_names():
+    import argparse
+
+    from ccfit.pretrain import add_pretrain_parser, config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_pretrain_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["pretrain-encoder", "--preset", "smoke", "--device", "cuda:1",
+                              "--torch-threads", "2"])  # fmt: skip
+    config = config_from_args(args)
+    assert (config.device, config.torch_threads) == ("cuda:1", 2)
+    assert config_from_args(parser.parse_args(["pretrain-encoder"])).torch_threads == 0
+    execution = resolve_execution(PretrainConfig(device="cpu", torch_threads=2,
+                                                 model_preset="smoke"))  # fmt: skip
+    assert execution == Execution(torch.device("cpu"), torch_threads=2)
