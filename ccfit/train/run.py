@@ -59,7 +59,7 @@ def resolved_config(cfg: RunConfig, suite: str | None, execution: Execution | No
     settings. `record_dataset=False` leaves out what the dataset holds (None): it is no part
     of the identity, and reading it may download a Hub dataset."""
     execution = execution or resolve_execution(cfg.train)
-    device = execution.device
+    device, ran = execution.device, execution.records()
     source = dataset_source(cfg, suite)
     if cfg.train.demo_fraction > 0 and source is None:
         raise ConfigError(f"train.demo_fraction {cfg.train.demo_fraction} (given, or the "
@@ -74,10 +74,10 @@ def resolved_config(cfg: RunConfig, suite: str | None, execution: Execution | No
         **cfg.to_dict(),
         "resolved_seed_dataset": source,
         "resolved_seed_dataset_meta": meta,
-        "resolved_device": execution.records()["resolved_device"],
+        "resolved_device": ran["resolved_device"],
         "resolved_compile": compiled,
         COMPILE_REASON: why,
-        "resolved_autocast": execution.records()["resolved_autocast"],
+        "resolved_autocast": ran["resolved_autocast"],
         "render": render_settings(cfg).to_dict(),
         **encoder_record(cfg),
     }
