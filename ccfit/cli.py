@@ -163,9 +163,8 @@ def cmd_run(argv: list[str]) -> None:
     cfg, extra = _parse_config(CurriculumConfig, argv, "ccfit run", flags)
     out = run_dir(cfg)
     _check_seed_dataset_as_run(cfg, cfg.suite, extra["config_path"], out)
-    for note in curriculum_notes(cfg.to_dict()):
-        print(f"ccfit run: note: {note}", file=sys.stderr)
-    result = Curriculum(
+    # Made before the notes: a run whose start refuses it (its encoder file) says one line.
+    curriculum = Curriculum(
         cfg,
         out,
         extra.get("scratch_root") or None,
@@ -173,7 +172,10 @@ def cmd_run(argv: list[str]) -> None:
         callbacks=stage_callbacks(cfg),
         keep_stages=bool(extra.get("keep_stages")),
         branch=_branch(extra),
-    ).run()
+    )
+    for note in curriculum_notes(cfg.to_dict()):
+        print(f"ccfit run: note: {note}", file=sys.stderr)
+    result = curriculum.run()
     print(
         f"{cfg.suite} {cfg.model.type} {cfg.method.type} seed {cfg.seed}: "
         f"BWT {_fmt(result['bwt'])}, FWT {_fmt(result['fwt'])}  ->  {out}"
@@ -202,10 +204,12 @@ def cmd_fit(argv: list[str]) -> None:
 
     cfg, extra = _parse_config(OfflineConfig, argv, "ccfit fit", QUIET | SCRATCH_ROOT)
     out = Path(cfg.out) if cfg.out else default_out(cfg)
+    # Made before the notes: a run whose start refuses it (its encoder file) says one line.
+    curriculum = OfflineCurriculum(cfg, out, extra.get("scratch_root") or None,
+                                   progress=not extra.get("quiet"))  # fmt: skip
     for note in curriculum_notes(cfg.to_dict()):
         print(f"ccfit fit: note: {note}", file=sys.stderr)
-    result = OfflineCurriculum(cfg, out, extra.get("scratch_root") or None,
-                               progress=not extra.get("quiet")).run()  # fmt: skip
+    result = curriculum.run()
     print(
         f"{cfg.suite} {cfg.model.type} {cfg.method.type} seed {cfg.seed} offline "
         f"({result['measurement_space']}): BWT {_fmt(result['bwt'])}, "

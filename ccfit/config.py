@@ -22,7 +22,6 @@ import draccus
 
 from ccfit.config_base import (
     DEFAULTS,
-    DEVICES,
     PRESETS,
     ConfigError,
     Presets,
@@ -35,6 +34,7 @@ from ccfit.io import out_dir
 from ccfit.models import DEFAULT_MODEL
 from ccfit.models.registry import ModelConfig, config_class, model_class
 from ccfit.obs import OBS_MODES
+from ccfit.settings import check_device_name
 
 
 @dataclass
@@ -78,7 +78,8 @@ class TrainConfig(Presets):
     buffer_capacity: int = 1_000_000
     """Replay capacity in rows (one per observation: T+1 per episode of T steps)."""
     device: str = "auto"
-    """'auto' (CUDA when available, else CPU), 'cpu' or 'cuda'."""
+    """'auto' (CUDA when available, else CPU), 'cpu', 'cuda' or 'cuda:N' (resolved when the
+    run starts: `ccfit.settings.resolve_execution`)."""
     torch_threads: int = 1
     """CPU threads for torch (0: torch's default). One is fastest for small models on a shared
     CPU and fixes the reduction order, which keeps runs reproducible."""
@@ -150,8 +151,7 @@ class TrainConfig(Presets):
               f"{self.end_eval_episodes}")  # fmt: skip
         check(0.0 <= self.demo_fraction < 1.0,
               f"train.demo_fraction must be in [0, 1), got {self.demo_fraction}")  # fmt: skip
-        check(self.device in DEVICES, f"train.device must be one of {DEVICES}, got "
-                                      f"{self.device!r}")  # fmt: skip
+        check_device_name(self.device, "train.device")
         check(self.parallel in ("auto", "on", "off"),
               f"train.parallel must be auto, on or off, got {self.parallel!r}")  # fmt: skip
         check(self.env_workers == "auto" or self.env_workers.isdigit(),
@@ -260,24 +260,20 @@ class BaseRunConfig:
         check(0 <= self.seed < 2**31, f"seed must be in [0, 2**31), got {self.seed}")
         if self.out is not None:
             out_dir(self.out)  # a file in its place is refused
-        check(
-            self.model.obs_mode == self.obs,
-            f"model.obs_mode {self.model.obs_mode!r} != obs {self.obs!r}: set it with --obs",
-        )
-        check(self.model.image_size == self.image_size,
-              f"model.image_size {self.model.image_size} != image_size {self.image_size}: "
-              f"set it with --image_size")  # fmt: skip
+        # The observation mode and image size are the run's: the model's config holds a copy
+        # (what config.json has always recorded, so runs keep their identity), derived here
+        # and never read as an input of its own (`ccfit.config_parse` drops a given one).
+        if (self.model.obs_mode, self.model.image_size) != (self.obs, self.image_size):
+            self.model = dataclasses.replace(self.model, obs_mode=self.obs,
+                                             image_size=self.image_size)  # fmt: skip
         if self.encoder is not None:
             check(
                 self.encoder.startswith("frozen:"),
                 f"encoder must be 'frozen:PATH', got {self.encoder!r}",
             )
             check(self.obs == "pixels", "a frozen pretrained encoder needs --obs pixels")
-            check(
-                Path(self.encoder_path).is_file(),
-                f"encoder checkpoint not found: {self.encoder_path}",
-            )
-            self.model = _with_encoder(self.model, self.encoder_path, self.image_size)
+            # The file itself is read when the run starts (`with_encoder`): validation does
+            # no I/O.
 
     @property
     def encoder_path(self) -> str | None:
@@ -316,20 +312,30 @@ class RunConfig(BaseRunConfig):
               "--model.demo_bc_coef=0")  # fmt: skip
 
 
-def _with_encoder(model: ModelConfig, path: str, image_size: int) -> ModelConfig:
-    """`model` with the frozen encoder's sizes (those fields the model's config has), so the
-    saved config states what the run used; its image size must be the run's."""
+def with_encoder[C: BaseRunConfig](cfg: C) -> C:
+    """`cfg` with its frozen encoder's sizes in its model config (those fields the model's
+    config has), so the saved config states what the run used; `cfg` itself without one.
+    Reads the encoder file: a step of a run's start (the tracks', `ccfit train`'s), not of
+    validation. ConfigError, in one line, for a missing or damaged file or one whose image
+    size is not the run's."""
+    if cfg.encoder_path is None:
+        return cfg
     from ccfit.models.encoders import load_frozen_encoder
 
+    path = cfg.encoder_path
+    check(Path(path).is_file(), f"encoder checkpoint not found: {path}")
     try:
         _, spec = load_frozen_encoder(path)
     except ValueError as e:
         raise ConfigError(str(e)) from None
     size = spec.pop("image_size")
-    check(size == image_size, f"the encoder {path} reads {size} px images but the run renders "
-                              f"{image_size} px (--image_size)")  # fmt: skip
-    names = {f.name for f in dataclasses.fields(model)} - {"obs_mode"}
-    return dataclasses.replace(model, **{k: v for k, v in spec.items() if k in names})
+    check(size == cfg.image_size, f"the encoder {path} reads {size} px images but the run "
+                                  f"renders {cfg.image_size} px (--image_size)")  # fmt: skip
+    names = {f.name for f in dataclasses.fields(cfg.model)} - {"obs_mode"}
+    sizes = {k: v for k, v in spec.items() if k in names}
+    if all(getattr(cfg.model, k) == v for k, v in sizes.items()):
+        return cfg
+    return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, **sizes))
 
 
 @dataclass

@@ -8,7 +8,8 @@ build on it without importing each other:
     ChoiceConfig                      a config chosen by registered type (`--model.type=...`),
                                       with option defaults per size preset
     PRESETS, DEFAULTS                 preset names; what a run uses when nothing is said
-    resolve_device                    'auto' | 'cpu' | 'cuda' -> the torch device used
+    resolve_device                    'auto' | 'cpu' | 'cuda[:N]' -> the torch device used
+                                      (called by `ccfit.settings.resolve_execution` alone)
 """
 
 from __future__ import annotations
@@ -35,8 +36,6 @@ DEFAULTS: dict[str, Any] = {
 """What a run uses when the command line (or a dict given to `resolve`) does not say: the one
 source of these defaults for `parse_cli`, `resolve` and the config classes' field defaults.
 The default world model is `ccfit.models.DEFAULT_MODEL` (models are named only there)."""
-
-DEVICES: tuple[str, ...] = ("auto", "cpu", "cuda")
 
 
 class ConfigError(InputError):
@@ -126,8 +125,8 @@ class ChoiceConfig(Presets):
 
 def resolve_device(name: str | torch.device) -> torch.device:
     """The device a run uses: 'auto' = CUDA when available, else the CPU; any other name is
-    torch's ('cpu', 'cuda', 'cuda:1', 'meta'). The one place a device name is resolved; what
-    it returns is what a run records."""
+    torch's ('cpu', 'cuda', 'cuda:1', 'meta'). The one place a device name is resolved, called
+    by `ccfit.settings.resolve_execution` (what it returns is what a run records)."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     device = torch.device(name)
@@ -141,7 +140,7 @@ LEGACY_VALUES: dict[str, Any] = {
     "train.demo_fraction": 0.0, "resolved_autocast": "off", "train.stop_score": None,
     "train.stop_evals": 3, "train.keep_backbone_optimizer": False,
     "train.end_eval_episodes": None,
-    "fit.keep_backbone_optimizer": False, "model.demo_bc_coef": 0.0,
+    "fit.keep_backbone_optimizer": False, "fit.autocast": "off", "model.demo_bc_coef": 0.0,
     "model.imag_cont": "mode", "model.demo_bc_loss": "mse",
 }  # fmt: skip
 """Settings added after runs were made, each with the value that reproduces what runs did

@@ -124,12 +124,21 @@ def _under_preset_defaults(cls: type[BaseRunConfig], overrides: dict[str, Any]) 
     choices = {k: overrides.get(k) for k in ("preset", "obs", "image_size", "suite")}
     choices.update(model=overrides.get("model", {}).get("type"),
                    method=overrides.get("method", {}).get("type"))  # fmt: skip
+    if "model" in overrides:  # its copy of the run's obs and image size (`DERIVED`) is dropped
+        model = overrides["model"]
+        overrides = {**overrides, "model": {k: v for k, v in model.items() if k not in DERIVED}}
     return _deep_merge(preset_defaults(cls, choices), overrides)
 
 
 def _sections(cls: type) -> list[str]:
     """The fields of `cls` that are groups of settings (dataclasses: model, method, train)."""
     return [n for n, t in typing.get_type_hints(cls).items() if dataclasses.is_dataclass(t)]
+
+
+DERIVED = ("obs_mode", "image_size")
+"""The model config's fields that hold the run's `obs` and `image_size`: derived from them
+(`BaseRunConfig`), recorded in config.json, never an input (a config.json that holds them,
+as every one does, is read without them)."""
 
 
 def saved_config[C: BaseRunConfig](cls: type[C], run_dir: str | Path,

@@ -40,12 +40,12 @@ from ccdata.processes import worker_pool
 from ccfit.branch import RECORD as BRANCH_RECORD
 from ccfit.branch import STAGES, Branch, keep_stage, read_branch, start_branch
 from ccfit.config import CurriculumConfig
-from ccfit.config_base import resolve_device
 from ccfit.continual.base import ContinualMethod
 from ccfit.models.base import WorldModel
 from ccfit.run_files import METRICS_JSON, ONLINE, ONLINE_STATE, REFERENCE_DONE
 from ccfit.runner import CurriculumRunner, Restored, Track, run_reference
 from ccfit.runner import restore as restore_run
+from ccfit.settings import resolve_execution
 from ccfit.train.eval_worker import parallel_on
 from ccfit.train.loop import Trainer
 from ccfit.train.records import RunLogger
@@ -119,15 +119,15 @@ class OnlineTrack(Track):
         return self.cfg.train.steps
 
     def resolved_config(self, *, record_dataset: bool = True) -> dict:
-        return resolved_config(self.cfg, self.cfg.suite, record_dataset=record_dataset)
+        return resolved_config(self.cfg, self.cfg.suite, self.execution,
+                               record_dataset=record_dataset)  # fmt: skip
 
     def begin(self, out: Path, progress: bool) -> dict:
-        cfg, train = self.cfg, self.cfg.train
+        cfg = self.cfg
         self.out, self.progress = out, progress
         self.keep_stages = self.keep_stages or (out / STAGES).is_dir()
         resolved = compile_as_begun(out, self.resolved_config())
-        if train.torch_threads > 0:
-            torch.set_num_threads(train.torch_threads)
+        self.execution.set_threads()
         if self.branch is not None:
             start_branch(self.branch, resolved, out, len(cfg.tasks), STATE)
         known = read_branch(out)
@@ -163,8 +163,8 @@ class OnlineTrack(Track):
         self.stored = list(restored.stored_heads)
         self.logger = RunLogger(self.out, cfg.log, resolved)
         self.evaluator = make_evaluator(cfg, restored.model, dict(enumerate(cfg.tasks)),
-                                        restored.method,
-                                        compiled=resolved["resolved_compile"])  # fmt: skip
+                                        restored.method, compiled=resolved["resolved_compile"],
+                                        execution=self.execution)  # fmt: skip
         self.evaluator.heads.update(enumerate(self.stored))
         for request in self.logger.settle(restored.pending)[1]:  # the weights it saved with
             self.evaluator.submit(request["tasks"], stage=request["stage"],
@@ -183,7 +183,8 @@ class OnlineTrack(Track):
         stored = self.stored
         trainer = Trainer(
             env=env, model=model, heads=heads, buffer=buffer, evaluator=self.evaluator,
-            config=train, seed=cfg.seed, obs_mode=cfg.obs, task_id=task, task_index=index,
+            config=train, execution=self.execution, seed=cfg.seed, obs_mode=cfg.obs,
+            task_id=task, task_index=index,
             logger=self.logger, method=self.restored.method, run_dir=folder,
             global_offset=index * train.steps, progress=self.progress,
             stored_heads_loss=lambda batch, j: model.loss(batch, stored[j]).total,
@@ -245,7 +246,7 @@ class OnlineTrack(Track):
         saved = {**self.reference_config(), **encoder_record(cfg),
                  "resolved_seed_dataset_meta": meta}  # fmt: skip
         return train_task(cfg, out, task_id=cfg.tasks[-1], task_index=len(cfg.tasks) - 1,
-                          saved=saved, progress=progress)  # fmt: skip
+                          saved=saved, execution=self.execution, progress=progress)  # fmt: skip
 
 
 class Curriculum(CurriculumRunner):
@@ -310,6 +311,6 @@ def load_run(run_dir: str | Path, device: torch.device | str | None = None) -> L
     from ccfit.config_parse import saved_config
 
     cfg = saved_config(CurriculumConfig, run_dir, CONFIG)
-    dev = resolve_device(device if device is not None else cfg.train.device)
+    dev = resolve_execution(cfg.train, device).device
     saved = restore(cfg, run_dir, dev)
     return LoadedRun(cfg, saved.model, saved.method, saved.stored_heads, saved.completed, dev)

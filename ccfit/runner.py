@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import abc
 import fcntl
+import functools
 import hashlib
 import json
 import shutil
@@ -28,7 +29,8 @@ from typing import Any, ClassVar, NamedTuple
 import torch
 
 from ccfit import metrics as M
-from ccfit.config_base import ENCODER_RECORD, identity, resolve_device, without_setting
+from ccfit.config import with_encoder
+from ccfit.config_base import ENCODER_RECORD, identity, without_setting
 from ccfit.continual.base import ContinualMethod, make_method
 from ccfit.io import (
     atomic_torch_save,
@@ -41,6 +43,7 @@ from ccfit.io import (
 from ccfit.models.base import WorldModel
 from ccfit.replay_store import ROWS_DIR
 from ccfit.run_files import CHECKPOINT, METRICS_JSON, REFERENCE_DONE, reference_name, task_dir
+from ccfit.settings import Execution, resolve_execution
 from ccfit.train.cost import RunCost
 from ccfit.train.records import RunLogger, record_stage
 from ccfit.train.run import check_same_encoder, encoder_record
@@ -65,9 +68,11 @@ class Restored(NamedTuple):
 class Track(abc.ABC):
     """One way of learning a curriculum: what the runner asks of it, in the order it asks.
 
-    Made with the run's config; `begin` hands it the run directory. Its config has `suite`,
-    `tasks`, `seed`, `method`, `model`, `obs`, `preset`, `encoder` and the loop's settings
-    under `loop` (`train` online, `fit` offline)."""
+    Made with the run's config, which it completes with what the run's start reads (the
+    frozen encoder's sizes: `with_encoder`); `begin` hands it the run directory. Its config
+    has `suite`, `tasks`, `seed`, `method`, `model`, `obs`, `preset`, `encoder` and the loop's
+    settings under `loop` (`train` online, `fit` offline), among them how the run executes
+    (`execution`)."""
 
     name: ClassVar[str]
     """What metrics.json records as the run's track (`ccfit.run_files`)."""
@@ -82,7 +87,7 @@ class Track(abc.ABC):
     """The run config it takes (`ccfit run`'s, `ccfit fit`'s)."""
 
     def __init__(self, cfg: Any) -> None:
-        self.cfg = cfg
+        self.cfg = with_encoder(cfg)
         self.out = Path()
         self.progress = True
 
@@ -97,6 +102,12 @@ class Track(abc.ABC):
     def settings(self) -> Any:
         """The per-task loop's settings (`TrainConfig`, `FitConfig`)."""
         return getattr(self.cfg, self.loop)
+
+    @functools.cached_property
+    def execution(self) -> Execution:
+        """How the run executes here (device, compile mode, precision, threads), resolved
+        once from its loop's settings and handed to all that builds or steps the model."""
+        return resolve_execution(self.settings)
 
     @property
     @abc.abstractmethod
@@ -248,7 +259,7 @@ class CurriculumRunner:
         self.out = Path(out)
         self.scratch_root = Path(scratch_root) if scratch_root else self.out.parent / "scratch"
         self.progress = progress
-        self.device = resolve_device(track.settings.device)
+        self.device = track.execution.device
 
     def run(self) -> dict:
         """The curriculum to its end (resuming what `out` holds); what this call cost is

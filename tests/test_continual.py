@@ -525,7 +525,7 @@ def test_an_update_under_a_method_reads_nothing_back_from_the_device(name, optio
 
     real_adam = torch.optim.Adam  # fused Adam has no meta kernel; the unfused rule is the same
     monkeypatch.setattr(torch.optim, "Adam", lambda p, **kw: real_adam(p, **{**kw, "fused": False}))
-    monkeypatch.setattr(update_module, "autocast", lambda *a: contextlib.nullcontext())
+    monkeypatch.setattr(update_module, "autocast_context", lambda *a: contextlib.nullcontext())
     torch.manual_seed(0)
     model_name = "pwm" if "experts" in method_config_class(name).REQUIRES else "tdmpc2"
     model = make_model(config_class(model_name).preset("smoke", obs_mode="state"), "cpu")

@@ -286,7 +286,7 @@ def test_an_update_reads_nothing_back_and_an_act_only_its_actions(name, mode, mo
 
     real_adam = torch.optim.Adam  # fused Adam has no meta kernel; the unfused rule is the same
     monkeypatch.setattr(torch.optim, "Adam", lambda p, **kw: real_adam(p, **{**kw, "fused": False}))
-    monkeypatch.setattr(update_module, "autocast", lambda *a: contextlib.nullcontext())
+    monkeypatch.setattr(update_module, "autocast_context", lambda *a: contextlib.nullcontext())
     clones = name in CLONING
     model, heads = build(name, mode, **({"demo_bc_coef": 0.5} if clones else {}))
     batch = dataclasses.replace(batch_of(model), demos=2 if clones else 0)

@@ -428,6 +428,22 @@ def test_cli_fits_pixels_and_the_report_keeps_the_track_apart(runs, dataset, tmp
     assert {r.backbone for r in found.values()} == {"dreamerv3-offline"}
 
 
+def test_fit_autocast_runs_the_updates_in_bf16_and_is_recorded(dataset, tmp_path, capsys):
+    """`--fit.autocast`, as `--train.autocast` online: resolved once, recorded as
+    `resolved_autocast`, the updates under bf16 autocast (the scores stay finite)."""
+    from ccfit.cli import main
+
+    out = tmp_path / "bf16"
+    code = main(["fit", "--suite", SUITE, "--preset", "smoke", "--fit.autocast=bf16",
+                 "--fit.device=cpu", "--dataset", str(dataset), "--out", str(out),
+                 "--scratch-root", str(tmp_path / "scratch"), "--quiet"])  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["fit"]["autocast"] == "bf16" and saved["resolved_autocast"] == "bf16"
+    assert saved["resolved_device"] == "cpu"
+    assert all(r["score"] is None or np.isfinite(r["score"]) for r in _records(out))
+
+
 # ============================================================================ sweep
 
 

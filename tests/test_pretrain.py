@@ -223,7 +223,8 @@ VALID_SUITES = "Reach, Grasp, BinPnP, PnPBlock, DrawerPnP, PnPBoxClose or 'all'"
     (["--suites", "Nope"], f"unknown suite(s) ['Nope']; valid: {VALID_SUITES}"),
     (["--preset", "huge"], "unknown preset 'huge'; valid: smoke, cpu, paper"),
     (["--steps", "0"], "PretrainConfig.steps must be >= 1, got 0"),
-    (["--device", "tpu"], "PretrainConfig: device must be one of auto, cpu, cuda"),
+    (["--device", "tpu"], "PretrainConfig: device must be one of auto, cpu, cuda, cuda:N, got "
+                          "'tpu'"),
     (["--out", "{home}/enc.pt"], "--out must end in .safetensors, got {home}/enc.pt"),
     (["--model", "dreamerv3"], "model 'dreamerv3' does not build the shared pixel encoder; "
                                "models that do: pwm, tdmpc2"),
@@ -431,17 +432,19 @@ def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeyp
                 lambda: run_reference(C.OnlineTrack(cfg), reference, progress=False)):  # fmt: skip
         with pytest.raises(ConfigError, match="through another encoder file: .*enc.safetensors"):
             run()
+    # validation reads no file: the run's start does
+    other_size = resolve(
+        CurriculumConfig,
+        {
+            "suite": "Reach",
+            "obs": "pixels",
+            "image_size": 48,
+            "preset": "smoke",
+            "encoder": f"frozen:{path}",
+        },
+    )
     with pytest.raises(ValueError, match="reads 32 px images but the run renders 48 px"):
-        resolve(
-            CurriculumConfig,
-            {
-                "suite": "Reach",
-                "obs": "pixels",
-                "image_size": 48,
-                "preset": "smoke",
-                "encoder": f"frozen:{path}",
-            },
-        )
+        C.OnlineTrack(other_size)
 
 
 def test_a_damaged_encoder_file_is_one_value_error_naming_it(tmp_path):

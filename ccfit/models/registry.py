@@ -123,7 +123,8 @@ def config_class(name: str) -> type[ModelConfig]:
     return model_class(name).config_class
 
 
-def make_model(cfg: ModelConfig, device: torch.device | str, encoder=None) -> WorldModel:
-    """The registered model of `cfg`'s type. `encoder`: a frozen pretrained encoder
+def make_model(cfg: ModelConfig, device: torch.device, encoder=None) -> WorldModel:
+    """The registered model of `cfg`'s type on `device` (resolved: `ccfit.settings`; a plain
+    torch name such as 'cpu' is taken as that device). `encoder`: a frozen pretrained encoder
     (`ccfit.models.encoders.load_frozen_encoder`) to use instead of a trainable one."""
     return model_class(cfg.type)(cfg, device=device, encoder=encoder)

@@ -10,10 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-from ccfit.config import BaseRunConfig, check_pairing, models_offering
+from ccfit.config import AUTOCAST_SETTINGS, BaseRunConfig, check_pairing, models_offering
 from ccfit.config_base import (
     DEFAULTS,
-    DEVICES,
     Presets,
     check,
     check_types,
@@ -22,6 +21,7 @@ from ccfit.config_base import (
 from ccfit.continual.base import MethodConfig, method_config_class
 from ccfit.models import DEFAULT_OFFLINE_MODEL
 from ccfit.models.registry import ModelConfig, config_class, model_class
+from ccfit.settings import check_device_name
 
 PREDICTION = "prediction"
 """The model capability the offline track needs (`ccfit.models.base.Prediction`)."""
@@ -65,9 +65,15 @@ class FitConfig(Presets):
     """Also checkpoint after this many minutes of wall clock since the last one (0: never);
     a checkpoint never changes what the run computes."""
     device: str = "auto"
-    """'auto' (CUDA when available, else CPU), 'cpu' or 'cuda'."""
+    """'auto' (CUDA when available, else CPU), 'cpu', 'cuda' or 'cuda:N', as
+    `--train.device`."""
     torch_threads: int = 1
     """CPU threads for torch (0: torch's default)."""
+    autocast: str = "off"
+    """As `--train.autocast`: 'bf16' runs the backbone's updates under bfloat16 autocast,
+    'auto' where the hardware multiplies in bf16, 'off' float32 (every preset). Scoring stays
+    float32: it measures. Recorded as `resolved_autocast`. (No `fit.compile`: this loop steps
+    `backbone_loss` and open-loop prediction, none of the models' compiled hot paths.)"""
     keep_backbone_optimizer: bool = False
     """Each task's optimiser starts from the state where the previous task left it (Adam's
     step counts and moments), as `--train.keep_backbone_optimizer` online; False: fresh at
@@ -83,8 +89,13 @@ class FitConfig(Presets):
         check(self.checkpoint_minutes >= 0, "fit.checkpoint_minutes must be >= 0")
         check(self.torch_threads >= 0, f"fit.torch_threads must be >= 0, got "
                                        f"{self.torch_threads}")  # fmt: skip
-        check(self.device in DEVICES, f"fit.device must be one of {DEVICES}, got "
-                                      f"{self.device!r}")  # fmt: skip
+        check_device_name(self.device, "fit.device")
+        if self.autocast in (True, False, "True", "False"):  # draccus reads off as YAML false
+            self.autocast = "on" if self.autocast in (True, "True") else "off"
+        check(
+            self.autocast in AUTOCAST_SETTINGS,
+            f"fit.autocast must be one of {AUTOCAST_SETTINGS}, got {self.autocast!r}",
+        )
         check(self.updates % self.score_interval == 0,
               f"fit.updates ({self.updates}) must be a multiple of fit.score_interval "
               f"({self.score_interval}) so every task is scored at its end")  # fmt: skip

@@ -36,6 +36,7 @@ from ccfit.offline.config import FitConfig
 from ccfit.offline.score import score_windows
 from ccfit.replay import ReplayBuffer
 from ccfit.run_files import CHECKPOINT, OFFLINE
+from ccfit.settings import Execution, resolve_execution
 from ccfit.train.records import RunLogger
 from ccfit.train.update import load_backbone_optimizer_state
 
@@ -65,17 +66,21 @@ class TaskFitter:
     task_ids: task id by index (what records name); method: None for plain fitting.
     backbone_optim: the previous task's `backbone_optimizer_state`, which this task's
         optimiser starts from (`fit.keep_backbone_optimizer`; None: fresh).
+    execution: the run's device and precision, resolved (`ccfit.settings`; None: resolved
+        from `fit` on the model's device).
     """
 
     def __init__(self, *, model: WorldModel, buffer: ReplayBuffer, scored: dict[int, Batch],
                  fit: FitConfig, seed: int, task_ids: list[str], task_index: int,
                  method: ContinualMethod | None, logger: OfflineLogger | None,
                  run_dir: Path | None, global_offset: int = 0, progress: bool = True,
-                 backbone_optim: dict | None = None) -> None:  # fmt: skip
+                 backbone_optim: dict | None = None,
+                 execution: Execution | None = None) -> None:  # fmt: skip
         self.model, self.buffer, self.scored, self.fit = model, buffer, scored, fit
         self.seed, self.task_ids, self.task_index = seed, task_ids, task_index
         self.method, self.logger, self.run_dir = method, logger, run_dir
         self.global_offset, self.progress = global_offset, progress
+        self.execution = execution or resolve_execution(fit, model.device)
         mcfg = model.cfg
         if not buffer.can_sample(mcfg.seq_len):
             raise InputError(
@@ -138,9 +143,10 @@ class TaskFitter:
         model, method, mcfg = self.model, self.method, self.model.cfg
         batch = self.buffer.sample(mcfg.batch_size, mcfg.seq_len).to(model.device)
         model.train()
-        total = model.backbone_loss(batch)
-        if method is not None:
-            total = total + method.penalty(model.backbone, self.losses)
+        with self.execution.autocast_context():
+            total = model.backbone_loss(batch)
+            if method is not None:
+                total = total + method.penalty(model.backbone, self.losses)
         self.optim.zero_grad(set_to_none=True)
         total.backward()
         torch.nn.utils.clip_grad_norm_(self._params, mcfg.grad_clip)

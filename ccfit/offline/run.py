@@ -26,7 +26,6 @@ from pathlib import Path
 
 import torch
 
-from ccfit.config_base import resolve_device
 from ccfit.data import dataset_meta
 from ccfit.io import seed_everything
 from ccfit.models.base import WorldModel
@@ -36,6 +35,7 @@ from ccfit.offline.fit import SCORE_KEY, TRACK, OfflineLogger, TaskFitter
 from ccfit.run_files import CHECKPOINT, CONFIG, METRICS_JSON, OFFLINE_STATE, run_name
 from ccfit.runner import CurriculumRunner, Restored, Track
 from ccfit.runner import restore as restore_run
+from ccfit.settings import Execution, resolve_execution
 from ccfit.train.run import check_saved_config, encoder_record, load_model, render_settings
 
 STATE = OFFLINE_STATE
@@ -48,30 +48,33 @@ def default_out(cfg: OfflineConfig) -> Path:
     return Path("runs") / run_name(cfg, track=TRACK)
 
 
-def resolved_config(cfg: OfflineConfig, source: str, *, record_dataset: bool = True) -> dict:
+def resolved_config(cfg: OfflineConfig, source: str, execution: Execution | None = None, *,
+                    record_dataset: bool = True) -> dict:  # fmt: skip
     """config.json of an offline run: the config, plus what it resolved to where it runs
-    (`record_dataset`: as for an online run's)."""
+    (`execution`: how it executes, None: resolved here from `cfg.fit`; `record_dataset`: as
+    for an online run's)."""
     meta = dataset_meta(source, cfg.dataset_endpoint) if record_dataset else None
+    execution = execution or resolve_execution(cfg.fit)
     return {
         **cfg.to_dict(),
         "track": TRACK,
         "resolved_dataset": source,
         "resolved_dataset_meta": meta,
-        "resolved_device": str(resolve_device(cfg.fit.device)),
+        **execution.records(),
         "measurement_space": cfg.measurement_space,
         "render": render_settings(cfg).to_dict(),
         **encoder_record(cfg),
     }
 
 
-def _prepare(cfg: OfflineConfig, out: Path, saved: dict, source: str):
-    """Check the dataset and write config.json and split.json (bad input leaves nothing)."""
+def _prepare(cfg: OfflineConfig, out: Path, saved: dict, source: str, execution: Execution):
+    """Check the dataset and write config.json and split.json (bad input leaves nothing);
+    the run's CPU threads set."""
     splits = make_splits(cfg, source)
     out.mkdir(parents=True, exist_ok=True)
     check_saved_config(out, saved)
     write_split(out, splits, source)
-    if cfg.fit.torch_threads > 0:
-        torch.set_num_threads(cfg.fit.torch_threads)
+    execution.set_threads()
     return splits
 
 
@@ -94,13 +97,14 @@ class OfflineTrack(Track):
         return self.cfg.fit.updates
 
     def resolved_config(self, *, record_dataset: bool = True) -> dict:
-        return resolved_config(self.cfg, dataset_source(self.cfg), record_dataset=record_dataset)
+        return resolved_config(self.cfg, dataset_source(self.cfg), self.execution,
+                               record_dataset=record_dataset)  # fmt: skip
 
     def begin(self, out: Path, progress: bool) -> dict:
         self.out, self.progress = out, progress
         self.source = dataset_source(self.cfg)
-        resolved = resolved_config(self.cfg, self.source)
-        self.splits = _prepare(self.cfg, out, resolved, self.source)
+        resolved = resolved_config(self.cfg, self.source, self.execution)
+        self.splits = _prepare(self.cfg, out, resolved, self.source, self.execution)
         return resolved
 
     def build_model(self, device: torch.device, resolved: dict | None) -> WorldModel:
@@ -125,7 +129,7 @@ class OfflineTrack(Track):
             model=self.model, buffer=buffer, scored=self.scored, fit=cfg.fit, seed=cfg.seed,
             task_ids=tasks, task_index=index, method=self.method, logger=self.logger,
             run_dir=folder, global_offset=index * cfg.fit.updates, progress=self.progress,
-            backbone_optim=backbone_optim,
+            backbone_optim=backbone_optim, execution=self.execution,
         )  # fmt: skip
         fitter.run()
         return fitter.optim
@@ -147,9 +151,9 @@ class OfflineTrack(Track):
         # key).
         saved = {**self.reference_config(), **encoder_record(cfg),
                  "resolved_dataset_meta": dataset_meta(source, cfg.dataset_endpoint)}  # fmt: skip
-        splits = _prepare(cfg, out, saved, source)
+        splits = _prepare(cfg, out, saved, source, self.execution)
         seed_everything(cfg.seed)
-        model = load_model(cfg, resolve_device(cfg.fit.device))
+        model = load_model(cfg, self.execution.device)
         model.begin_task(n - 1, cfg.fit.updates)
         buffer, windows = load_task(cfg, source, model, n - 1, splits[tasks[-1]])
         logger = OfflineLogger(out, cfg.log, saved)
@@ -159,7 +163,7 @@ class OfflineTrack(Track):
             return TaskFitter(
                 model=model, buffer=buffer, scored={n - 1: windows}, fit=cfg.fit, seed=cfg.seed,
                 task_ids=tasks, task_index=n - 1, method=None, logger=logger, run_dir=out,
-                progress=progress,
+                progress=progress, execution=self.execution,
             ).run()  # fmt: skip
         finally:
             logger.close()

@@ -43,7 +43,10 @@ def add_pretrain_parser(subparsers) -> argparse.ArgumentParser:
                        help=f"override the preset's {name}")  # fmt: skip
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--image-size", type=int, default=64, help="camera image side of the datasets")
-    p.add_argument("--device", default="auto", help="auto | cpu | cuda")
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    p.add_argument("--torch-threads", type=int, default=None,
+                   help="CPU threads for torch (0: torch's default), as "
+                        "--train.torch_threads")  # fmt: skip
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_pretrain)
     return p
@@ -58,6 +61,8 @@ def config_from_args(args: argparse.Namespace) -> PretrainConfig:
         "image_size": args.image_size,
         "device": args.device,
     }
+    if args.torch_threads is not None:
+        overrides["torch_threads"] = args.torch_threads
     for name in _TRAINING_OVERRIDES:
         if getattr(args, name) is not None:
             overrides[name] = getattr(args, name)

@@ -13,6 +13,7 @@ from ccfit.config_base import ConfigError, Presets
 from ccfit.models import DEFAULT_MODEL
 from ccfit.models.encoders import EncoderSpec
 from ccfit.models.registry import model_class, model_names
+from ccfit.settings import DEVICE_NAME
 
 KIND = "ccfit-pretrained-encoder"
 """The sidecar's 'kind': an encoder made by this module."""
@@ -96,7 +97,8 @@ class PretrainConfig(Presets):
     log_interval: int = 100
     """Steps averaged into each point of the loss history."""
     device: str = "auto"
-    """'auto' (CUDA when available, else CPU), 'cpu' or 'cuda'."""
+    """'auto' (CUDA when available, else CPU), 'cpu', 'cuda' or 'cuda:N', as `--train.device`
+    (resolved when pretraining starts: `ccfit.settings.resolve_execution`)."""
     torch_threads: int = 0
     """CPU threads for torch during pretraining (0: leave torch's setting); restored after."""
     seed: int = 0
@@ -127,7 +129,10 @@ class PretrainConfig(Presets):
             (self.proprio_coef >= 0, "proprio_coef must be >= 0"),
             (self.augment_shift >= 0, "augment_shift must be >= 0"),
             (0.0 <= self.holdout < 1.0, "holdout must be in [0, 1)"),
-            (self.device in ("auto", "cpu", "cuda"), "device must be one of auto, cpu, cuda"),
+            (
+                isinstance(self.device, str) and DEVICE_NAME.fullmatch(self.device) is not None,
+                f"device must be one of auto, cpu, cuda, cuda:N, got {self.device!r}",
+            ),
             (self.torch_threads >= 0, "torch_threads must be >= 0"),
             (self.seed >= 0, "seed must be >= 0"),
         ]

@@ -30,6 +30,7 @@ from ccfit.pretrain.config import (
 )
 from ccfit.pretrain.data import check_datasets, load_oracle_frames, split_episodes
 from ccfit.pretrain.model import Autoencoder, evaluate_reconstruction
+from ccfit.settings import resolve_execution
 
 # ============================================================================== training
 
@@ -94,23 +95,21 @@ def pretrain_encoder(
     if done is not None:
         return done["metrics"]
     check_datasets(config)
+    execution = resolve_execution(config)
     threads = torch.get_num_threads()
-    if config.torch_threads:
-        torch.set_num_threads(config.torch_threads)
+    execution.set_threads()
     try:
-        return _pretrain(config, out, progress, on_step)
+        return _pretrain(config, out, execution.device, progress, on_step)
     finally:
         torch.set_num_threads(threads)
 
 
-def _pretrain(config: PretrainConfig, out: Path, progress: bool, on_step: Callable | None) -> dict:
+def _pretrain(config: PretrainConfig, out: Path, device: torch.device, progress: bool,
+              on_step: Callable | None) -> dict:  # fmt: skip
     from tqdm.auto import tqdm
-
-    from ccfit.config_base import resolve_device
 
     weights, _, ckpt_path = _paths(out)
     identity = json.loads(json.dumps(config.identity()))
-    device = resolve_device(config.device)
     enc_cfg = config.encoder_config()
 
     store, suites_manifest = load_oracle_frames(config, progress=progress)

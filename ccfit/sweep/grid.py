@@ -198,7 +198,8 @@ def expand(grid: Grid, root: str | Path) -> Sweep:
         cfg = parse_cli(track.config_class, argv, prog="ccfit sweep")
         name = run_name(cfg, grid.track)
         cfg.out = str(root / name)
-        runs.append(RunSpec(name, cfg.to_dict(), track(cfg).reference_key()))
+        run = track(cfg)  # completes the config with what the run's start reads (an encoder)
+        runs.append(RunSpec(name, run.cfg.to_dict(), run.reference_key()))
     return Sweep(root, grid, runs, code_version())
 
 

@@ -187,8 +187,10 @@ def resolve_autocast(setting: str, device: torch.device) -> str:
 
 
 def autocast(device: torch.device, setting: str):
-    """The autocast context of `--train.autocast` on `device` (a no-op context for 'off')."""
+    """The autocast context of `--train.autocast` on `device` (a no-op context for 'off'),
+    resolved on each call: for scripts and benchmarks. A run resolves its precision once
+    (`ccfit.settings.Execution.autocast_context`)."""
+    from ccfit.settings import autocast_context
+
     device = torch.device(device)
-    return torch.autocast(
-        device.type, dtype=torch.bfloat16, enabled=resolve_autocast(setting, device) == "bf16"
-    )
+    return autocast_context(device, resolve_autocast(setting, device))

@@ -24,6 +24,7 @@ from torch import nn
 
 from ccdata.processes import available_cores, worker_pool
 from ccfit.models.base import WorldModel
+from ccfit.settings import Execution
 
 
 @dataclass
@@ -34,13 +35,11 @@ class WorkerSpec:
     """The run's model config (`ModelConfig`)."""
     encoder_path: str | None
     """The frozen pretrained encoder's file, if the run has one."""
-    compile: str
-    """`--train.compile` (how the paths compile: 'graphs' or not)."""
+    execution: Execution
+    """The run's device, compile mode, precision and threads (`ccfit.settings`): the
+    worker's are the training process's."""
     compiled: list[str]
     """The hot paths the training process compiles: the worker compiles them too."""
-    autocast: str
-    """`--train.autocast`."""
-    device: str
     method: Any
     """The run's method config (`MethodConfig`) when the method has an evaluation view (its
     state then travels with each request), else None."""
@@ -50,7 +49,6 @@ class WorkerSpec:
     obs_mode: str
     image_size: int
     episodes: int
-    torch_threads: int
     episode_steps: int
     """The parent's `ccdata.env.EPISODE_STEPS` (a process-wide setting the worker shares)."""
     env_workers: int = 0
@@ -69,19 +67,19 @@ def _start(spec: WorkerSpec) -> None:
     from ccfit.train.evaluate import Evaluator
 
     ccdata.env.EPISODE_STEPS = spec.episode_steps
-    if spec.torch_threads > 0:
-        torch.set_num_threads(spec.torch_threads)
+    execution = spec.execution
+    execution.set_threads()
     encoder = None
     if spec.encoder_path is not None:
-        encoder, _ = load_frozen_encoder(spec.encoder_path, device=spec.device)
-    model = make_model(spec.model, spec.device, encoder=encoder)
-    compile_hot_paths(model, spec.compile, paths=spec.compiled)
+        encoder, _ = load_frozen_encoder(spec.encoder_path, device=execution.device)
+    model = make_model(spec.model, execution.device, encoder=encoder)
+    compile_hot_paths(model, execution.compile, paths=spec.compiled)
     method = make_method(spec.method, spec.num_tasks, spec.seed) if spec.method else None
     view = (lambda i: method.evaluating(i, model.backbone)) if method is not None else None
     _WORKER.update(model=model, method=method, heads={}, evaluator=Evaluator(
         model, spec.task_ids, seed=spec.seed, obs_mode=spec.obs_mode,
         image_size=spec.image_size, episodes=spec.episodes, view=view,
-        autocast=spec.autocast, env_workers=spec.env_workers))  # fmt: skip
+        autocast=execution.autocast, env_workers=spec.env_workers))  # fmt: skip
 
 
 def _heads(task: int, state: dict) -> nn.Module:

@@ -24,10 +24,11 @@ import torch
 from torch import nn
 
 from ccdata.scoring import GAMMA, discounted_return, normalize
+from ccfit.config_base import check
 from ccfit.io import derived_seed, seeded
 from ccfit.models.base import WorldModel, select_state
 from ccfit.obs import model_input, obs_to_arrays
-from ccfit.train.compiled import autocast
+from ccfit.settings import AUTOCAST_MODES, autocast_context
 from ccfit.train.env_workers import EnvWorkers, step_all
 
 TRAIN_TAG, EVAL_TAG, ACTION_TAG, REPLAY_TAG, EVAL_NOISE_TAG = 0, 1, 2, 3, 4
@@ -184,7 +185,8 @@ class Evaluator:
     model: the world model; task_ids: curriculum index -> task id of the tasks it may
     evaluate; seed, obs_mode, image_size, episodes: the run's. view: task index -> the
     context a task is evaluated in (the continual method's `evaluating`, e.g. PackNet's
-    masks); None: no view. autocast: `--train.autocast`. env_workers: processes the
+    masks); None: no view. autocast: the run's precision, resolved ('off' or 'bf16':
+    `ccfit.settings.Execution.autocast`). env_workers: processes the
     environments step and render in (`EnvPool`; 0: this process).
     """
 
@@ -194,6 +196,8 @@ class Evaluator:
                  autocast: str = "off", env_workers: int = 0) -> None:  # fmt: skip
         self.model, self.task_ids = model, dict(task_ids)
         self.seed, self.obs_mode, self.episodes = seed, obs_mode, episodes
+        check(autocast in AUTOCAST_MODES, f"Evaluator takes a resolved precision "
+                                          f"{AUTOCAST_MODES}, got {autocast!r}")  # fmt: skip
         self.autocast = autocast
         self.view = view
         self.heads: dict[int, nn.Module] = {}
@@ -235,7 +239,7 @@ class Evaluator:
                 with (
                     self.view(i) if self.view is not None else nullcontext(),
                     seeded(noise, model.device),
-                    autocast(model.device, self.autocast),
+                    autocast_context(model.device, self.autocast),
                 ):
                     eps = play_episodes(envs, model, self.heads[i], obs_mode=self.obs_mode,
                                         seeds=seeds)  # fmt: skip

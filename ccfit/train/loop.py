@@ -43,7 +43,7 @@ from ccfit.obs import model_input, obs_to_arrays
 from ccfit.replay import ReplayBuffer
 from ccfit.replay_store import ROWS_DIR, load_rows, save_rows
 from ccfit.run_files import CHECKPOINT
-from ccfit.train.compiled import autocast
+from ccfit.settings import Execution, resolve_execution
 from ccfit.train.evaluate import ACTION_TAG, TRAIN_TAG, Evaluator
 from ccfit.train.records import RunLogger
 from ccfit.train.update import UpdateStep, load_backbone_optimizer_state
@@ -63,6 +63,8 @@ class Trainer:
     evaluator: evaluates this task (its heads are registered there) and, in a curriculum,
         the earlier tasks it holds heads for.
     config: the loop's settings; seed and obs_mode: the run's.
+    execution: the run's device, compile mode and precision, resolved (`ccfit.settings`;
+        None: resolved from `config` on the model's device).
     logger: evaluation records and scalars (None: keep them in `self.evals` only).
     method: the continual method (None: plain training).
     run_dir: where `checkpoint.pt` goes (None: no checkpoints, no resume).
@@ -79,7 +81,8 @@ class Trainer:
     def __init__(
         self, *, env, model: WorldModel, heads: nn.Module, buffer: ReplayBuffer,
         evaluator: Evaluator, config: TrainConfig, seed: int, obs_mode: str, task_id: str,
-        task_index: int = 0, logger: RunLogger | None = None,
+        execution: Execution | None = None, task_index: int = 0,
+        logger: RunLogger | None = None,
         method: ContinualMethod | None = None, run_dir: str | Path | None = None,
         global_offset: int = 0, progress: bool = True,
         stored_heads_loss: Callable[[Batch, int], torch.Tensor] | None = None,
@@ -95,8 +98,9 @@ class Trainer:
         self.global_offset, self.progress = global_offset, progress
         self.extendable = extendable
         self.device = model.device
-        self.step = UpdateStep(model, heads, method, stored_heads_loss, config.autocast,
-                               graphs=config.compile == "graphs")  # fmt: skip
+        self.execution = execution or resolve_execution(config, model.device)
+        self.step = UpdateStep(model, heads, method, stored_heads_loss,
+                               self.execution.autocast, graphs=self.execution.graphs)  # fmt: skip
         if backbone_optim is not None:
             load_backbone_optimizer_state(self.step.optim, model.backbone, backbone_optim)
         self.action_rng = np.random.default_rng(derived_seed(seed, ACTION_TAG, 0, task_index))
@@ -220,7 +224,7 @@ class Trainer:
         close_task(self.method, self.task_index, self.model, self.buffer, self.extra_updates)
 
     def _autocast(self):
-        return autocast(self.device, self.cfg.autocast)
+        return self.execution.autocast_context()
 
     def _wall_clock_due(self) -> bool:
         minutes = self.cfg.checkpoint_minutes

@@ -19,14 +19,13 @@ import torch
 
 from ccdata.errors import InputError
 from ccdata.render import RenderSettings
-from ccfit.config import BaseRunConfig, RunConfig, TaskRunConfig
+from ccfit.config import BaseRunConfig, RunConfig, TaskRunConfig, with_encoder
 from ccfit.config_base import (
     COMPILE_REASON,
     DATASET_RECORDS,
     ENCODER_RECORD,
     ConfigError,
     identity,
-    resolve_device,
 )
 from ccfit.config_parse import flatten
 from ccfit.data import dataset_meta
@@ -36,13 +35,8 @@ from ccfit.models.registry import make_model, model_class
 from ccfit.replay import ReplayBuffer
 from ccfit.replay_prefill import DEMO_POLICY, demonstration_rows, seed_buffer
 from ccfit.run_files import CONFIG, task_run_name
-from ccfit.train.compiled import (
-    check_compile_device,
-    compile_choice,
-    compile_hot_paths,
-    compiled_paths,
-    resolve_autocast,
-)
+from ccfit.settings import Execution, resolve_execution
+from ccfit.train.compiled import compile_choice, compile_hot_paths, compiled_paths
 from ccfit.train.cost import RunCost
 from ccfit.train.env_workers import resolve_env_workers
 from ccfit.train.eval_worker import AsyncEvaluator, WorkerSpec, has_view, parallel_on
@@ -57,13 +51,15 @@ def render_settings(cfg: BaseRunConfig) -> RenderSettings:
     return RenderSettings(image_size=cfg.image_size)
 
 
-def resolved_config(cfg: RunConfig, suite: str | None, *, record_dataset: bool = True) -> dict:
+def resolved_config(cfg: RunConfig, suite: str | None, execution: Execution | None = None, *,
+                    record_dataset: bool = True) -> dict:  # fmt: skip
     """config.json of a run: the config, plus what it resolved to where it runs: the seed
-    dataset ('auto') and what it holds, the device ('auto'), the compiled methods, the precision
-    and the render settings. `record_dataset=False` leaves out what the dataset holds (None):
-    it is no part of the identity, and reading it may download a Hub dataset."""
-    device = resolve_device(cfg.train.device)
-    check_compile_device(cfg.train.compile, device)
+    dataset ('auto') and what it holds, how it executes (`execution`, the run's: its device
+    and precision; None: resolved here from `cfg.train`), the compiled methods and the render
+    settings. `record_dataset=False` leaves out what the dataset holds (None): it is no part
+    of the identity, and reading it may download a Hub dataset."""
+    execution = execution or resolve_execution(cfg.train)
+    device, ran = execution.device, execution.records()
     source = dataset_source(cfg, suite)
     if cfg.train.demo_fraction > 0 and source is None:
         raise ConfigError(f"train.demo_fraction {cfg.train.demo_fraction} (given, or the "
@@ -78,10 +74,10 @@ def resolved_config(cfg: RunConfig, suite: str | None, *, record_dataset: bool =
         **cfg.to_dict(),
         "resolved_seed_dataset": source,
         "resolved_seed_dataset_meta": meta,
-        "resolved_device": str(device),
+        "resolved_device": ran["resolved_device"],
         "resolved_compile": compiled,
         COMPILE_REASON: why,
-        "resolved_autocast": resolve_autocast(cfg.train.autocast, device),
+        "resolved_autocast": ran["resolved_autocast"],
         "render": render_settings(cfg).to_dict(),
         **encoder_record(cfg),
     }
@@ -233,12 +229,13 @@ def make_replay(cfg: RunConfig, model: WorldModel, task_id: str, task_index: int
 
 
 def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
-                   method=None, compiled: list[str] | None = None
-                   ) -> Evaluator | AsyncEvaluator:  # fmt: skip
+                   method=None, compiled: list[str] | None = None,
+                   execution: Execution | None = None) -> Evaluator | AsyncEvaluator:  # fmt: skip
     """The run's evaluator: in this process, or in a worker beside training
     (`--train.parallel`); `method`: the continual method, whose view tasks are evaluated in;
     `compiled`: the hot paths the run compiles (None: `build_model`'s choice), which a
-    worker compiles too."""
+    worker compiles too; `execution`: the run's (None: resolved from `cfg.train`)."""
+    execution = execution or resolve_execution(cfg.train)
     parallel = parallel_on(cfg.train.parallel)
     env_workers = resolve_env_workers(cfg.train.env_workers, obs_mode=cfg.obs, parallel=parallel,
                                       episodes=cfg.train.eval_episodes)  # fmt: skip
@@ -246,21 +243,19 @@ def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
         import ccdata.env
 
         spec = WorkerSpec(
-            model=cfg.model, encoder_path=cfg.encoder_path, compile=cfg.train.compile,
+            model=cfg.model, encoder_path=cfg.encoder_path, execution=execution,
             compiled=compiled if compiled is not None else compiled_paths(
                 type(model), cfg.train.compile, model.device, cfg.train.steps),
-            autocast=cfg.train.autocast,
-            device=str(model.device), method=cfg.method if has_view(method) else None,
+            method=cfg.method if has_view(method) else None,
             num_tasks=len(getattr(cfg, "tasks", task_ids)), task_ids=task_ids, seed=cfg.seed,
             obs_mode=cfg.obs, image_size=cfg.image_size, episodes=cfg.train.eval_episodes,
-            torch_threads=cfg.train.torch_threads, episode_steps=ccdata.env.EPISODE_STEPS,
-            env_workers=env_workers,
+            episode_steps=ccdata.env.EPISODE_STEPS, env_workers=env_workers,
         )  # fmt: skip
         return AsyncEvaluator(spec, model, method)
     view = (lambda i: method.evaluating(i, model.backbone)) if method is not None else None
     return Evaluator(model, task_ids, seed=cfg.seed, obs_mode=cfg.obs,
                      image_size=cfg.image_size, episodes=cfg.train.eval_episodes,
-                     view=view, autocast=cfg.train.autocast,
+                     view=view, autocast=execution.autocast,
                      env_workers=env_workers)  # fmt: skip
 
 
@@ -355,34 +350,35 @@ def training_lock(out: Path) -> Iterator[None]:
 
 
 def train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, saved: dict,
-               progress: bool = True, extendable: bool = False) -> list[dict]:  # fmt: skip
+               execution: Execution, progress: bool = True,
+               extendable: bool = False) -> list[dict]:  # fmt: skip
     """`task_id` learnt online from scratch into `out`, resuming from its checkpoint when it
     holds one of the same config (`saved`, what config.json holds). The task has index
     `task_index` in its curriculum (a curriculum's from-scratch reference of its composition
     task keeps that task's index: the same seeds, routing and evaluation layouts).
+    `execution`: the run's (`resolve_execution`, recorded in `saved`).
     `extendable`: a run there of fewer `train.steps` goes on to `cfg.train.steps` where the
     model allows it (`check_saved_config`). One process at a time (`training_lock`). Returns
     every evaluation record."""
     out = Path(out)
     with training_lock(out):
         return _train_task(cfg, out, task_id=task_id, task_index=task_index, saved=saved,
-                           progress=progress, extendable=extendable)  # fmt: skip
+                           execution=execution, progress=progress,
+                           extendable=extendable)  # fmt: skip
 
 
 def _train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, saved: dict,
-                progress: bool, extendable: bool) -> list[dict]:  # fmt: skip
+                execution: Execution, progress: bool, extendable: bool) -> list[dict]:  # fmt: skip
     from ccdata.env import make_env
 
     extends = model_class(cfg.model.type) if extendable else None
     saved = compile_as_begun(out, saved)
     if (out / CONFIG).exists():
         check_saved_config(out, saved, extends=extends)
-    if cfg.train.torch_threads > 0:
-        torch.set_num_threads(cfg.train.torch_threads)
-    device = resolve_device(cfg.train.device)
+    execution.set_threads()
     resumed = (out / CHECKPOINT).exists()
     seed_everything(cfg.seed)
-    model = build_model(cfg, device, saved["resolved_compile"])
+    model = build_model(cfg, execution.device, saved["resolved_compile"])
     model.begin_task(task_index, cfg.train.steps)
     # Seed data is read before anything is written: a bad dataset leaves no run directory. A
     # resumed run reads it no more (its checkpoint holds the replay, demonstrations included).
@@ -396,10 +392,10 @@ def _train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, sav
         logger.keep(lambda r: False)
     env = make_env(task_id, render=cfg.obs == "pixels", image_size=cfg.image_size)
     evaluator = make_evaluator(cfg, model, {task_index: task_id},
-                               compiled=saved["resolved_compile"])  # fmt: skip
+                               compiled=saved["resolved_compile"], execution=execution)  # fmt: skip
     trainer = Trainer(
         env=env, model=model, heads=model.new_heads(), buffer=buffer, evaluator=evaluator,
-        config=cfg.train, seed=cfg.seed, obs_mode=cfg.obs, task_id=task_id,
+        config=cfg.train, execution=execution, seed=cfg.seed, obs_mode=cfg.obs, task_id=task_id,
         task_index=task_index, logger=logger, run_dir=out, progress=progress,
         extendable=extends is not None and not extends.reads_task_budget,
     )  # fmt: skip
@@ -432,7 +428,7 @@ def load_task_run(run_dir: str | Path, device: torch.device | str | None = None
     from ccfit.train.loop import CHECKPOINT_KIND, CHECKPOINT_VERSION
 
     cfg = saved_config(TaskRunConfig, run_dir, CONFIG)
-    model = build_model(cfg, resolve_device(device if device is not None else cfg.train.device))
+    model = build_model(cfg, resolve_execution(cfg.train, device).device)
     state = load_checkpoint(Path(run_dir) / CHECKPOINT, CHECKPOINT_KIND, CHECKPOINT_VERSION)
     model.load_state_dict(state["model"])
     heads = model.new_heads()
@@ -447,9 +443,11 @@ def train_single(cfg: TaskRunConfig, *, progress: bool = True) -> dict:
     it cost goes to `cost.json`. A run there of fewer `--train.steps` is extended to these
     (`train_task`)."""
     out = Path(cfg.out) if cfg.out else default_out(cfg)
-    resolved = resolved_config(cfg, suite_of(cfg.task))
+    cfg = with_encoder(cfg)
+    execution = resolve_execution(cfg.train)
+    resolved = resolved_config(cfg, suite_of(cfg.task), execution)
     note_no_seed_dataset(cfg, suite_of(cfg.task), resolved["resolved_seed_dataset"])
     with RunCost(out):
         evals = train_task(cfg, out, task_id=cfg.task, task_index=0, saved=resolved,
-                           progress=progress, extendable=True)  # fmt: skip
+                           execution=execution, progress=progress, extendable=True)  # fmt: skip
     return evals[-1]

@@ -10,21 +10,25 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
+from ccfit.config_base import check
 from ccfit.continual.base import ContinualMethod, ReplayLosses
 from ccfit.models.base import Batch, WorldModel
-from ccfit.train.compiled import autocast
+from ccfit.settings import AUTOCAST_MODES, autocast_context
 
 
 class UpdateStep:
     """The optimisers of one task's training and what an update needs besides the batch.
 
     stored_heads_loss: the loss of a batch through an earlier task's stored heads, offered to
-    the method's penalty (`ReplayLosses`); autocast: `--train.autocast`; graphs: the hot paths
-    replay CUDA graphs (`--train.compile=graphs`)."""
+    the method's penalty (`ReplayLosses`); autocast: the run's precision, resolved ('off' or
+    'bf16': `ccfit.settings.Execution.autocast`); graphs: the hot paths replay CUDA graphs
+    (`--train.compile=graphs`)."""
 
     def __init__(self, model: WorldModel, heads: nn.Module, method: ContinualMethod | None = None,
                  stored_heads_loss: Callable[[Batch, int], torch.Tensor] | None = None,
                  autocast: str = "off", graphs: bool = False) -> None:  # fmt: skip
+        check(autocast in AUTOCAST_MODES, f"UpdateStep takes a resolved precision "
+                                          f"{AUTOCAST_MODES}, got {autocast!r}")  # fmt: skip
         self.model, self.heads, self.method, self.autocast = model, heads, method, autocast
         self.graphs = graphs
         self.optim = model.world_model_optimizer(heads)
@@ -42,7 +46,7 @@ class UpdateStep:
             # otherwise keep later calls in its generation.
             torch.compiler.cudagraph_mark_step_begin()
         model.train()
-        with autocast(model.device, self.autocast):
+        with autocast_context(model.device, self.autocast):
             out = model.loss(batch, self.heads)
             total = out.total
             if method is not None:
@@ -53,7 +57,7 @@ class UpdateStep:
         self.optim.step()
         if method is not None:
             method.after_step(model.backbone)
-        with autocast(model.device, self.autocast):
+        with autocast_context(model.device, self.autocast):
             head_logs = model.head_update(batch, self.heads, out, self.head_optims)
         return {**out.logs, **head_logs, "total": total.detach(), "grad_norm": grad_norm}
 

@@ -20,7 +20,7 @@ import torch
 from torch import nn
 from torch.func import functional_call
 
-from ccfit.config_base import check, resolve_device
+from ccfit.config_base import check
 from ccfit.models.base import LATENT_KEY, Batch, LossOutput, OpenLoop, Prediction, WorldModel
 from ccfit.models.dreamerv3.behavior import (
     behavior_losses,
@@ -102,16 +102,14 @@ class DreamerV3(WorldModel, Prediction):
     # that point, not at a measured break-even.
     compile_pays_from = {"cpu": 10_000}
 
-    def __init__(
-        self, cfg: DreamerV3Config, device: torch.device | str | None = None, encoder=None
-    ) -> None:
+    def __init__(self, cfg: DreamerV3Config, device: torch.device, encoder=None) -> None:
         super().__init__()
         if encoder is not None:
             check(
                 encoder.obs_mode == cfg.obs_mode,
                 f"frozen encoder is for obs_mode {encoder.obs_mode!r}, model has {cfg.obs_mode!r}",
             )
-        self.cfg, self.device = cfg, resolve_device(device if device is not None else "auto")
+        self.cfg, self.device = cfg, torch.device(device)
         self.backbone = DreamerV3Backbone(cfg, encoder).to(self.device)
 
     @property

@@ -55,7 +55,7 @@ class PWM(TDMPC2, Routing):
     def __init__(
         self,
         cfg: PWMConfig,
-        device: torch.device | str | None = None,
+        device: torch.device,
         encoder: FrozenEncoder | None = None,
     ) -> None:
         if not isinstance(cfg, PWMConfig):

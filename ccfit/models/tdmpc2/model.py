@@ -10,7 +10,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ccfit.config_base import resolve_device
 from ccfit.models.base import LATENT_KEY, Batch, LossOutput, OpenLoop, Prediction, WorldModel
 from ccfit.models.encoders import FrozenEncoder
 from ccfit.models.layers import (
@@ -42,16 +41,17 @@ class TDMPC2(WorldModel, Prediction):
     def __init__(
         self,
         cfg: TDMPC2Config,
-        device: torch.device | str | None = None,
+        device: torch.device,
         encoder: FrozenEncoder | None = None,
     ) -> None:
-        """`encoder`: a pretrained encoder from `load_frozen_encoder` to use (frozen) instead
+        """`device`: where it lives (resolved by the caller: `ccfit.settings`). `encoder`: a
+        pretrained encoder from `load_frozen_encoder` to use (frozen) instead
         of a trainable one; it stays in the backbone but has no trainable parameters."""
         if not isinstance(cfg, TDMPC2Config):
             raise ValueError(f"{type(self).__name__} needs a TDMPC2Config, got {type(cfg)}")
         super().__init__()
         self.cfg = cfg
-        self.device = resolve_device(device if device is not None else "auto")
+        self.device = torch.device(device)
         self.backbone = TDMPC2Backbone(cfg, encoder)
         self.two_hot = TwoHot(cfg.num_bins, cfg.vmin, cfg.vmax)
         self.discount = cfg.discount
