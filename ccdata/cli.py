@@ -250,6 +250,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="cut episodes after this many steps (tests, previews; default: full)",
     )
     p.add_argument(
+        "--episode-steps",
+        type=int,
+        help="agent steps after which the environment ends an unsolved episode "
+        "(default: the benchmark's 250)",
+    )
+    p.add_argument(
         "--workers",
         type=int,
         help="rollout processes (default: one per core this process may use); the "

@@ -34,6 +34,8 @@ def generate_config(args: argparse.Namespace):
         repo_id=args.repo_id,
         noise_std=args.noise_std,
         random_prob=args.random_prob,
+        # not given: the settings' default (kept there only)
+        **({} if args.episode_steps is None else {"episode_steps": args.episode_steps}),
     )
 
 
