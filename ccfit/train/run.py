@@ -243,8 +243,6 @@ def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
     env_workers = resolve_env_workers(cfg.train.env_workers, obs_mode=cfg.obs, parallel=parallel,
                                       episodes=cfg.train.eval_episodes)  # fmt: skip
     if parallel:
-        import ccdata.env
-
         spec = WorkerSpec(
             model=cfg.model, encoder_path=cfg.encoder_path, compile=cfg.train.compile,
             compiled=compiled if compiled is not None else compiled_paths(
@@ -253,14 +251,14 @@ def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
             device=str(model.device), method=cfg.method if has_view(method) else None,
             num_tasks=len(getattr(cfg, "tasks", task_ids)), task_ids=task_ids, seed=cfg.seed,
             obs_mode=cfg.obs, image_size=cfg.image_size, episodes=cfg.train.eval_episodes,
-            torch_threads=cfg.train.torch_threads, episode_steps=ccdata.env.EPISODE_STEPS,
+            torch_threads=cfg.train.torch_threads, episode_steps=cfg.train.episode_steps,
             env_workers=env_workers,
         )  # fmt: skip
         return AsyncEvaluator(spec, model, method)
     view = (lambda i: method.evaluating(i, model.backbone)) if method is not None else None
     return Evaluator(model, task_ids, seed=cfg.seed, obs_mode=cfg.obs,
                      image_size=cfg.image_size, episodes=cfg.train.eval_episodes,
-                     view=view, autocast=cfg.train.autocast,
+                     episode_steps=cfg.train.episode_steps, view=view, autocast=cfg.train.autocast,
                      env_workers=env_workers)  # fmt: skip
 
 
@@ -394,7 +392,12 @@ def _train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, sav
     logger = RunLogger(out, cfg.log, saved)
     if not resumed:  # records of a run killed before its first checkpoint
         logger.keep(lambda r: False)
-    env = make_env(task_id, render=cfg.obs == "pixels", image_size=cfg.image_size)
+    env = make_env(
+        task_id,
+        render=cfg.obs == "pixels",
+        image_size=cfg.image_size,
+        episode_steps=cfg.train.episode_steps,
+    )
     evaluator = make_evaluator(cfg, model, {task_index: task_id},
                                compiled=saved["resolved_compile"])  # fmt: skip
     trainer = Trainer(
