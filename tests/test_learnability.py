@@ -118,7 +118,7 @@ def test_a_from_scratch_reference_is_a_row_of_its_task(tmp_path):
     assert row["cpu_hours"] is None  # not 0: no cost was recorded
 
 
-def test_cli_on_a_real_smoke_run(tmp_path, capsys, short_episodes):
+def test_cli_on_a_real_smoke_run(tmp_path, capsys):
     from ccfit.cli import main
 
     run = tmp_path / "runs" / "reach"
