@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
+from ccdata.env import DEFAULT_EPISODE_STEPS
 from ccfit.config_base import check
 from ccfit.models.registry import ModelConfig
 
@@ -221,8 +222,6 @@ class TDMPC2Config(ModelConfig):
     @property
     def discount(self) -> float:
         """TD-MPC2's heuristic: longer episodes get a discount closer to 1 (0.98 at 250)."""
-        from ccdata.env import DEFAULT_EPISODE_STEPS
-
         length = DEFAULT_EPISODE_STEPS if self.episode_length is None else self.episode_length
         frac = length / self.discount_denom
         return min(max((frac - 1) / frac, self.discount_min), self.discount_max)
