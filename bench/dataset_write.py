@@ -25,7 +25,7 @@ from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from ccdata.env import EPISODE_STEPS, make_env  # noqa: E402
+from ccdata.env import make_env  # noqa: E402
 from ccdata.episode_plan import plan  # noqa: E402
 from ccdata.record import GenerateConfig  # noqa: E402
 from ccdata.writer import episode_policy  # noqa: E402
@@ -42,12 +42,16 @@ def env_only_rate(config: GenerateConfig) -> tuple[float, int, float]:
             if env is not None:
                 env.close()
             env, env_task = (
-                make_env(spec.task_id, render_settings=config.render_settings),
+                make_env(
+                    spec.task_id,
+                    render_settings=config.render_settings,
+                    episode_steps=config.episode_steps,
+                ),
                 spec.task_id,
             )
         policy = episode_policy(spec, config)
         obs, _ = env.reset(seed=spec.seed)
-        for _ in range(config.max_steps or EPISODE_STEPS):
+        for _ in range(config.max_steps or config.episode_steps):
             obs, _, terminated, truncated, _ = env.step(policy.act(obs))
             frames += 1
             if terminated or truncated:

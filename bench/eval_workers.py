@@ -50,7 +50,7 @@ def main() -> None:
     parser.add_argument(
         "--episode-steps",
         type=int,
-        default=ccdata.env.EPISODE_STEPS,
+        default=ccdata.env.DEFAULT_EPISODE_STEPS,
         help="steps per episode (fewer: a quick check of the script)",
     )
     args = parser.parse_args()
@@ -63,7 +63,6 @@ def main() -> None:
         parser.error(f"unknown preset {args.preset!r}; valid: {', '.join(PRESETS)}")
     if args.task not in TASKS:
         parser.error(f"unknown task {args.task!r}; valid: {', '.join(TASKS)}")
-    ccdata.env.EPISODE_STEPS = args.episode_steps  # read by the workers when they start
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     cfg = config_class(args.model).preset(args.preset, obs_mode="pixels")
@@ -71,7 +70,8 @@ def main() -> None:
     compiled = compile_hot_paths(model, args.compile)
     heads = model.new_heads()
     seeds = eval_seeds(0, 0, args.episodes)
-    pools = {n: EnvPool("pixels", cfg.image_size, n) for n in counts}
+    pools = {n: EnvPool("pixels", cfg.image_size, n, episode_steps=args.episode_steps)
+             for n in counts}  # fmt: skip
 
     def evaluate(n: int) -> tuple[float, int]:
         start = time.perf_counter()

@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from ccdata.env import EPISODE_STEPS, make_env
+from ccdata.env import DEFAULT_EPISODE_STEPS, make_env
 from ccdata.errors import InputError
 from ccdata.scoring import discounted_return
 from ccdata.tasks import ExplorationNoise, get_task
@@ -55,7 +55,8 @@ def noisy_oracle_rollouts(
     `seeds`: (layout seed, policy seed) pairs; the same pairs give the same episodes."""
     from ccdata.policies import make_policy
 
-    env = make_env(task_id, render=False)
+    # Calibrated on the benchmark's episodes: the noise is tuned for the datasets' defaults.
+    env = make_env(task_id, render=False, episode_steps=DEFAULT_EPISODE_STEPS)
     out: dict[str, list] = {"successes": [], "lengths": [], "returns": []}
     try:
         for layout_seed, policy_seed in seeds:
@@ -69,7 +70,7 @@ def noisy_oracle_rollouts(
             policy.reset()
             obs, _ = env.reset(seed=int(layout_seed))
             rewards, success = [], False
-            for _ in range(EPISODE_STEPS):
+            for _ in range(DEFAULT_EPISODE_STEPS):
                 obs, reward, terminated, truncated, info = env.step(policy.act(obs))
                 rewards.append(reward)
                 success = bool(info["success"])

@@ -13,9 +13,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from ccdata.dataset_format import FINAL_KEY, measure_dataset
-from ccdata.env import ACTION_REPEAT, EPISODE_STEPS, FPS
+from ccdata.env import ACTION_REPEAT, FPS
 from ccdata.render import CAMERAS
-from ccdata.scoring import GAMMA, floor_return, references
+from ccdata.scoring import GAMMA, floor_return, reference_episode_steps, references
 from ccdata.settings import FORMAT_VERSION, POLICY_ORDER, VIDEO_ENCODER, DatasetSettings
 from ccdata.suites import get_suite
 
@@ -252,6 +252,7 @@ def _body(settings: DatasetSettings, measured: dict | None, metadata: dict | Non
     suite = get_suite(settings.suite)
     refs = references().get("tasks", {})
     ref_rows = []
+    ref_steps = reference_episode_steps()  # the score's episodes, not the dataset's
     for t in suite.tasks:
         r = refs.get(t.id)
         ref_rows.append(
@@ -304,7 +305,7 @@ before it. Axis: {AXIS_TEXT[suite.axis]}.
   episode's outcome). Keep `{FINAL_KEY} == False` to read only transitions (e.g. for behaviour
   cloning); keep it to pair every action with the observation it led to.
 - {FPS} frames per second: action repeat {ACTION_REPEAT} over Meta-World's 80 Hz control,
-  at most {EPISODE_STEPS} steps per episode.
+  at most {settings.episode_steps} steps per episode.
 - Per frame: `task` (the instruction), the task id's index in the suite order, the policy that
   produced the episode, and the episode's seed (replaying its actions in
   `ccdata.make_env(task_id, seed=episode_seed)` reproduces its states).
@@ -325,7 +326,7 @@ camera; colour is what tells the tasks of perception suites apart):
 ## Oracle reference returns
 
 Discount {GAMMA}. Normalised score = 100 (R - floor) / (oracle - floor), floor =
-{floor_return():.3f} (reward -1 for all {EPISODE_STEPS} steps); not capped.
+{floor_return(steps=ref_steps):.3f} (reward -1 for all {ref_steps} steps); not capped.
 
 {_table(["task", "oracle mean discounted return", "success rate", "median length"], ref_rows)}
 
@@ -364,6 +365,7 @@ def _command(settings: DatasetSettings) -> str:
         "noise_std": "--noise-std",
         "random_prob": "--random-prob",
         "max_steps": "--max-steps",
+        "episode_steps": "--episode-steps",
     }
     parts = [f"ccdata generate --suite {settings.suite}"]
     parts += [

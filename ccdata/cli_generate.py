@@ -12,7 +12,8 @@ from ccdata.errors import CliError
 from ccdata.slurm import OPTIONS as SLURM_OPTIONS
 
 GENERATE_FIELDS = ("suite", "episodes", "explore_episodes", "image_size", "seed", "max_steps",
-                   "workers", "root", "repo_id", "noise_std", "random_prob")  # fmt: skip
+                   "episode_steps", "workers", "root", "repo_id", "noise_std",
+                   "random_prob")  # fmt: skip
 """The fields of `GenerateConfig` that `generate` takes as options (`--explore-episodes`), their
 defaults and help the fields' own; the render's look (shadows, ...) stays the benchmark's."""
 GENERATE_UNSET = {"workers": "one per core this process may use; the episodes are identical "

@@ -13,12 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ccdata.env import ACTION_REPEAT, EPISODE_STEPS, FPS, PROPRIO_DIM
+from ccdata.env import ACTION_REPEAT, FPS, PROPRIO_DIM
 from ccdata.errors import InputError
 from ccdata.render import CAMERAS
 from ccdata.settings import (
     FORMAT_VERSION,
     IDENTITY_KEYS,
+    LEGACY_IDENTITY,
     POLICY_ORDER,
     VIDEO_ENCODER,
     DatasetSettings,
@@ -145,7 +146,7 @@ def ccdata_metadata(config: DatasetSettings) -> dict:
         "env": {
             "fps": FPS,
             "action_repeat": ACTION_REPEAT,
-            "episode_steps": EPISODE_STEPS,
+            "episode_steps": config.episode_steps,
             "max_steps": config.max_steps,
         },
         "frame_convention": (
@@ -211,7 +212,8 @@ def write_json(path: Path, content: dict) -> None:
 
 
 def check_identity(found: dict, config: DatasetSettings, where: Path) -> None:
-    expected = config.identity()
+    expected = {**LEGACY_IDENTITY, **config.identity()}
+    found = {**LEGACY_IDENTITY, **found}  # a dataset made before a setting existed had its value
     diffs = [
         f"{k}: found {found.get(k)!r}, requested {expected[k]!r}"
         for k in expected

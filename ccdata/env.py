@@ -1,9 +1,9 @@
 """The gymnasium environment every benchmark task is played through.
 
 It wraps a task's scene with the benchmark's dynamics: action repeat 2 (agent rate 40 Hz),
-250 agent steps, termination exactly on success (absorbing), reward = the scene's dense
-shaped reward rescaled from [0, 10] to [-1, 0] with 0 on success, three upright cameras
-plus proprioception and the privileged state.
+250 agent steps by default (`episode_steps`), termination exactly on success (absorbing),
+reward = the scene's dense shaped reward rescaled from [0, 10] to [-1, 0] with 0 on success,
+three upright cameras plus proprioception and the privileged state.
 """
 
 from __future__ import annotations
@@ -20,8 +20,10 @@ from ccdata.tasks.base import STATE_DIM
 
 ACTION_REPEAT = 2
 """Meta-World steps per agent step (each is 5 physics steps of 2.5 ms)."""
-EPISODE_STEPS = 250
-"""Agent steps per episode (500 Meta-World steps)."""
+DEFAULT_EPISODE_STEPS = 250
+"""The benchmark's agent steps per episode (500 Meta-World steps): `make_env`'s default, at
+which the oracle references are measured. A run or dataset that wants another length passes it
+(`episode_steps`); nothing changes this value."""
 AGENT_DT = ACTION_REPEAT * 5 * 0.0025
 """Seconds per agent step: 0.025 s, i.e. 40 Hz."""
 FPS = round(1.0 / AGENT_DT)
@@ -29,7 +31,8 @@ PROPRIO_DIM = 7
 
 
 class TaskEnv(gym.Env):
-    """One benchmark task. Use `ccdata.make_env(task_id, seed=..., image_size=...)`."""
+    """One benchmark task. Use `ccdata.make_env(task_id, seed=..., image_size=...,
+    episode_steps=...)`."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": FPS}
 
@@ -41,7 +44,12 @@ class TaskEnv(gym.Env):
         render: bool = True,
         render_settings: RenderSettings | None = None,
         render_mode: str | None = None,
+        episode_steps: int = DEFAULT_EPISODE_STEPS,
     ) -> None:
+        if episode_steps < 1:
+            raise ValueError(f"episode_steps must be >= 1, got {episode_steps}")
+        self.episode_steps = int(episode_steps)
+        """Agent steps after which an unsolved episode is truncated."""
         self.task = get_task(task_id)
         self.render_settings = render_settings or RenderSettings(image_size=image_size)
         self.render_mode = render_mode
@@ -103,7 +111,7 @@ class TaskEnv(gym.Env):
         raw = float(np.mean(raw_rewards))
         reward = 0.0 if success else float(np.clip(raw / 10.0 - 1.0, -1.0, 0.0))
         terminated = success
-        truncated = (not success) and self._t >= EPISODE_STEPS
+        truncated = (not success) and self._t >= self.episode_steps
         self._done = terminated or truncated
         velocity = (state[0:3] - self._last_hand) / AGENT_DT
         self._last_hand = state[0:3].copy()
@@ -147,14 +155,17 @@ def make_env(
     image_size: int = 64,
     render: bool = True,
     render_settings: RenderSettings | None = None,
+    episode_steps: int = DEFAULT_EPISODE_STEPS,
 ) -> TaskEnv:
-    """Build task `task_id`'s environment. `render=False` omits the camera images."""
+    """Build task `task_id`'s environment. `render=False` omits the camera images;
+    `episode_steps`: agent steps after which an unsolved episode is truncated."""
     return TaskEnv(
         task_id,
         seed=seed,
         image_size=image_size,
         render=render,
         render_settings=render_settings,
+        episode_steps=episode_steps,
     )
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ccdata.calibration import noisy_oracle_rollouts
-from ccdata.env import EPISODE_STEPS, make_env
+from ccdata.env import DEFAULT_EPISODE_STEPS, make_env
 from ccdata.errors import InputError
 from ccdata.policies import make_policy
 from ccdata.scoring import GAMMA, REFERENCE_FILE, discounted_return, references
@@ -30,15 +30,16 @@ NOISY_POLICY_SEED_OFFSET = 10**6
 
 
 def oracle_rollouts(task_id: str, seeds) -> dict:
-    """Discounted return, success and length of the oracle on each seed (state only)."""
-    env = make_env(task_id, render=False)
+    """Discounted return, success and length of the oracle on each seed (state only), on the
+    benchmark's episodes (the score's 100 is defined on them)."""
+    env = make_env(task_id, render=False, episode_steps=DEFAULT_EPISODE_STEPS)
     policy = make_policy("oracle", task_id)
     returns, successes, lengths = [], [], []
     for seed in seeds:
         obs, _ = env.reset(seed=int(seed))
         policy.reset()
         rewards = []
-        for _ in range(EPISODE_STEPS):
+        for _ in range(DEFAULT_EPISODE_STEPS):
             obs, reward, terminated, truncated, info = env.step(policy.act(obs))
             rewards.append(reward)
             if terminated or truncated:
@@ -108,7 +109,7 @@ def write_references(tasks=None, episodes: int = 50, path: Path | None = None) -
     data["tasks"] = dict(sorted(data["tasks"].items()))
     data.update(
         gamma=GAMMA,
-        episode_steps=EPISODE_STEPS,
+        episode_steps=DEFAULT_EPISODE_STEPS,
         seeds=f"{REFERENCE_SEED_BASE} + range(episodes)",
         policy="oracle; noisy-oracle with each task's calibrated noise",
         versions=_versions(),

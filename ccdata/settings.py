@@ -12,7 +12,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from ccdata.env import EPISODE_STEPS, FPS
+from ccdata.env import DEFAULT_EPISODE_STEPS, FPS
 from ccdata.errors import InputError
 from ccdata.render import RenderSettings
 from ccdata.repo_id import validate_repo_id
@@ -44,7 +44,11 @@ bytes; `ultrafast` saves 0.6 ms more for +23%."""
 
 IDENTITY_KEYS = ("suite", "seed", "image_size", "noise_std", "random_prob", "max_steps")
 """Settings that must match to append to an existing dataset (plus the resolved exploration
-noise per task, render, fps, video and format)."""
+noise per task, render, fps, video and format, and `LEGACY_IDENTITY`'s)."""
+LEGACY_IDENTITY: dict = {"episode_steps": DEFAULT_EPISODE_STEPS}
+"""Identity settings added after datasets were made, each with the value those datasets were
+made with. `DatasetSettings.identity` leaves a setting out at that value, so a dataset written
+before it existed is appended to as before; `check_identity` reads a missing one as it."""
 
 
 def default_repo_id(suite: str) -> str:
@@ -100,8 +104,11 @@ class DatasetSettings:
     msaa_samples: int = 0
     """Multisample anti-aliasing samples."""
     max_steps: int | None = None
-    """Cut every episode after this many agent steps (tests, previews); None -> full episodes
-    (250 steps or success)."""
+    """Cut every episode after this many agent steps (tests, previews), without the
+    environment's truncation; None -> full episodes (`episode_steps` steps or success)."""
+    episode_steps: int = DEFAULT_EPISODE_STEPS
+    """Agent steps after which the environment truncates an unsolved episode (the benchmark's
+    250); recorded in the dataset's metadata and card."""
 
     def __post_init__(self) -> None:
         if self.suite not in SUITES:
@@ -113,9 +120,12 @@ class DatasetSettings:
             raise InputError("episodes and explore_episodes are both 0: nothing to generate")
         if self.seed < 0:
             raise InputError(f"seed must be >= 0, got {self.seed}")
-        if self.max_steps is not None and not 1 <= self.max_steps <= EPISODE_STEPS:
+        if self.episode_steps < 1:
+            raise InputError(f"episode_steps must be >= 1, got {self.episode_steps}")
+        if self.max_steps is not None and not 1 <= self.max_steps <= self.episode_steps:
             raise InputError(
-                f"max_steps must be in [1, {EPISODE_STEPS}] or None, got {self.max_steps}"
+                f"max_steps must be in [1, {self.episode_steps}] (episode_steps) or None, "
+                f"got {self.max_steps}"
             )
         if (self.noise_std is not None and not self.noise_std >= 0) or (
             self.random_prob is not None and not 0.0 <= self.random_prob <= 1.0
@@ -167,6 +177,8 @@ class DatasetSettings:
     def identity(self) -> dict:
         """The settings an existing dataset must share to be appended to."""
         ident = {k: getattr(self, k) for k in IDENTITY_KEYS}
+        ident.update({k: getattr(self, k) for k, legacy in LEGACY_IDENTITY.items()
+                      if getattr(self, k) != legacy})  # fmt: skip
         ident["exploration"] = self.exploration_table()
         ident["render"] = self.render_settings.to_dict()
         ident["fps"] = FPS

@@ -37,7 +37,7 @@ from ccdata.dataset_format import (
     quiet_libraries,
     write_json,
 )
-from ccdata.env import EPISODE_STEPS, FPS, make_env
+from ccdata.env import FPS, make_env
 from ccdata.episode_plan import EpisodeSpec, policy_seed
 from ccdata.lerobot_speedups import faster_lerobot
 from ccdata.processes import die_with, end_processes, process_context, start_soon
@@ -70,7 +70,7 @@ def rollout_episode(env, spec: EpisodeSpec, config: DatasetSettings) -> dict[str
     of its own with no transition: action zeros, next.reward 0, `FINAL_KEY` true."""
     policy = episode_policy(spec, config)
     obs, _ = env.reset(seed=spec.seed)
-    limit = config.max_steps or EPISODE_STEPS
+    limit = config.max_steps or config.episode_steps
     observations, actions, rewards, dones, successes = [obs], [], [], [], []
     while len(actions) < limit:
         action = np.asarray(policy.act(obs), dtype=np.float32)
@@ -366,7 +366,11 @@ def roll_out(
             if env_task != spec.task_id:
                 if env is not None:
                     env.close()  # one render context per process at a time
-                env = make_env(spec.task_id, render_settings=config.render_settings)
+                env = make_env(
+                    spec.task_id,
+                    render_settings=config.render_settings,
+                    episode_steps=config.episode_steps,
+                )
                 env_task = spec.task_id
             start = time.perf_counter()
             episode = rollout_episode(env, spec, config)

@@ -8,7 +8,8 @@ One config and seed give the same records on one kind of machine from the same d
 runs' records differ, the files beside them say what else did: config.json (the settings, and
 what the datasets held: `content_sha256`) and cost.json (the code and the machine of each
 segment). This reads both runs' and prints, in this order:
-- the settings that differ (flattened config.json keys; `out` and the dataset records aside),
+- the settings that differ (flattened config.json keys; `out` and the dataset records aside;
+  a setting newer than a run, at the value the run had, `LEGACY_VALUES`, is no difference),
   those that say only how a run was executed or why it chose what it did marked as such; a
   path is compared as `ccfit publish` writes it (`ccfit.portable`: a dataset by where it lies
   under the LeRobot home, a file outside the run by its name), so a published run and the same
@@ -31,7 +32,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from ccfit.config_base import DATASET_RECORDS, NOT_IDENTITY
+from ccfit.config_base import DATASET_RECORDS, NOT_IDENTITY, drop_legacy_values
 from ccfit.config_parse import flatten
 from ccfit.io import read_run_json
 from ccfit.portable import same_as_published
@@ -91,8 +92,9 @@ def compare_runs(a: Path, b: Path) -> Comparison:
     """What differs between runs `a` and `b` (directories), and whether `b`'s records
     reproduce `a`'s where both have them."""
     configs = [read_run_json(Path(run) / CONFIG, leave_out="the comparison") for run in (a, b)]
-    flat = [{k: v for k, v in flatten(c).items() if k.split(".")[0] not in LEFT_ASIDE}
-            for c in configs]  # fmt: skip
+    # A setting added after a run was made, at the value that run had, is no difference.
+    flat = [{k: v for k, v in flatten(drop_legacy_values(c)).items()
+             if k.split(".")[0] not in LEFT_ASIDE} for c in configs]  # fmt: skip
     keys = sorted(flat[0].keys() | flat[1].keys())
     settings = {k: (flat[0].get(k), flat[1].get(k)) for k in keys
                 if not same_as_published(flat[0].get(k), flat[1].get(k))}  # fmt: skip

@@ -20,6 +20,7 @@ from typing import Any, ClassVar
 
 import draccus
 
+from ccdata.env import DEFAULT_EPISODE_STEPS
 from ccfit.config_base import (
     DEFAULTS,
     PRESETS,
@@ -55,6 +56,10 @@ class TrainConfig(Presets):
 
     steps: int = 100_000
     """Environment (agent) steps on each task."""
+    episode_steps: int = DEFAULT_EPISODE_STEPS
+    """Agent steps after which an unsolved episode ends, in training and evaluation (the
+    benchmark's 250, at which the oracle references are measured; tests shorten it).
+    TD-MPC2's discount heuristic reads it unless `--model.episode_length` is given."""
     seed_steps: int = 5_000
     """Initial steps with uniformly random actions (the model observes them). Updates start
     after them, once replay holds a full window."""
@@ -138,7 +143,8 @@ class TrainConfig(Presets):
             if value in (True, False, "True", "False"):
                 setattr(self, name, "on" if value in (True, "True") else "off")
         check_types(self)
-        for name in ("steps", "eval_interval", "eval_episodes", "checkpoint_interval"):
+        for name in ("steps", "episode_steps", "eval_interval", "eval_episodes",
+                     "checkpoint_interval"):  # fmt: skip
             value = getattr(self, name)
             check(value >= 1, f"train.{name} must be >= 1, got {value}")
         check(self.seed_steps >= 0, f"train.seed_steps must be >= 0, got {self.seed_steps}")
@@ -163,12 +169,10 @@ class TrainConfig(Presets):
         )
         check(self.compile in COMPILE_SETTINGS,
               f"train.compile must be one of {COMPILE_SETTINGS}, got {self.compile!r}")  # fmt: skip
-        from ccdata.env import EPISODE_STEPS
-
         # One full episode (T+1 rows) must fit, or the buffer could never store it.
-        check(self.buffer_capacity >= EPISODE_STEPS + 1,
-              f"train.buffer_capacity must be >= {EPISODE_STEPS + 1} (one episode), "
-              f"got {self.buffer_capacity}")  # fmt: skip
+        check(self.buffer_capacity >= self.episode_steps + 1,
+              f"train.buffer_capacity must be >= {self.episode_steps + 1} (one episode of "
+              f"train.episode_steps), got {self.buffer_capacity}")  # fmt: skip
 
 
 COMPILE_SETTINGS: tuple[str, ...] = ("auto", "on", "off", "graphs")
@@ -266,6 +270,7 @@ class BaseRunConfig:
         if (self.model.obs_mode, self.model.image_size) != (self.obs, self.image_size):
             self.model = dataclasses.replace(self.model, obs_mode=self.obs,
                                              image_size=self.image_size)  # fmt: skip
+        self.model = model_for_episodes(self.model, self.episode_steps)
         if self.encoder is not None:
             check(
                 self.encoder.startswith("frozen:"),
@@ -274,6 +279,12 @@ class BaseRunConfig:
             check(self.obs == "pixels", "a frozen pretrained encoder needs --obs pixels")
             # The file itself is read when the run starts (`with_encoder`): validation does
             # no I/O.
+
+    @property
+    def episode_steps(self) -> int:
+        """Agent steps per episode of the environments the run plays (an offline run plays
+        none: the benchmark's)."""
+        return DEFAULT_EPISODE_STEPS
 
     @property
     def encoder_path(self) -> str | None:
@@ -299,6 +310,10 @@ class RunConfig(BaseRunConfig):
     train: TrainConfig = field(default_factory=TrainConfig)
     """The online training loop."""
 
+    @property
+    def episode_steps(self) -> int:
+        return self.train.episode_steps
+
     def __post_init__(self) -> None:
         super().__post_init__()
         check(self.train.demo_fraction == 0 or self.seed_dataset is not None,
@@ -310,6 +325,15 @@ class RunConfig(BaseRunConfig):
               f"model.demo_bc_coef {bc} clones the demonstrations that "
               "--train.demo_fraction puts in each batch; it is 0 here: set it > 0, or "
               "--model.demo_bc_coef=0")  # fmt: skip
+
+
+def model_for_episodes(model: ModelConfig, episode_steps: int) -> ModelConfig:
+    """`model` with the run's episode length where its config reads one (TD-MPC2's
+    `episode_length`, for its discount) and was not given, so config.json records the value
+    the model used."""
+    if getattr(model, "episode_length", 0) is not None:  # given, or the model has none
+        return model
+    return dataclasses.replace(model, episode_length=episode_steps)
 
 
 def with_encoder[C: BaseRunConfig](cfg: C) -> C:

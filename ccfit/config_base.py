@@ -139,7 +139,7 @@ def resolve_device(name: str | torch.device) -> torch.device:
 LEGACY_VALUES: dict[str, Any] = {
     "train.demo_fraction": 0.0, "resolved_autocast": "off", "train.stop_score": None,
     "train.stop_evals": 3, "train.keep_backbone_optimizer": False,
-    "train.end_eval_episodes": None,
+    "train.end_eval_episodes": None, "train.episode_steps": 250,
     "fit.keep_backbone_optimizer": False, "fit.autocast": "off", "model.demo_bc_coef": 0.0,
     "model.imag_cont": "mode", "model.demo_bc_loss": "mse",
 }  # fmt: skip

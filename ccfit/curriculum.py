@@ -179,7 +179,12 @@ class OnlineTrack(Track):
         heads = model.new_heads()
         buffer = make_replay(cfg, model, task, index, None if resumed else self.source,
                              self.plan)  # fmt: skip
-        env = make_env(task, render=cfg.obs == "pixels", image_size=cfg.image_size)
+        env = make_env(
+            task,
+            render=cfg.obs == "pixels",
+            image_size=cfg.image_size,
+            episode_steps=train.episode_steps,
+        )
         stored = self.stored
         trainer = Trainer(
             env=env, model=model, heads=heads, buffer=buffer, evaluator=self.evaluator,
@@ -259,12 +264,8 @@ class Curriculum(CurriculumRunner):
                          progress)  # fmt: skip
 
 
-def _scratch_worker(cfg: CurriculumConfig, out: Path, episode_steps: int) -> None:
-    """The from-scratch reference in a worker process (it sees the parent's episode
-    length)."""
-    import ccdata.env
-
-    ccdata.env.EPISODE_STEPS = episode_steps
+def _scratch_worker(cfg: CurriculumConfig, out: Path) -> None:
+    """The from-scratch reference in a worker process."""
     run_reference(OnlineTrack(cfg), out, progress=False)
 
 
@@ -273,11 +274,9 @@ def start_scratch(cfg: CurriculumConfig, out: Path) -> Future | None:
     (`--train.parallel`), unless it is done already; its evaluation stays in that worker."""
     if (out / REFERENCE_DONE).is_file() or not parallel_on(cfg.train.parallel):
         return None
-    import ccdata.env
-
     alone = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, parallel="off"))
     pool = worker_pool(1)
-    future = pool.submit(_scratch_worker, alone, out, ccdata.env.EPISODE_STEPS)
+    future = pool.submit(_scratch_worker, alone, out)
     pool.shutdown(wait=False)  # the worker ends with its one job
     return future
 

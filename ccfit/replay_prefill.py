@@ -51,11 +51,12 @@ def final_observation(episode: dict[str, np.ndarray], task_id: str) -> dict[str,
 
     if EPISODE_SEED_KEY not in episode:
         raise InputError(f"episode lacks {EPISODE_SEED_KEY!r}: cannot replay it")
-    states = _stack(episode[STATE_KEY])
-    env = make_env(task_id, render=False)
+    states, actions = _stack(episode[STATE_KEY]), _stack(episode[ACTION_KEY])
+    # Long enough for every recorded action, whatever episode length the dataset was made with.
+    env = make_env(task_id, render=False, episode_steps=max(1, len(actions)))
     try:
         obs, _ = env.reset(seed=int(np.asarray(episode[EPISODE_SEED_KEY]).reshape(-1)[0]))
-        for t, action in enumerate(_stack(episode[ACTION_KEY])):
+        for t, action in enumerate(actions):
             if not np.allclose(obs["state"], states[t], atol=1e-5):
                 raise InputError(
                     f"episode {episode.get('episode_index')}: replay departs from the recorded "

@@ -19,10 +19,10 @@ atexit.register(shutil.rmtree, _LEROBOT_HOME, ignore_errors=True)
 
 try:
     from hubserver import HubServer
-    from short_episodes import shorter_episodes
+    from short_episodes import EPISODE_STEPS
 except ImportError:  # tests/ imported as a package
     from tests.hubserver import HubServer
-    from tests.short_episodes import shorter_episodes
+    from tests.short_episodes import EPISODE_STEPS
 
 
 @pytest.fixture
@@ -44,9 +44,9 @@ def hub_server(tmp_path_factory):
 
 @pytest.fixture
 def short_episodes():
-    """Episodes of `short_episodes.EPISODE_STEPS` steps during the test (yields the length)."""
-    with shorter_episodes() as steps:
-        yield steps
+    """The tests' short episode length (`short_episodes.EPISODE_STEPS`), for the test to pass
+    where a run, an environment or an evaluator takes its episode length."""
+    return EPISODE_STEPS
 
 
 @pytest.fixture(autouse=True)

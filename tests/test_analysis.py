@@ -26,9 +26,9 @@ from ccfit.curriculum import Curriculum
 from ccfit.train import CONFIG
 
 try:
-    from short_episodes import shorter_episodes
+    from short_episodes import short
 except ImportError:  # tests/ imported as a package
-    from tests.short_episodes import shorter_episodes
+    from tests.short_episodes import short
 
 K, TASKS, MAX_EXPERTS = 3, 4, 24  # PWM defaults: 3 experts per task, 8 groups allocated
 
@@ -37,7 +37,7 @@ def smoke_config(model: str = "pwm", method: str = "experts") -> CurriculumConfi
     return resolve(CurriculumConfig, {
         "suite": "Reach", "preset": "smoke", "seed": 0, "seed_dataset": None,
         "model": {"type": model}, "method": {"type": method},
-        "train": dict(steps=100, seed_steps=50, eval_interval=100, checkpoint_interval=100),
+        "train": short(dict(steps=100, seed_steps=50, eval_interval=100, checkpoint_interval=100)),
     })  # fmt: skip
 
 
@@ -50,14 +50,13 @@ def pwm_run(tmp_path_factory):
     try:
         # Short episodes also end inside a 100-step task, so replay holds data and the heads
         # do get trained.
-        with shorter_episodes():
-            Curriculum(
-                smoke_config(),
-                root / "run",
-                root / "scratch",
-                progress=False,
-                callbacks=[routing_callback],
-            ).run()
+        Curriculum(
+            smoke_config(),
+            root / "run",
+            root / "scratch",
+            progress=False,
+            callbacks=[routing_callback],
+        ).run()
     finally:
         torch.set_num_threads(threads)
     return root / "run"
@@ -85,12 +84,13 @@ def test_routing_record_per_stage(pwm_run):
 
 
 @pytest.mark.integration
-def test_routing_record_reproduces_from_saved_run(pwm_run, short_episodes):
+def test_routing_record_reproduces_from_saved_run(pwm_run):
     """Replaying the last stage from curriculum.pt gives the record written during the run:
     the record depends only on the model state and the run's seed."""
     cfg, model, stored, method = load_routed_run(pwm_run)
     again = routing_record(
-        model, stored, cfg.tasks, stage=TASKS - 1, seed=cfg.seed, episodes=1, obs_mode="state",
+        model, stored, cfg.tasks, stage=TASKS - 1, seed=cfg.seed, episodes=1,
+        episode_steps=cfg.train.episode_steps, obs_mode="state",
         device=model.device, view=lambda i: method.evaluating(i, model.backbone),
     )  # fmt: skip
     assert json.loads(json.dumps(again)) == read_routing(pwm_run)[-1]
@@ -99,14 +99,13 @@ def test_routing_record_reproduces_from_saved_run(pwm_run, short_episodes):
 @pytest.mark.integration
 def test_resume_of_finished_run_keeps_routing(pwm_run):
     before = (pwm_run / ROUTING).read_bytes()
-    with shorter_episodes():  # the run's config (its episode length) as the fixture made it
-        Curriculum(
-            smoke_config(),
-            pwm_run,
-            pwm_run.parent / "scratch",
-            progress=False,
-            callbacks=[routing_callback],
-        ).run()
+    Curriculum(
+        smoke_config(),
+        pwm_run,
+        pwm_run.parent / "scratch",
+        progress=False,
+        callbacks=[routing_callback],
+    ).run()
     assert (pwm_run / ROUTING).read_bytes() == before
 
 
@@ -200,7 +199,7 @@ def test_report_draws_routing_figure(pwm_run, tmp_path):
 
 
 @pytest.mark.integration
-def test_ablate_command(pwm_run, short_episodes, capsys):
+def test_ablate_command(pwm_run, capsys):
     assert main(["ablate", str(pwm_run), "--episodes", "1"]) == 0
     assert "uniform" in capsys.readouterr().out
     result = json.loads((pwm_run / ABLATION_JSON).read_text())

@@ -21,12 +21,13 @@ from ccfit.curriculum import Curriculum
 from ccfit.train import CONFIG, METRICS
 
 try:
-    from short_episodes import shorter_episodes
+    from short_episodes import EPISODE_STEPS
 except ImportError:  # tests/ imported as a package
-    from tests.short_episodes import shorter_episodes
+    from tests.short_episodes import EPISODE_STEPS
 
 SUITE = "Grasp"
-TRAIN = {"steps": 100, "seed_steps": 50, "eval_interval": 100, "checkpoint_interval": 50}
+TRAIN = {"steps": 100, "seed_steps": 50, "eval_interval": 100, "checkpoint_interval": 50,
+         "episode_steps": EPISODE_STEPS}  # fmt: skip
 
 
 def _config(**method) -> CurriculumConfig:
@@ -48,9 +49,8 @@ def _by_stage(records: list[dict], below: int) -> list[dict]:
 def source(tmp_path_factory):
     torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("branch")
-    with shorter_episodes():
-        result = Curriculum(_config(), root / "source", root / "scratch", progress=False,
-                            keep_stages=True).run()  # fmt: skip
+    result = Curriculum(_config(), root / "source", root / "scratch", progress=False,
+                        keep_stages=True).run()  # fmt: skip
     return SimpleNamespace(root=root, dir=root / "source", result=result)
 
 
@@ -77,13 +77,12 @@ def test_a_run_that_kept_stages_keeps_them_when_resumed_without_the_flag(source,
 
     out = tmp_path / "run"
     monkeypatch.setattr(C, "keep_stage", keep_then_stop)
-    with shorter_episodes(), pytest.raises(KeyboardInterrupt):
+    with pytest.raises(KeyboardInterrupt):
         Curriculum(_config(), out, source.root / "scratch", progress=False,
                    keep_stages=True).run()  # fmt: skip
     monkeypatch.setattr(C, "keep_stage", real)
     assert sorted(p.name for p in (out / "stages").iterdir()) == ["after-1.pt"]
-    with shorter_episodes():
-        Curriculum(_config(), out, source.root / "scratch", progress=False).run()
+    Curriculum(_config(), out, source.root / "scratch", progress=False).run()
     for k in (1, 2, 3):
         ours = torch.load(stage_path(out, k), map_location="cpu", weights_only=False)
         theirs = torch.load(stage_path(source.dir, k), map_location="cpu", weights_only=False)
@@ -97,9 +96,8 @@ def branches(source):
     made = {}
     for name, method, after in (("same", {}, 1), ("no-replay", {"replay_ratio": 0.0}, 2)):
         out = source.root / name
-        with shorter_episodes():
-            result = Curriculum(_config(**method), out, source.root / "scratch", progress=False,
-                                branch=Branch(source.dir, after)).run()  # fmt: skip
+        result = Curriculum(_config(**method), out, source.root / "scratch", progress=False,
+                            branch=Branch(source.dir, after)).run()  # fmt: skip
         made[name] = SimpleNamespace(dir=out, result=result)
     return made
 
@@ -113,8 +111,7 @@ def test_a_branch_with_the_sources_config_reproduces_the_source(source, branches
     assert branch["after"] == 1 and Path(branch["source"]) == source.dir.resolve()
     assert json.loads((out / CONFIG).read_text())["resolved_branch"] == branch
     # Resumed (finished) without the branch flags: the directory knows what it is.
-    with shorter_episodes():
-        again = Curriculum(_config(), out, source.root / "scratch", progress=False).run()
+    again = Curriculum(_config(), out, source.root / "scratch", progress=False).run()
     assert again == result
 
 
@@ -128,11 +125,6 @@ def test_a_branch_with_other_method_options_changes_only_the_later_tasks(source,
                                for r in theirs if r["stage"] == 2]  # fmt: skip
     config = json.loads((out / CONFIG).read_text())
     assert config["method"]["replay_ratio"] == 0.0 and config["resolved_branch"]["after"] == 2
-
-
-def _main(argv: list[str]) -> int:
-    with shorter_episodes():  # the source's episode length
-        return main(argv)
 
 
 def _cli(source_dir: Path, out: Path, *extra: str) -> list[str]:
@@ -157,7 +149,7 @@ def test_a_branch_that_would_not_be_the_source_run_is_refused(source, tmp_path, 
     argv = _cli(source.dir, tmp_path / "branch", *extra)
     if "--method.type=ewc" in extra:
         argv = [a for a in argv if a not in ("--method.type=er", "--method.batch_size=16")]
-    assert _main(argv) == 2
+    assert main(argv) == 2
     err = capsys.readouterr().err
     assert needle in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "branch" / C.STATE).exists()
@@ -167,14 +159,14 @@ def test_a_branch_needs_a_source_that_kept_its_stages_and_a_new_out(source, tmp_
     plain = tmp_path / "plain"
     plain.mkdir()
     (plain / CONFIG).write_text((source.dir / CONFIG).read_text())
-    assert _main(_cli(plain, tmp_path / "a", "--branch-after", "1")) == 2
+    assert main(_cli(plain, tmp_path / "a", "--branch-after", "1")) == 2
     assert "--keep-stages" in capsys.readouterr().err
-    assert _main(_cli(tmp_path / "nowhere", tmp_path / "b", "--branch-after", "1")) == 2
+    assert main(_cli(tmp_path / "nowhere", tmp_path / "b", "--branch-after", "1")) == 2
     assert "no run there" in capsys.readouterr().err
-    assert _main(_cli(source.dir, source.dir, "--branch-after", "1")) == 2
+    assert main(_cli(source.dir, source.dir, "--branch-after", "1")) == 2
     assert "already holds a run" in capsys.readouterr().err
     (plain / CONFIG).write_text('{"suite": ')
-    assert _main(_cli(plain, tmp_path / "c", "--branch-after", "1")) == 2
+    assert main(_cli(plain, tmp_path / "c", "--branch-after", "1")) == 2
     assert "missing or corrupt" in capsys.readouterr().err
 
 
@@ -206,13 +198,12 @@ def test_a_branch_start_killed_before_its_record_starts_again(source, branches, 
 def test_er_without_replay_after_a_branch_trains_as_ft_does(source, tmp_path):
     """What `results/diagnostics/er_branch.py` relies on: ER with `replay_ratio` 0 from
     task K on is FT from there. ER's first task replays nothing, so a branch after it is FT."""
-    with shorter_episodes():
-        ft = Curriculum(resolve(CurriculumConfig, {
-            "suite": SUITE, "preset": "smoke", "seed_dataset": None, "train": dict(TRAIN),
-            "method": {"type": "ft"},
-        }), tmp_path / "ft", source.root / "scratch", progress=False).run()  # fmt: skip
-        branch = Curriculum(_config(replay_ratio=0.0), tmp_path / "er-off", source.root / "scratch",
-                            progress=False, branch=Branch(source.dir, 1)).run()  # fmt: skip
+    ft = Curriculum(resolve(CurriculumConfig, {
+        "suite": SUITE, "preset": "smoke", "seed_dataset": None, "train": dict(TRAIN),
+        "method": {"type": "ft"},
+    }), tmp_path / "ft", source.root / "scratch", progress=False).run()  # fmt: skip
+    branch = Curriculum(_config(replay_ratio=0.0), tmp_path / "er-off", source.root / "scratch",
+                        progress=False, branch=Branch(source.dir, 1)).run()  # fmt: skip
     assert _records(tmp_path / "er-off") == _records(tmp_path / "ft")
     assert {k: v for k, v in branch.items() if k != "method"} == {
         k: v for k, v in ft.items() if k != "method"

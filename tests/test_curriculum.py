@@ -39,12 +39,12 @@ from ccfit.train.update import backbone_optimizer_state
 try:
     from metrics_by_hand import bwt_by_hand
     from shipped import shipped_models
-    from short_episodes import ccfit_command, shorter_episodes
+    from short_episodes import ccfit_command
     from stage_ends import assert_stage_ends_are_the_metrics
 except ImportError:  # tests/ imported as a package
     from tests.metrics_by_hand import bwt_by_hand
     from tests.shipped import shipped_models
-    from tests.short_episodes import ccfit_command, shorter_episodes
+    from tests.short_episodes import ccfit_command
     from tests.stage_ends import assert_stage_ends_are_the_metrics
 
 SUITE = "Grasp"
@@ -54,7 +54,8 @@ STEPS, EVAL = 100, 100
 EPISODE_STEPS = 50
 """Longer than the other tests' short episodes: at 25 steps no Grasp task scores above 0 by
 the end of its 100-step stage, and BWT (which counts the tasks learnt) would be vacuous."""
-TRAIN = {"steps": STEPS, "seed_steps": 50, "eval_interval": EVAL, "checkpoint_interval": 50}
+TRAIN = {"steps": STEPS, "seed_steps": 50, "eval_interval": EVAL, "checkpoint_interval": 50,
+         "episode_steps": EPISODE_STEPS}  # fmt: skip
 OPTIONS = {
     "ft": {},
     "er": {"batch_size": 16},
@@ -142,7 +143,7 @@ def runs(tmp_path_factory):
     out = {}
     done_mtimes = []
     start = time.monotonic()
-    with shorter_episodes(EPISODE_STEPS), pytest.MonkeyPatch.context() as mp:
+    with pytest.MonkeyPatch.context() as mp:
         mp.setattr(R, "ReplayBuffer", SpyBuffer)
         mp.setattr(C, "Trainer", SpyTrainer)
         mp.setattr(R, "Trainer", SpyTrainer)  # the scratch reference's
@@ -565,8 +566,7 @@ def test_a_foreign_or_old_run_state_is_one_line(runs, tmp_path, capsys, content)
     saved["out"] = str(out)
     (out / CONFIG).write_text(json.dumps(saved))
     argv = _cli_argv("ft", out, runs.scratch_root)
-    with shorter_episodes(EPISODE_STEPS):
-        code = main(argv)
+    code = main(argv)
     err = capsys.readouterr().err
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert str(out / C.STATE) in err and "Traceback" not in err
@@ -586,8 +586,7 @@ def test_another_curriculum_in_a_finished_runs_folder_is_one_line(runs, tmp_path
     saved["out"] = str(out)
     (out / CONFIG).write_text(json.dumps(saved))
     state = (out / C.STATE).read_bytes()
-    with shorter_episodes(EPISODE_STEPS):
-        code = main(_cli_argv("ft", out, runs.scratch_root))
+    code = main(_cli_argv("ft", out, runs.scratch_root))
     err = capsys.readouterr().err
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert f"{out} holds a run with a different config (differs in method." in err
@@ -934,11 +933,10 @@ def test_a_tasks_replay_is_freed_before_the_next_task_allocates_its_own(tmp_path
 
     monkeypatch.setattr(C, "make_replay", watched)
     train = {"steps": 40, "seed_steps": 20, "eval_interval": 40, "checkpoint_interval": 40,
-             "parallel": "off"}  # fmt: skip
+             "parallel": "off", "episode_steps": EPISODE_STEPS}  # fmt: skip
     cfg = resolve(CurriculumConfig, {"suite": SUITE, "preset": "smoke", "seed_dataset": None,
                                      "train": train, "method": {"type": "ft"}})  # fmt: skip
-    with shorter_episodes(EPISODE_STEPS):
-        Curriculum(cfg, tmp_path / "run", tmp_path / "scratch", progress=False).run()
+    Curriculum(cfg, tmp_path / "run", tmp_path / "scratch", progress=False).run()
     assert alive_when_making == [0] * len(TASKS)
 
 
@@ -955,8 +953,7 @@ def test_the_reference_records_what_the_seed_dataset_held(tmp_path):
     out = tmp_path / "run"
     argv = ["run", "--suite", SUITE, "--preset", "smoke", "--seed_dataset", str(root), "--quiet",
             "--out", str(out), *(f"--train.{k}={v}" for k, v in TRAIN.items())]  # fmt: skip
-    with shorter_episodes(EPISODE_STEPS):
-        assert main(argv) == 0
+    assert main(argv) == 0
     run = json.loads((out / CONFIG).read_text())
     reference_dir = json.loads((out / C.METRICS_JSON).read_text())["scratch_dir"]
     reference = json.loads((Path(reference_dir) / CONFIG).read_text())
@@ -1006,18 +1003,17 @@ def test_kept_backbone_optimiser_state_crosses_tasks_and_a_stop_between_them(tmp
 
     monkeypatch.setattr(C, "Trainer", SpyTrainer)
     scratch = tmp_path / "scratch"
-    with shorter_episodes(EPISODE_STEPS):
-        whole = Curriculum(cfg, tmp_path / "whole", scratch, progress=False).run()
-        assert started[0] == {} and ended[0], "the first task starts fresh and trains"
-        assert all(_same_state(s, e) for s, e in zip(started[1:], ended[:-1], strict=True))
-        first_end = ended[0]
-        started.clear()
-        monkeypatch.setattr(Curriculum, "_save", save_then_stop)
-        with pytest.raises(_Stopped):
-            Curriculum(cfg, tmp_path / "stopped", scratch, progress=False).run()
-        monkeypatch.setattr(Curriculum, "_save", real_save)
-        started.clear()
-        resumed = Curriculum(cfg, tmp_path / "stopped", scratch, progress=False).run()
+    whole = Curriculum(cfg, tmp_path / "whole", scratch, progress=False).run()
+    assert started[0] == {} and ended[0], "the first task starts fresh and trains"
+    assert all(_same_state(s, e) for s, e in zip(started[1:], ended[:-1], strict=True))
+    first_end = ended[0]
+    started.clear()
+    monkeypatch.setattr(Curriculum, "_save", save_then_stop)
+    with pytest.raises(_Stopped):
+        Curriculum(cfg, tmp_path / "stopped", scratch, progress=False).run()
+    monkeypatch.setattr(Curriculum, "_save", real_save)
+    started.clear()
+    resumed = Curriculum(cfg, tmp_path / "stopped", scratch, progress=False).run()
     assert _same_state(started[0], first_end)
     assert _records(tmp_path / "stopped") == _records(tmp_path / "whole")
     assert resumed == whole

@@ -21,15 +21,10 @@ from ccdata.errors import EXIT_USAGE, InputError, run_script
 from ccdata.record import GenerateConfig, generate
 from ccfit.cli import main as ccfit
 
-try:
-    from short_episodes import shorter_episodes
-except ImportError:
-    from tests.short_episodes import shorter_episodes
-
 DIAGNOSTICS = Path(__file__).resolve().parents[1] / "results" / "diagnostics"
 EPISODE_STEPS = 20
 TRAIN = ["--train.steps=100", "--train.seed_steps=50", "--train.eval_interval=100",
-         "--train.checkpoint_interval=100"]  # fmt: skip
+         "--train.checkpoint_interval=100", f"--train.episode_steps={EPISODE_STEPS}"]  # fmt: skip
 
 
 def _script(name: str):
@@ -60,16 +55,14 @@ def made(tmp_path_factory):
     }  # fmt: skip
     common = ["--preset", "smoke", "--seed_dataset", "null", "--quiet", *TRAIN]
     runs = {key: root / name for key, (name, _) in commands.items()}
-    with shorter_episodes(EPISODE_STEPS):
-        for key, (_, argv) in commands.items():
-            assert ccfit([*argv, "--out", str(runs[key]), *common]) == 0
+    for key, (_, argv) in commands.items():
+        assert ccfit([*argv, "--out", str(runs[key]), *common]) == 0
     return SimpleNamespace(dataset=dataset, runs=runs)
 
 
 def _run(script, argv: list[str], capsys) -> str:
     capsys.readouterr()
-    with shorter_episodes(EPISODE_STEPS):
-        script.main(argv)
+    script.main(argv)
     return capsys.readouterr().out
 
 
@@ -197,13 +190,13 @@ def test_handover_lets_the_oracle_play_until_the_raw_reward_reaches_the_threshol
     from ccfit.train.evaluate import eval_seeds
 
     seed = eval_seeds(0, 0, 1)[0]
-    with shorter_episodes(EPISODE_STEPS):
-        env, oracle = make_env("pick-cube"), make_policy("oracle", "pick-cube")
-        obs, _ = env.reset(seed=seed)
-        raw = []
-        for _ in range(EPISODE_STEPS):
-            obs, *_, info = env.step(oracle.act(obs))
-            raw.append(float(info["raw_reward"]))
+    env = make_env("pick-cube", episode_steps=EPISODE_STEPS)
+    oracle = make_policy("oracle", "pick-cube")
+    obs, _ = env.reset(seed=seed)
+    raw = []
+    for _ in range(EPISODE_STEPS):
+        obs, *_, info = env.step(oracle.act(obs))
+        raw.append(float(info["raw_reward"]))
     at = raw[5]  # reached by step 6 at the latest
     first = next(i + 1 for i, r in enumerate(raw) if r >= at)
     script = _script("handover")
@@ -255,10 +248,9 @@ def test_er_branch(made, tmp_path, capsys):
     common = ["run", "--suite", "Grasp", "--method.type=er", "--scratch-root",
               str(made.runs["ewc"].parent / "scratch"), "--preset", "smoke", "--seed_dataset",
               "null", "--quiet", *TRAIN]  # fmt: skip
-    with shorter_episodes(EPISODE_STEPS):
-        assert ccfit([*common, "--keep-stages", "--out", str(source)]) == 0
-        assert ccfit([*common, "--method.replay_ratio=0", "--out", str(branch),
-                      "--branch-from", str(source), "--branch-after", "2"]) == 0  # fmt: skip
+    assert ccfit([*common, "--keep-stages", "--out", str(source)]) == 0
+    assert ccfit([*common, "--method.replay_ratio=0", "--out", str(branch),
+                  "--branch-from", str(source), "--branch-after", "2"]) == 0  # fmt: skip
     runs = [source, branch, made.runs["ewc"]]
     lines = [json.loads(x) for x in _run(_script("er_branch"), [str(r) for r in runs],
                                          capsys).splitlines()]  # fmt: skip
@@ -313,8 +305,7 @@ def test_optimizer_state_pairs_the_arms_by_seed(made, tmp_path, capsys):
     argv = ["run", "--suite", "Grasp", "--method.type=ewc", "--train.keep_backbone_optimizer=true",
             "--scratch-root", str(made.runs["ewc"].parent / "scratch"), "--out", str(keep),
             "--preset", "smoke", "--seed_dataset", "null", "--quiet", *TRAIN]  # fmt: skip
-    with shorter_episodes(EPISODE_STEPS):
-        assert ccfit(argv) == 0
+    assert ccfit(argv) == 0
     script = _script("optimizer_state")
     (line,) = _run(script, [str(keep.parent), str(made.runs["ewc"].parent)], capsys).splitlines()
     out = json.loads(line)

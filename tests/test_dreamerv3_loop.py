@@ -27,16 +27,16 @@ from ccfit.train import METRICS
 
 try:
     from metrics_by_hand import bwt_by_hand
-    from short_episodes import shorter_episodes
+    from short_episodes import EPISODE_STEPS
 except ImportError:  # tests/ imported as a package
     from tests.metrics_by_hand import bwt_by_hand
-    from tests.short_episodes import shorter_episodes
+    from tests.short_episodes import EPISODE_STEPS
 
 SUITE = "Grasp"
 TASKS = ("pick-cube", "place-cube", "pnp-cube")
 STEPS = 60
 TRAIN = {"steps": STEPS, "seed_steps": 30, "eval_interval": STEPS, "checkpoint_interval": 30,
-         "eval_episodes": 1, "device": "cpu"}  # fmt: skip
+         "eval_episodes": 1, "device": "cpu", "episode_steps": EPISODE_STEPS}  # fmt: skip
 METHODS = {"ft": {}, "packnet": {"retrain_steps": 5}}
 
 
@@ -48,8 +48,7 @@ def _records(run_dir: Path) -> list[dict]:
 def runs(tmp_path_factory):
     torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("dv3_curriculum")
-    with shorter_episodes():
-        return _run_curricula(root)
+    return _run_curricula(root)
 
 
 def _run_curricula(root: Path) -> dict[str, SimpleNamespace]:

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import ccdata
+from ccdata.env import DEFAULT_EPISODE_STEPS
 from ccfit.config import TrainConfig
 from ccfit.config_base import ConfigError
 from ccfit.train import env_workers as ew
@@ -43,8 +44,9 @@ def test_remote_envs_render_and_step_as_local_ones(short_episodes):
     seeds = [3, 4, 5]
     rng = np.random.default_rng(0)
     actions = rng.uniform(-1, 1, (short_episodes, len(seeds), 4)).astype(np.float32)
-    local = [ccdata.make_env("reach-xy", image_size=SIZE) for _ in seeds]
-    pool = EnvWorkers(2, render=True, image_size=SIZE)
+    local = [ccdata.make_env("reach-xy", image_size=SIZE, episode_steps=short_episodes)
+             for _ in seeds]  # fmt: skip
+    pool = EnvWorkers(2, render=True, image_size=SIZE, episode_steps=short_episodes)
     try:
         remote = [pool.make("reach-xy", worker=j) for j in range(len(seeds))]
         assert [env.worker for env in remote] == [0, 1, 0]
@@ -64,8 +66,19 @@ def test_remote_envs_render_and_step_as_local_ones(short_episodes):
         assert [x[1:] for x in a[1:]] == [x[1:] for x in b[1:]]
 
 
+def test_a_workers_episodes_end_at_the_length_it_was_given():
+    pool = EnvWorkers(1, render=False, image_size=SIZE, episode_steps=3)
+    try:
+        env = pool.make("reach-xy", worker=0)
+        env.reset(seed=0)
+        ends = [env.step(np.zeros(4, np.float32))[3] for _ in range(3)]  # truncated flags
+        assert ends == [False, False, True]
+    finally:
+        pool.close()
+
+
 def test_what_fails_in_a_worker_fails_here_with_its_traceback():
-    pool = EnvWorkers(1, render=False, image_size=SIZE)
+    pool = EnvWorkers(1, render=False, image_size=SIZE, episode_steps=DEFAULT_EPISODE_STEPS)
     try:
         with pytest.raises(RuntimeError, match="(?s)worker 0 raised.*no-such-task"):
             pool.make("no-such-task", worker=0)
@@ -80,7 +93,7 @@ def test_what_fails_in_a_worker_fails_here_with_its_traceback():
 
 
 def test_a_dead_worker_is_named():
-    pool = EnvWorkers(1, render=False, image_size=SIZE)
+    pool = EnvWorkers(1, render=False, image_size=SIZE, episode_steps=DEFAULT_EPISODE_STEPS)
     try:
         env = pool.make("reach-xy", worker=0)
         os.kill(pool._procs[0].pid, signal.SIGKILL)
@@ -114,7 +127,7 @@ def test_workers_end_with_a_killed_evaluating_process():
     code = (
         "import sys, time\n"
         "from ccfit.train.env_workers import EnvWorkers\n"
-        "pool = EnvWorkers(2, render=False, image_size=32)\n"
+        "pool = EnvWorkers(2, render=False, image_size=32, episode_steps=250)\n"
         "envs = [pool.make('reach-xy', worker=j) for j in range(2)]\n"
         "print(*(p.pid for p in pool._procs), flush=True)\n"
         "time.sleep(600)\n"

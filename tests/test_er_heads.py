@@ -5,7 +5,6 @@ seed reaches ER's reservoir."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
 
 from ccdata import make_env
@@ -34,10 +33,10 @@ def _finished_task(model: TDMPC2, buffer: ReplayBuffer) -> TaskData:
                                 backbone_loss=model.backbone_loss)  # fmt: skip
 
 
-@pytest.mark.usefixtures("short_episodes")
-def test_replay_through_stored_heads_trains_the_backbone_only():
+def test_replay_through_stored_heads_trains_the_backbone_only(short_episodes):
     torch.manual_seed(0)
-    model = TDMPC2(TDMPC2Config.preset("smoke", batch_size=8), device="cpu")
+    model = TDMPC2(TDMPC2Config.preset("smoke", batch_size=8, episode_length=short_episodes),
+                   device="cpu")  # fmt: skip
     heads0 = model.new_heads().requires_grad_(False).eval()
     before = {k: v.clone() for k, v in heads0.state_dict().items()}
     er = make_method(resolve(CurriculumConfig, {"suite": "Reach", "method": {
@@ -61,10 +60,11 @@ def test_replay_through_stored_heads_trains_the_backbone_only():
 
     # A trainer with this method on the next task leaves the stored heads bit-identical.
     cfg = TrainConfig(steps=60, seed_steps=20, eval_interval=60, eval_episodes=1,
-                      checkpoint_interval=60, buffer_capacity=1000, device="cpu")  # fmt: skip
-    env = make_env("reach-xz", render=False)
+                      checkpoint_interval=60, buffer_capacity=1000, device="cpu",
+                      episode_steps=short_episodes)  # fmt: skip
+    env = make_env("reach-xz", render=False, episode_steps=short_episodes)
     evaluator = Evaluator(model, {1: "reach-xz"}, seed=0, obs_mode="state", image_size=64,
-                          episodes=1)  # fmt: skip
+                          episodes=1, episode_steps=short_episodes)  # fmt: skip
     trainer = Trainer(env=env, model=model, heads=model.new_heads(), config=cfg, seed=0,
                       evaluator=evaluator,
                       obs_mode="state", task_id="reach-xz", task_index=1, method=er,

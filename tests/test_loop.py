@@ -19,21 +19,19 @@ from ccfit.replay import ReplayBuffer
 
 try:
     from shipped import shipped_models
-    from short_episodes import ccfit_command, shorter_episodes, smoke_train_argv
+    from short_episodes import EPISODE_STEPS, ccfit_command, short, smoke_train_argv
 except ImportError:  # tests/ imported as a package
     from tests.shipped import shipped_models
-    from tests.short_episodes import ccfit_command, shorter_episodes, smoke_train_argv
-
-pytestmark = pytest.mark.usefixtures("short_episodes")
+    from tests.short_episodes import EPISODE_STEPS, ccfit_command, short, smoke_train_argv
 
 
 def _run_config(out: Path, steps=120, checkpoint_interval=60, model="tdmpc2") -> TaskRunConfig:
     return resolve(TaskRunConfig, {
         "task": "reach-xy", "preset": "smoke", "seed": 3, "seed_dataset": None,
         "out": str(out), "model": {"type": model, "batch_size": 8},
-        "train": dict(steps=steps, seed_steps=40, eval_interval=60, eval_episodes=1,
-                      checkpoint_interval=checkpoint_interval, buffer_capacity=2_000,
-                      device="cpu"),
+        "train": short(dict(steps=steps, seed_steps=40, eval_interval=60, eval_episodes=1,
+                            checkpoint_interval=checkpoint_interval, buffer_capacity=2_000,
+                            device="cpu")),
     })  # fmt: skip
 
 
@@ -342,6 +340,14 @@ def test_preset_fills_defaults_and_flags_override_them():
         (["train", "--task", "reach-xy", "--preset", "huge"], "valid: smoke, cpu, paper"),
         (["train", "--task", "reach-xy", "--obs", "rgb"], "state"),
         (["train", "--task", "reach-xy", "--train.steps=0"], "train.steps must be >= 1"),
+        (
+            ["train", "--task", "reach-xy", "--train.episode_steps=0"],
+            "train.episode_steps must be >= 1",
+        ),
+        (
+            ["run", "--suite", "Reach", "--train.episode_steps=-5"],
+            "train.episode_steps must be >= 1",
+        ),
         (["train", "--task", "reach-xy", "--train.steps=many"], "train.steps"),
         (["train", "--task", "reach-xy", "--model.obs_mode=pixels"], "--obs"),
         (["train", "--task", "reach-xy", "--seed-dataset", "/no/such/dir"], "cannot read"),
@@ -374,7 +380,7 @@ def _evaluator(model):
     from ccfit.train import Evaluator
 
     return Evaluator(model, {0: "reach-xy"}, seed=0, obs_mode="state", image_size=64,
-                     episodes=1)  # fmt: skip
+                     episodes=1, episode_steps=EPISODE_STEPS)  # fmt: skip
 
 
 class _CountingMethod:
@@ -407,9 +413,13 @@ def test_trainer_calls_continual_hooks_once_per_update():
 
     torch.manual_seed(0)
     cfg = TrainConfig(steps=50, seed_steps=20, eval_interval=50, eval_episodes=1,
-                      checkpoint_interval=50, buffer_capacity=1000, device="cpu")  # fmt: skip
-    model = TDMPC2(TDMPC2Config.preset("smoke", batch_size=4, train_ratio=2.0), device="cpu")
-    env = make_env("reach-xy", render=False)
+                      checkpoint_interval=50, buffer_capacity=1000, device="cpu",
+                      episode_steps=EPISODE_STEPS)  # fmt: skip
+    model = TDMPC2(
+        TDMPC2Config.preset("smoke", batch_size=4, train_ratio=2.0, episode_length=EPISODE_STEPS),
+        device="cpu",
+    )
+    env = make_env("reach-xy", render=False, episode_steps=EPISODE_STEPS)
     method = _CountingMethod()
     buffer = ReplayBuffer(1000)
     state = np.zeros((31, 39), np.float32)
@@ -473,12 +483,14 @@ def _seed_phase_run(out: Path, release_at: int | None):
     from ccfit.train import Trainer
 
     cfg = TrainConfig(steps=180, seed_steps=60, eval_interval=60, eval_episodes=1,
-                      checkpoint_interval=60, buffer_capacity=1000, device="cpu")  # fmt: skip
+                      checkpoint_interval=60, buffer_capacity=1000, device="cpu",
+                      episode_steps=EPISODE_STEPS)  # fmt: skip
     torch.manual_seed(0)
-    model = TDMPC2(TDMPC2Config.preset("smoke", batch_size=4), device="cpu")
+    model = TDMPC2(TDMPC2Config.preset("smoke", batch_size=4, episode_length=EPISODE_STEPS),
+                   device="cpu")  # fmt: skip
     evaluator = _evaluator(model)
     evaluator = evaluator if release_at is None else _HeldEvaluator(evaluator, release_at)
-    env = make_env("reach-xy", render=False)
+    env = make_env("reach-xy", render=False, episode_steps=EPISODE_STEPS)
     trainer = Trainer(env=env, model=model, heads=model.new_heads(), buffer=ReplayBuffer(1000),
                       config=cfg, seed=0, obs_mode="state", task_id="reach-xy",
                       evaluator=evaluator, run_dir=out, progress=False)  # fmt: skip
@@ -498,9 +510,8 @@ def _seed_phase_run(out: Path, release_at: int | None):
 def in_line_run(tmp_path_factory):
     before = torch.get_num_threads()
     torch.set_num_threads(1)  # as the tests' own fixture sets it: the same reduction order
-    with shorter_episodes():
-        out = tmp_path_factory.mktemp("in-line")
-        written, _, trainer = _seed_phase_run(out, None)
+    out = tmp_path_factory.mktemp("in-line")
+    written, _, trainer = _seed_phase_run(out, None)
     torch.set_num_threads(before)
     return out, written, trainer.evals
 
@@ -531,10 +542,11 @@ def test_pretrain_updates_run_once_on_the_runs_first_task_only(global_offset, bu
 
     torch.manual_seed(0)
     cfg = TrainConfig(steps=50, seed_steps=20, eval_interval=50, eval_episodes=1,
-                      checkpoint_interval=50, buffer_capacity=1000, device="cpu")  # fmt: skip
-    model = TDMPC2(TDMPC2Config.preset("smoke", batch_size=4, train_ratio=0.5,
-                                       pretrain_updates=5), device="cpu")  # fmt: skip
-    env = make_env("reach-xy", render=False)
+                      checkpoint_interval=50, buffer_capacity=1000, device="cpu",
+                      episode_steps=EPISODE_STEPS)  # fmt: skip
+    model = TDMPC2(TDMPC2Config.preset("smoke", batch_size=4, train_ratio=0.5, pretrain_updates=5,
+                                       episode_length=EPISODE_STEPS), device="cpu")  # fmt: skip
+    env = make_env("reach-xy", render=False, episode_steps=EPISODE_STEPS)
     buffer = ReplayBuffer(1000)
     buffer.add_episode({"state": np.zeros((31, 39), np.float32)}, np.zeros((30, 4), np.float32),
                        np.zeros(30, np.float32), np.zeros(30, np.float32))  # fmt: skip

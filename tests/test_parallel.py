@@ -18,12 +18,12 @@ from ccfit.config_parse import resolve
 from ccfit.curriculum import Curriculum
 
 try:
-    from short_episodes import ccfit_command, shorter_episodes
+    from short_episodes import EPISODE_STEPS, ccfit_command
 except ImportError:  # tests/ imported as a package
-    from tests.short_episodes import ccfit_command, shorter_episodes
+    from tests.short_episodes import EPISODE_STEPS, ccfit_command
 
 TRAIN = {"steps": 100, "seed_steps": 50, "eval_interval": 50, "checkpoint_interval": 50,
-         "eval_episodes": 2}  # fmt: skip
+         "eval_episodes": 2, "episode_steps": EPISODE_STEPS}  # fmt: skip
 
 
 def _config(parallel: str, method: str = "packnet", env_workers: str = "auto"
@@ -46,8 +46,7 @@ def _outputs(run: Path) -> tuple[str, dict]:
 def serial(tmp_path_factory):
     root = tmp_path_factory.mktemp("serial")
     torch.set_num_threads(1)
-    with shorter_episodes():
-        Curriculum(_config("off"), root / "run", root / "scratch", progress=False).run()
+    Curriculum(_config("off"), root / "run", root / "scratch", progress=False).run()
     return root
 
 
@@ -60,13 +59,12 @@ def test_parallel_run_equals_the_serial_one(serial, tmp_path, env_workers):
     """'2': the evaluator's environments step in two processes of their own (started by the
     evaluation worker)."""
     torch.set_num_threads(1)
-    with shorter_episodes():
-        Curriculum(
-            _config("on", env_workers=env_workers),
-            tmp_path / "run",
-            tmp_path / "scratch",
-            progress=False,
-        ).run()
+    Curriculum(
+        _config("on", env_workers=env_workers),
+        tmp_path / "run",
+        tmp_path / "scratch",
+        progress=False,
+    ).run()
     assert _outputs(tmp_path / "run") == _outputs(serial / "run")
     (ours,), (theirs,) = (list((r / "scratch").glob("*/done.json")) for r in (tmp_path, serial))
     assert ours.read_text() == theirs.read_text()
@@ -158,17 +156,16 @@ def test_a_run_stopped_with_evaluations_in_flight_resumes_to_the_serial_result(
     monkeypatch.setattr(loop, "atomic_torch_save", save_and_snapshot)
     monkeypatch.setattr(runner, "atomic_torch_save", save_and_snapshot)
     torch.set_num_threads(1)
-    with shorter_episodes():
-        Curriculum(_config("on"), out, tmp_path / "scratch", progress=False).run()
-        assert snapshot.exists()
-        if at == "task-checkpoint":
-            records = (out / "metrics.jsonl").read_text().splitlines(keepends=True)
-            step = TRAIN["steps"] + 50
-            logged = [r for r in records if json.loads(r)["global_step"] <= step]
-            (snapshot / "metrics.jsonl").write_text("".join(logged))
-        monkeypatch.setattr(loop, "atomic_torch_save", save)
-        monkeypatch.setattr(runner, "atomic_torch_save", save)
-        Curriculum(_config("on"), snapshot, tmp_path / "scratch", progress=False).run()
+    Curriculum(_config("on"), out, tmp_path / "scratch", progress=False).run()
+    assert snapshot.exists()
+    if at == "task-checkpoint":
+        records = (out / "metrics.jsonl").read_text().splitlines(keepends=True)
+        step = TRAIN["steps"] + 50
+        logged = [r for r in records if json.loads(r)["global_step"] <= step]
+        (snapshot / "metrics.jsonl").write_text("".join(logged))
+    monkeypatch.setattr(loop, "atomic_torch_save", save)
+    monkeypatch.setattr(runner, "atomic_torch_save", save)
+    Curriculum(_config("on"), snapshot, tmp_path / "scratch", progress=False).run()
     assert _outputs(snapshot) == _outputs(serial / "run")
 
 
@@ -196,8 +193,7 @@ def test_with_compiled_hot_paths_the_reference_starts_after_the_first_task(tmp_p
     monkeypatch.setattr(run_module, "compile_hot_paths",
                         lambda model, setting, paths=None, **kw: list(paths or ()))  # fmt: skip
     torch.set_num_threads(1)
-    with shorter_episodes():
-        Curriculum(_config("on", "ft"), tmp_path / "run", tmp_path / "scratch",
-                   progress=False).run()  # fmt: skip
+    Curriculum(_config("on", "ft"), tmp_path / "run", tmp_path / "scratch",
+               progress=False).run()  # fmt: skip
     assert seen == [["0-pick-cube"]]
     assert len(list((tmp_path / "scratch").glob("*/done.json"))) == 1

@@ -380,7 +380,6 @@ def test_config_and_parser():
 def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeypatch):
     """PWM + experts on pixels with a frozen encoder, seeded from the dataset: replay holds the
     encoder's latents (dataset and live episodes alike) and the encoder ends bit-identical."""
-    import ccdata.env
     import ccfit.curriculum as C
     import ccfit.train.run as R
     from ccfit.config import CurriculumConfig
@@ -402,12 +401,12 @@ def test_frozen_encoder_through_a_pixel_curriculum(reach_root, tmp_path, monkeyp
             buffers.append(self)
 
     monkeypatch.setattr(R, "ReplayBuffer", SpyBuffer)
-    monkeypatch.setattr(ccdata.env, "EPISODE_STEPS", 20)
     cfg = resolve(CurriculumConfig, {
         "suite": "Reach", "obs": "pixels", "image_size": SIZE, "preset": "smoke",
         "seed_dataset": str(reach_root), "encoder": f"frozen:{path}",
         "model": {"type": "pwm"}, "method": {"type": "experts"},
-        "train": dict(steps=40, seed_steps=20, eval_interval=40, checkpoint_interval=40),
+        "train": dict(steps=40, seed_steps=20, eval_interval=40, checkpoint_interval=40,
+                      episode_steps=20),
     })  # fmt: skip
     result = C.Curriculum(cfg, tmp_path / "run", tmp_path / "scratch", progress=False).run()
     assert len(set(map(id, buffers))) == 5  # four tasks and the from-scratch reference

@@ -166,8 +166,13 @@ def probe(stage) -> None:
     PROBED.append((stage.cfg.model.type, len(stage.stored_heads)))
 
 
-pytestmark = pytest.mark.usefixtures("short_episodes")
-SMOKE_TRAIN = {"steps": 200, "seed_steps": 60, "eval_interval": 100, "checkpoint_interval": 100}
+try:
+    from short_episodes import EPISODE_STEPS
+except ImportError:  # tests/ imported as a package
+    from tests.short_episodes import EPISODE_STEPS
+
+SMOKE_TRAIN = {"steps": 200, "seed_steps": 60, "eval_interval": 100, "checkpoint_interval": 100,
+               "episode_steps": EPISODE_STEPS}  # fmt: skip
 
 
 def test_toy_is_registered_beside_the_builtin_models():
@@ -216,7 +221,7 @@ def test_loop_calls_the_model_as_its_contract_says(tmp_path, monkeypatch):
     )
     model = build_model(cfg, torch.device("cpu"))
     heads = model.new_heads()
-    env = make_env("reach-xy", render=False)
+    env = make_env("reach-xy", render=False, episode_steps=EPISODE_STEPS)
     buffer = make_replay(cfg, model, "reach-xy", 0, None)
     buffer.add_episode(
         {"state": np.zeros((6, 39), np.float32)},
@@ -255,7 +260,8 @@ def test_batched_evaluation_plays_the_episodes_of_sequential_play(tmp_path, work
     from ccfit.train import EnvPool, eval_seeds, play_episodes
 
     cfg = resolve(TaskRunConfig, {"task": "reach-xy", "preset": "smoke", "seed_dataset": None,
-                                  "model": {"type": "toy"}})  # fmt: skip
+                                  "model": {"type": "toy"},
+                                  "train": {"episode_steps": EPISODE_STEPS}})  # fmt: skip
     torch.manual_seed(0)
     model = build_model(cfg, torch.device("cpu"))
     heads = model.new_heads()
@@ -266,7 +272,8 @@ def test_batched_evaluation_plays_the_episodes_of_sequential_play(tmp_path, work
             enc.weight[i, 36 + i], enc.weight[i, i] = 1.0, -1.0
             pi.weight[i, i] = 50.0
     seeds = eval_seeds(0, 0, 6)
-    pool, here = EnvPool("state", 64, workers), EnvPool("state", 64)
+    pool = EnvPool("state", 64, workers, episode_steps=EPISODE_STEPS)
+    here = EnvPool("state", 64, episode_steps=EPISODE_STEPS)
     together = play_episodes(pool.get("reach-xy", 6), model, heads, obs_mode="state",
                              seeds=seeds, record=True)  # fmt: skip
     alone = [play_episodes(here.get("reach-xy", 1), model, heads, obs_mode="state", seeds=[s],

@@ -20,9 +20,9 @@ from ccfit.pretrain.config import PretrainConfig
 from ccfit.settings import Execution, resolve_execution
 
 try:
-    from short_episodes import shorter_episodes
+    from short_episodes import short
 except ImportError:  # run from the repository root
-    from tests.short_episodes import shorter_episodes
+    from tests.short_episodes import short
 
 ROOT = Path(__file__).resolve().parents[1]
 PUBLISHED = ROOT / "results/online/reach-tdmpc2/Reach-tdmpc2-ft-state-cpu-s0/config.json"
@@ -92,8 +92,8 @@ def _smoke_task(out: Path) -> TaskRunConfig:
     return resolve(TaskRunConfig, {
         "task": "reach-xy", "preset": "smoke", "seed": 3, "seed_dataset": None,
         "out": str(out), "model": {"type": "tdmpc2", "batch_size": 8},
-        "train": dict(steps=60, seed_steps=40, eval_interval=60, eval_episodes=1,
-                      checkpoint_interval=60, buffer_capacity=2_000, device="auto"),
+        "train": short(dict(steps=60, seed_steps=40, eval_interval=60, eval_episodes=1,
+                            checkpoint_interval=60, buffer_capacity=2_000, device="auto")),
     })  # fmt: skip
 
 
@@ -120,8 +120,7 @@ def test_a_run_resolves_its_device_once_and_hands_it_down(tmp_path, monkeypatch)
             trainers.append(kwargs["execution"])
 
     monkeypatch.setattr(run, "Trainer", SpyTrainer)
-    with shorter_episodes():
-        train_single(_smoke_task(tmp_path / "run"), progress=False)
+    train_single(_smoke_task(tmp_path / "run"), progress=False)
     assert calls == ["auto"]
     assert models and all(isinstance(d, torch.device) for d in models)
     (execution,) = trainers

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import ccdata
-from ccdata.env import EPISODE_STEPS
+from ccdata.env import DEFAULT_EPISODE_STEPS as EPISODE_STEPS
 from ccdata.policies import make_policy
 
 EXPECTED_ORDER = {

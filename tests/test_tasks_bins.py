@@ -23,7 +23,7 @@ def run_oracle(task_id: str, seed: int) -> tuple[bool, int, list[float], dict]:
     obs, _ = env.reset(seed=seed)
     oracle.reset()
     rewards = []
-    for _ in range(ccdata.env.EPISODE_STEPS):
+    for _ in range(ccdata.env.DEFAULT_EPISODE_STEPS):
         obs, reward, terminated, truncated, info = env.step(oracle.act(obs))
         rewards.append(reward)
         if terminated or truncated:
@@ -69,7 +69,7 @@ def test_success_terminates_and_episode_is_absorbing():
     env = ccdata.make_env("bin-red-blue", render=False)
     oracle = get_task("bin-red-blue").oracle()
     obs, _ = env.reset(seed=1)
-    for _ in range(ccdata.env.EPISODE_STEPS):
+    for _ in range(ccdata.env.DEFAULT_EPISODE_STEPS):
         obs, reward, terminated, truncated, info = env.step(oracle.act(obs))
         assert terminated == info["success"]
         if terminated:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import ccdata
-from ccdata.env import EPISODE_STEPS
+from ccdata.env import DEFAULT_EPISODE_STEPS as EPISODE_STEPS
 from ccdata.policies import make_policy
 from ccdata.suites import SUITES, get_suite
 

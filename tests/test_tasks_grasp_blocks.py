@@ -57,7 +57,7 @@ def test_oracle_succeeds_and_success_terminates(task_id, seed):
     run = run_oracle(task_id, seed)
     assert run["success"]
     assert run["terminated"] and not run["truncated"]
-    assert len(run["rewards"]) < ccdata.env.EPISODE_STEPS
+    assert len(run["rewards"]) < ccdata.env.DEFAULT_EPISODE_STEPS
     assert run["rewards"][-1] == 0.0
     assert run["refused"], "stepping after success must raise"
 

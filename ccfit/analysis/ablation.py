@@ -67,7 +67,7 @@ def ablate(run_dir: str | Path, episodes: int | None = None, horizon: int | None
     task_id, heads = cfg.tasks[comp], stored[comp]
     routed = model.routed_task(heads)
     seeds = eval_seeds(cfg.seed, comp, episodes)
-    pool = EnvPool(cfg.obs, cfg.image_size)
+    pool = EnvPool(cfg.obs, cfg.image_size, episode_steps=train.episode_steps)
     modes: dict[str, dict] = {}
     recorded: list[Episode] = []
     try:

@@ -37,7 +37,7 @@ from ccfit.train import CONFIG, METRICS
 from ccfit.train.cost import read_cost
 
 THRESHOLDS = (50, 80)
-RECIPE = ("demo_fraction", "buffer_capacity", "autocast")
+RECIPE = ("demo_fraction", "buffer_capacity", "autocast", "episode_steps")
 """`--train.*` settings that change how a task is learnt: a run with one of them off its
 preset's value is a row (and budget) of its own. Every `--model.*` setting counts likewise
 (`_model_recipe`)."""
@@ -89,7 +89,11 @@ def _model_recipe(cfg: dict, task: str) -> list[str]:
     if set(model) == {"type"}:
         return []
     choices = {k: cfg[k] for k in ("preset", "obs", "image_size") if k in cfg}
-    preset = resolve(TaskRunConfig, {**choices, "task": task, "model": {"type": model["type"]}})
+    # The model's settings that follow the run's episode length (TD-MPC2's) are the train
+    # setting's (`RECIPE`), not the model's own.
+    steps = cfg.get("train", {}).get("episode_steps", _preset_value(cfg, "episode_steps"))
+    preset = resolve(TaskRunConfig, {**choices, "task": task, "model": {"type": model["type"]},
+                                     "train": {"episode_steps": steps}})  # fmt: skip
     given = preset.to_dict()["model"]
     return [f"{k}={v}" for k, v in model.items() if k in given and given[k] != v]
 

@@ -64,14 +64,15 @@ View = Callable[[int], contextlib.AbstractContextManager]
 """Task index -> a continual method's view of that task (`Evaluator`'s `view`)."""
 
 
-def acting(model, heads, index: int, task: str, view: View | None = None) -> dict:
+def acting(model, heads, index: int, task: str, view: View | None = None, *,
+           episode_steps: int) -> dict:  # fmt: skip
     """Task `task` (index `index` of its run) played as evaluation plays it, on 10 layouts x 3
     noise seeds, through MPPI and through the policy's mean action alone: the normalised
-    return per noise seed for each. `view`: as `Evaluator`'s."""
+    return per noise seed for each. `view`: as `Evaluator`'s; `episode_steps`: the run's."""
     from ccfit.train.evaluate import Evaluator
 
     evaluator = Evaluator(model, {index: task}, seed=0, obs_mode="state", image_size=64,
-                          episodes=10, view=view)  # fmt: skip
+                          episodes=10, episode_steps=episode_steps, view=view)  # fmt: skip
     evaluator.heads[index] = heads
     out = {}
     for mode, acts_alone in (("mppi", False), ("policy_mean", True)):

@@ -23,7 +23,7 @@ from ccfit.train import CONFIG, EnvPool, eval_seeds, normalized_or_none, play_ep
 
 def routing_record(model: Routing, stored_heads: list, task_ids: list[str], *, stage: int,
                    seed: int,
-                   episodes: int, obs_mode: str, image_size: int = 64,
+                   episodes: int, episode_steps: int, obs_mode: str, image_size: int = 64,
                    device: torch.device | str = "cpu",
                    view: Callable[[int], contextlib.AbstractContextManager] | None = None,
                    ) -> dict:  # fmt: skip
@@ -39,7 +39,7 @@ def routing_record(model: Routing, stored_heads: list, task_ids: list[str], *, s
     device = torch.device(device)
     layout = model.expert_layout()
     tasks = []
-    pool = EnvPool(obs_mode, image_size)
+    pool = EnvPool(obs_mode, image_size, episode_steps=episode_steps)
     with _eval_mode(model):
         for i in range(stage + 1):
             heads = stored_heads[i]
@@ -97,7 +97,8 @@ def routing_callback(stage) -> None:
     cfg, model, method = stage.cfg, stage.model, stage.method
     record = routing_record(
         model, stage.stored_heads, cfg.tasks, stage=len(stage.stored_heads) - 1, seed=cfg.seed,
-        episodes=cfg.train.eval_episodes, obs_mode=cfg.obs, image_size=cfg.image_size,
+        episodes=cfg.train.eval_episodes, episode_steps=cfg.train.episode_steps,
+        obs_mode=cfg.obs, image_size=cfg.image_size,
         device=stage.device, view=lambda i: method.evaluating(i, model.backbone),
     )  # fmt: skip
     append_routing(stage.run_dir, record)

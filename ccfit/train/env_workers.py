@@ -39,7 +39,6 @@ def _serve(conn: Connection, render: bool, image_size: int, episode_steps: int) 
 
     # Ctrl-C reaches the whole process group; the evaluating process handles it and ends us.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    ccdata.env.EPISODE_STEPS = episode_steps  # the evaluating process's (tests shorten it)
     envs: dict[int, Any] = {}
     try:
         while True:
@@ -51,7 +50,8 @@ def _serve(conn: Connection, render: bool, image_size: int, episode_steps: int) 
                 return
             try:
                 if command == "make":
-                    envs[key] = ccdata.env.make_env(arg, render=render, image_size=image_size)
+                    envs[key] = ccdata.env.make_env(arg, render=render, image_size=image_size,
+                                                    episode_steps=episode_steps)  # fmt: skip
                     out = None
                 elif command == "reset":
                     out = envs[key].reset(seed=arg)
@@ -69,12 +69,12 @@ def _serve(conn: Connection, render: bool, image_size: int, episode_steps: int) 
 
 
 class EnvWorkers:
-    """`workers` processes hosting environments of one kind (`render`, `image_size`); `make`
-    places an environment on a given worker. Started at construction, ended by `close`."""
+    """`workers` processes hosting environments of one kind (`render`, `image_size`,
+    `episode_steps`); `make` places an environment on a given worker. Started at construction,
+    ended by `close`."""
 
-    def __init__(self, workers: int, *, render: bool, image_size: int) -> None:
-        import ccdata.env
-
+    def __init__(self, workers: int, *, render: bool, image_size: int,
+                 episode_steps: int) -> None:  # fmt: skip
         if workers < 1:
             raise ValueError(f"EnvWorkers needs at least one worker, got {workers}")
         ctx = mp.get_context("spawn")  # a fresh simulator and GL context per process
@@ -83,7 +83,7 @@ class EnvWorkers:
         self._waiting: list[deque[int]] = []
         for k in range(workers):
             parent, child = ctx.Pipe()
-            args = (child, render, image_size, ccdata.env.EPISODE_STEPS)
+            args = (child, render, image_size, episode_steps)
             proc = ctx.Process(target=_serve, name=f"ccfit-env-worker-{k}", args=args,
                                daemon=True)  # fmt: skip
             proc.start()

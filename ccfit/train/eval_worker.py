@@ -50,7 +50,7 @@ class WorkerSpec:
     image_size: int
     episodes: int
     episode_steps: int
-    """The parent's `ccdata.env.EPISODE_STEPS` (a process-wide setting the worker shares)."""
+    """Agent steps per episode (`train.episode_steps`)."""
     env_workers: int = 0
     """Processes the worker's evaluation environments run in (`EnvPool`)."""
 
@@ -59,14 +59,12 @@ _WORKER: dict[str, Any] = {}
 
 
 def _start(spec: WorkerSpec) -> None:
-    import ccdata.env
     from ccfit.continual.base import make_method
     from ccfit.models.encoders import load_frozen_encoder
     from ccfit.models.registry import make_model
     from ccfit.train.compiled import compile_hot_paths
     from ccfit.train.evaluate import Evaluator
 
-    ccdata.env.EPISODE_STEPS = spec.episode_steps
     execution = spec.execution
     execution.set_threads()
     encoder = None
@@ -78,7 +76,8 @@ def _start(spec: WorkerSpec) -> None:
     view = (lambda i: method.evaluating(i, model.backbone)) if method is not None else None
     _WORKER.update(model=model, method=method, heads={}, evaluator=Evaluator(
         model, spec.task_ids, seed=spec.seed, obs_mode=spec.obs_mode,
-        image_size=spec.image_size, episodes=spec.episodes, view=view,
+        image_size=spec.image_size, episodes=spec.episodes,
+        episode_steps=spec.episode_steps, view=view,
         autocast=execution.autocast, env_workers=spec.env_workers))  # fmt: skip
 
 

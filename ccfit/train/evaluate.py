@@ -132,10 +132,13 @@ class EnvPool:
     """Environments per task, made when first needed and kept (episodes of one task play
     side by side, each needs its own). workers: 0, in this process; else in that many
     `EnvWorkers` processes (started when the first environment is needed), a task's j-th
-    environment on worker j mod workers, so a task's episodes render in parallel."""
+    environment on worker j mod workers, so a task's episodes render in parallel.
+    episode_steps: agent steps after which an unsolved episode ends (the run's)."""
 
-    def __init__(self, obs_mode: str, image_size: int, workers: int = 0) -> None:
+    def __init__(self, obs_mode: str, image_size: int, workers: int = 0, *,
+                 episode_steps: int) -> None:  # fmt: skip
         self.obs_mode, self.image_size, self.workers = obs_mode, image_size, workers
+        self.episode_steps = episode_steps
         self._envs: dict[str, list] = {}
         self._remote: EnvWorkers | None = None
 
@@ -144,11 +147,13 @@ class EnvPool:
 
         render = self.obs_mode == "pixels"
         if self.workers and self._remote is None:
-            self._remote = EnvWorkers(self.workers, render=render, image_size=self.image_size)
+            self._remote = EnvWorkers(self.workers, render=render, image_size=self.image_size,
+                                      episode_steps=self.episode_steps)  # fmt: skip
         envs = self._envs.setdefault(task_id, [])
         while len(envs) < n:
             envs.append(self._remote.make(task_id, worker=len(envs)) if self._remote else
-                        make_env(task_id, render=render, image_size=self.image_size))  # fmt: skip
+                        make_env(task_id, render=render, image_size=self.image_size,
+                                 episode_steps=self.episode_steps))  # fmt: skip
         return envs[:n]
 
     def close(self) -> None:
@@ -183,15 +188,15 @@ class Evaluator:
     calling process (`ccfit.train.eval_worker.AsyncEvaluator` computes them beside training).
 
     model: the world model; task_ids: curriculum index -> task id of the tasks it may
-    evaluate; seed, obs_mode, image_size, episodes: the run's. view: task index -> the
-    context a task is evaluated in (the continual method's `evaluating`, e.g. PackNet's
-    masks); None: no view. autocast: the run's precision, resolved ('off' or 'bf16':
+    evaluate; seed, obs_mode, image_size, episodes, episode_steps: the run's. view: task
+    index -> the context a task is evaluated in (the continual method's `evaluating`, e.g.
+    PackNet's masks); None: no view. autocast: the run's precision, resolved ('off' or 'bf16':
     `ccfit.settings.Execution.autocast`). env_workers: processes the
     environments step and render in (`EnvPool`; 0: this process).
     """
 
     def __init__(self, model: WorldModel, task_ids: Mapping[int, str], *, seed: int,
-                 obs_mode: str, image_size: int, episodes: int,
+                 obs_mode: str, image_size: int, episodes: int, episode_steps: int,
                  view: Callable[[int], AbstractContextManager] | None = None,
                  autocast: str = "off", env_workers: int = 0) -> None:  # fmt: skip
         self.model, self.task_ids = model, dict(task_ids)
@@ -202,7 +207,7 @@ class Evaluator:
         self.view = view
         self.heads: dict[int, nn.Module] = {}
         """Heads each evaluable task is evaluated with (stored heads, and the current ones)."""
-        self.envs = EnvPool(obs_mode, image_size, env_workers)
+        self.envs = EnvPool(obs_mode, image_size, env_workers, episode_steps=episode_steps)
         self._done: list[dict] = []
 
     def submit(self, tasks: Sequence[int], *, stage: int, global_step: int,

@@ -240,8 +240,6 @@ def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
     env_workers = resolve_env_workers(cfg.train.env_workers, obs_mode=cfg.obs, parallel=parallel,
                                       episodes=cfg.train.eval_episodes)  # fmt: skip
     if parallel:
-        import ccdata.env
-
         spec = WorkerSpec(
             model=cfg.model, encoder_path=cfg.encoder_path, execution=execution,
             compiled=compiled if compiled is not None else compiled_paths(
@@ -249,13 +247,14 @@ def make_evaluator(cfg: RunConfig, model: WorldModel, task_ids: dict[int, str],
             method=cfg.method if has_view(method) else None,
             num_tasks=len(getattr(cfg, "tasks", task_ids)), task_ids=task_ids, seed=cfg.seed,
             obs_mode=cfg.obs, image_size=cfg.image_size, episodes=cfg.train.eval_episodes,
-            episode_steps=ccdata.env.EPISODE_STEPS, env_workers=env_workers,
+            episode_steps=cfg.train.episode_steps, env_workers=env_workers,
         )  # fmt: skip
         return AsyncEvaluator(spec, model, method)
     view = (lambda i: method.evaluating(i, model.backbone)) if method is not None else None
     return Evaluator(model, task_ids, seed=cfg.seed, obs_mode=cfg.obs,
                      image_size=cfg.image_size, episodes=cfg.train.eval_episodes,
-                     view=view, autocast=execution.autocast,
+                     episode_steps=cfg.train.episode_steps, view=view,
+                     autocast=execution.autocast,
                      env_workers=env_workers)  # fmt: skip
 
 
@@ -390,7 +389,12 @@ def _train_task(cfg: RunConfig, out: Path, *, task_id: str, task_index: int, sav
     logger = RunLogger(out, cfg.log, saved)
     if not resumed:  # records of a run killed before its first checkpoint
         logger.keep(lambda r: False)
-    env = make_env(task_id, render=cfg.obs == "pixels", image_size=cfg.image_size)
+    env = make_env(
+        task_id,
+        render=cfg.obs == "pixels",
+        image_size=cfg.image_size,
+        episode_steps=cfg.train.episode_steps,
+    )
     evaluator = make_evaluator(cfg, model, {task_index: task_id},
                                compiled=saved["resolved_compile"], execution=execution)  # fmt: skip
     trainer = Trainer(

@@ -55,7 +55,9 @@ def main(argv: list[str] | None = None) -> None:
             for policy in ("oracle", "random"):
                 out[f"{task}/reading/{policy}"] = reading(model, method, heads, index, task,
                                                           policy)  # fmt: skip
-            out[f"{task}/acting"] = acting(model, heads, index, task, method_view)
+            out[f"{task}/acting"] = acting(
+                model, heads, index, task, method_view, episode_steps=cfg.train.episode_steps
+            )
         print(json.dumps(out), flush=True)
 
 

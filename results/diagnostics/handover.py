@@ -107,7 +107,8 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     loaded = load_task_run(args.run, "cpu")
     cfg, model = loaded.cfg, loaded.model
-    env = make_env(cfg.task, render=cfg.obs == "pixels", image_size=cfg.image_size)
+    env = make_env(cfg.task, render=cfg.obs == "pixels", image_size=cfg.image_size,
+                   episode_steps=cfg.train.episode_steps)  # fmt: skip
     oracle = make_policy("oracle", cfg.task)
     seeds = eval_seeds(cfg.seed, 0, args.layouts)
     if args.acting == "policy" and not hasattr(model, "pi"):

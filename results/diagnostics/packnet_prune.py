@@ -47,7 +47,8 @@ def main(argv: list[str] | None = None) -> None:
     update = UpdateStep(model, heads, method)
     view = lambda i: method.evaluating(i, model.backbone)  # noqa: E731
     evaluator = Evaluator(model, {0: cfg.task}, seed=0, obs_mode="state", image_size=64,
-                          episodes=10, view=view)  # fmt: skip
+                          episodes=10, episode_steps=cfg.train.episode_steps,
+                          view=view)  # fmt: skip
     evaluator.heads[0] = heads
 
     def report(after: str) -> None:

@@ -71,7 +71,8 @@ def main(argv: list[str] | None = None) -> None:
     loaded = load_task_run(run, "cpu")
     cfg = loaded.cfg
     pixels = cfg.obs == "pixels"  # cameras only where the run observed through them
-    envs = [RawRewards(make_env(cfg.task, render=pixels, image_size=cfg.image_size))
+    envs = [RawRewards(make_env(cfg.task, render=pixels, image_size=cfg.image_size,
+                                episode_steps=cfg.train.episode_steps))
             for _ in range(layouts)]  # fmt: skip
     with seeded(NOISE_SEED, loaded.model.device):
         episodes = play_episodes(envs, loaded.model, loaded.heads, obs_mode=cfg.obs,

@@ -52,7 +52,9 @@ def main(argv: list[str] | None = None) -> None:
             episodes = load_episodes(dataset, task=task, policy=policy, images=False)[:EPISODES]
             reading = episode_reading(loaded.model, loaded.heads, episodes)
             out[policy] = {"episodes": len(episodes), **reading}
-        out["acting"] = acting(loaded.model, loaded.heads, 0, task)
+        out["acting"] = acting(
+            loaded.model, loaded.heads, 0, task, episode_steps=loaded.cfg.train.episode_steps
+        )
         print(json.dumps(out), flush=True)
 
 

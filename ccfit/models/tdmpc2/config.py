@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
-import ccdata.env
+from ccdata.env import DEFAULT_EPISODE_STEPS
 from ccfit.config_base import check
 from ccfit.models.registry import ModelConfig
 
@@ -154,9 +154,10 @@ class TDMPC2Config(ModelConfig):
     tau: float = 0.01
     """Polyak rate of the target Q ensemble and of the running Q scale."""
 
-    episode_length: int = field(default_factory=lambda: ccdata.env.EPISODE_STEPS)
-    """Agent steps per episode (the benchmark's, `ccdata.env.EPISODE_STEPS`); sets the
-    discount heuristic."""
+    episode_length: int | None = None
+    """Agent steps per episode, which set the discount heuristic. None: the run's
+    (`train.episode_steps`, filled in by the run config; config.json records the number), or
+    the benchmark's 250 (`ccdata.env.DEFAULT_EPISODE_STEPS`) for a config outside a run."""
     discount_denom: float = 5.0
     """Discount = (L/denom - 1) / (L/denom), clipped to [discount_min, discount_max]."""
     discount_min: float = 0.95
@@ -184,10 +185,13 @@ class TDMPC2Config(ModelConfig):
         name = type(self).__name__
         positive = (
             "latent_dim", "enc_dim", "mlp_dim", "num_enc_layers", "num_channels", "simnorm_dim",
-            "horizon", "iterations", "num_samples", "num_elites", "episode_length",
+            "horizon", "iterations", "num_samples", "num_elites",
         )  # fmt: skip
         for f in positive:
             check(getattr(self, f) >= 1, f"{name}.{f} must be >= 1, got {getattr(self, f)}")
+        length = self.episode_length
+        check(length is None or length >= 1,
+              f"{name}.episode_length must be >= 1 (or null), got {length}")  # fmt: skip
         checks = [
             (self.latent_dim % self.simnorm_dim == 0, "latent_dim must be a multiple of simnorm"),
             (self.num_q >= 2, "num_q must be >= 2 (targets use two members)"),
@@ -218,5 +222,6 @@ class TDMPC2Config(ModelConfig):
     @property
     def discount(self) -> float:
         """TD-MPC2's heuristic: longer episodes get a discount closer to 1 (0.98 at 250)."""
-        frac = self.episode_length / self.discount_denom
+        length = DEFAULT_EPISODE_STEPS if self.episode_length is None else self.episode_length
+        frac = length / self.discount_denom
         return min(max((frac - 1) / frac, self.discount_min), self.discount_max)
