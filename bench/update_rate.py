@@ -69,7 +69,8 @@ from ccfit.models.base import Batch, select_state
 from ccfit.models.encoders import load_frozen_encoder, save_encoder
 from ccfit.models.registry import config_class, model_class
 from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
-from ccfit.train.compiled import autocast, compile_hot_paths, cpu_info
+from ccfit.settings import cpu_info
+from ccfit.train.compiled import autocast, compile_hot_paths
 from ccfit.train.update import UpdateStep
 
 MODELS = ("tdmpc2", "pwm", "dreamerv3")

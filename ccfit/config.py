@@ -104,7 +104,7 @@ class TrainConfig(Presets):
     """'bf16': the model's updates and acting run under bfloat16 autocast (matmuls in bf16,
     parameters, optimiser state and reductions in float32); 'off': float32; 'auto': bf16
     where the hardware multiplies in bf16 (a CUDA GPU of compute capability 8.0+, a CPU with
-    AVX512-BF16 or AMX), else float32 (`ccfit.train.compiled.resolve_autocast`). fp16 is not
+    AVX512-BF16 or AMX), else float32 (`ccfit.settings.resolve_autocast`). fp16 is not
     offered: `head_update` steps its own optimisers inside the model, where a loss scaler
     cannot reach, and bf16 needs none. Changes the numbers: config.json records what it
     resolved to (`resolved_autocast`)."""
@@ -178,7 +178,7 @@ class TrainConfig(Presets):
 COMPILE_SETTINGS: tuple[str, ...] = ("auto", "on", "off", "graphs")
 """`--train.compile` values (`ccfit.train.compiled`)."""
 AUTOCAST_SETTINGS: tuple[str, ...] = ("off", "bf16", "auto")
-"""`--train.autocast` values (`ccfit.train.compiled.resolve_autocast`)."""
+"""`--train.autocast` values (`ccfit.settings.resolve_autocast`)."""
 WANDB_MODES: tuple[str, ...] = ("online", "offline")
 
 

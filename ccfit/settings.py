@@ -11,13 +11,15 @@ step and the evaluator the resolved precision.
 
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
 
-from ccfit.config_base import check, resolve_device
+from ccfit.config_base import ConfigError, check, resolve_device
 
 AUTOCAST_MODES: tuple[str, ...] = ("off", "bf16")
 """What `--train.autocast` resolves to (`resolve_autocast`): float32, or bfloat16 autocast."""
@@ -89,8 +91,6 @@ def resolve_execution(loop: Any, device: str | torch.device | None = None) -> Ex
     then taken as it is, as loading always did). ConfigError, in one line, for a device that
     is not here (CUDA absent, `cuda:N` past the GPUs), or for a run's own graphs without
     CUDA."""
-    from ccfit.train.compiled import check_compile_device, resolve_autocast
-
     dev = resolve_device(loop.device if device is None else device)
     if dev.type == "cuda" and dev.index is not None:
         count = torch.cuda.device_count()
@@ -102,3 +102,60 @@ def resolve_execution(loop: Any, device: str | torch.device | None = None) -> Ex
     return Execution(device=dev, compile=compile_setting,
                      autocast=resolve_autocast(getattr(loop, "autocast", "off"), dev),
                      torch_threads=loop.torch_threads)  # fmt: skip
+
+
+def check_compile_device(setting: str, device: torch.device) -> None:
+    """Refuse `--train.compile=graphs` where there is no CUDA device to replay graphs on."""
+    if setting == "graphs" and torch.device(device).type != "cuda":
+        raise ConfigError(f"train.compile=graphs replays CUDA graphs: it needs a CUDA "
+                          f"device, and this run's is {device}; use --train.compile=auto or "
+                          "on")  # fmt: skip
+
+
+_BF16_CPU_FLAGS = frozenset({"avx512_bf16", "amx_bf16"})
+"""x86 CPU flags of bf16 dot-product instructions (AVX512-BF16, AMX): without them oneDNN
+emulates bf16 matmuls and they are no faster than float32."""
+
+
+@functools.cache
+def cpu_info() -> dict[str, str]:
+    """The first processor's fields in Linux's /proc/cpuinfo ('model name', 'flags', ...),
+    read once; empty elsewhere."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return {}
+    fields: dict[str, str] = {}
+    for line in text.splitlines():
+        key, sep, value = line.partition(":")
+        if sep:
+            fields.setdefault(key.strip(), value.strip())
+    return fields
+
+
+def cpu_flags() -> frozenset[str]:
+    """This machine's CPU feature flags (x86 'flags', Arm 'Features'; empty where unknown)."""
+    info = cpu_info()
+    return frozenset(info.get("flags", info.get("Features", "")).split())
+
+
+def native_bf16(device: torch.device, flags: frozenset[str] | None = None) -> bool:
+    """Whether `device` multiplies bfloat16 matrices in hardware: a CUDA GPU of compute
+    capability 8.0 or more, or a CPU with AVX512-BF16 or AMX (`flags`: this CPU's)."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported(including_emulation=False)
+    if device.type == "cpu":
+        return bool(_BF16_CPU_FLAGS & (cpu_flags() if flags is None else flags))
+    return False
+
+
+def resolve_autocast(setting: str, device: torch.device) -> str:
+    """'off' or 'bf16': what `--train.autocast` means on `device`. 'auto' is bf16 where the
+    hardware multiplies in bf16 (`native_bf16`). On a 2-core AVX512-BF16 CPU, TD-MPC2's
+    compiled update and plan at 1M and 5M (batch 256) measured 1.8-2.9x faster in bf16 than in
+    float32 (bench/update_rate.py), while the small `cpu` sizes, bound by dispatch overhead,
+    gain nothing (so that preset stays 'off')."""
+    if setting == "auto":
+        return "bf16" if native_bf16(device) else "off"
+    return setting

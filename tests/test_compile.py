@@ -242,7 +242,7 @@ def test_a_run_records_what_auto_chose_and_why_and_resumes_with_it(tmp_path):
 
 def test_autocast_auto_is_bf16_where_the_hardware_multiplies_in_bf16():
     from ccfit.config import TrainConfig
-    from ccfit.train.compiled import cpu_flags, native_bf16, resolve_autocast
+    from ccfit.settings import cpu_flags, native_bf16, resolve_autocast
 
     cpu = torch.device("cpu")
     assert native_bf16(cpu, frozenset({"avx2", "avx512f", "avx512_bf16"}))
@@ -377,14 +377,14 @@ def test_graphs_path_runs_a_curriculum_compiled_plainly(name, method, tmp_path, 
     # (outputs copied, a step marked per update, ER's stored-heads losses beside the update's
     # own) runs through every hot path's real return types here. What only CUDA shows, a
     # replay overwriting what the loop kept, is test_gpu's.
-    import ccfit.train.run
+    import ccfit.settings
 
     try:
         from short_episodes import smoke_curriculum
     except ImportError:  # tests/ imported as a package
         from tests.short_episodes import smoke_curriculum
 
-    monkeypatch.setattr(ccfit.train.run, "check_compile_device", lambda setting, device: None)
+    monkeypatch.setattr(ccfit.settings, "check_compile_device", lambda setting, device: None)
     train = {"steps": 100, "seed_steps": 50, "eval_interval": 50, "checkpoint_interval": 50,
              "device": "cpu", "compile": "graphs", "parallel": "off"}  # fmt: skip
     result, saved = smoke_curriculum(tmp_path, name, method, train)

@@ -10,7 +10,7 @@ import shutil
 from pathlib import Path
 
 from ccfit.report.page import PAGE, write_page
-from ccfit.sweep.grid import SWEEP_JSON
+from ccfit.run_files import SWEEP_JSON
 
 try:
     from test_report import config, write_run

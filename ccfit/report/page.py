@@ -22,7 +22,7 @@ from ccfit.report.axes import axis_cells
 from ccfit.report.orderings import ORDERINGS_MD, is_offline, ordering_rows
 from ccfit.report.plots import ordered_methods
 from ccfit.report.runs import Run
-from ccfit.sweep.grid import SWEEP_JSON
+from ccfit.run_files import SWEEP_JSON
 
 PAGE = "README.md"
 NOTES = "NOTES.md"

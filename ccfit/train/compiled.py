@@ -21,12 +21,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 import types
-from pathlib import Path
 
 import torch
 
-from ccfit.config_base import ConfigError
 from ccfit.models.base import WorldModel
+from ccfit.settings import autocast_context, resolve_autocast
 from ccfit.train.inductor_cache import prepare_inductor_cache
 
 
@@ -60,14 +59,6 @@ def compile_choice(model_class: type[WorldModel], setting: str, device: torch.de
                     f"{kind}, compiling included")  # fmt: skip
     size = f"{steps} steps per task, at least {least}" if steps is not None else "any length"
     return paths, f"auto: {size}: {name}'s {', '.join(paths)} measured faster compiled on {kind}"
-
-
-def check_compile_device(setting: str, device: torch.device) -> None:
-    """Refuse `--train.compile=graphs` where there is no CUDA device to replay graphs on."""
-    if setting == "graphs" and torch.device(device).type != "cuda":
-        raise ConfigError(f"train.compile=graphs replays CUDA graphs: it needs a CUDA "
-                          f"device, and this run's is {device}; use --train.compile=auto or "
-                          "on")  # fmt: skip
 
 
 def compile_hot_paths(model: WorldModel, setting: str, paths: list[str] | None = None,
@@ -137,60 +128,9 @@ def copied(value):
     return value
 
 
-_BF16_CPU_FLAGS = frozenset({"avx512_bf16", "amx_bf16"})
-"""x86 CPU flags of bf16 dot-product instructions (AVX512-BF16, AMX): without them oneDNN
-emulates bf16 matmuls and they are no faster than float32."""
-
-
-@functools.cache
-def cpu_info() -> dict[str, str]:
-    """The first processor's fields in Linux's /proc/cpuinfo ('model name', 'flags', ...),
-    read once; empty elsewhere."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return {}
-    fields: dict[str, str] = {}
-    for line in text.splitlines():
-        key, sep, value = line.partition(":")
-        if sep:
-            fields.setdefault(key.strip(), value.strip())
-    return fields
-
-
-def cpu_flags() -> frozenset[str]:
-    """This machine's CPU feature flags (x86 'flags', Arm 'Features'; empty where unknown)."""
-    info = cpu_info()
-    return frozenset(info.get("flags", info.get("Features", "")).split())
-
-
-def native_bf16(device: torch.device, flags: frozenset[str] | None = None) -> bool:
-    """Whether `device` multiplies bfloat16 matrices in hardware: a CUDA GPU of compute
-    capability 8.0 or more, or a CPU with AVX512-BF16 or AMX (`flags`: this CPU's)."""
-    device = torch.device(device)
-    if device.type == "cuda":
-        return torch.cuda.is_bf16_supported(including_emulation=False)
-    if device.type == "cpu":
-        return bool(_BF16_CPU_FLAGS & (cpu_flags() if flags is None else flags))
-    return False
-
-
-def resolve_autocast(setting: str, device: torch.device) -> str:
-    """'off' or 'bf16': what `--train.autocast` means on `device`. 'auto' is bf16 where the
-    hardware multiplies in bf16 (`native_bf16`). On a 2-core AVX512-BF16 CPU, TD-MPC2's
-    compiled update and plan at 1M and 5M (batch 256) measured 1.8-2.9x faster in bf16 than in
-    float32 (bench/update_rate.py), while the small `cpu` sizes, bound by dispatch overhead,
-    gain nothing (so that preset stays 'off')."""
-    if setting == "auto":
-        return "bf16" if native_bf16(device) else "off"
-    return setting
-
-
 def autocast(device: torch.device, setting: str):
     """The autocast context of `--train.autocast` on `device` (a no-op context for 'off'),
     resolved on each call: for scripts and benchmarks. A run resolves its precision once
     (`ccfit.settings.Execution.autocast_context`)."""
-    from ccfit.settings import autocast_context
-
     device = torch.device(device)
     return autocast_context(device, resolve_autocast(setting, device))

@@ -25,7 +25,7 @@ from ccdata.processes import available_cores
 from ccdata.slurm import code_version
 from ccfit.io import atomic_write_json
 from ccfit.run_files import COST
-from ccfit.train.compiled import cpu_info
+from ccfit.settings import cpu_info
 
 FLUSH_S = 60.0
 """Seconds between writes of a running segment's cost so far."""
