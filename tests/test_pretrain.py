@@ -355,6 +355,9 @@ def test_config_and_parser():
     config = config_from_args(args)
     assert (config.decoder_channels, config.augment_shift, config.lr, config.batch_size,
             config.steps) == (32, 0, 1e-3, 8, PretrainConfig.preset("cpu").steps)  # fmt: skip
+    # the model named as `ccfit run` names it, or as scripts have
+    for spelt in ("--model.type", "--model"):
+        assert parser.parse_args(["pretrain-encoder", spelt, "pwm"]).model == "pwm"
     args = parser.parse_args(["pretrain-encoder"])
     config = config_from_args(args)
     assert config.decoder_channels == PretrainConfig.preset("cpu").decoder_channels == 16

@@ -30,7 +30,8 @@ def add_pretrain_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--suites", default="all", help="'all' or a comma list, e.g. Reach,Grasp")
     p.add_argument("--preset", default="cpu", help="smoke | cpu | paper (default cpu); the "
                    "encoder's sizes follow the model's preset of the same name")  # fmt: skip
-    p.add_argument("--model", default=DEFAULT_MODEL,
+    # `--model.type` as `ccfit run` and `fit` spell it; `--model` as scripts have spelt it
+    p.add_argument("--model.type", "--model", dest="model", default=DEFAULT_MODEL,
                    help="the world model whose pixel encoder is pretrained (one offering "
                         "'pixel-encoder')")  # fmt: skip
     p.add_argument(

@@ -262,7 +262,7 @@ def setup_commands(run_groups: dict, root: Path) -> list[str]:
         config = json.loads(sidecar.read_text())["config"]
         suites |= set(config["suites"])
         words = ["ccfit", "pretrain-encoder", "--suites", ",".join(config["suites"]),
-                 "--preset", config["model_preset"], "--model", config["model"]]  # fmt: skip
+                 "--preset", config["model_preset"], "--model.type", config["model"]]  # fmt: skip
         for option in ENCODER_OPTIONS:
             words += [f"--{option.replace('_', '-')}", str(config[option])]
         lines += _wrapped([*words, "--out", name])
