@@ -12,17 +12,24 @@ computed from the files under the folder, so it is rebuilt byte for byte from th
 from __future__ import annotations
 
 import json
-import shlex
 from collections import defaultdict
 from pathlib import Path
+
+import numpy as np
 
 from ccdata.suites import SUITES
 from ccfit.io import atomic_write_text
 from ccfit.report.axes import axis_cells
+from ccfit.report.commands import (
+    frozen_encoders,
+    setup_commands,
+    sweep_commands,
+    sweep_grids,
+)
 from ccfit.report.orderings import ORDERINGS_MD, is_offline, ordering_rows
 from ccfit.report.plots import ordered_methods
 from ccfit.report.runs import Run
-from ccfit.run_files import SWEEP_JSON
+from ccfit.report.stats import iqm_interval
 
 PAGE = "README.md"
 NOTES = "NOTES.md"
@@ -72,13 +79,6 @@ def _settings(runs: list[Run]) -> tuple[str, str, str]:
     return obs, steps, str(config.get("preset"))
 
 
-def _grids(root: Path) -> dict[Path, dict]:
-    """Every published sweep folder under `root` -> the grid its sweep.json records, online
-    folders first."""
-    paths = sorted(root.rglob(SWEEP_JSON), key=lambda p: (p.parent.parent.name != "online", p))
-    return {p.parent: json.loads(p.read_text())["grid"] for p in paths}
-
-
 def _planned(grids: dict[Path, dict], runs: list[Run], backbone_model: str, suite: str
              ) -> dict[str, set[int]]:  # fmt: skip
     """method -> seeds the sweeps holding `runs` set out to run for this row."""
@@ -107,7 +107,7 @@ def _status(planned: dict[str, set[int]], done: dict[str, set[int]]) -> str:
 
 def headline_table(run_groups: dict, groups: dict, root: Path) -> list[str]:
     """The page's first table (see the module's docstring) and the notes under it."""
-    grids = _grids(root)
+    grids = sweep_grids(root)
     methods = ordered_methods(
         {k[2] for k in groups} | {m for g in grids.values() for m in g["methods"]}
     )
@@ -160,12 +160,6 @@ def headline_table(run_groups: dict, groups: dict, root: Path) -> list[str]:
     return lines
 
 
-def _frozen_encoders(run_groups: dict) -> set[str]:
-    return {str(r.config["encoder"]).removeprefix("frozen:")
-            for runs in run_groups.values() for r in runs
-            if str(r.config.get("encoder") or "").startswith("frozen:")}  # fmt: skip
-
-
 SEES_TASK_R2 = 0.5
 """Below this held-out R^2 on every goal and object coordinate, a probed encoder's latent is
 said not to hold them (its rows then measure what the arm alone tells)."""
@@ -177,7 +171,7 @@ def encoder_notes(run_groups: dict, root: Path) -> list[str]:
     lines = []
     for probe in sorted(root.glob("probe/*/probe.json")):
         found = json.loads(probe.read_text())
-        if found.get("encoder") not in _frozen_encoders(run_groups):
+        if found.get("encoder") not in frozen_encoders(run_groups):
             continue
         hand = [v for r in found["rows"] if r["position"] == "hand" for v in r["latent_r2"]]
         task = [v for r in found["rows"] if r["position"] != "hand" for v in r["latent_r2"]]
@@ -216,6 +210,47 @@ def paper_table(groups: dict) -> list[str]:
     return lines
 
 
+AGGREGATE_TEXT = (
+    "rliable's interquartile mean (IQM) of each method's per-seed BWT and FWT over the suites "
+    "it ran on the same seeds (seeds x suites, the middle half of the values), with its 95% "
+    "stratified-bootstrap CI: one number per method and backbone that one suite or one seed "
+    "cannot swing. Only where a method ran two suites or more on two seeds or more."
+)
+
+
+def aggregate_table(groups: dict) -> list[str]:
+    """The IQM of every online backbone's methods over suites (`AGGREGATE_TEXT`)."""
+    lines = ["| backbone | method | suites | seeds | IQM BWT [95% CI] | IQM FWT [95% CI] |",
+             "|---|---|---|---|---|---|"]  # fmt: skip
+    cells = defaultdict(dict)
+    for (backbone, suite, method, variant), g in groups.items():
+        if not backbone.endswith("-offline") and not variant:
+            cells[(backbone, method)][suite] = g
+    for (backbone, method), by_suite in sorted(cells.items(), key=lambda kv: (
+            kv[0][0], ordered_methods(METHOD_COLORS).index(kv[0][1])
+            if kv[0][1] in METHOD_COLORS else 99)):  # fmt: skip
+        defined = {s: g for s, g in by_suite.items()
+                   if all(v is not None for x in ("bwt", "fwt")
+                          for v in g[f"{x}_per_seed"].values())}  # fmt: skip
+        # the suites run on the most seeds, on the seeds they share (a 1-seed suite aside)
+        most = max((len(g["seeds"]) for g in defined.values()), default=0)
+        defined = {s: g for s, g in defined.items() if len(g["seeds"]) == most}
+        seeds = sorted(set.intersection(*(set(g["seeds"]) for g in defined.values()))
+                       if defined else ())  # fmt: skip
+        suites = [s for s in SUITES if s in defined]
+        if len(suites) < 2 or len(seeds) < 2:
+            continue
+        cell = []
+        for x in ("bwt", "fwt"):
+            scores = np.array([[defined[s][f"{x}_per_seed"][seed] for s in suites]
+                               for seed in seeds])  # fmt: skip
+            iqm = iqm_interval(scores)
+            cell.append(f"{_num(iqm.value)} [{_num(iqm.lo)}, {_num(iqm.hi)}]")
+        lines.append(f"| {backbone} | {method} | {', '.join(suites)} | {len(seeds)} | "
+                     f"{cell[0]} | {cell[1]} |")  # fmt: skip
+    return lines if len(lines) > 2 else []
+
+
 def orderings_summary(groups: dict) -> list[str]:
     """The online orderings' verdicts (the values and the offline rows: `orderings.md`)."""
     header = ("ordering", "backbone", "suite", "holds (seed-averaged curves)",
@@ -227,82 +262,12 @@ def orderings_summary(groups: dict) -> list[str]:
     return lines
 
 
-def _wrapped(words: list[str]) -> list[str]:
-    """A command over lines of about 92 characters, each new line at an option."""
-    chunks, line = [], words[0]
-    for word in map(shlex.quote, words[1:]):
-        if len(line) + len(word) > 92 and word.startswith("--"):
-            chunks.append(line + " \\")
-            line = "   "
-        line += " " + word
-    return chunks + [line]
-
-
-ENCODER_OPTIONS = ("steps", "batch_size", "lr", "decoder_channels", "augment_shift", "seed",
-                   "image_size")  # fmt: skip
-"""The settings of an encoder's sidecar (`encoder.json`) that `ccfit pretrain-encoder` takes."""
-
-
-def setup_commands(run_groups: dict, root: Path) -> list[str]:
-    """The datasets the published runs read (`ccdata generate`, its defaults) and the frozen
-    encoders they read, pretrained with the settings their probe folder's sidecar records."""
-    suites = {
-        r.config["suite"]
-        for runs in run_groups.values()
-        for r in runs
-        if r.config.get("resolved_seed_dataset") or r.config.get("resolved_dataset")
-    }
-    encoders = _frozen_encoders(run_groups)
-    lines = []
-    for name in sorted(encoders):
-        sidecar = root / "probe" / Path(name).stem / "encoder.json"
-        if not sidecar.is_file():
-            lines.append(f"# {name}: a frozen encoder whose settings are not published here")
-            continue
-        config = json.loads(sidecar.read_text())["config"]
-        suites |= set(config["suites"])
-        words = ["ccfit", "pretrain-encoder", "--suites", ",".join(config["suites"]),
-                 "--preset", config["model_preset"], "--model.type", config["model"]]  # fmt: skip
-        for option in ENCODER_OPTIONS:
-            words += [f"--{option.replace('_', '-')}", str(config[option])]
-        lines += _wrapped([*words, "--out", name])
-    generate = [f"ccdata generate --suite {s}" for s in SUITES if s in suites]
-    return generate + lines
-
-
-def sweep_commands(root: Path) -> list[str]:
-    """The `ccfit sweep` and `ccfit publish` commands that made every published sweep, from
-    the grid and run options each sweep.json records."""
-    lines, grids = [], _grids(root)
-    for folder, grid in grids.items():
-        rel = folder.relative_to(root)
-        args = ["--suites", ",".join(grid["suites"])]
-        if grid["models"]:
-            args += ["--models", ",".join(grid["models"])]
-        seeds = ",".join(map(str, grid["seeds"]))
-        args += ["--methods", ",".join(grid["methods"]), "--seeds", seeds,
-                 "--preset", grid["preset"]]  # fmt: skip
-        if grid["track"] != "online":
-            args += ["--track", grid["track"]]
-        args += [*grid["args"], "--out", f"../runs/results/{folder.name}"]
-        lines += _wrapped(["ccfit", "sweep", *args])
-        lines.append(f"ccfit publish ../runs/results/{folder.name} --out {root.name}/{rel} "
-                     f"--root {root.name}")  # fmt: skip
-    for folder in sorted(p.parent for p in root.rglob("report") if p.is_dir()):
-        if folder not in grids:
-            lines.append(f"# {folder.relative_to(root)}: published without its sweep's "
-                         "record; each run again: ccfit run --config_path RUN/config.json "
-                         "--out DIR")  # fmt: skip
-    return lines
-
-
 def plot_intervals(groups: dict, out: Path) -> Path:
     """rliable's interval plot of every online group: BWT and FWT with their 95% CIs."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
     from rliable import plot_utils
 
     suite_order = list(SUITES)
@@ -372,6 +337,7 @@ def _reports(root: Path) -> list[str]:
 
 
 def page_text(run_groups: dict, groups: dict, root: Path) -> str:
+    aggregate = aggregate_table(groups)
     lines = ["# Reference results", "", INTRO, ""]
     lines += headline_table(run_groups, groups, root) + encoder_notes(run_groups, root)
     lines += ["## Beside the paper", "", PAPER_TEXT, "", *paper_table(groups), ""]
@@ -379,6 +345,7 @@ def page_text(run_groups: dict, groups: dict, root: Path) -> str:
     lines += [
         "## Figures", "",
         f"![BWT and FWT with 95% CIs, every online group]({INTERVALS_PNG})", "",
+        *([AGGREGATE_TEXT, "", *aggregate, ""] if aggregate else []),
         "Each published folder's `report/` holds its tables (with Continual World's "
         "forgetting F), bars, every task's curves, and `stages.md`: each task's score stage "
         "by stage, every end-of-task score C_i with its standard error where its records "
