@@ -180,8 +180,8 @@ def test_with_compiled_hot_paths_the_reference_starts_after_the_first_task(tmp_p
     real_resolved, real_start = curriculum.resolved_config, curriculum.start_scratch
     seen = []
 
-    def resolved(cfg, suite, **kwargs):
-        return {**real_resolved(cfg, suite, **kwargs), "resolved_compile": ["loss"]}
+    def resolved(cfg, suite, *args, **kwargs):
+        return {**real_resolved(cfg, suite, *args, **kwargs), "resolved_compile": ["loss"]}
 
     def start(cfg, out):
         seen.append(sorted(p.name for p in (tmp_path / "run" / "tasks").glob("*")))
