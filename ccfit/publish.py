@@ -43,6 +43,7 @@ from ccfit.run_files import (
     METRICS_JSON,
     METRICS_JSONL,
     REFERENCE_DONE,
+    REPORT,
     SCRATCH,
     SWEEP_JSON,
 )
@@ -54,7 +55,6 @@ MAX_FILE_BYTES = 2_000_000
 """A published file larger than this is refused: results are for small files only."""
 TASK_RUN_FILES = (CONFIG, METRICS_JSONL, COST)
 """What a published single-task run keeps: all that `ccfit learnability` reads."""
-REPORT = "report"
 LEARNABILITY = "learnability"
 
 

@@ -31,6 +31,8 @@ SCRATCH = "scratch"
 """Beside a sweep's (or a lone curriculum's) runs: the from-scratch references, by key."""
 SWEEP_JSON = "sweep.json"
 """A sweep's record: its grid, its runs and their submissions."""
+REPORT = "report"
+"""Beside a sweep's runs (and in a folder `ccfit publish` wrote): the report over them."""
 
 ONLINE, OFFLINE = "online", "offline"
 """The curriculum tracks: learnt in the environment, or fitted on the dataset."""

@@ -223,8 +223,8 @@ VALID_SUITES = "Reach, Grasp, BinPnP, PnPBlock, DrawerPnP, PnPBoxClose or 'all'"
     (["--suites", "Nope"], f"unknown suite(s) ['Nope']; valid: {VALID_SUITES}"),
     (["--preset", "huge"], "unknown preset 'huge'; valid: smoke, cpu, paper"),
     (["--steps", "0"], "PretrainConfig.steps must be >= 1, got 0"),
-    (["--device", "tpu"], "PretrainConfig: device must be one of auto, cpu, cuda, cuda:N, got "
-                          "'tpu'"),
+    (["--device", "tpu"], "PretrainConfig: device must be 'auto', 'cpu', 'cuda' or 'cuda:N', "
+                          "got 'tpu'"),
     (["--out", "{home}/enc.pt"], "--out must end in .safetensors, got {home}/enc.pt"),
     (["--model", "dreamerv3"], "model 'dreamerv3' does not build the shared pixel encoder; "
                                "models that do: pwm, tdmpc2"),

@@ -105,3 +105,12 @@ def test_the_aggregate_is_rliables_iqm_over_the_suites_run_on_the_most_seeds():
     assert cells[:4] == ["tdmpc2", "ft", "Reach, Grasp", "3"]  # ER ran one suite: no row
     iqm = trim_mean([1.0, 2.0, 30.0, 4.0, 5.0, 6.0], 0.25)  # the middle half: 2, 4, 5, 6
     assert cells[4].startswith(f"{iqm:.2f} [")
+
+
+def test_a_folder_of_offline_runs_only_gets_its_page_without_a_figure(tmp_path):
+    copy = tmp_path / "results"
+    shutil.copytree(RESULTS / "offline" / "dreamerv3", copy / "offline" / "dreamerv3")
+    written = write_page(copy)
+    text = (copy / PAGE).read_text()
+    assert not (copy / "intervals.png").exists() and "intervals.png" not in text
+    assert "| Reach | dreamerv3 | state | offline |" in text and copy / PAGE in written

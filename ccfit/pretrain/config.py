@@ -13,7 +13,7 @@ from ccfit.config_base import ConfigError, Presets
 from ccfit.models import DEFAULT_MODEL
 from ccfit.models.encoders import EncoderSpec
 from ccfit.models.registry import model_class, model_names
-from ccfit.settings import DEVICE_NAME
+from ccfit.settings import check_device_name
 
 KIND = "ccfit-pretrained-encoder"
 """The sidecar's 'kind': an encoder made by this module."""
@@ -129,16 +129,13 @@ class PretrainConfig(Presets):
             (self.proprio_coef >= 0, "proprio_coef must be >= 0"),
             (self.augment_shift >= 0, "augment_shift must be >= 0"),
             (0.0 <= self.holdout < 1.0, "holdout must be in [0, 1)"),
-            (
-                isinstance(self.device, str) and DEVICE_NAME.fullmatch(self.device) is not None,
-                f"device must be one of auto, cpu, cuda, cuda:N, got {self.device!r}",
-            ),
             (self.torch_threads >= 0, "torch_threads must be >= 0"),
             (self.seed >= 0, "seed must be >= 0"),
         ]
         for ok, msg in checks:
             if not ok:
                 raise InputError(f"PretrainConfig: {msg}")
+        check_device_name(self.device, "PretrainConfig: device")
         self.encoder_config()  # unknown preset or bad image size -> InputError
 
     def encoder_config(self) -> EncoderSpec:

@@ -9,7 +9,12 @@ import shlex
 from pathlib import Path
 
 from ccdata.suites import SUITES
-from ccfit.run_files import SWEEP_JSON
+from ccfit.run_files import REPORT, SWEEP_JSON
+
+
+def published_folders(root: Path) -> list[Path]:
+    """The published folders under `root`: those holding a report."""
+    return sorted(p.parent for p in root.rglob(REPORT) if p.is_dir())
 
 
 def sweep_grids(root: Path) -> dict[Path, dict]:
@@ -87,7 +92,7 @@ def sweep_commands(root: Path) -> list[str]:
         lines += _wrapped(["ccfit", "sweep", *args])
         lines.append(f"ccfit publish ../runs/results/{folder.name} --out {root.name}/{rel} "
                      f"--root {root.name}")  # fmt: skip
-    for folder in sorted(p.parent for p in root.rglob("report") if p.is_dir()):
+    for folder in published_folders(root):
         if folder not in grids:
             lines.append(f"# {folder.relative_to(root)}: published without its sweep's "
                          "record; each run again: ccfit run --config_path RUN/config.json "

@@ -20,16 +20,19 @@ import numpy as np
 from ccdata.suites import SUITES
 from ccfit.io import atomic_write_text
 from ccfit.report.axes import axis_cells
+from ccfit.report.build import grouped, write_overview
 from ccfit.report.commands import (
     frozen_encoders,
+    published_folders,
     setup_commands,
     sweep_commands,
     sweep_grids,
 )
 from ccfit.report.orderings import ORDERINGS_MD, is_offline, ordering_rows
-from ccfit.report.plots import ordered_methods
+from ccfit.report.plots import method_rank, ordered_methods
 from ccfit.report.runs import Run
 from ccfit.report.stats import iqm_interval
+from ccfit.run_files import REPORT
 
 PAGE = "README.md"
 NOTES = "NOTES.md"
@@ -60,9 +63,9 @@ def _interval(g: dict, name: str) -> str:
     if g[name] is None:
         return "n/a"
     lo, hi = g[f"{name}_lo"], g[f"{name}_hi"]
-    if len(g["seeds"]) == 1:
+    if len(g["seeds"]) == 1 or lo is None:  # one seed, or a resample leaves it undefined
         return _num(g[name])
-    return f"{_num(g[name])} [{_num(lo)}, {_num(hi)}]" if lo is not None else f"{_num(g[name])}"
+    return f"{_num(g[name])} [{_num(lo)}, {_num(hi)}]"
 
 
 def _settings(runs: list[Run]) -> tuple[str, str, str]:
@@ -226,9 +229,9 @@ def aggregate_table(groups: dict) -> list[str]:
     for (backbone, suite, method, variant), g in groups.items():
         if not backbone.endswith("-offline") and not variant:
             cells[(backbone, method)][suite] = g
-    for (backbone, method), by_suite in sorted(cells.items(), key=lambda kv: (
-            kv[0][0], ordered_methods(METHOD_COLORS).index(kv[0][1])
-            if kv[0][1] in METHOD_COLORS else 99)):  # fmt: skip
+    for (backbone, method), by_suite in sorted(
+        cells.items(), key=lambda kv: (kv[0][0], method_rank(kv[0][1]))
+    ):
         defined = {s: g for s, g in by_suite.items()
                    if all(v is not None for x in ("bwt", "fwt")
                           for v in g[f"{x}_per_seed"].values())}  # fmt: skip
@@ -262,8 +265,9 @@ def orderings_summary(groups: dict) -> list[str]:
     return lines
 
 
-def plot_intervals(groups: dict, out: Path) -> Path:
-    """rliable's interval plot of every online group: BWT and FWT with their 95% CIs."""
+def plot_intervals(groups: dict, out: Path) -> Path | None:
+    """rliable's interval plot of every online group: BWT and FWT with their 95% CIs; None
+    (nothing drawn) without an online group."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -273,8 +277,9 @@ def plot_intervals(groups: dict, out: Path) -> Path:
     suite_order = list(SUITES)
     online = sorted(((k, g) for k, g in groups.items() if not k[0].endswith("-offline")),
                     key=lambda kg: (suite_order.index(kg[0][1]), kg[0][0], kg[0][3],
-                                    ordered_methods(METHOD_COLORS).index(kg[0][2])
-                                    if kg[0][2] in METHOD_COLORS else 99))  # fmt: skip
+                                    method_rank(kg[0][2])))  # fmt: skip
+    if not online:
+        return None
     names, points, intervals, colors = [], {}, {}, {}
     for (backbone, suite, method, variant), g in online:
         name = f"{suite} {backbone} {method}" + (f" [{variant}]" if variant else "")
@@ -332,11 +337,12 @@ REPRODUCE_TEXT = (
 
 
 def _reports(root: Path) -> list[str]:
-    folders = sorted(p.parent for p in root.rglob("report") if p.is_dir())
-    return [f"[{f.relative_to(root)}]({f.relative_to(root)}/report/)" for f in folders]
+    folders = [f.relative_to(root) for f in published_folders(root)]
+    return [f"[{f}]({f}/{REPORT}/)" for f in folders]
 
 
-def page_text(run_groups: dict, groups: dict, root: Path) -> str:
+def page_text(run_groups: dict, groups: dict, root: Path, figure: bool = True) -> str:
+    """The page (module docstring); `figure`: whether `INTERVALS_PNG` was drawn beside it."""
     aggregate = aggregate_table(groups)
     lines = ["# Reference results", "", INTRO, ""]
     lines += headline_table(run_groups, groups, root) + encoder_notes(run_groups, root)
@@ -344,7 +350,8 @@ def page_text(run_groups: dict, groups: dict, root: Path) -> str:
     lines += ["## The paper's orderings", "", ORDERINGS_TEXT, "", *orderings_summary(groups), ""]
     lines += [
         "## Figures", "",
-        f"![BWT and FWT with 95% CIs, every online group]({INTERVALS_PNG})", "",
+        *([f"![BWT and FWT with 95% CIs, every online group]({INTERVALS_PNG})", ""]
+          if figure else []),
         *([AGGREGATE_TEXT, "", *aggregate, ""] if aggregate else []),
         "Each published folder's `report/` holds its tables (with Continual World's "
         "forgetting F), bars, every task's curves, and `stages.md`: each task's score stage "
@@ -370,11 +377,9 @@ def page_text(run_groups: dict, groups: dict, root: Path) -> str:
 def write_page(root: Path) -> list[Path]:
     """The results page over every finished run under `root`, with the overview it links to
     (`orderings.md`, `axes.md`, `cost.md`) and the interval plot. Returns the files written."""
-    from ccfit.report.build import grouped, write_overview
-
     run_groups, groups = grouped([root])
     written = write_overview(run_groups, groups, root)
-    written.append(plot_intervals(groups, root))
+    figure = plot_intervals(groups, root)
     path = root / PAGE
-    atomic_write_text(path, page_text(run_groups, groups, root))
-    return [*written, path]
+    atomic_write_text(path, page_text(run_groups, groups, root, figure is not None))
+    return [*written, *([figure] if figure else []), path]

@@ -47,6 +47,11 @@ METHOD_ORDER = ("ft", "er", "ewc", "packnet", "experts")
 """Column order of methods in tables and plots (others follow, sorted)."""
 
 
+def method_rank(method: str) -> int:
+    """Where `method` sorts among the methods (`METHOD_ORDER`; others after them)."""
+    return METHOD_ORDER.index(method) if method in METHOD_ORDER else len(METHOD_ORDER)
+
+
 def ordered_methods(methods) -> list[str]:
     """`methods` in `METHOD_ORDER`, others after it, sorted."""
     present = set(methods)

@@ -57,6 +57,8 @@ def _seeded_bootstrap() -> Iterator[np.random.RandomState]:
 
 
 def _estimate(scores, func: Callable, reps: int) -> tuple[float, float, float]:
+    """rliable's point estimate and percentile CI of `func` over `scores`: a (seeds x tasks)
+    matrix (stratified bootstrap), or a tuple of them (each resampled on its own)."""
     from rliable import library
 
     with _seeded_bootstrap() as random_state:
@@ -106,7 +108,7 @@ def curve_interval(seeds: int, metric: Callable[[tuple[int, ...]], float | None]
 
 @functools.cache
 def _improvement(better: tuple[float, ...], worse: tuple[float, ...]) -> Interval:
-    from rliable import library, metrics
+    from rliable import metrics
 
     @functools.cache
     def of_multisets(x: tuple[float, ...], y: tuple[float, ...]) -> float:
@@ -120,13 +122,7 @@ def _improvement(better: tuple[float, ...], worse: tuple[float, ...]) -> Interva
 
     x = np.asarray(better, dtype=float).reshape(-1, 1)
     y = np.asarray(worse, dtype=float).reshape(-1, 1)
-    with _seeded_bootstrap() as random_state:
-        point, ci = library.get_interval_estimates(
-            {"x,y": (x, y)}, of_sample, reps=BOOTSTRAP_REPS,
-            confidence_interval_size=CONFIDENCE, random_state=random_state,
-        )  # fmt: skip
-    lo, hi = np.asarray(ci["x,y"], dtype=float).reshape(2)
-    return Interval(float(point["x,y"]), float(lo), float(hi))
+    return Interval(*_estimate((x, y), of_sample, BOOTSTRAP_REPS))
 
 
 def probability_of_improvement(x: Sequence[float], y: Sequence[float], lower_is_better: bool

@@ -37,7 +37,6 @@ from ccfit.run_files import (
 )
 
 SWEEP_VERSION = 1
-REPORT = "report"
 STATUS_JSON = "status.json"
 
 GRID_FLAGS = ("suite", "seed", "model.type", "method.type", "preset")

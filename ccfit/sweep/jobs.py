@@ -30,9 +30,9 @@ from ccfit.run_files import (
     OFFLINE_STATE,
     ONLINE_STATE,
     REFERENCE_DONE,
+    REPORT,
 )
 from ccfit.sweep.grid import (
-    REPORT,
     STATUS_JSON,
     Sweep,
     import_plugins,

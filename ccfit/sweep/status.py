@@ -18,7 +18,8 @@ from ccdata.slurm import check_slurm, job_states
 from ccfit.config_base import suite_tasks
 from ccfit.report import SUMMARY_JSON
 from ccfit.report.cost import run_cost
-from ccfit.sweep.grid import REPORT, STATUS_JSON, Sweep, load_sweep
+from ccfit.run_files import REPORT
+from ccfit.sweep.grid import STATUS_JSON, Sweep, load_sweep
 from ccfit.sweep.jobs import read_report_status
 from ccfit.train.records import METRICS
 
