@@ -21,7 +21,14 @@ from draccus.cfgparsing import parse_string
 from ccdata.errors import InputError
 from ccfit.config import BaseRunConfig, TrainConfig
 from ccfit.config_argv import HELP, asks_for_help, missing_value, read_argv
-from ccfit.config_base import DEFAULTS, PRESETS, ChoiceConfig, ConfigError, check
+from ccfit.config_base import (
+    DEFAULTS,
+    LEGACY_VALUES,
+    PRESETS,
+    ChoiceConfig,
+    ConfigError,
+    check,
+)
 from ccfit.continual.base import method_config_class
 from ccfit.models import DEFAULT_MODEL
 from ccfit.models.registry import config_class, model_names
@@ -159,8 +166,35 @@ def _saved_fields(cls: type, path: Path) -> dict:
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ConfigError(f"{path} is not a JSON config: {e}") from None
     check(isinstance(saved, dict), f"{path} is not a JSON config: not an object")
-    names = {f.name for f in dataclasses.fields(cls)}
-    return {k: v for k, v in saved.items() if k in names}
+    fields = {k: v for k, v in saved.items() if k in _field_names(cls)}
+    return with_legacy_values(cls, fields) if RUN_RECORD in saved else fields
+
+
+RUN_RECORD = "resolved_device"
+"""A config.json key that only a run writes: a file holding it is a run's record, not a config
+a user wrote."""
+
+
+def with_legacy_values(cls: type, fields: dict) -> dict:
+    """A run's recorded settings (`fields`, `cls`'s) with each `LEGACY_VALUES` setting the
+    record leaves out at its legacy value: a run records every setting it has, so one it leaves
+    out is newer than the run, which ran as that value says (not as today's preset would)."""
+    hints = typing.get_type_hints(cls)
+    out = copy.deepcopy(fields)
+    for path, value in LEGACY_VALUES.items():
+        section, _, leaf = path.rpartition(".")
+        if not section or not isinstance(out.get(section), dict):
+            continue  # a top-level record (not a setting), or a section the file leaves out
+        kind = out[section].get("type")
+        owner = {"model": config_class, "method": method_config_class}.get(section)
+        owner_cls = owner(kind) if owner and kind else hints.get(section)
+        if dataclasses.is_dataclass(owner_cls) and leaf in _field_names(owner_cls):
+            out[section].setdefault(leaf, value)
+    return out
+
+
+def _field_names(cls: type) -> set[str]:
+    return {f.name for f in dataclasses.fields(cls)}
 
 
 def _preset_sections(cls: type, preset: str) -> dict[str, dict]:

@@ -221,3 +221,28 @@ def test_pretraining_takes_the_device_and_threads_under_the_same_names():
     execution = resolve_execution(PretrainConfig(device="cpu", torch_threads=2,
                                                  model_preset="smoke"))  # fmt: skip
     assert execution == Execution(torch.device("cpu"), torch_threads=2)
+
+
+def test_a_run_record_reads_back_what_it_left_out_at_its_legacy_value(tmp_path):
+    """A setting newer than a run is missing from its config.json, and the run ran as its
+    legacy value says: reading the record back gives that value, not today's preset default
+    (`train.end_eval_episodes`: none before, 40 at `cpu` now), and only for settings the
+    section's type has (DreamerV3's cloning weight, not TD-MPC2's). A config a user wrote, with
+    no run's records in it, takes the preset's default."""
+    fresh = resolve(CurriculumConfig, {"suite": "Reach", "preset": "cpu"})
+    assert fresh.train.end_eval_episodes == 40
+    for model, legacy_model_field in (("tdmpc2", None), ("dreamerv3", "demo_bc_coef")):
+        cfg = resolve(CurriculumConfig, {"suite": "Reach", "preset": "cpu",
+                                         "model": {"type": model}})  # fmt: skip
+        record = {**cfg.to_dict(), "resolved_device": "cpu"}
+        del record["train"]["end_eval_episodes"]
+        if legacy_model_field:
+            del record["model"][legacy_model_field]
+        (tmp_path / "config.json").write_text(json.dumps(record))
+        back = saved_config(CurriculumConfig, tmp_path)
+        assert back.train.end_eval_episodes is None
+        if legacy_model_field:
+            assert getattr(back.model, legacy_model_field) == 0.0
+        del record["resolved_device"]  # the same settings, as a user would write them
+        (tmp_path / "config.json").write_text(json.dumps(record))
+        assert saved_config(CurriculumConfig, tmp_path).train.end_eval_episodes == 40
