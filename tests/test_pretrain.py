@@ -11,7 +11,7 @@ import torch
 
 from ccfit.config_base import ENCODER_RECORD, ConfigError
 from ccfit.pretrain import PretrainConfig, add_pretrain_parser, config_from_args, pretrain_encoder
-from ccfit.pretrain.data import episode_arrays, load_oracle_frames, split_episodes
+from ccfit.pretrain.data import episode_arrays, load_frames, split_episodes
 
 SIZE = 32
 STEPS = 40
@@ -89,6 +89,22 @@ def test_loss_falls_split_and_sidecar(reach_root, tmp_path):
     assert again == side["metrics"] and out.stat().st_mtime_ns == mtime
     with pytest.raises(ValueError, match="other settings"):
         pretrain_encoder(make_config(reach_root, steps=STEPS + 1), out, progress=False)
+
+
+def test_foreground_weighting_trains_and_reports_the_foreground(reach_root, tmp_path):
+    """With `foreground_weight` the loss still falls, the sidecar records the foreground's own
+    reconstruction error (it is reported for every run) and the settings; a policy the dataset
+    lacks is one line naming the command that generates it."""
+    out = tmp_path / "enc.safetensors"
+    metrics = pretrain_encoder(make_config(reach_root, foreground_weight=10.0), out,
+                               progress=False)  # fmt: skip
+    side = json.loads(out.with_suffix(".json").read_text())
+    fg, init = metrics["heldout"]["foreground"], metrics["heldout_initial"]["foreground"]
+    assert 0 < fg["fraction"] < 1 and fg["mse"] < init["mse"]
+    assert side["identity"]["foreground_weight"] == 10.0
+    assert "foreground_weight" in side["objective"]
+    with pytest.raises(ValueError, match=r"no random episodes .*--explore-episodes"):
+        load_frames(make_config(reach_root, policies="oracle,random"))
 
 
 def test_resume_equals_uninterrupted_and_frozen_round_trip(reach_root, tmp_path):
@@ -211,7 +227,7 @@ def test_missing_datasets_name_the_command(reach_root, tmp_path):
             pretrain_encoder(default, tmp_path / "enc.safetensors", progress=False)
     # a dataset at another image size is refused with the fix
     with pytest.raises(ValueError, match="--image-size 64"):
-        load_oracle_frames(make_config(reach_root, image_size=64))
+        load_frames(make_config(reach_root, image_size=64))
 
 
 VALID_SUITES = "Reach, Grasp, BinPnP, PnPBlock, DrawerPnP, PnPBoxClose or 'all'"
@@ -288,7 +304,7 @@ def test_shared_task_counted_once(reach_root, tmp_path):
     meta = json.loads(meta_path.read_text())
     meta_path.write_text(json.dumps({**meta, "suite": "Grasp"}))
     with pytest.raises(ValueError, match="holds suite 'Grasp', not 'BinPnP'"):
-        load_oracle_frames(
+        load_frames(
             make_config(reach_root, suites="BinPnP", dataset_roots={"BinPnP": str(later)})
         )
     config = make_config(
@@ -296,7 +312,7 @@ def test_shared_task_counted_once(reach_root, tmp_path):
         suites="Reach,Grasp",
         dataset_roots={"Reach": str(reach_root), "Grasp": str(later)},
     )
-    store, manifest = load_oracle_frames(config)
+    store, manifest = load_frames(config)
     assert len(store.episodes) == 4 and {e["suite"] for e in store.episodes} == {"Reach"}
     assert [m["suite"] for m in manifest] == ["Reach", "Grasp"]
     assert manifest[1]["oracle_episodes"] == {}
@@ -319,7 +335,7 @@ def test_shared_pnp_cube_read_once(tmp_path):
         generate(GenerateConfig(suite=suite, episodes=1, explore_episodes=0, image_size=SIZE,
                                 max_steps=2, root=roots[suite]), progress=False)  # fmt: skip
     config = make_config(tmp_path, suites="DrawerPnP,Grasp", dataset_roots=roots)
-    store, manifest = load_oracle_frames(config)
+    store, manifest = load_frames(config)
     tasks = [(e["suite"], e["task_id"]) for e in store.episodes]
     assert sorted(tasks) == sorted([("Grasp", "pick-cube"), ("Grasp", "place-cube"),
                                     ("Grasp", "pnp-cube"), ("DrawerPnP", "drawer-open"),

@@ -23,10 +23,15 @@ _NOT_IDENTITY = ("device", "torch_threads", "checkpoint_interval", "log_interval
 """Config fields that may change between a run and its resumption (they do not change what is
 learnt, up to floating-point differences across devices)."""
 
+_LEGACY = {"policies": ["oracle"], "foreground_weight": 0.0}
+"""Settings added after encoders were made, at the value that reproduces those encoders."""
+
 OBJECTIVE = (
     "MSE(image) + proprio_coef * MSE(proprio); image MSE over the 9 stacked channels on the "
-    "[0, 1] scale (uint8 / 255); proprio MSE on the proprio standardised with the training "
-    "frames' mean and std (the encoder reads the raw proprio)"
+    "[0, 1] scale (uint8 / 255), each camera pixel's error weighted 1 + foreground_weight where "
+    "it differs from its suite's background by more than foreground_threshold (and divided by "
+    "the weights' sum); proprio MSE on the proprio standardised with the training frames' mean "
+    "and std (the encoder reads the raw proprio)"
 )
 
 
@@ -89,7 +94,22 @@ class PretrainConfig(Presets):
     """Fraction of each task's episodes held out for evaluation (at least one episode overall
     when there are two or more)."""
     frame_stride: int = 1
-    """Keep every `frame_stride`-th frame of each episode (memory: ~37 KB per 64 px frame)."""
+    """Keep every `frame_stride`-th frame of each oracle episode (memory: ~37 KB per 64 px
+    frame)."""
+    policies: tuple[str, ...] = ("oracle",)
+    """The policies whose episodes are read (names as the datasets' meta holds them: 'oracle',
+    'noisy-oracle', 'random'). The exploration policies' episodes put the hand where an
+    oracle's never goes, away from the goal and objects, and are 250 frames long."""
+    explore_frame_stride: int = 5
+    """Keep every this-many-th frame of the other policies' episodes (their hand moves slowly:
+    neighbouring frames are nearly the same image)."""
+    foreground_weight: float = 0.0
+    """Extra weight of a reconstruction error on a foreground pixel (one that differs from its
+    suite's static background, `ccfit.pretrain.foreground`): each such pixel counts 1 +
+    this. 0: plain MSE over the frame."""
+    foreground_threshold: float = 0.08
+    """A pixel is foreground where a colour channel differs from the background by more than
+    this, on the [0, 1] scale."""
     eval_batch_size: int = 256
     """Frames per forward pass in evaluation."""
     checkpoint_interval: int = 1_000
@@ -120,13 +140,22 @@ class PretrainConfig(Presets):
         extra = [s for s in self.dataset_roots if s not in SUITES]
         if extra:
             raise InputError(f"dataset_roots has unknown suite(s) {extra}; valid: {list(SUITES)}")
+        if isinstance(self.policies, str):  # a comma list, as on the command line
+            self.policies = [p.strip() for p in self.policies.split(",") if p.strip()]
+        self.policies = tuple(self.policies)
+        if "oracle" not in self.policies or len(set(self.policies)) != len(self.policies):
+            raise InputError(f"PretrainConfig.policies must hold 'oracle' once, got "
+                             f"{list(self.policies)}")  # fmt: skip
         for name in ("steps", "batch_size", "decoder_channels", "frame_stride",
-                     "eval_batch_size", "checkpoint_interval", "log_interval"):  # fmt: skip
+                     "explore_frame_stride", "eval_batch_size", "checkpoint_interval",
+                     "log_interval"):  # fmt: skip
             if int(getattr(self, name)) < 1:
                 raise InputError(f"PretrainConfig.{name} must be >= 1, got {getattr(self, name)}")
         checks = [
             (self.lr > 0 and self.grad_clip_norm > 0, "lr and grad_clip_norm must be > 0"),
             (self.proprio_coef >= 0, "proprio_coef must be >= 0"),
+            (self.foreground_weight >= 0, "foreground_weight must be >= 0"),
+            (0 < self.foreground_threshold < 1, "foreground_threshold must be in (0, 1)"),
             (self.augment_shift >= 0, "augment_shift must be >= 0"),
             (0.0 <= self.holdout < 1.0, "holdout must be in [0, 1)"),
             (self.torch_threads >= 0, "torch_threads must be >= 0"),
@@ -166,9 +195,18 @@ class PretrainConfig(Presets):
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["suites"] = list(self.suites)
+        d["policies"] = list(self.policies)
         d["dataset_roots"] = {s: str(p) for s, p in self.resolved_roots().items()}
         return d
 
     def identity(self) -> dict:
-        """The settings a checkpoint or finished output must share to be resumed or reused."""
-        return {k: v for k, v in self.to_dict().items() if k not in _NOT_IDENTITY}
+        """The settings a checkpoint or finished output must share to be resumed or reused;
+        a setting at its `_LEGACY` value is left out, so an output made before it existed is
+        still this run's."""
+        legacy = {k: v for k, v in _LEGACY.items() if self.to_dict()[k] == v}
+        if self.policies == ("oracle",):  # the exploration stride has nothing to stride
+            legacy["explore_frame_stride"] = self.explore_frame_stride
+        if self.foreground_weight == 0:
+            legacy["foreground_threshold"] = self.foreground_threshold
+        return {k: v for k, v in self.to_dict().items()
+                if k not in _NOT_IDENTITY and k not in legacy}  # fmt: skip

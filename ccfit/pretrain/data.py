@@ -1,4 +1,4 @@
-"""The pretraining data: oracle episodes of every task of the requested suites, read from the
+"""The pretraining data: the episodes of every task of the requested suites, read from the
 suites' LeRobot datasets, as frames that went through the same preprocessing as live
 observations (`ccfit.obs.obs_to_arrays`), and their seeded per-task train / held-out split.
 
@@ -10,7 +10,6 @@ makes it.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -92,12 +91,12 @@ def check_datasets(config: PretrainConfig) -> None:
         )
 
 
-def load_oracle_frames(config: PretrainConfig, progress: bool = False) -> tuple[FrameStore, list]:
-    """Oracle episodes of every task of the config's suites, each task once.
+def load_frames(config: PretrainConfig, progress: bool = False) -> tuple[FrameStore, list]:
+    """The episodes of `config.policies` of every task of the config's suites, each task once.
 
     Returns (frames, per-suite manifest entries)."""
     from ccdata.dataset_format import read_ccdata_metadata
-    from ccfit.data import dataset_meta, load_episodes
+    from ccfit.data import dataset_meta
 
     check_datasets(config)
     store = FrameStore([], [], [])
@@ -121,49 +120,58 @@ def load_oracle_frames(config: PretrainConfig, progress: bool = False) -> tuple[
             )
         task_ids = [t["id"] for t in meta["tasks"]]
         wanted = [t for t in task_ids if t not in taken]
-        if len(wanted) == len(task_ids):  # one pass over each video file
-            episodes = _load_oracle(load_episodes, root)
-        else:  # skip the shared task's frames rather than decode them twice
-            episodes = [e for t in wanted for e in _load_oracle(load_episodes, root, t)]
-        counts = {t: 0 for t in wanted}
-        for ep in episodes:
-            if ep["task_id"] not in counts:
-                continue
-            pix, prop = episode_arrays(ep, config.frame_stride)
-            store.pixels.append(pix)
-            store.proprio.append(prop)
-            store.episodes.append({
-                "suite": suite, "task_id": ep["task_id"],
-                "episode_index": int(ep["episode_index"]),
-                "episode_seed": int(np.asarray(ep["episode_seed"]).reshape(-1)[0]),
-                "frames": len(pix),
-            })  # fmt: skip
-            counts[ep["task_id"]] += 1
-        absent = [t for t, n in counts.items() if n == 0]
-        if absent:
-            raise InputError(
-                f"dataset {root} ({suite}) has no oracle episodes of {absent}; run "
-                f"`{_generate_command(suite, root)} --episodes 50`"
-            )
+        counts = {p: {t: 0 for t in wanted} for p in config.policies}
+        for policy in config.policies:
+            stride = config.frame_stride if policy == "oracle" else config.explore_frame_stride
+            for ep in _episodes(root, task_ids, wanted, policy):
+                pix, prop = episode_arrays(ep, stride)
+                store.pixels.append(pix)
+                store.proprio.append(prop)
+                store.episodes.append({
+                    "suite": suite, "task_id": ep["task_id"], "policy": policy,
+                    "episode_index": int(ep["episode_index"]),
+                    "episode_seed": int(np.asarray(ep["episode_seed"]).reshape(-1)[0]),
+                    "frames": len(pix),
+                })  # fmt: skip
+                counts[policy][ep["task_id"]] += 1
+            absent = [t for t, n in counts[policy].items() if n == 0]
+            if absent:
+                more = "--episodes 50" if policy == "oracle" else "--explore-episodes 25"
+                raise InputError(
+                    f"dataset {root} ({suite}) has no {policy} episodes of {absent}; run "
+                    f"`{_generate_command(suite, root)} {more}`"
+                )
         for t in wanted:
             taken[t] = suite
         manifest.append({
             "suite": suite, "root": str(root), **dataset_meta(root),
-            "render": meta.get("render"), "oracle_episodes": counts,
+            "render": meta.get("render"), "oracle_episodes": counts["oracle"],
+            **{f"{p}_episodes": counts[p] for p in config.policies if p != "oracle"},
             "shared_tasks_read_elsewhere": {t: taken[t] for t in task_ids if t not in wanted},
         })  # fmt: skip
         if progress:
-            print(f"{suite}: {sum(counts.values())} oracle episodes of {len(counts)} task(s)")
+            read = ", ".join(f"{sum(c.values())} {p}" for p, c in counts.items())
+            print(f"{suite}: {read} episodes of {len(wanted)} task(s)")
     return store, manifest
 
 
-def _load_oracle(load_episodes: Callable, root: Path, task_id: str | None = None) -> list:
-    try:
-        return load_episodes(root, task=task_id, policy="oracle")
-    except ValueError as err:
-        if "no episodes" in str(err):
-            return []  # reported below with the command that fixes it
-        raise
+def _episodes(root: Path, task_ids: list[str], wanted: list[str], policy: str) -> list[dict]:
+    """`policy`'s episodes of the tasks `wanted` of the dataset at `root`: one pass over each
+    video file when every task is wanted, else task by task (a shared task's frames are not
+    decoded twice)."""
+    from ccfit.data import load_episodes
+
+    def load(task_id: str | None) -> list[dict]:
+        try:
+            return load_episodes(root, task=task_id, policy=policy)
+        except ValueError as err:
+            if "no episodes" in str(err):
+                return []  # reported by the caller with the command that fixes it
+            raise
+
+    if len(wanted) == len(task_ids):
+        return [e for e in load(None) if e["task_id"] in wanted]
+    return [e for t in wanted for e in load(t)]
 
 
 def split_episodes(episodes: list[dict], fraction: float, seed: int) -> tuple[list, list]:

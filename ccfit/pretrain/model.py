@@ -13,6 +13,7 @@ from ccdata.render import CAMERAS
 from ccfit.models.encoders import EncoderSpec, build_encoder
 from ccfit.models.layers import mlp
 from ccfit.pretrain.data import FrameStore
+from ccfit.pretrain.foreground import Foreground
 
 # =============================================================================== model
 
@@ -91,30 +92,45 @@ def evaluate_reconstruction(
     proprio_norm: tuple[torch.Tensor, torch.Tensor],
     batch_size: int,
     device: torch.device,
+    foreground: Foreground | None = None,
 ) -> dict | None:
     """Per camera MSE and PSNR (dB, [0, 1] scale, reconstruction clamped to [0, 1]) over the
-    frames `pairs`, plus the image and standardised-proprio MSE of the objective."""
+    frames `pairs`, plus the image and standardised-proprio MSE of the objective; given
+    `foreground`, the MSE and PSNR over the foreground pixels alone and their share (the
+    goal and objects are there: a whole-frame PSNR can be high with them missing)."""
     if len(pairs) == 0:
         return None
     was_training = model.training
     model.train(False)
     sq = torch.zeros(len(CAMERAS), dtype=torch.float64)
     obj_img, obj_prop = 0.0, 0.0
+    fg_sq, fg_pixels = 0.0, 0
     mean, std = proprio_norm
     for start in range(0, len(pairs), batch_size):
-        pix, prop = store.batch(pairs[start : start + batch_size])
+        batch = pairs[start : start + batch_size]
+        pix, prop = store.batch(batch)
         pix, prop = torch.from_numpy(pix).to(device), torch.from_numpy(prop).to(device)
         target = pix.float() / 255.0
         rec, rec_prop = model(pix, prop)
         obj_img += F.mse_loss(rec, target, reduction="sum").item()
         obj_prop += F.mse_loss(rec_prop, (prop - mean) / std, reduction="sum").item()
-        err = (rec.clamp(0.0, 1.0) - target).square()
-        sq += err.unflatten(-3, (len(CAMERAS), 3)).sum(dim=(0, 2, 3, 4)).double().cpu()
+        err = (rec.clamp(0.0, 1.0) - target).square().unflatten(-3, (len(CAMERAS), 3))
+        sq += err.sum(dim=(0, 2, 3, 4)).double().cpu()
+        if foreground is not None:
+            on = (foreground.mask(pix, batch) > 0).unsqueeze(2)
+            fg_sq += float((err * on).sum())
+            fg_pixels += int(on.sum())
     model.train(was_training)
     n = len(pairs)
     s = model.decoder.image_size
     per_cam = (sq / (n * 3 * s * s)).tolist()
+    fg = {}
+    if foreground is not None:
+        fg_mse = fg_sq / max(3 * fg_pixels, 1)
+        fg = {"foreground": {"mse": fg_mse, "psnr_db": _psnr(fg_mse),
+                             "fraction": fg_pixels / (n * len(CAMERAS) * s * s)}}  # fmt: skip
     return {
+        **fg,
         "frames": n,
         "cameras": {
             c: {"mse": m, "psnr_db": _psnr(m)} for c, m in zip(CAMERAS, per_cam, strict=True)

@@ -28,7 +28,8 @@ from ccfit.pretrain.config import (
     OBJECTIVE,
     PretrainConfig,
 )
-from ccfit.pretrain.data import check_datasets, load_oracle_frames, split_episodes
+from ccfit.pretrain.data import check_datasets, load_frames, split_episodes
+from ccfit.pretrain.foreground import Foreground, weighted_image_loss
 from ccfit.pretrain.model import Autoencoder, evaluate_reconstruction
 from ccfit.settings import resolve_execution
 
@@ -112,7 +113,7 @@ def _pretrain(config: PretrainConfig, out: Path, device: torch.device, progress:
     identity = json.loads(json.dumps(config.identity()))
     enc_cfg = config.encoder_config()
 
-    store, suites_manifest = load_oracle_frames(config, progress=progress)
+    store, suites_manifest = load_frames(config, progress=progress)
     train_eps, held_eps = split_episodes(store.episodes, config.holdout, config.seed)
     train_pairs, held_pairs = store.index(train_eps), store.index(held_eps)
     if len(train_pairs) == 0:
@@ -133,6 +134,8 @@ def _pretrain(config: PretrainConfig, out: Path, device: torch.device, progress:
             len(train_pairs))[: max(len(held_pairs), config.eval_batch_size)])
     ]  # fmt: skip
 
+    foreground = Foreground(store.pixels, store.episodes, train_eps, config.seed,
+                            config.foreground_threshold, device)  # fmt: skip
     torch.manual_seed(config.seed)
     model = Autoencoder(enc_cfg, config.decoder_channels).to(device)
     model.train()
@@ -152,7 +155,7 @@ def _pretrain(config: PretrainConfig, out: Path, device: torch.device, progress:
         window = list(ck["window"])  # losses since the last history point
     else:
         initial = evaluate_reconstruction(
-            model, store, held_pairs, (mean, std), config.eval_batch_size, device
+            model, store, held_pairs, (mean, std), config.eval_batch_size, device, foreground
         )
 
     def save_checkpoint() -> None:
@@ -171,10 +174,18 @@ def _pretrain(config: PretrainConfig, out: Path, device: torch.device, progress:
             pairs = train_pairs[rng.integers(0, len(train_pairs), config.batch_size)]
             pix, prop = store.batch(pairs)
             pix, prop = torch.from_numpy(pix).to(device), torch.from_numpy(prop).to(device)
-            if config.augment_shift > 0:
+            mask = foreground.mask(pix, pairs) if config.foreground_weight > 0 else None
+            if config.augment_shift > 0 and mask is not None:  # the mask moves with its frame
+                shifted = random_shift(torch.cat([pix, mask], 1), config.augment_shift)
+                pix, mask = shifted[:, : pix.shape[1]], shifted[:, pix.shape[1] :]
+            elif config.augment_shift > 0:
                 pix = random_shift(pix, config.augment_shift)
             rec, rec_prop = model(pix, prop)
-            img_loss = F.mse_loss(rec, pix.float() / 255.0)
+            if mask is None:
+                img_loss = F.mse_loss(rec, pix.float() / 255.0)
+            else:
+                img_loss = weighted_image_loss(rec, pix.float() / 255.0, mask,
+                                               config.foreground_weight)  # fmt: skip
             prop_loss = F.mse_loss(rec_prop, (prop - mean) / std)
             loss = img_loss + config.proprio_coef * prop_loss
             opt.zero_grad(set_to_none=True)
@@ -201,10 +212,10 @@ def _pretrain(config: PretrainConfig, out: Path, device: torch.device, progress:
     seconds = time.perf_counter() - start
 
     heldout = evaluate_reconstruction(
-        model, store, held_pairs, (mean, std), config.eval_batch_size, device
+        model, store, held_pairs, (mean, std), config.eval_batch_size, device, foreground
     )
     train_eval = evaluate_reconstruction(
-        model, store, train_probe, (mean, std), config.eval_batch_size, device
+        model, store, train_probe, (mean, std), config.eval_batch_size, device, foreground
     )
     metrics = {
         "steps": step,
