@@ -304,9 +304,7 @@ def test_shared_task_counted_once(reach_root, tmp_path):
     meta = json.loads(meta_path.read_text())
     meta_path.write_text(json.dumps({**meta, "suite": "Grasp"}))
     with pytest.raises(ValueError, match="holds suite 'Grasp', not 'BinPnP'"):
-        load_frames(
-            make_config(reach_root, suites="BinPnP", dataset_roots={"BinPnP": str(later)})
-        )
+        load_frames(make_config(reach_root, suites="BinPnP", dataset_roots={"BinPnP": str(later)}))
     config = make_config(
         reach_root,
         suites="Reach,Grasp",
