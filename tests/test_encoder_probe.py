@@ -1,19 +1,31 @@
-"""`ccfit probe-encoder`: the ridge scorer on data of known content, and the command end to end
-on real renders through a (random) frozen encoder."""
+"""`ccfit probe-encoder`: the ridge scorer and the classifier on data of known content (planted
+squares in synthetic images), the task selection, and the command end to end on real renders
+through a (random) frozen encoder."""
 
 from __future__ import annotations
 
 import hashlib
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from ccfit.analysis.encoder_probe import probe_rows, ridge_r2
+from ccdata.errors import InputError
+from ccdata.suites import SUITES
+from ccfit.analysis.encoder_probe import (
+    classification_rows,
+    markdown,
+    probe_rows,
+    ridge_accuracy,
+    ridge_r2,
+    select_tasks,
+)
 from ccfit.cli import main
 
 SIZE = 32
+PUBLISHED = Path(__file__).resolve().parents[1] / "results" / "probe"
 
 
 def test_ridge_r2_scores_what_the_inputs_hold():
@@ -40,6 +52,87 @@ def test_probe_rows_score_each_varying_position_and_drop_the_rest():
     assert min(by["hand"]["latent_r2"]) > 0.99 and max(by["goal"]["latent_r2"]) < 0.1
     # The pixel probe's penalty (10x, for thousands of pooled inputs) shrinks two exact ones.
     assert min(by["goal"]["pixels_r2"]) > 0.85
+
+
+def planted_squares(n: int, classes: int = 1, side: int = 16, square: int = 3, seed: int = 0):
+    """`n` noisy RGB images (n, 3, side, side), each with a bright square at a random place in
+    the colour channel of its class (frame i is of class i % classes): (images, class, the
+    square's row and column)."""
+    rng = np.random.default_rng(seed)
+    label = np.arange(n) % classes
+    where = rng.integers(0, side - square + 1, (n, 2))
+    images = 0.05 * rng.normal(size=(n, 3, side, side))
+    for i, (row, col) in enumerate(where):
+        images[i, label[i], row : row + square, col : col + square] += 1.0
+    return images, label, where.astype(np.float64)
+
+
+def pooled(images: np.ndarray) -> np.ndarray:
+    """Images average-pooled 2x and flattened, as the pixel probe sees its frames."""
+    n, channels, side, _ = images.shape
+    return images.reshape(n, channels, side // 2, 2, side // 2, 2).mean((3, 5)).reshape(n, -1)
+
+
+def test_probe_recovers_a_planted_square_only_from_a_latent_that_keeps_the_image():
+    """A latent that mixes the (pooled) image into every unit gives the square's place; one
+    that ignores the image does not. The square's place is the 'object' of the state."""
+    images, _, where = planted_squares(300)
+    rng = np.random.default_rng(1)
+    mixing = np.linalg.qr(rng.normal(size=(3 * 64, 3 * 64)))[0]  # invertible: loses nothing
+    latents = {"keeps": pooled(images) @ mixing, "ignores": rng.normal(size=(300, 3 * 64))}
+    state = np.zeros((300, 39))
+    state[:, 4:6] = where  # its height never varies: z is left out
+    for name, latent in latents.items():
+        rows = probe_rows("t", {"latent": latent, "pixels": pooled(images), "state": state})
+        (row,) = rows
+        assert row["position"] == "object" and row["axes"] == "xy"
+        assert min(row["pixels_r2"]) > 0.9
+        if name == "keeps":
+            assert min(row["latent_r2"]) > 0.9, row
+        else:
+            assert max(row["latent_r2"]) < 0.1, row
+
+
+def test_classifier_tells_a_planted_colour_apart_only_from_a_latent_that_keeps_colour():
+    """Three classes whose square differs only in colour: the pooled colour image tells them
+    apart, its grey image (the channels summed) is at chance."""
+    images, label, _ = planted_squares(450, classes=3)
+    grey = images.sum(1, keepdims=True)
+    in_colour = ridge_accuracy([pooled(images[label == c]) for c in range(3)])
+    in_grey = ridge_accuracy([pooled(grey[label == c]) for c in range(3)])
+    assert in_colour > 0.95 and abs(in_grey - 1 / 3) < 0.1, (in_colour, in_grey)
+
+
+def test_classification_rows_cover_each_same_from_state_group_probed_twice_or_more():
+    """BinPnP's group probed on three of its four tasks is one 3-way row; PnPBlock's blue block
+    alone, and a task of no group, make none."""
+    images, label, _ = planted_squares(300, classes=3)
+    bins = ["bin-red-blue", "bin-yellow-blue", "bin-red-purple"]
+    data = {t: {"latent": pooled(images[label == c]), "pixels": pooled(images[label == c])}
+            for c, t in enumerate(bins)}  # fmt: skip
+    (row,) = classification_rows([*bins, "pnp-blue-block", "reach-xy"], data)
+    assert row["suite"] == "BinPnP" and row["tasks"] == bins and row["frames"] == 100
+    assert row["chance"] == pytest.approx(1 / 3)
+    assert row["latent_accuracy"] > 0.95 and row["pixels_accuracy"] > 0.95
+
+
+def test_select_tasks_takes_every_task_of_the_suites_and_the_tasks_named_once_each():
+    assert select_tasks("PnPBlock", "stack-blocks, reach-xy") == (
+        ["PnPBlock"], ["pnp-red-block", "pnp-blue-block", "stack-blocks", "reach-xy"])  # fmt: skip
+    suites, tasks = select_tasks("all", None)
+    assert suites == list(SUITES) and tasks.count("pnp-cube") == 1
+    assert set(tasks) == {t for s in SUITES.values() for t in s.task_ids}
+    assert select_tasks(None, "reach-xy") == ([], ["reach-xy"])
+    with pytest.raises(InputError, match="give --suites or --tasks"):
+        select_tasks(" ", None)
+
+
+def test_a_published_probe_reads_back_to_its_table():
+    """probe.json files published before the classification still give their probe.md."""
+    published = sorted(PUBLISHED.glob("*/probe.json"))
+    assert published
+    for path in published:
+        assert markdown(json.loads(path.read_text())) == (path.parent / "probe.md").read_text()
 
 
 @pytest.fixture
@@ -74,8 +167,31 @@ def test_probe_reports_the_positions_each_task_varies(encoder_path, tmp_path, ca
     assert table in capsys.readouterr().out and table.count("\n") == 2 + len(rows)
 
 
+def test_probe_tells_which_block_of_pnpblock_a_frame_shows(encoder_path, tmp_path, capsys):
+    """`--suites PnPBlock`: its three tasks' positions, and one classification of its two
+    blocks (one MDP from state) from the frames the positions were probed on."""
+    out = tmp_path / "probe"
+    assert main(["probe-encoder", str(encoder_path), "--suites", "PnPBlock", "--frames", "10",
+                 "--out", str(out)]) == 0  # fmt: skip
+    result = json.loads((out / "probe.json").read_text())
+    assert result["suites"] == ["PnPBlock"]
+    assert result["tasks"] == ["pnp-red-block", "pnp-blue-block", "stack-blocks"]
+    probed = {(r["task"], r["position"]) for r in result["rows"]}
+    assert {("pnp-red-block", "object"), ("stack-blocks", "object 2")} <= probed
+    (row,) = result["classification"]
+    assert row["suite"] == "PnPBlock" and row["tasks"] == ["pnp-red-block", "pnp-blue-block"]
+    assert row["frames"] == 10 and row["chance"] == 0.5
+    assert 0 <= row["latent_accuracy"] <= 1 and 0 <= row["pixels_accuracy"] <= 1
+    table = (out / "probe.md").read_text()
+    assert table in capsys.readouterr().out
+    assert "| PnPBlock | pnp-red-block, pnp-blue-block | 10 |" in table
+
+
 @pytest.mark.parametrize("args, message", [
     (["--tasks", "reach-qq"], "unknown task 'reach-qq'"),
+    (["--suites", "Reach,Nope"], "unknown suite 'Nope'"),
+    (["--suites", "Reach", "--tasks", "reach-qq"], "unknown task 'reach-qq'"),
+    ([], "give --suites or --tasks"),
     (["--tasks", "reach-xy", "--frames", "5"], "--frames must be at least 10"),
 ])  # fmt: skip
 def test_bad_input_is_one_line_and_exit_2(args, message, encoder_path, tmp_path, capsys):

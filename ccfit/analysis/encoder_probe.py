@@ -10,17 +10,31 @@ rest. The same probe from the frames themselves, average-pooled to a quarter of 
 says whether the quantity is visible at all: a quantity the pixels give and the latent does
 not is one the encoder dropped.
 
-    ccfit probe-encoder ../runs/encoders/encoder-cpu-s0.safetensors --tasks reach-xy \\
-        --frames 1500 --out ../runs/probe
+Tasks that are one MDP from state (a suite's `same_from_state` group: BinPnP's four bin
+colours, PnPBlock's two blocks) differ only in what the frames show, so for each such group
+with two or more tasks probed a linear classifier tells from the same frames which task a frame
+comes from: a frozen-encoder run sees those tasks differ only through its latent.
+
+A frame takes 0.06 s (reach-xy) to 0.17 s (pnp-cube) to collect, 0.11 s on average over the
+18 tasks of the six suites, measured on a 2-core CPU that ran other jobs (load ~6); there
+`--suites all` took 4.5 minutes end to end at 100 frames a task, and takes about 35 at the
+default 1000.
+
+    ccfit probe-encoder ../runs/encoders/encoder-cpu-s0.safetensors --suites all \\
+        --frames 1000 --out ../runs/probe
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from ccdata.errors import InputError
+from ccdata.suites import SUITES
+from ccdata.tasks import get_task
 from ccfit.io import atomic_write_json, atomic_write_text
 
 POSITIONS = {"hand": slice(0, 3), "object": slice(4, 7), "object 2": slice(11, 14),
@@ -52,12 +66,16 @@ def ridge_r2(x: np.ndarray, y: np.ndarray, ridge: float = RIDGE) -> list[float |
 
 def collect(encoder, task_id: str, frames: int, image_size: int, walk: int,
             seed: int) -> dict[str, np.ndarray]:  # fmt: skip
-    """(latent, pooled pixels, state) of `frames` frames of `task_id`, as the module says."""
-    from ccdata import make_env
+    """(latent, pooled pixels, state) of `frames` frames of `task_id`, as the module says.
+
+    Only the frame the walk ends on is rendered (`TaskEnv.render`: the images a rendering
+    env's observation holds, identical arrays): rendering all of the walk's ~15 steps made a
+    frame 2 to 6 times slower (0.4 s a frame on a busy 2-core CPU)."""
+    from ccdata.env import TaskEnv
     from ccfit.obs import obs_to_arrays
 
     rng = np.random.default_rng(seed)
-    env = make_env(task_id, render=True, image_size=image_size)
+    env = TaskEnv(task_id, image_size=image_size, render=False, render_mode="rgb_array")
     latents, pixels, states = [], [], []
     try:
         for i in range(frames):
@@ -68,7 +86,7 @@ def collect(encoder, task_id: str, frames: int, image_size: int, walk: int,
                 )
                 if terminated or truncated:
                     break
-            arrays = obs_to_arrays(obs, "pixels")
+            arrays = obs_to_arrays(camera_views(env) | obs, "pixels")
             with torch.no_grad():
                 z = encoder({k: torch.as_tensor(v)[None] for k, v in arrays.items()})
                 px = torch.as_tensor(arrays["pixels"])[None].float() / 255.0
@@ -79,6 +97,15 @@ def collect(encoder, task_id: str, frames: int, image_size: int, walk: int,
     finally:
         env.close()
     return {"latent": np.stack(latents), "pixels": np.stack(pixels), "state": np.stack(states)}
+
+
+def camera_views(env) -> dict[str, np.ndarray]:
+    """The images of `env`'s current frame keyed by camera, as a rendering env observes them
+    (`TaskEnv.render` gives them side by side in `CAMERAS` order)."""
+    from ccdata.render import CAMERAS
+
+    views = np.split(env.render(), len(CAMERAS), axis=1)
+    return dict(zip(CAMERAS, views, strict=True))
 
 
 def probe_rows(task_id: str, data: dict[str, np.ndarray]) -> list[dict]:
@@ -98,31 +125,101 @@ def probe_rows(task_id: str, data: dict[str, np.ndarray]) -> list[dict]:
     return rows
 
 
+def select_tasks(suites: str | None, tasks: str | None) -> tuple[list[str], list[str]]:
+    """(suites asked, tasks to probe) from comma lists as the command line gives them: every
+    task of the suites (`all`: every suite) in suite order, then the tasks named, each once.
+    InputError for an unknown name or a selection that names nothing."""
+    suite_names = [n.strip() for n in (suites or "").split(",") if n.strip()]
+    if [n.lower() for n in suite_names] == ["all"]:
+        suite_names = list(SUITES)
+    for name in suite_names:
+        if name not in SUITES:
+            raise InputError(f"unknown suite {name!r}; valid suites: {', '.join(SUITES)} or 'all'")
+    named = [get_task(t.strip()).id for t in (tasks or "").split(",") if t.strip()]
+    task_ids = [t for name in suite_names for t in SUITES[name].task_ids] + named
+    if not task_ids:
+        raise InputError("give --suites or --tasks (or both): they name no task")
+    return list(dict.fromkeys(suite_names)), list(dict.fromkeys(task_ids))
+
+
+def identity_groups(task_ids: list[str]) -> list[tuple[str, list[str]]]:
+    """(suite, probed tasks) of each suite's `same_from_state` group of which two or more
+    tasks are among `task_ids`; a group two suites share counts once."""
+    groups, seen = [], set()
+    for suite in SUITES.values():
+        for group in suite.same_from_state:
+            probed = [t for t in group if t in task_ids]
+            if len(probed) >= 2 and tuple(probed) not in seen:
+                seen.add(tuple(probed))
+                groups.append((suite.name, probed))
+    return groups
+
+
+def ridge_accuracy(per_class: list[np.ndarray], ridge: float = RIDGE) -> float:
+    """Held-out accuracy of a linear classifier telling apart the classes whose rows (frames)
+    are `per_class`: a ridge regression onto one-hot labels, argmax, fitted on the first
+    `TRAIN_FRACTION` of each class's rows (inputs standardised on those) and scored on the
+    rest. Splitting each class apart keeps every class in both splits; the closed-form fit does
+    not depend on the rows' order."""
+    cuts = [int(TRAIN_FRACTION * len(x)) for x in per_class]
+    train = np.concatenate([x[:k] for x, k in zip(per_class, cuts, strict=True)])
+    held = np.concatenate([x[k:] for x, k in zip(per_class, cuts, strict=True)])
+    labels = np.concatenate([np.full(k, c) for c, k in enumerate(cuts)])
+    held_labels = np.concatenate([np.full(len(x) - k, c) for c, (x, k)
+                                  in enumerate(zip(per_class, cuts, strict=True))])  # fmt: skip
+    mu, sd = train.mean(0), train.std(0) + 1e-6
+    a, b = (train - mu) / sd, (held - mu) / sd
+    onehot = np.eye(len(per_class))[labels]
+    share = onehot.mean(0)  # the intercept: each class's share of the training rows
+    w = np.linalg.solve(a.T @ a + ridge * np.eye(a.shape[1]), a.T @ (onehot - share))
+    return float(((b @ w + share).argmax(1) == held_labels).mean())
+
+
+def classification_rows(task_ids: list[str], data: dict[str, dict[str, np.ndarray]]) -> list[dict]:
+    """One row per `identity_groups` group: held-out accuracy of telling its tasks apart from
+    the latent and from the pooled pixels of their frames (`data[task]`), and chance."""
+    rows = []
+    for suite, group in identity_groups(task_ids):
+        latent = ridge_accuracy([data[t]["latent"] for t in group])
+        pixels = ridge_accuracy([data[t]["pixels"] for t in group], RIDGE * 10)  # as probe_rows
+        rows.append({"suite": suite, "tasks": group,
+                     "frames": min(len(data[t]["latent"]) for t in group),
+                     "latent_accuracy": latent, "pixels_accuracy": pixels,
+                     "chance": 1.0 / len(group)})  # fmt: skip
+    return rows
+
+
 def probe_encoder(path: str | Path, task_ids: list[str], frames: int = 1000, walk: int = 30,
-                  seed: int = 0) -> dict:  # fmt: skip
-    """Probe the frozen encoder at `path` on each task (module docstring)."""
-    from ccdata.errors import InputError
+                  seed: int = 0, suites: Sequence[str] = ()) -> dict:  # fmt: skip
+    """Probe the frozen encoder at `path` on each task (module docstring); `suites`: the
+    suites asked for, recorded."""
     from ccfit.models.encoders import load_frozen_encoder, weights_sha256
 
     try:
         encoder, spec = load_frozen_encoder(path)
     except ValueError as err:  # missing, foreign or mismatched file: the user's to fix
         raise InputError(str(err)) from None
-    rows = []
+    to_classify = {t for _, group in identity_groups(task_ids) for t in group}
+    rows, kept = [], {}
     for task_id in task_ids:
         data = collect(encoder, task_id, frames, int(spec["image_size"]), walk, seed)
         rows += probe_rows(task_id, data)
+        if task_id in to_classify:  # only these frames are needed again
+            kept[task_id] = data
     # The weights by name and content, not by where they lay on the machine that probed them.
     weights = Path(path)
     return {"encoder": weights.name,
             "encoder_sha256": weights_sha256(weights),
+            "suites": list(suites), "tasks": list(task_ids),
             "frames": frames, "walk": walk,
             "seed": seed, "ridge": RIDGE, "train_fraction": TRAIN_FRACTION, "pool": POOL,
-            "rows": rows}  # fmt: skip
+            "rows": rows, "classification": classification_rows(task_ids, kept)}  # fmt: skip
 
 
 def markdown(result: dict) -> str:
-    """The probe's table: R^2 per coordinate, latent against pixels."""
+    """The probe's tables: R^2 per coordinate, latent against pixels; then, where the probe
+    classified (an older probe.json has no `classification`), the accuracy of telling a
+    group's tasks apart."""
 
     def fmt(values: list[float]) -> str:
         return ", ".join(f"{v:.2f}" for v in values)
@@ -131,6 +228,13 @@ def markdown(result: dict) -> str:
              "|---|---|---|---|---|"]  # fmt: skip
     lines += [f"| {r['task']} | {r['position']} | {r['axes']} | {fmt(r['latent_r2'])} | "
               f"{fmt(r['pixels_r2'])} |" for r in result["rows"]]  # fmt: skip
+    classification = result.get("classification") or []
+    if classification:
+        lines += ["", "| suite | which task of | frames per task | from the latent | "
+                  "from the pixels | chance |", "|---|---|---|---|---|---|"]  # fmt: skip
+        lines += [f"| {c['suite']} | {', '.join(c['tasks'])} | {c['frames']} | "
+                  f"{c['latent_accuracy']:.2f} | {c['pixels_accuracy']:.2f} | {c['chance']:.2f} |"
+                  for c in classification]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
