@@ -63,13 +63,38 @@ def random_shift(x: torch.Tensor, pad: int) -> torch.Tensor:
     return x.gather(3, cols[:, None, None, :].expand(n, c, h, w))
 
 
+class SpatialSoftmax(nn.Module):
+    """(N, K, H, W) feature maps -> (N, 3K): each map's expected (x, y) in [-1, 1] under a
+    softmax over its pixels (one learned temperature), and its peak value (whether what it
+    looks for is in view at all). A small thing's position comes out as two numbers a linear
+    read-out gives back, where flattening a coarse map smears it over a few cells."""
+
+    def __init__(self, height: int, width: int) -> None:
+        super().__init__()
+        self.log_temperature = nn.Parameter(torch.zeros(()))
+        ys, xs = torch.meshgrid(torch.linspace(-1, 1, height), torch.linspace(-1, 1, width),
+                                indexing="ij")  # fmt: skip
+        self.register_buffer("grid", torch.stack([xs.flatten(), ys.flatten()], -1),
+                             persistent=False)  # fmt: skip
+
+    def forward(self, maps: torch.Tensor) -> torch.Tensor:
+        flat = maps.flatten(2)  # (N, K, HW)
+        attention = torch.softmax(flat / self.log_temperature.exp(), dim=-1)
+        where = attention @ self.grid  # (N, K, 2)
+        return torch.cat([where.flatten(1), flat.amax(-1)], dim=-1)
+
+
 class PixelEncoder(nn.Module):
     """Conv branch on obs['pixels'] (uint8, 9 x S x S) + MLP branch on obs['proprio'], fused.
 
     Convs as TD-MPC2's 64 px encoder (7/2, 5/2, 3/2, 3/1, ReLU between); the flattened size is
-    computed for any S >= 32. The conv features go through a NormedLinear to `enc_dim`, are
-    concatenated with the proprio branch's `enc_dim` features, and a fusion MLP maps them to
-    the SimNorm latent. Random shifts (`shift` px) are applied in training mode only.
+    computed for any S >= 32. With `keypoints` K > 0 the branch keeps the first conv's half
+    resolution instead (7/2, then 5/1 and 3/1 to K maps) and reads each map through a
+    `SpatialSoftmax`: the goal marker and the objects are a pixel or two at 64 px, which the
+    strided stack leaves out (docs/encoder.md). The image features go through a NormedLinear
+    to `enc_dim`, are concatenated with the proprio branch's `enc_dim` features, and a fusion
+    MLP maps them to the SimNorm latent. Random shifts (`shift` px) are applied in training
+    mode only.
     """
 
     def __init__(
@@ -82,21 +107,30 @@ class PixelEncoder(nn.Module):
         latent_dim: int,
         simnorm_dim: int,
         shift: int = 4,
+        keypoints: int = 0,
     ) -> None:
         super().__init__()
         if image_size < 32:
             raise ValueError(f"image_size must be >= 32, got {image_size}")
         self.image_size, self.proprio_dim, self.shift = image_size, proprio_dim, shift
         c = num_channels
-        # Unpadded, the stack needs S >= 40 (64 -> 29 -> 13 -> 6 -> 4); below that the last conv
-        # is padded so that 32 px still works (32 -> 13 -> 5 -> 2 -> 2).
-        last_pad = 0 if image_size >= 40 else 1
-        self.conv = nn.Sequential(
-            nn.Conv2d(9, c, 7, stride=2), nn.ReLU(),
-            nn.Conv2d(c, c, 5, stride=2), nn.ReLU(),
-            nn.Conv2d(c, c, 3, stride=2), nn.ReLU(),
-            nn.Conv2d(c, c, 3, stride=1, padding=last_pad), nn.Flatten(),
-        )  # fmt: skip
+        if keypoints > 0:
+            half = (image_size - 7) // 2 + 1  # the first conv's output side
+            self.conv = nn.Sequential(
+                nn.Conv2d(9, c, 7, stride=2), nn.ReLU(),
+                nn.Conv2d(c, c, 5, stride=1, padding=2), nn.ReLU(),
+                nn.Conv2d(c, keypoints, 3, stride=1, padding=1), SpatialSoftmax(half, half),
+            )  # fmt: skip
+        else:
+            # Unpadded, the stack needs S >= 40 (64 -> 29 -> 13 -> 6 -> 4); below that the last
+            # conv is padded so that 32 px still works (32 -> 13 -> 5 -> 2 -> 2).
+            last_pad = 0 if image_size >= 40 else 1
+            self.conv = nn.Sequential(
+                nn.Conv2d(9, c, 7, stride=2), nn.ReLU(),
+                nn.Conv2d(c, c, 5, stride=2), nn.ReLU(),
+                nn.Conv2d(c, c, 3, stride=2), nn.ReLU(),
+                nn.Conv2d(c, c, 3, stride=1, padding=last_pad), nn.Flatten(),
+            )  # fmt: skip
         with torch.no_grad():
             flat = self.conv(torch.zeros(1, 9, image_size, image_size)).shape[-1]
         self.conv_out = flat
@@ -150,12 +184,16 @@ class EncoderSpec:
     """SimNorm group size."""
     image_shift: int = 4
     """Random-shift augmentation pad in pixels (training mode only)."""
+    keypoints: int = 0
+    """Image features as this many keypoints (`SpatialSoftmax`: each feature map's expected
+    position and peak, at half the image's resolution); 0: TD-MPC2's strided conv stack,
+    flattened."""
 
     def __post_init__(self) -> None:
         if self.obs_mode not in ("state", "pixels"):
             raise ValueError(f"encoder obs_mode must be 'state' or 'pixels', got {self.obs_mode!r}")
         for f in dataclasses.fields(self)[1:]:
-            value, low = getattr(self, f.name), 0 if f.name == "image_shift" else 1
+            value, low = getattr(self, f.name), 0 if f.name in ("image_shift", "keypoints") else 1
             if type(value) is not int or value < low:
                 raise ValueError(f"encoder {f.name} must be an int >= {low}, got {value!r}")
         if self.latent_dim % self.simnorm_dim:
@@ -187,6 +225,7 @@ def build_encoder(cfg) -> nn.Module:
             cfg.latent_dim,
             cfg.simnorm_dim,
             cfg.image_shift,
+            cfg.keypoints,
         )
     raise ValueError(f"unknown obs_mode {cfg.obs_mode!r}; valid: state, pixels")
 

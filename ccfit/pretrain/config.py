@@ -23,7 +23,7 @@ _NOT_IDENTITY = ("device", "torch_threads", "checkpoint_interval", "log_interval
 """Config fields that may change between a run and its resumption (they do not change what is
 learnt, up to floating-point differences across devices)."""
 
-_LEGACY = {"policies": ["oracle"], "foreground_weight": 0.0}
+_LEGACY = {"policies": ["oracle"], "foreground_weight": 0.0, "keypoints": 0}
 """Settings added after encoders were made, at the value that reproduces those encoders."""
 
 OBJECTIVE = (
@@ -75,6 +75,10 @@ class PretrainConfig(Presets):
     `ccdata.settings.suite_dataset_root(suite)` (LeRobot's cache for `ccdata/<Suite>`)."""
     image_size: int = 64
     """Camera image side; every dataset must have been generated at this size."""
+    keypoints: int = 0
+    """The encoder's image features as this many spatial-softmax keypoints (the model
+    config's `keypoints`, recorded in the encoder file; a run through it takes it from
+    there); 0: the model preset's own image features."""
     steps: int = 20_000
     """Gradient steps."""
     batch_size: int = 64
@@ -155,6 +159,7 @@ class PretrainConfig(Presets):
             (self.lr > 0 and self.grad_clip_norm > 0, "lr and grad_clip_norm must be > 0"),
             (self.proprio_coef >= 0, "proprio_coef must be >= 0"),
             (self.foreground_weight >= 0, "foreground_weight must be >= 0"),
+            (self.keypoints >= 0, "keypoints must be >= 0"),
             (0 < self.foreground_threshold < 1, "foreground_threshold must be in (0, 1)"),
             (self.augment_shift >= 0, "augment_shift must be >= 0"),
             (0.0 <= self.holdout < 1.0, "holdout must be in [0, 1)"),
@@ -178,8 +183,9 @@ class PretrainConfig(Presets):
             offering = [n for n in model_names() if "pixel-encoder" in model_class(n).capabilities]
             raise InputError(f"model {self.model!r} does not build the shared pixel encoder; "
                              f"models that do: {', '.join(offering)}")  # fmt: skip
+        keypoints = {"keypoints": self.keypoints} if self.keypoints else {}
         cfg = cls.config_class.preset(self.model_preset, obs_mode="pixels",
-                                      image_size=self.image_size)  # fmt: skip
+                                      image_size=self.image_size, **keypoints)  # fmt: skip
         return EncoderSpec.of(cfg)
 
     def resolved_roots(self) -> dict[str, Path]:

@@ -121,7 +121,7 @@ def _pretrain(config: PretrainConfig, out: Path, device: torch.device, progress:
     if progress:
         gb = sum(p.nbytes for p in store.pixels) / 1e9
         print(
-            f"{len(store.episodes)} oracle episodes ({len(held_eps)} held out), "
+            f"{len(store.episodes)} episodes ({len(held_eps)} held out), "
             f"{len(train_pairs)} training and {len(held_pairs)} held-out frames ({gb:.2f} GB)"
         )
     all_prop = np.concatenate([store.proprio[e] for e in train_eps])

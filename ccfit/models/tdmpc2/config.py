@@ -111,6 +111,10 @@ class TDMPC2Config(ModelConfig):
     image_shift: int = 4
     """Random-shift augmentation pad in pixels, training mode only (0 disables). DrQ's 4; the
     official TD-MPC2 pads 3 and shifts when acting too."""
+    keypoints: int = 0
+    """Pixel mode: image features as this many spatial-softmax keypoints
+    (`ccfit.models.encoders.SpatialSoftmax`); 0: the official strided conv stack. A frozen
+    encoder's own value replaces it (`--encoder frozen:PATH`)."""
 
     num_bins: int = 101
     """Bins of the two-hot reward / value distributions."""
@@ -198,6 +202,7 @@ class TDMPC2Config(ModelConfig):
             (self.num_bins >= 2 and self.vmin < self.vmax, "need num_bins >= 2 and vmin < vmax"),
             (0.0 <= self.dropout < 1.0, "dropout must be in [0, 1)"),
             (self.image_shift >= 0, "image_shift must be >= 0"),
+            (self.keypoints >= 0, "keypoints must be >= 0"),
             (self.log_std_min < self.log_std_max, "log_std_min must be below log_std_max"),
             (0.0 < self.rho <= 1.0 and 0.0 < self.tau <= 1.0, "rho and tau must be in (0, 1]"),
             (self.lr > 0 and self.enc_lr_scale > 0, "lr and enc_lr_scale must be > 0"),
