@@ -103,6 +103,12 @@ def test_foreground_weighting_trains_and_reports_the_foreground(reach_root, tmp_
     assert 0 < fg["fraction"] < 1 and fg["mse"] < init["mse"]
     assert side["identity"]["foreground_weight"] == 10.0
     assert "foreground_weight" in side["objective"]
+    # the episode-contrastive term: trains, is recorded, keeps its head out of the encoder
+    out = tmp_path / "contrast.safetensors"
+    pretrain_encoder(make_config(reach_root, contrastive_coef=1.0), out, progress=False)
+    side = json.loads(out.with_suffix(".json").read_text())
+    assert side["identity"]["contrastive_coef"] == 1.0 and "InfoNCE" in side["objective"]
+    assert not any(k.startswith("head") for k in weights(out))
     with pytest.raises(ValueError, match=r"no random episodes .*--explore-episodes"):
         load_frames(make_config(reach_root, policies="oracle,random"))
 

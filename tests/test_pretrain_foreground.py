@@ -63,11 +63,32 @@ def test_new_settings_at_their_legacy_values_leave_the_identity_as_before():
     """An encoder pretrained before the policies and foreground settings existed is still the
     run of those settings at their legacy values (its sidecar's identity has no such keys)."""
     legacy = PretrainConfig.preset("smoke").identity()
-    assert not {"policies", "explore_frame_stride", "foreground_weight",
-                "foreground_threshold"} & set(legacy)  # fmt: skip
+    new = {"policies", "explore_frame_stride", "foreground_weight", "foreground_threshold",
+           "keypoints", "contrastive_coef", "contrastive_temperature"}  # fmt: skip
+    assert not new & set(legacy)
     weighted = PretrainConfig.preset("smoke", foreground_weight=5.0).identity()
     assert weighted["foreground_weight"] == 5.0 and "foreground_threshold" in weighted
     both = PretrainConfig.preset("smoke", policies="oracle,random").identity()
     assert both["policies"] == ["oracle", "random"] and both["explore_frame_stride"] == 5
     with pytest.raises(ValueError, match="must hold 'oracle' once"):
         PretrainConfig.preset("smoke", policies="random")
+
+
+def test_the_contrastive_term_picks_the_own_episode_and_leaves_its_other_frames_out():
+    from ccfit.pretrain.contrastive import episode_contrast, other_frames
+
+    a = torch.eye(4)
+    episodes = torch.tensor([0, 1, 2, 3])
+    matched = episode_contrast(a, a, episodes, temperature=0.1)
+    shuffled = episode_contrast(a, a[[1, 2, 0, 3]], episodes, temperature=0.1)
+    assert matched.item() < 0.01 < shuffled.item()
+    # rows 0 and 1 of one episode, both matched by b's row 0's view: without leaving the
+    # other frame of the episode out, row 0 could not tell its positive apart (loss log 2)
+    same = torch.tensor([0, 0])
+    b = a[[0, 0]]
+    assert episode_contrast(a[:2], b, same, 0.1).item() < 1e-6
+    assert episode_contrast(a[:2], b, torch.tensor([0, 1]), 0.1).item() > 0.3
+    lengths = np.array([1, 5, 3])
+    pairs = np.array([[0, 0], [1, 2], [2, 1], [1, 4]])
+    other = other_frames(lengths, pairs, np.random.default_rng(0))
+    assert (other[:, 0] == pairs[:, 0]).all() and (other[:, 1] < lengths[other[:, 0]]).all()

@@ -23,7 +23,12 @@ _NOT_IDENTITY = ("device", "torch_threads", "checkpoint_interval", "log_interval
 """Config fields that may change between a run and its resumption (they do not change what is
 learnt, up to floating-point differences across devices)."""
 
-_LEGACY = {"policies": ["oracle"], "foreground_weight": 0.0, "keypoints": 0}
+_LEGACY = {
+    "policies": ["oracle"],
+    "foreground_weight": 0.0,
+    "keypoints": 0,
+    "contrastive_coef": 0.0,
+}
 """Settings added after encoders were made, at the value that reproduces those encoders."""
 
 OBJECTIVE = (
@@ -31,7 +36,9 @@ OBJECTIVE = (
     "[0, 1] scale (uint8 / 255), each camera pixel's error weighted 1 + foreground_weight where "
     "it differs from its suite's background by more than foreground_threshold (and divided by "
     "the weights' sum); proprio MSE on the proprio standardised with the training frames' mean "
-    "and std (the encoder reads the raw proprio)"
+    "and std (the encoder reads the raw proprio); + contrastive_coef * InfoNCE of each frame's "
+    "projected latent against another frame of its episode among the batch's (temperature "
+    "contrastive_temperature)"
 )
 
 
@@ -111,6 +118,12 @@ class PretrainConfig(Presets):
     """Extra weight of a reconstruction error on a foreground pixel (one that differs from its
     suite's static background, `ccfit.pretrain.foreground`): each such pixel counts 1 +
     this. 0: plain MSE over the frame."""
+    contrastive_coef: float = 0.0
+    """Weight of the episode-contrastive term (`ccfit.pretrain.contrastive`): a frame's latent
+    must pick out another frame of its episode among the batch's other episodes, which only the
+    layout (goal, objects, colours) tells apart. 0: none."""
+    contrastive_temperature: float = 0.1
+    """Temperature of that term's softmax over the batch."""
     foreground_threshold: float = 0.08
     """A pixel is foreground where a colour channel differs from the background by more than
     this, on the [0, 1] scale."""
@@ -160,6 +173,8 @@ class PretrainConfig(Presets):
             (self.proprio_coef >= 0, "proprio_coef must be >= 0"),
             (self.foreground_weight >= 0, "foreground_weight must be >= 0"),
             (self.keypoints >= 0, "keypoints must be >= 0"),
+            (self.contrastive_coef >= 0, "contrastive_coef must be >= 0"),
+            (self.contrastive_temperature > 0, "contrastive_temperature must be > 0"),
             (0 < self.foreground_threshold < 1, "foreground_threshold must be in (0, 1)"),
             (self.augment_shift >= 0, "augment_shift must be >= 0"),
             (0.0 <= self.holdout < 1.0, "holdout must be in [0, 1)"),
@@ -214,5 +229,7 @@ class PretrainConfig(Presets):
             legacy["explore_frame_stride"] = self.explore_frame_stride
         if self.foreground_weight == 0:
             legacy["foreground_threshold"] = self.foreground_threshold
+        if self.contrastive_coef == 0:
+            legacy["contrastive_temperature"] = self.contrastive_temperature
         return {k: v for k, v in self.to_dict().items()
                 if k not in _NOT_IDENTITY and k not in legacy}  # fmt: skip

@@ -58,6 +58,10 @@ class FrameStore:
                  for e in which]  # fmt: skip
         return np.concatenate(parts) if parts else np.zeros((0, 2), dtype=np.int64)
 
+    def lengths(self) -> np.ndarray:
+        """Frames of each episode, int64."""
+        return np.array([len(p) for p in self.pixels], dtype=np.int64)
+
     def batch(self, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pix = np.stack([self.pixels[e][t] for e, t in pairs])
         prop = np.stack([self.proprio[e][t] for e, t in pairs])

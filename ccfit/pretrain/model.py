@@ -12,6 +12,7 @@ from torch import nn
 from ccdata.render import CAMERAS
 from ccfit.models.encoders import EncoderSpec, build_encoder
 from ccfit.models.layers import mlp
+from ccfit.pretrain.contrastive import ProjectionHead
 from ccfit.pretrain.data import FrameStore
 from ccfit.pretrain.foreground import Foreground
 
@@ -52,9 +53,12 @@ class PixelDecoder(nn.Module):
 class Autoencoder(nn.Module):
     """The model's pixel encoder (built from `enc_cfg`) and a `PixelDecoder`."""
 
-    def __init__(self, enc_cfg: EncoderSpec, decoder_channels: int) -> None:
+    def __init__(self, enc_cfg: EncoderSpec, decoder_channels: int, head: bool = False) -> None:
         super().__init__()
         self.encoder = build_encoder(enc_cfg)
+        # the contrastive term's projection (`ccfit.pretrain.contrastive`); not saved with the
+        # encoder
+        self.head = ProjectionHead(enc_cfg.latent_dim) if head else None
         self.decoder = PixelDecoder(
             enc_cfg.latent_dim,
             enc_cfg.image_size,
@@ -71,10 +75,13 @@ class Autoencoder(nn.Module):
         self.encoder.train(False)
         return self
 
+    def encode(self, pixels: torch.Tensor, proprio: torch.Tensor) -> torch.Tensor:
+        return self.encoder({"pixels": pixels, "proprio": proprio})
+
     def forward(
         self, pixels: torch.Tensor, proprio: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        return self.decoder(self.encoder({"pixels": pixels, "proprio": proprio}))
+        return self.decoder(self.encode(pixels, proprio))
 
 
 # ============================================================================ evaluation

@@ -28,7 +28,8 @@ from ccfit.pretrain.config import (
     OBJECTIVE,
     PretrainConfig,
 )
-from ccfit.pretrain.data import check_datasets, load_frames, split_episodes
+from ccfit.pretrain.contrastive import episode_contrast, other_frames
+from ccfit.pretrain.data import FrameStore, check_datasets, load_frames, split_episodes
 from ccfit.pretrain.foreground import Foreground, weighted_image_loss
 from ccfit.pretrain.model import Autoencoder, evaluate_reconstruction
 from ccfit.settings import resolve_execution
@@ -105,6 +106,47 @@ def pretrain_encoder(
         torch.set_num_threads(threads)
 
 
+def batch_loss(model: Autoencoder, config: PretrainConfig, store: FrameStore, pairs: np.ndarray,
+               rng: np.random.Generator, foreground: Foreground,
+               proprio_norm: tuple[torch.Tensor, torch.Tensor],
+               device: torch.device) -> torch.Tensor:  # fmt: skip
+    """The objective (`OBJECTIVE`) on the frames `pairs`: their reconstruction, weighted toward
+    the foreground where `foreground_weight` says, the proprio's, and, given
+    `contrastive_coef`, the episode-contrastive term against another frame of each one's
+    episode (`ccfit.pretrain.contrastive`). Draws from `rng` only for that other frame."""
+    pix, prop = _frames(store, pairs, device)
+    mask = foreground.mask(pix, pairs) if config.foreground_weight > 0 else None
+    if config.augment_shift > 0 and mask is not None:  # the mask moves with its frame
+        shifted = random_shift(torch.cat([pix, mask], 1), config.augment_shift)
+        pix, mask = shifted[:, : pix.shape[1]], shifted[:, pix.shape[1] :]
+    elif config.augment_shift > 0:
+        pix = random_shift(pix, config.augment_shift)
+    z = model.encode(pix, prop)
+    rec, rec_prop = model.decoder(z)
+    if mask is None:
+        img_loss = F.mse_loss(rec, pix.float() / 255.0)
+    else:
+        img_loss = weighted_image_loss(rec, pix.float() / 255.0, mask, config.foreground_weight)
+    mean, std = proprio_norm
+    loss = img_loss + config.proprio_coef * F.mse_loss(rec_prop, (prop - mean) / std)
+    if config.contrastive_coef > 0:
+        other = other_frames(store.lengths(), pairs, rng)
+        pix2, prop2 = _frames(store, other, device)
+        if config.augment_shift > 0:
+            pix2 = random_shift(pix2, config.augment_shift)
+        episodes = torch.as_tensor(pairs[:, 0], device=device)
+        contrast = episode_contrast(model.head(z), model.head(model.encode(pix2, prop2)),
+                                    episodes, config.contrastive_temperature)  # fmt: skip
+        loss = loss + config.contrastive_coef * contrast
+    return loss
+
+
+def _frames(store: FrameStore, pairs: np.ndarray,
+            device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    pix, prop = store.batch(pairs)
+    return torch.from_numpy(pix).to(device), torch.from_numpy(prop).to(device)
+
+
 def _pretrain(config: PretrainConfig, out: Path, device: torch.device, progress: bool,
               on_step: Callable | None) -> dict:  # fmt: skip
     from tqdm.auto import tqdm
@@ -137,7 +179,8 @@ def _pretrain(config: PretrainConfig, out: Path, device: torch.device, progress:
     foreground = Foreground(store.pixels, store.episodes, train_eps, config.seed,
                             config.foreground_threshold, device)  # fmt: skip
     torch.manual_seed(config.seed)
-    model = Autoencoder(enc_cfg, config.decoder_channels).to(device)
+    model = Autoencoder(enc_cfg, config.decoder_channels,
+                        head=config.contrastive_coef > 0).to(device)  # fmt: skip
     model.train()
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     step, history, window, initial = 0, [], [], None
@@ -172,22 +215,7 @@ def _pretrain(config: PretrainConfig, out: Path, device: torch.device, progress:
     try:
         while step < config.steps:
             pairs = train_pairs[rng.integers(0, len(train_pairs), config.batch_size)]
-            pix, prop = store.batch(pairs)
-            pix, prop = torch.from_numpy(pix).to(device), torch.from_numpy(prop).to(device)
-            mask = foreground.mask(pix, pairs) if config.foreground_weight > 0 else None
-            if config.augment_shift > 0 and mask is not None:  # the mask moves with its frame
-                shifted = random_shift(torch.cat([pix, mask], 1), config.augment_shift)
-                pix, mask = shifted[:, : pix.shape[1]], shifted[:, pix.shape[1] :]
-            elif config.augment_shift > 0:
-                pix = random_shift(pix, config.augment_shift)
-            rec, rec_prop = model(pix, prop)
-            if mask is None:
-                img_loss = F.mse_loss(rec, pix.float() / 255.0)
-            else:
-                img_loss = weighted_image_loss(rec, pix.float() / 255.0, mask,
-                                               config.foreground_weight)  # fmt: skip
-            prop_loss = F.mse_loss(rec_prop, (prop - mean) / std)
-            loss = img_loss + config.proprio_coef * prop_loss
+            loss = batch_loss(model, config, store, pairs, rng, foreground, (mean, std), device)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip_norm)
