@@ -21,8 +21,9 @@ Commands:
     ablate   a finished routed-model run's expert ablation on the composition task (Fig. 6)
     probe-encoder   whether a frozen encoder's latent gives each task's hand, objects and goal,
              and which of the tasks that are one from state (a colour apart) a frame shows
-    pretrain-encoder   the frozen-encoder diagnostic: an autoencoder on every task's oracle
-             episodes, saved for `ccfit run --obs pixels --encoder frozen:PATH`
+    pretrain-encoder   the frozen-encoder diagnostic: the pixel encoder trained on every task's
+             episodes (reconstruction and an episode-contrastive term), saved for
+             `ccfit run --obs pixels --encoder frozen:PATH`
 
     ccfit run --suite Reach --preset cpu --seed 0 --method.type=ewc --method.lam=5000 \
         --train.steps=6000 [--model.type=NAME --model.FIELD=VALUE ...]

@@ -117,7 +117,8 @@ def test_resume_equals_uninterrupted_and_frozen_round_trip(reach_root, tmp_path)
     from ccfit.models.encoders import build_encoder, load_frozen_encoder
     from ccfit.models.tdmpc2 import TDMPC2, TDMPC2Config
 
-    config = make_config(reach_root)
+    # with the recipe's terms, whose other frames are drawn from the resumed sample stream
+    config = make_config(reach_root, foreground_weight=5.0, contrastive_coef=1.0)
     full = tmp_path / "full.safetensors"
     pretrain_encoder(config, full, progress=False)
 

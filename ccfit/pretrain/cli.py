@@ -27,7 +27,8 @@ def add_pretrain_parser(subparsers) -> argparse.ArgumentParser:
     p = add_command(
         subparsers,
         "pretrain-encoder",
-        "pretrain the frozen encoder (autoencoder on every task's oracle episodes)",
+        "pretrain the frozen encoder (every task's episodes: reconstruction and an "
+        "episode-contrastive term, docs/encoder.md)",
         "ccfit pretrain-encoder --suites all --out enc.safetensors",
     )
     p.add_argument("--suites", default="all", help="'all' or a comma list, e.g. Reach,Grasp")
