@@ -114,3 +114,31 @@ def test_a_folder_of_offline_runs_only_gets_its_page_without_a_figure(tmp_path):
     text = (copy / PAGE).read_text()
     assert not (copy / "intervals.png").exists() and "intervals.png" not in text
     assert "| Reach | dreamerv3 | state | offline |" in text and copy / PAGE in written
+
+
+def test_the_page_pretrains_each_published_encoder_with_the_settings_it_was_made_with():
+    """The `ccfit pretrain-encoder` command the page prints for a published encoder gives the
+    settings its sidecar records (its identity), whatever the presets say today: the `cpu`
+    preset's recipe changed after `encoder-cpu-s0` was made, so a command that left a setting
+    to the preset would make another encoder."""
+    import argparse
+    import shlex
+
+    from ccfit.pretrain import add_pretrain_parser, config_from_args
+    from ccfit.report.commands import setup_commands
+
+    parser = argparse.ArgumentParser()
+    add_pretrain_parser(parser.add_subparsers(dest="command"))
+    sidecars = sorted(RESULTS.glob("probe/*/encoder.json"))
+    assert sidecars
+    for sidecar in sidecars:
+        record = json.loads(sidecar.read_text())
+        name = record["weights"]
+        run = type("Run", (), {"config": {"encoder": f"frozen:{name}", "suite": "Reach"}})
+        lines = setup_commands({"group": [run]}, RESULTS)
+        text = " ".join(line.rstrip("\\") for line in lines if not line.startswith("ccdata"))
+        argv = shlex.split(text)[1:]  # after `ccfit`
+        config = config_from_args(parser.parse_args(argv))
+        made = {k: v for k, v in config.identity().items() if k != "dataset_roots"}
+        recorded = {k: v for k, v in record["identity"].items() if k != "dataset_roots"}
+        assert made == recorded, sidecar

@@ -23,13 +23,14 @@ _NOT_IDENTITY = ("device", "torch_threads", "checkpoint_interval", "log_interval
 """Config fields that may change between a run and its resumption (they do not change what is
 learnt, up to floating-point differences across devices)."""
 
-_LEGACY = {
+LEGACY_SETTINGS = {
     "policies": ["oracle"],
     "foreground_weight": 0.0,
     "keypoints": 0,
     "contrastive_coef": 0.0,
 }
-"""Settings added after encoders were made, at the value that reproduces those encoders."""
+"""Settings added after encoders were made, at the value that reproduces those encoders (a
+sidecar that leaves one out was made at it)."""
 
 OBJECTIVE = (
     "MSE(image) + proprio_coef * MSE(proprio); image MSE over the 9 stacked channels on the "
@@ -227,14 +228,15 @@ class PretrainConfig(Presets):
 
     def identity(self) -> dict:
         """The settings a checkpoint or finished output must share to be resumed or reused;
-        a setting at its `_LEGACY` value is left out, so an output made before it existed is
-        still this run's."""
-        legacy = {k: v for k, v in _LEGACY.items() if self.to_dict()[k] == v}
+        a setting at its `LEGACY_SETTINGS` value is left out, so an output made before it
+        existed is still this run's."""
+        settings = self.to_dict()
+        legacy = {k: v for k, v in LEGACY_SETTINGS.items() if settings[k] == v}
         if self.policies == ("oracle",):  # the exploration stride has nothing to stride
             legacy["explore_frame_stride"] = self.explore_frame_stride
         if self.foreground_weight == 0:
             legacy["foreground_threshold"] = self.foreground_threshold
         if self.contrastive_coef == 0:
             legacy["contrastive_temperature"] = self.contrastive_temperature
-        return {k: v for k, v in self.to_dict().items()
+        return {k: v for k, v in settings.items()
                 if k not in _NOT_IDENTITY and k not in legacy}  # fmt: skip

@@ -9,6 +9,7 @@ import shlex
 from pathlib import Path
 
 from ccdata.suites import SUITES
+from ccfit.pretrain.config import LEGACY_SETTINGS
 from ccfit.run_files import REPORT, SWEEP_JSON
 
 
@@ -43,8 +44,21 @@ def _wrapped(words: list[str]) -> list[str]:
 
 
 ENCODER_OPTIONS = ("steps", "batch_size", "lr", "decoder_channels", "augment_shift", "seed",
-                   "image_size")  # fmt: skip
-"""The settings of an encoder's sidecar (`encoder.json`) that `ccfit pretrain-encoder` takes."""
+                   "image_size", "proprio_coef", *LEGACY_SETTINGS, "explore_frame_stride",
+                   "foreground_threshold", "contrastive_temperature")  # fmt: skip
+"""The settings of an encoder's sidecar (`encoder.json`) that `ccfit pretrain-encoder` takes,
+each given explicitly: the presets' values change, the command must not. A sidecar made before
+a setting existed was made at its `LEGACY_SETTINGS` value; one a setting depends on (the
+foreground threshold on its weight, ...) is left out where the sidecar has none."""
+
+
+def _encoder_option(config: dict, option: str) -> list[str]:
+    """`--option VALUE` of a sidecar's recorded `config` (`ENCODER_OPTIONS`)."""
+    if option not in config and option not in LEGACY_SETTINGS:
+        return []
+    value = config.get(option, LEGACY_SETTINGS.get(option))
+    text = ",".join(map(str, value)) if isinstance(value, list | tuple) else str(value)
+    return [f"--{option.replace('_', '-')}", text]
 
 
 def setup_commands(run_groups: dict, root: Path) -> list[str]:
@@ -68,7 +82,7 @@ def setup_commands(run_groups: dict, root: Path) -> list[str]:
         words = ["ccfit", "pretrain-encoder", "--suites", ",".join(config["suites"]),
                  "--preset", config["model_preset"], "--model.type", config["model"]]  # fmt: skip
         for option in ENCODER_OPTIONS:
-            words += [f"--{option.replace('_', '-')}", str(config[option])]
+            words += _encoder_option(config, option)
         lines += _wrapped([*words, "--out", name])
     generate = [f"ccdata generate --suite {s}" for s in SUITES if s in suites]
     return generate + lines

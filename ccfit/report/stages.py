@@ -22,7 +22,7 @@ import numpy as np
 from ccdata.errors import InputError
 from ccdata.suites import get_suite
 from ccfit.io import atomic_write_text
-from ccfit.report.plots import METHOD_ORDER, row_label
+from ccfit.report.plots import method_rank, row_label
 from ccfit.report.runs import Run
 from ccfit.train import METRICS
 
@@ -118,12 +118,7 @@ def end_standard_error(record: dict) -> float | None:
 def _ordered(run_groups: dict[GroupKey, list[Run]]) -> list[tuple[GroupKey, Run]]:
     """(group key, run) for every run, by backbone, suite, method (`METHOD_ORDER`), variant
     and seed."""
-
-    def method_rank(method: str) -> tuple[int, str]:
-        return (METHOD_ORDER.index(method) if method in METHOD_ORDER else len(METHOD_ORDER),
-                method)  # fmt: skip
-
-    keys = sorted(run_groups, key=lambda k: (k[0], k[1], method_rank(k[2]), k[3]))
+    keys = sorted(run_groups, key=lambda k: (k[0], k[1], method_rank(k[2]), k[2], k[3]))
     return [(k, r) for k in keys for r in sorted(run_groups[k], key=lambda r: r.seed)]
 
 
