@@ -34,15 +34,22 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parents[1]
 
+SAME_WORK = ["--train.end_eval_episodes=null"]
+"""Flags only this checkout's runs get, so that both versions do the same work: since fbae683
+the `cpu` preset ends each task with a longer evaluation of its own (40 episodes), which the
+baseline does not play (null: each task's end plays `eval_episodes`, as the baseline's does)."""
 
-def run_one(src: Path, out: Path, args, model: str, cache: Path) -> dict:
+
+def run_one(src: Path, out: Path, args, model: str, cache: Path, ours: bool) -> dict:
+    """One curriculum in a fresh interpreter; `ours`: this checkout's code (not the baseline)."""
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     cmd = [sys.executable, "-m", "ccfit.cli", "run", "--suite", args.suite, "--preset",
            args.preset, "--obs", "state", "--seed", str(args.seed),
            f"--model.type={model}", f"--method.type={args.method}",
            f"--train.steps={args.steps}", "--out", str(out / "run"),
-           "--scratch-root", str(out / "scratch"), "--quiet", *args.extra]  # fmt: skip
+           "--scratch-root", str(out / "scratch"), "--quiet",
+           *(SAME_WORK if ours else []), *args.extra]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(src), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
            "TORCHINDUCTOR_CACHE_DIR": str(cache)}  # fmt: skip
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -101,7 +108,9 @@ def main() -> None:
         for name, src in versions:
             if name in ("baseline", "current_cold"):
                 shutil.rmtree(cache, ignore_errors=True)
-            result = run_one(src, Path(args.out) / f"{model}-{name}", args, model, cache)
+            result = run_one(
+                src, Path(args.out) / f"{model}-{name}", args, model, cache, ours=name != "baseline"
+            )
             if name != "untimed":
                 row[name] = result
                 print(json.dumps({model: {name: result}}), file=sys.stderr, flush=True)
@@ -114,7 +123,8 @@ def main() -> None:
     print(json.dumps({
         "suite": args.suite, "preset": args.preset, "method": args.method, "seed": args.seed,
         "obs": "state", "steps": args.steps, "cpu_count": os.cpu_count(), "baseline": args.baseline,
-        "inductor_cache": args.inductor_cache, "extra": args.extra, "results": results,
+        "inductor_cache": args.inductor_cache, "extra": args.extra,
+        "this_checkout_adds": SAME_WORK, "results": results,
     }, indent=2))  # fmt: skip
 
 

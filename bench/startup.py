@@ -42,6 +42,13 @@ def job(steps: int, seed_steps: int, eval_interval: int, episodes: int) -> list[
             "--quiet"]  # fmt: skip
 
 
+SAME_WORK = ["--train.end_eval_episodes=null"]
+"""Flags only this checkout's variants get, so that the job does the baseline's work: since
+fbae683 the `cpu` preset ends a task with a longer evaluation of its own (40 episodes), which
+the baseline, like the issue's short job, does not play (null: the task's end plays
+`eval_episodes`, as every other evaluation)."""
+
+
 STAMPED = """
 import functools, sys, time
 import ccfit.train.loop as loop
@@ -67,6 +74,7 @@ sys.exit(main())
 def run_job(variant: str, src: Path, out: Path, cache: Path, job_args: list[str]) -> dict:
     shutil.rmtree(out, ignore_errors=True)
     flags = [f"--train.compile={variant}"] if variant in ("off", "on") else []
+    flags += SAME_WORK if variant != "baseline" else []
     cmd = [sys.executable, "-c", STAMPED, *job_args, *flags, "--out", str(out / "run")]
     home = out / "lerobot"  # no seed dataset for either version
     home.mkdir(parents=True)
@@ -98,6 +106,7 @@ def run_job(variant: str, src: Path, out: Path, cache: Path, job_args: list[str]
         "first_env_step_s": stamps.get("_env_step"), "first_update_s": stamps.get("_update"),
         "compiled": config.get("resolved_compile"),
         "compile_reason": config.get("resolved_compile_reason"),
+        "end_eval_episodes": config["train"].get("end_eval_episodes"),
         "final_normalized_return": json.loads(last)["normalized_return"],
     }  # fmt: skip
 
@@ -154,7 +163,8 @@ def main() -> None:
                         medians[c][other]["wall_s"] / medians[c][v]["wall_s"]
                     )
     print(json.dumps({
-        "job": ["ccfit", *job_args], "rounds": args.rounds, "baseline": args.baseline,
+        "job": ["ccfit", *job_args], "this_checkout_adds": SAME_WORK, "rounds": args.rounds,
+        "baseline": args.baseline,
         "medians": medians, "ratios (above 1: the variant is faster)": ratios, "runs": runs,
         "cpu_count": os.cpu_count(), "python": sys.version.split()[0],
     }, indent=2))  # fmt: skip

@@ -114,5 +114,6 @@ def test_startup_times_the_first_steps_and_the_job_and_records_what_auto_chose(t
     (run,) = report["runs"]["warm"]["auto"]
     assert 0 < run["first_env_step_s"] < run["first_update_s"] < run["wall_s"]
     assert run["compiled"] == [] and "120 steps per task, fewer than" in run["compile_reason"]
+    assert run["end_eval_episodes"] is None  # the task's end plays the job's 1, not the cpu 40
     assert report["medians"]["warm"]["auto"]["wall_s"] == run["wall_s"]
     assert "--train.steps=120" in report["job"]

@@ -34,11 +34,28 @@ def _script(name: str):
     return module
 
 
+class _RunsOnDemand(dict):
+    """Run directories made on first use: `make test` runs one script here (on the DreamerV3
+    run), the integration tier the others, so neither tier pays for runs it does not read."""
+
+    def __init__(self, root: Path, commands: dict[str, tuple[str, list[str]]],
+                 common: list[str]) -> None:  # fmt: skip
+        super().__init__()
+        self.root, self.commands, self.common = root, commands, common
+
+    def __missing__(self, key: str) -> Path:
+        name, argv = self.commands[key]
+        run = self.root / name
+        assert ccfit([*argv, "--out", str(run), *self.common]) == 0
+        self[key] = run
+        return run
+
+
 @pytest.fixture(scope="module")
 def made(tmp_path_factory):
-    """A tiny Grasp dataset, a smoke Grasp curriculum per method the ER script compares,
-    single-task pick-cube runs of TD-MPC2 and DreamerV3, and a box-pnp-close one (a scene with
-    a lid and stage flags)."""
+    """A tiny Grasp dataset, and on demand a smoke Grasp curriculum per method the ER script
+    compares, single-task pick-cube runs of TD-MPC2 and DreamerV3, and a box-pnp-close one (a
+    scene with a lid and stage flags)."""
     root = tmp_path_factory.mktemp("diagnostics")
     dataset, _ = generate(GenerateConfig("Grasp", episodes=2, explore_episodes=2, image_size=32,
                                          max_steps=EPISODE_STEPS, root=root / "Grasp"),
@@ -54,10 +71,7 @@ def made(tmp_path_factory):
                                          "--model.type=tdmpc2"]),
     }  # fmt: skip
     common = ["--preset", "smoke", "--seed_dataset", "null", "--quiet", *TRAIN]
-    runs = {key: root / name for key, (name, _) in commands.items()}
-    for key, (_, argv) in commands.items():
-        assert ccfit([*argv, "--out", str(runs[key]), *common]) == 0
-    return SimpleNamespace(dataset=dataset, runs=runs)
+    return SimpleNamespace(dataset=dataset, runs=_RunsOnDemand(root, commands, common))
 
 
 def _run(script, argv: list[str], capsys) -> str:
