@@ -44,9 +44,10 @@ OBJECTIVE = (
 
 
 _SEES_THE_TASK = dict(policies=("oracle", "noisy-oracle", "random"), foreground_weight=20.0,
-                     contrastive_coef=1.0)  # fmt: skip
-"""The recipe whose latent holds the goal, the objects and their colours (docs/encoder.md: the
-levers measured); the `smoke` preset keeps the plain autoencoder, for speed."""
+                     contrastive_coef=1.0, proprio_coef=1.0)  # fmt: skip
+"""The recipe whose latent holds the goal, the objects and their colours, and the hand (the
+proprio weight 1: the contrastive term alone gives the hand up; docs/encoder.md: the levers
+measured); the `smoke` preset keeps the plain autoencoder, for speed."""
 
 # ============================================================================== config
 
