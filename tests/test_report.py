@@ -450,3 +450,19 @@ def test_seeds_run_with_and_without_worker_processes_average_as_one_experiment(t
     write_run(tmp_path, "s2-longer", other, 1.0)
     groups = group_runs(find_runs([tmp_path]))
     assert sorted(sorted(r.seed for r in runs) for runs in groups.values()) == [[0, 1], [2]]
+
+
+def test_a_run_that_records_a_setting_at_its_legacy_value_groups_with_one_made_before_it(tmp_path):
+    """A setting added after runs were made (`LEGACY_VALUES`), recorded at its legacy value by a
+    newer run, is the same experiment as an older run without it (a 10-seed sweep resumed across
+    the commit that added `model.keypoints` split in two); another value still splits."""
+    runs = {"before": config(seed=0), "after": config(seed=1), "other": config(seed=2)}
+    runs["after"]["train"]["episode_steps"] = 250  # the legacy value: what "before" ran
+    runs["other"]["train"]["episode_steps"] = 100
+    for name, cfg in runs.items():
+        write_run(tmp_path, name, cfg, 1.0)
+    groups = group_runs(find_runs([tmp_path]))
+    assert {k[3]: sorted(r.path.name for r in v) for k, v in groups.items()} == {
+        "": ["after", "before"],
+        "train.episode_steps=100": ["other"],
+    }

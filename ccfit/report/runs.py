@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from ccdata.errors import InputError
-from ccfit.config_base import DATASET_RECORDS, EXECUTION_SETTINGS
+from ccfit.config_base import DATASET_RECORDS, EXECUTION_SETTINGS, drop_legacy_values
 from ccfit.config_parse import flatten
 from ccfit.io import read_run_json
 from ccfit.metrics import check_evaluated, task_curves
@@ -112,8 +112,11 @@ class Run:
 
     @property
     def identity(self) -> dict[str, Any]:
-        """The flattened config without what may differ between seeds (`PER_SEED`, `AS_RUN`)."""
-        return {k: v for k, v in flatten(self.config).items() if not is_per_seed(k)}
+        """The flattened config without what may differ between seeds (`PER_SEED`, `AS_RUN`)
+        and without the settings at their legacy values (`LEGACY_VALUES`): a run that records
+        one and a run made before it existed are the same experiment."""
+        flat = flatten(drop_legacy_values(self.config))
+        return {k: v for k, v in flat.items() if not is_per_seed(k)}
 
 
 def find_runs(paths: list[Path]) -> list[Run]:
