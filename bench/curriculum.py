@@ -35,9 +35,10 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parents[1]
 
 SAME_WORK = ["--train.end_eval_episodes=null"]
-"""Flags only this checkout's runs get, so that both versions do the same work: since fbae683
-the `cpu` preset ends each task with a longer evaluation of its own (40 episodes), which the
-baseline does not play (null: each task's end plays `eval_episodes`, as the baseline's does)."""
+"""Flags only this checkout's runs get, here and in `startup.py`, so that both versions do the
+same work: since fbae683 the `cpu` preset ends each task with a longer evaluation of its own (40
+episodes), which the baseline does not play (null: each task's end plays `eval_episodes`, as
+the baseline's does)."""
 
 
 def run_one(src: Path, out: Path, args, model: str, cache: Path, ours: bool) -> dict:

@@ -31,6 +31,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from curriculum import SAME_WORK  # bench/ is this script's directory, first on sys.path
+
 HERE = Path(__file__).resolve().parents[1]
 
 
@@ -40,13 +42,6 @@ def job(steps: int, seed_steps: int, eval_interval: int, episodes: int) -> list[
             f"--train.steps={steps}", f"--train.seed_steps={seed_steps}",
             f"--train.eval_interval={eval_interval}", f"--train.eval_episodes={episodes}",
             "--quiet"]  # fmt: skip
-
-
-SAME_WORK = ["--train.end_eval_episodes=null"]
-"""Flags only this checkout's variants get, so that the job does the baseline's work: since
-fbae683 the `cpu` preset ends a task with a longer evaluation of its own (40 episodes), which
-the baseline, like the issue's short job, does not play (null: the task's end plays
-`eval_episodes`, as every other evaluation)."""
 
 
 STAMPED = """
