@@ -46,7 +46,7 @@ from ccfit.run_files import METRICS_JSON, ONLINE, ONLINE_STATE, REFERENCE_DONE
 from ccfit.runner import CurriculumRunner, Restored, Track, run_reference
 from ccfit.runner import restore as restore_run
 from ccfit.settings import resolve_execution
-from ccfit.train.eval_worker import parallel_on
+from ccfit.train.eval_worker import parallel_on, yield_to_training
 from ccfit.train.loop import Trainer
 from ccfit.train.records import RunLogger
 from ccfit.train.resources import check_disk
@@ -265,7 +265,8 @@ class Curriculum(CurriculumRunner):
 
 
 def _scratch_worker(cfg: CurriculumConfig, out: Path) -> None:
-    """The from-scratch reference in a worker process."""
+    """The from-scratch reference in a worker process, behind the curriculum's own."""
+    yield_to_training()
     run_reference(OnlineTrack(cfg), out, progress=False)
 
 

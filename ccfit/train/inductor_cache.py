@@ -17,8 +17,10 @@ It also spares every compiling process Inductor's instruction-set tests: to lear
 instruction sets its kernels may use, Inductor builds a small library per candidate set and
 loads it in a fresh interpreter that imports torch (about 15 s per process on 2 cores, beside
 the run it delays). What they find is a fact of the machine, the compiler and torch, so the
-first process records each pass beside the cache and later ones read it
-(`settle_vec_isa_tests`)."""
+first process on a machine records each pass and later ones read it (`settle_vec_isa_tests`),
+whatever compile cache they use: the record lies where torch keeps its precompiled headers
+(`machine_dir`), not in the cache, so an empty cache (a new `TORCHINDUCTOR_CACHE_DIR`, a
+fresh clone's runs) compiles kernels again but does not test the machine again."""
 
 from __future__ import annotations
 
@@ -37,7 +39,7 @@ ELF_HEADER_BYTES = 64
 
 
 VEC_ISA_RECORD = "ccfit-vec-isa.json"
-"""The file in Inductor's cache directory that records the instruction-set tests passed."""
+"""The file in `machine_dir` that records the instruction-set tests passed."""
 
 
 def prepare_inductor_cache() -> list[Path]:
@@ -145,11 +147,12 @@ def settle_vec_isa_tests() -> None:
     Inductor keeps an x86 vector instruction set that the CPU reports only if a small library
     built with it (and one more per extension: AVX512-BF16, VNNI, AMX) loads in a fresh
     interpreter (`VecISA.check_build`): a test of the compiler and of torch's build on this
-    CPU, which every compiling process repeats. Here each test's pass is recorded beside the
-    cache, keyed by what decides it (`vec_isa_key`, the compiler flags, the test's code), and
-    a test on record is not run again. A failure is not recorded: it may come from a test
-    library cut short, which `drop_truncated_kernels` removes, and the next process tests
-    again, as Inductor alone would. Installed once per process."""
+    CPU, which every compiling process repeats. Here each test's pass is recorded in
+    `machine_dir` (not in the cache: an empty cache tests nothing again), keyed by what
+    decides it (`vec_isa_key`, the compiler flags, the test's code), and a test on record is
+    not run again. A failure is not recorded: it may come from a test library cut short,
+    which `drop_truncated_kernels` removes, and the next process tests again, as Inductor
+    alone would. Installed once per process."""
     from torch._inductor import cpu_vec_isa
 
     tested = cpu_vec_isa.VecISA.check_build
@@ -170,10 +173,17 @@ def settle_vec_isa_tests() -> None:
     cpu_vec_isa.VecISA.check_build = check_build
 
 
-def _vec_isa_record() -> Path:
-    from torch._inductor.codecache import cache_dir
+def machine_dir() -> Path:
+    """Where torch keeps what a machine's compiles share whatever their cache directory (its
+    precompiled headers): `<temp dir>/torchinductor_<user>`, which `TORCHINDUCTOR_CACHE_DIR`
+    does not move."""
+    from torch._inductor.runtime.cache_dir_utils import default_cache_dir
 
-    return Path(cache_dir()) / VEC_ISA_RECORD
+    return Path(default_cache_dir())
+
+
+def _vec_isa_record() -> Path:
+    return machine_dir() / VEC_ISA_RECORD
 
 
 @functools.cache
