@@ -197,3 +197,38 @@ def test_with_compiled_hot_paths_the_reference_starts_after_the_first_task(tmp_p
                progress=False).run()  # fmt: skip
     assert seen == [["0-pick-cube"]]
     assert len(list((tmp_path / "scratch").glob("*/done.json"))) == 1
+
+
+def _priority_in_a_scratch_worker(cfg: CurriculumConfig, out: Path) -> None:
+    """`_scratch_worker` as a reference's process runs it, the reference itself replaced by a
+    note of the process's priority (written to `out`)."""
+    import ccfit.curriculum as curriculum
+
+    curriculum.run_reference = lambda track, path, progress: Path(path).write_text(
+        str(os.getpriority(os.PRIO_PROCESS, 0)))  # fmt: skip
+    curriculum._scratch_worker(cfg, out)
+
+
+def test_the_evaluation_worker_and_the_reference_run_behind_training(tmp_path):
+    """Both helpers of a parallel run take the cores training leaves (`yield_to_training`)."""
+    from ccdata.processes import worker_pool
+    from ccfit.train.eval_worker import HELPER_NICENESS
+    from ccfit.train.run import build_model, make_evaluator
+
+    mine = os.getpriority(os.PRIO_PROCESS, 0)
+    behind = min(mine + HELPER_NICENESS, 19)  # 19: the lowest priority there is
+    cfg = _config("on", "ft")
+    evaluator = make_evaluator(cfg, build_model(cfg, torch.device("cpu"), []),
+                               dict(enumerate(cfg.tasks)), compiled=[])  # fmt: skip
+    try:
+        assert evaluator._pool.submit(os.getpriority, os.PRIO_PROCESS, 0).result() == behind
+    finally:
+        evaluator.close()
+    note = tmp_path / "priority"
+    pool = worker_pool(1)
+    try:
+        pool.submit(_priority_in_a_scratch_worker, cfg, note).result()
+    finally:
+        pool.shutdown()
+    assert int(note.read_text()) == behind
+    assert os.getpriority(os.PRIO_PROCESS, 0) == mine  # the training process keeps its own

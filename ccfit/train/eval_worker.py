@@ -67,10 +67,9 @@ def yield_to_training() -> None:
     at a lower priority than the training process it serves. Where they share too few cores
     (2 here: the training process's two threads, this one's two), the training process,
     which the run's end waits for, goes first, and the helper takes the cores it leaves idle
-    (its single-threaded environment steps, its waits for compiles): a Reach TD-MPC2
-    curriculum from an empty compile cache took 531 s instead of 551 s (docs/performance.md).
-    Where cores are free, nothing changes. The helper's results are the same; only when they
-    are ready moves."""
+    (its single-threaded environment steps, its waits for compiles): measured on a Reach
+    TD-MPC2 curriculum in docs/performance.md. Where cores are free, nothing changes. The
+    helper's results are the same; only when they are ready moves."""
     os.nice(HELPER_NICENESS)
 
 
