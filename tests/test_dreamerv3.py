@@ -686,6 +686,24 @@ def test_option_kl_dyn_scales_only_the_dynamics_term():
     assert math.isclose(b["total"] - a["total"], 0.5 * a["dyn"], rel_tol=1e-4)
 
 
+@pytest.mark.parametrize("obs_mode", ["state", "pixels"])
+def test_option_vector_recon_scale_weighs_only_the_vector_reconstruction(obs_mode):
+    logs = {}
+    for scale in (1.0, 100.0):
+        model, heads = make(obs_mode, seed=0, vector_recon_scale=scale)
+        torch.manual_seed(1)
+        logs[scale] = model.loss(make_batch(obs_mode), heads).logs
+    a, b = logs[1.0], logs[100.0]
+    vector = "recon_state" if obs_mode == "state" else "recon_proprio"
+    for key in ("dyn", "rep", vector, "reward_loss", "cont_loss"):
+        assert a[key] == b[key], key
+    assert a[vector] > 0
+    assert math.isclose(b["recon"] - a["recon"], 99.0 * a[vector], rel_tol=1e-4)
+    assert math.isclose(b["total"] - a["total"], 99.0 * a[vector], rel_tol=1e-4)
+    with pytest.raises(ValueError, match="vector_recon_scale"):
+        tiny(vector_recon_scale=0.0)
+
+
 def _traj(model, heads, grad: bool):
     deter, stoch = model.rssm.initial_state(8)
     with torch.no_grad():

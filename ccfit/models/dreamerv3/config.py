@@ -123,6 +123,13 @@ class DreamerV3Config(ModelConfig):
     """Scale of the representation KL, KL(posterior || sg(prior))."""
     free_nats: float = 1.0
     """Each KL term is max(free_nats, KL summed over latents) per (batch, time) row."""
+    vector_recon_scale: float = 1.0
+    """Weight of the vector reconstruction terms (the state, the proprio, a frozen encoder's
+    latent) in the world-model loss; 1 is the recipe's. Meta-World's positions are in metres
+    and vary by about 0.1, so at 1 a state model's error summed over its 39 dimensions
+    (~0.03) weighs little against the KL terms, which sit at the free-nats floor: its
+    posterior places the hand, the cube and the goal only to ~5 cm, too coarse to imagine a
+    grasp (docs/learnability.md, issue 70)."""
     reward_bins: int = 255
     """Two-hot bins of the reward and critic heads, evenly spaced in symlog space."""
     bin_range: float = 20.0
@@ -224,7 +231,15 @@ class DreamerV3Config(ModelConfig):
             "demo_bc_coef",
         ):
             check(getattr(self, f) >= 0, f"{name}.{f} must be >= 0, got {getattr(self, f)}")
-        for f in ("model_lr", "model_eps", "actor_lr", "critic_lr", "ac_eps", "ac_grad_clip"):
+        for f in (
+            "model_lr",
+            "model_eps",
+            "actor_lr",
+            "critic_lr",
+            "ac_eps",
+            "ac_grad_clip",
+            "vector_recon_scale",
+        ):
             check(getattr(self, f) > 0, f"{name}.{f} must be > 0, got {getattr(self, f)}")
         check(
             0 < self.actor_min_std < self.actor_max_std,
