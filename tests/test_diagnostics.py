@@ -154,6 +154,23 @@ def test_dreamerv3_pick(made, monkeypatch, capsys):
         assert out[policy]["reward_abs_err_per_step"] >= 0
 
 
+@pytest.mark.integration
+def test_dreamerv3_state_precision(made, capsys):
+    script = _script("dreamerv3_state_precision")
+    run = made.runs["dreamerv3"]
+    out = json.loads(_run(script, [str(run), "--dataset", str(made.dataset)], capsys))
+    assert out["task_step"] == 100 and out["vector_recon_scale"] == 1.0
+    assert {"oracle", "random"} <= out.keys()
+    for policy in ("oracle", "random"):
+        got = out[policy]
+        assert got["rows"] > 0 and 0.0 <= got["p_end_open_loop"] <= 1.0
+        for kind in ("posterior", "prior_1", "open_loop_15", "still", "mean"):
+            assert set(got[kind]) == {"hand", "cube", "goal"}
+            assert all(_finite(v) and v >= 0 for v in got[kind].values())
+        assert got["still"]["goal"] == 0.0  # the goal never moves within an episode
+    assert out["random"]["still"]["cube"] < 1e-3  # the random arm hardly touches the cube
+
+
 def test_dreamerv3_imagination(made, capsys):
     script = _script("dreamerv3_imagination")
     run = made.runs["dreamerv3"]
