@@ -142,7 +142,7 @@ LEGACY_VALUES: dict[str, Any] = {
     "train.end_eval_episodes": None, "train.episode_steps": 250,
     "fit.keep_backbone_optimizer": False, "fit.autocast": "off", "model.demo_bc_coef": 0.0,
     "model.imag_cont": "mode", "model.demo_bc_loss": "mse", "model.keypoints": 0,
-    "model.vector_recon_scale": 1.0,
+    "model.state_recon_scale": 1.0,
 }  # fmt: skip
 """Settings added after runs were made, each with the value that reproduces what runs did
 before it existed. A setting at that value is left out wherever configs are compared or hashed

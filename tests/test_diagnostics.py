@@ -159,7 +159,7 @@ def test_dreamerv3_state_precision(made, capsys):
     script = _script("dreamerv3_state_precision")
     run = made.runs["dreamerv3"]
     out = json.loads(_run(script, [str(run), "--dataset", str(made.dataset)], capsys))
-    assert out["task_step"] == 100 and out["vector_recon_scale"] == 1.0
+    assert out["task_step"] == 100 and out["state_recon_scale"] == 1.0
     assert {"oracle", "random"} <= out.keys()
     for policy in ("oracle", "random"):
         got = out[policy]

@@ -687,21 +687,29 @@ def test_option_kl_dyn_scales_only_the_dynamics_term():
 
 
 @pytest.mark.parametrize("obs_mode", ["state", "pixels"])
-def test_option_vector_recon_scale_weighs_only_the_vector_reconstruction(obs_mode):
+def test_option_state_recon_scale_weighs_only_the_states_reconstruction(obs_mode):
     logs = {}
     for scale in (1.0, 100.0):
-        model, heads = make(obs_mode, seed=0, vector_recon_scale=scale)
+        model, heads = make(obs_mode, seed=0, state_recon_scale=scale)
         torch.manual_seed(1)
         logs[scale] = model.loss(make_batch(obs_mode), heads).logs
     a, b = logs[1.0], logs[100.0]
-    vector = "recon_state" if obs_mode == "state" else "recon_proprio"
-    for key in ("dyn", "rep", vector, "reward_loss", "cont_loss"):
+    for key in (
+        "dyn",
+        "rep",
+        "reward_loss",
+        "cont_loss",
+        *(k for k in a if k.startswith("recon_")),
+    ):
         assert a[key] == b[key], key
-    assert a[vector] > 0
-    assert math.isclose(b["recon"] - a["recon"], 99.0 * a[vector], rel_tol=1e-4)
-    assert math.isclose(b["total"] - a["total"], 99.0 * a[vector], rel_tol=1e-4)
-    with pytest.raises(ValueError, match="vector_recon_scale"):
-        tiny(vector_recon_scale=0.0)
+    if obs_mode == "state":
+        assert a["recon_state"] > 0
+        assert math.isclose(b["recon"] - a["recon"], 99.0 * a["recon_state"], rel_tol=1e-4)
+        assert math.isclose(b["total"] - a["total"], 99.0 * a["recon_state"], rel_tol=1e-4)
+    else:  # images and proprio keep their weights
+        assert a["recon"] == b["recon"] and a["total"] == b["total"]
+    with pytest.raises(ValueError, match="state_recon_scale"):
+        tiny(state_recon_scale=0.0)
 
 
 def _traj(model, heads, grad: bool):

@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     loaded = load_task_run(args.run, "cpu")
     out: dict = {"run": str(args.run), "task_step": loaded.checkpoint["task_step"],
-                 "vector_recon_scale": loaded.model.cfg.vector_recon_scale}  # fmt: skip
+                 "state_recon_scale": loaded.model.cfg.state_recon_scale}  # fmt: skip
     with torch.no_grad():
         for policy in ("oracle", "noisy-oracle", "random"):
             episodes = load_episodes(args.dataset, task="pick-cube", policy=policy,

@@ -48,7 +48,10 @@ class DreamerV3Config(ModelConfig):
         # A Reach task on 2 cores: small RSSM, imagination from the last 8 rows of each window
         # (128 starts instead of 1024). Learning rates 3x (model) and ~3x (actor, critic) the
         # recipe's: at the recipe's rates this size peaked at 9 (normalised) in 6k steps of
-        # reach-xy; at these it reached 54 by 9k steps and was still rising.
+        # reach-xy; at these it reached 54 by 9k steps and was still rising. The state's
+        # reconstruction weighted 1000: at 1 the model placed the cube to ~5 cm and pick-cube
+        # (demonstrations cloned) scored 40 at best in 18k steps; at 1000, to ~2 cm, it first
+        # scored 80 at 12k (docs/learnability.md, issue 70).
         "cpu": dict(
             deter=128,
             hidden=64,
@@ -64,6 +67,7 @@ class DreamerV3Config(ModelConfig):
             model_lr=3e-4,
             actor_lr=1e-4,
             critic_lr=1e-4,
+            state_recon_scale=1000.0,
         ),
         # The paper's scale (authors' README: ~300M parameters on a GPU); units/layers/depth
         # are the 2023 config's "xlarge" size (inferred).
@@ -123,13 +127,13 @@ class DreamerV3Config(ModelConfig):
     """Scale of the representation KL, KL(posterior || sg(prior))."""
     free_nats: float = 1.0
     """Each KL term is max(free_nats, KL summed over latents) per (batch, time) row."""
-    vector_recon_scale: float = 1.0
-    """Weight of the vector reconstruction terms (the state, the proprio, a frozen encoder's
-    latent) in the world-model loss; 1 is the recipe's. Meta-World's positions are in metres
-    and vary by about 0.1, so at 1 a state model's error summed over its 39 dimensions
-    (~0.03) weighs little against the KL terms, which sit at the free-nats floor: its
-    posterior places the hand, the cube and the goal only to ~5 cm, too coarse to imagine a
-    grasp (docs/learnability.md, issue 70)."""
+    state_recon_scale: float = 1.0
+    """Weight of the state vector's reconstruction term in the world-model loss (state
+    observations; 1 is the recipe's). Meta-World's positions are in metres and vary by about
+    0.1, so at 1 the state's symlog-MSE summed over its 39 dimensions (~0.03) weighs little
+    against the KL terms at their free-nats floor, and the posterior places the hand, the cube
+    and the goal only to ~5 cm, pick-cube's success radius: too coarse to imagine a grasp
+    (docs/learnability.md, issue 70)."""
     reward_bins: int = 255
     """Two-hot bins of the reward and critic heads, evenly spaced in symlog space."""
     bin_range: float = 20.0
@@ -238,7 +242,7 @@ class DreamerV3Config(ModelConfig):
             "critic_lr",
             "ac_eps",
             "ac_grad_clip",
-            "vector_recon_scale",
+            "state_recon_scale",
         ):
             check(getattr(self, f) > 0, f"{name}.{f} must be > 0, got {getattr(self, f)}")
         check(

@@ -123,7 +123,7 @@ class Decoder(nn.Module):
         else:
             self.vectors["proprio"] = cfg.proprio_dim
         out = sum(self.vectors.values())
-        self.vector_scale = cfg.vector_recon_scale
+        self.state_scale = cfg.state_recon_scale
         self.vector = nn.Sequential(
             mlp(cfg.feat_dim, cfg.vector_width, cfg.vector_depth),
             nn.Linear(cfg.vector_width if cfg.vector_depth else cfg.feat_dim, out),
@@ -149,18 +149,18 @@ class Decoder(nn.Module):
         self, feat: torch.Tensor, obs: dict[str, torch.Tensor]
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """(loss per row (...), per-target mean losses): symlog-MSE summed over vector dims
-        (times `vector_recon_scale` in the loss; the logged parts are unscaled), MSE summed
-        over C x H x W for images."""
+        (the state's times `state_recon_scale` in the loss; the logged parts are unscaled),
+        MSE summed over C x H x W for images."""
         parts: dict[str, torch.Tensor] = {}
         pred = self.vector(feat).split(list(self.vectors.values()), -1)
         for (key, _), p in zip(self.vectors.items(), pred, strict=True):
             parts[key] = (p - symlog(_get(obs, key).float())).pow(2).sum(-1)
-        total = self.vector_scale * torch.stack(list(parts.values())).sum(0)
         if self.image:
             img = self._image(feat)
             target = _get(obs, "pixels").reshape(img.shape).float() / 255.0
             parts["pixels"] = (img - target).pow(2).sum((1, 2, 3)).reshape(feat.shape[:-1])
-            total = total + parts["pixels"]
+        weighted = [self.state_scale * v if k == "state" else v for k, v in parts.items()]
+        total = torch.stack(weighted).sum(0)
         return total, {k: v.detach().mean() for k, v in parts.items()}
 
     def _image(self, feat: torch.Tensor) -> torch.Tensor:
