@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 
@@ -57,7 +58,16 @@ def distances(pred: torch.Tensor, true: torch.Tensor) -> dict[str, torch.Tensor]
     return {name: (pred[..., s] - true[..., s]).norm(dim=-1) for name, s in PARTS.items()}
 
 
-def read_episode(model, heads, episode) -> dict[str, dict[str, torch.Tensor]]:
+class Reading(NamedTuple):
+    """One episode's distances (kind -> position -> per-row tensor), its states and the
+    termination probability at its open-loop last row."""
+
+    distances: dict[str, dict[str, torch.Tensor]]
+    states: torch.Tensor
+    p_end: torch.Tensor
+
+
+def read_episode(model, heads, episode) -> Reading:
     rows = episode_to_replay(episode, "state")
     state = torch.as_tensor(rows["obs"]["state"]).float()
     action = torch.as_tensor(rows["action"]).float()
@@ -71,22 +81,19 @@ def read_episode(model, heads, episode) -> dict[str, dict[str, torch.Tensor]]:
         d, s = model.rssm.img_step(d, s, action[t : t + 1], sample=False)
     out["open_loop_15"] = distances(decode(model, d, s), state[-1:])
     out["still"] = distances(state[start : start + 1], state[-1:])
-    end = torch.sigmoid(heads.cont(model.rssm.feat(d, s)))
-    out["p_end_open_loop"] = {"": 1.0 - end.reshape(1)}
-    out["rows"] = {"": state}
-    return out
+    p_end = 1.0 - torch.sigmoid(heads.cont(model.rssm.feat(d, s))).reshape(1)
+    return Reading(out, state, p_end)
 
 
-def summarise(readings: list[dict]) -> dict:
-    states = torch.cat([r["rows"][""] for r in readings])
-    summary = {"rows": states.shape[0]}
+def summarise(readings: list[Reading]) -> dict:
+    states = torch.cat([r.states for r in readings])
+    summary: dict = {"rows": states.shape[0]}
     for kind in ("posterior", "prior_1", "open_loop_15", "still"):
-        summary[kind] = {name: float(torch.cat([r[kind][name] for r in readings]).mean())
+        summary[kind] = {name: float(torch.cat([r.distances[kind][name] for r in readings]).mean())
                          for name in PARTS}  # fmt: skip
     summary["mean"] = {name: float(v.mean()) for name, v in
                        distances(states.mean(0, keepdim=True), states).items()}  # fmt: skip
-    ends = torch.cat([r["p_end_open_loop"][""] for r in readings])
-    summary["p_end_open_loop"] = float(ends.mean())
+    summary["p_end_open_loop"] = float(torch.cat([r.p_end for r in readings]).mean())
     return summary
 
 
