@@ -40,7 +40,8 @@ def preset_defaults(cls: type[BaseRunConfig], choices: dict[str, Any]) -> dict:
     model (its type) and method (its type), each `DEFAULTS[...]` unless given; and the
     preset of every other section with presets (`train`, an offline run's `fit`). A
     curriculum's training settings from state (steps per task, ...) are the model's measured
-    budget for its suite at this preset (`ModelConfig.SUITE_TRAIN`) when it has one."""
+    budget for its suite at this preset (`ModelConfig.SUITE_TRAIN`) when it has one, with the
+    model settings that budget was measured with (`ModelConfig.SUITE_MODEL`)."""
     model = getattr(cls, "DEFAULT_MODEL", DEFAULT_MODEL)  # a config class may choose its own
     c = {**DEFAULTS, "model": model, **{k: v for k, v in choices.items() if v is not None}}
     preset, model, method = c["preset"], c["model"], c["method"]
@@ -56,6 +57,7 @@ def preset_defaults(cls: type[BaseRunConfig], choices: dict[str, Any]) -> dict:
     budget = vars(mcls).get("SUITE_TRAIN", {}).get(preset, {}).get(c.get("suite"))
     if budget is not None and "train" in out and c["obs"] == "state":  # measured on state
         out["train"].update(budget)
+        out["model"].update(vars(mcls).get("SUITE_MODEL", {}).get(preset, {}).get(c["suite"], {}))
     if _has_method(cls):
         out["method"] = {"type": method, **method_config_class(method).preset_fields(preset)}
     return out

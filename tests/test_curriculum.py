@@ -704,10 +704,33 @@ def test_a_models_suite_budget_sets_the_training_settings_unless_given(monkeypat
     assert pwm.train.steps == 6_000
 
 
+def test_a_budgets_model_settings_come_with_it_unless_given(monkeypatch):
+    """`SUITE_MODEL`: where a suite's budget applies (a state curriculum of the suite at the
+    preset), so do the model settings it was measured with; elsewhere the preset's."""
+    from ccfit.models.dreamerv3.config import DreamerV3Config
+
+    monkeypatch.setattr(DreamerV3Config, "SUITE_TRAIN", {"cpu": {"Grasp": {"demo_fraction": 0.25}}})
+    monkeypatch.setattr(DreamerV3Config, "SUITE_MODEL", {"cpu": {"Grasp": {"demo_bc_coef": 0.5}}})
+
+    def cloning(*argv):
+        cfg = parse_cli(CurriculumConfig, ["--model.type=dreamerv3", "--preset", "cpu", *argv])
+        nested = resolve(CurriculumConfig, {"model": {"type": "dreamerv3"}, "preset": "cpu",
+                                            "suite": cfg.suite, "obs": cfg.obs})  # fmt: skip
+        if not argv[2:]:
+            assert nested.model == cfg.model
+        return cfg.model.demo_bc_coef
+
+    assert cloning("--suite", "Grasp") == 0.5
+    assert cloning("--suite", "Grasp", "--model.demo_bc_coef=0.25") == 0.25
+    assert cloning("--suite", "Reach") == 0.0
+    assert cloning("--suite", "Grasp", "--obs", "pixels", "--train.demo_fraction=0.25") == 0.0
+
+
 @pytest.mark.parametrize("model", shipped_models())
 def test_every_measured_budget_names_a_suite_and_resolves(model):
     """Each registered model's `SUITE_TRAIN` entry names a real suite and preset and gives a
-    valid state curriculum config holding those settings."""
+    valid state curriculum config holding those settings, and its `SUITE_MODEL` settings
+    (only where it has such a budget)."""
     from ccdata import SUITES
     from ccfit.models.registry import config_class
 
@@ -717,6 +740,14 @@ def test_every_measured_budget_names_a_suite_and_resolves(model):
             cfg = parse_cli(CurriculumConfig, ["--suite", suite, "--preset", preset,
                                                 "--model.type", model])  # fmt: skip
             assert {k: getattr(cfg.train, k) for k in budget} == budget
+            settings = vars(config_class(model)).get("SUITE_MODEL", {}).get(preset, {})
+            assert {k: getattr(cfg.model, k) for k in settings.get(suite, {})} == settings.get(
+                suite, {}
+            )
+    for preset, suites in vars(config_class(model)).get("SUITE_MODEL", {}).items():
+        assert set(suites) <= set(vars(config_class(model))["SUITE_TRAIN"].get(preset, {})), (
+            f"{model}: model settings for a suite without a measured budget"
+        )
 
 
 def test_a_suite_without_a_measured_budget_says_so_once_per_sweep_and_run(

@@ -36,6 +36,10 @@ class ModelConfig(ChoiceConfig, draccus.ChoiceRegistry):
     of the suite at the preset uses them unless the command line says otherwise; pixel runs
     keep the preset's (nothing measured there yet). A subclass does not inherit its parent's
     budgets unless it says so."""
+    SUITE_MODEL: ClassVar[dict[str, dict[str, dict[str, Any]]]] = {}
+    """Preset -> suite -> this model's own settings (`--model.*`) that its budget for the suite
+    (`SUITE_TRAIN`) was measured with, e.g. cloning where the budget replays demonstrations:
+    applied wherever that budget is, unless the command line says otherwise."""
 
     obs_mode: str = "state"
     """'state' (39-D privileged state) or 'pixels' (9-channel images + 7-D proprio). Set from
