@@ -745,7 +745,8 @@ def test_every_measured_budget_names_a_suite_and_resolves(model):
                 suite, {}
             )
     for preset, suites in vars(config_class(model)).get("SUITE_MODEL", {}).items():
-        assert set(suites) <= set(vars(config_class(model))["SUITE_TRAIN"].get(preset, {})), (
+        budgets = vars(config_class(model)).get("SUITE_TRAIN", {}).get(preset, {})
+        assert set(suites) <= set(budgets), (
             f"{model}: model settings for a suite without a measured budget"
         )
 

@@ -169,6 +169,8 @@ def test_dreamerv3_state_precision(made, capsys):
             assert all(_finite(v) and v >= 0 for v in got[kind].values())
         assert got["still"]["goal"] == 0.0  # the goal never moves within an episode
     assert out["random"]["still"]["cube"] < 1e-3  # the random arm hardly touches the cube
+    with pytest.raises(InputError, match="tdmpc2 run from state; this script reads a DreamerV3"):
+        script.main([str(made.runs["tdmpc2"]), "--dataset", str(made.dataset)])
 
 
 def test_dreamerv3_imagination(made, capsys):

@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import torch
 
-from ccdata.errors import OneLineParser, run_script
+from ccdata.errors import InputError, OneLineParser, run_script
 from ccdata.settings import default_repo_id
 from ccfit.analysis.encoder_probe import POSITIONS
 from ccfit.data import load_episodes
@@ -107,8 +107,14 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     loaded = load_task_run(args.run, "cpu")
+    cfg = loaded.model.cfg
+    if cfg.type != "dreamerv3" or cfg.obs_mode != "state":
+        raise InputError(
+            f"{args.run} is a {cfg.type} run from {cfg.obs_mode}; this script reads a "
+            "DreamerV3 run from state (its decoder rebuilds the state)"
+        )
     out: dict = {"run": str(args.run), "task_step": loaded.checkpoint["task_step"],
-                 "state_recon_scale": loaded.model.cfg.state_recon_scale}  # fmt: skip
+                 "state_recon_scale": cfg.state_recon_scale}  # fmt: skip
     with torch.no_grad():
         for policy in ("oracle", "noisy-oracle", "random"):
             episodes = load_episodes(args.dataset, task="pick-cube", policy=policy,
