@@ -23,10 +23,23 @@ DEMO_BC_LOSSES: tuple[str, ...] = ("mse", "nll")
 class DreamerV3Config(ModelConfig):
     """DreamerV3 (Hafner et al. 2023) with categorical RSSM, actor-critic in imagination."""
 
-    # Measured with `ccfit learnability` (state, seed 0): at the cpu size reach-xy first
-    # reaches 80 at 10k steps and does not reach 50 inside the cpu preset's 6k per task.
+    # Measured with `ccfit learnability` (state, seed 0 unless named; docs/learnability.md):
+    # - Reach: before the cpu preset weighed the state's reconstruction 1000 (eccfd9c),
+    #   reach-xy first reached 80 at 10k steps, reach-xyz at 7-10k (seeds 0-2); since, reach-xy
+    #   at 4k. The budget stays the one the published Reach runs were measured with.
+    # - Grasp, the demonstrations oversampled at 0.25, a 100k-row replay and cloning at 0.5
+    #   (without cloning pick-cube had no success in 16k): pick-cube first reaches 80 at 12k
+    #   (seed 1: 15k, then 21-102 per 5-episode evaluation, a mean of 62 over 31-40k),
+    #   place-cube at 6k, pnp-cube at 18k (seed 1: 22k). Before the reweighting
+    #   neither pick-cube nor pnp-cube reached 80 in 100k.
     SUITE_TRAIN: ClassVar[dict[str, dict[str, dict[str, Any]]]] = {
-        "cpu": {"Reach": {"steps": 10_000}},
+        "cpu": {
+            "Reach": {"steps": 10_000},
+            "Grasp": {"steps": 30_000, "demo_fraction": 0.25, "buffer_capacity": 100_000},
+        },
+    }
+    SUITE_MODEL: ClassVar[dict[str, dict[str, dict[str, Any]]]] = {
+        "cpu": {"Grasp": {"demo_bc_coef": 0.5}},
     }
 
     PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
