@@ -171,6 +171,28 @@ def test_a_run_off_its_presets_model_is_a_row_of_its_own(tmp_path):
     assert rows == {"plain": "tdmpc2", "wide": "tdmpc2 [mlp_dim=384, num_samples=512]"}
 
 
+def test_a_run_made_before_its_preset_changed_a_legacy_setting_is_a_row_of_its_own(tmp_path):
+    # config.json leaves out a `LEGACY_VALUES` setting at its legacy value; DreamerV3's `cpu`
+    # preset has since weighted the state's reconstruction 1000: a run that recorded no weight
+    # ran at 1 and learnt another way than one at the preset.
+    from ccfit.config import TaskRunConfig
+    from ccfit.config_base import LEGACY_VALUES
+    from ccfit.config_parse import resolve
+
+    preset = resolve(TaskRunConfig, {"preset": "cpu", "obs": "state", "task": "pick-cube",
+                                     "model": {"type": "dreamerv3"}}).to_dict()  # fmt: skip
+    assert preset["model"]["state_recon_scale"] != LEGACY_VALUES["model.state_recon_scale"]
+    rows = {}
+    for name, model in [("now", preset["model"]),
+                        ("before", {k: v for k, v in preset["model"].items()
+                                    if k != "state_recon_scale"})]:  # fmt: skip
+        run = _fake_run(tmp_path / name, "pick-cube", "dreamerv3", [0, 90])
+        cfg = json.loads((run / "config.json").read_text())
+        (run / "config.json").write_text(json.dumps({**cfg, "model": model}))
+        rows[name] = read_run(run)["model"]
+    assert rows == {"now": "dreamerv3", "before": "dreamerv3 [state_recon_scale=1.0]"}
+
+
 def test_a_damaged_run_is_one_line_and_exit_2(tmp_path, capsys):
     from ccfit.cli import main
 

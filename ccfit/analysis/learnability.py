@@ -79,9 +79,11 @@ def _preset_value(cfg: dict, setting: str):
 
 
 def _model_recipe(cfg: dict, task: str) -> list[str]:
-    """`name=value` of each model setting the run recorded off what its preset gives that model
-    for its task and observations (sizes, planner, cloning); a setting older configs lack ran
-    at its legacy value, the preset's."""
+    """`name=value` of each model setting the run ran with off what its preset gives that model
+    now for its task and observations (sizes, planner, cloning). A `LEGACY_VALUES` setting the
+    config leaves out ran at its legacy value (config.json drops a setting at that value), which
+    a preset may since have changed: DreamerV3's runs from before the `cpu` preset weighted the
+    state's reconstruction are rows of their own."""
     model = cfg["model"]
     if cfg.get("encoder"):
         off = {k: model.get(k, LEGACY_VALUES[f"model.{k}"]) for k in MODEL_RECIPE}
@@ -95,7 +97,9 @@ def _model_recipe(cfg: dict, task: str) -> list[str]:
     preset = resolve(TaskRunConfig, {**choices, "task": task, "model": {"type": model["type"]},
                                      "train": {"episode_steps": steps}})  # fmt: skip
     given = preset.to_dict()["model"]
-    return [f"{k}={v}" for k, v in model.items() if k in given and given[k] != v]
+    ran = {k: model[k] if k in model else LEGACY_VALUES[f"model.{k}"]
+           for k in given if k in model or f"model.{k}" in LEGACY_VALUES}  # fmt: skip
+    return [f"{k}={v}" for k, v in ran.items() if given[k] != v]
 
 
 def read_run(run: Path) -> dict | None:
