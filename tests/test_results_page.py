@@ -142,3 +142,27 @@ def test_the_page_pretrains_each_published_encoder_with_the_settings_it_was_made
         made = {k: v for k, v in config.identity().items() if k != "dataset_roots"}
         recorded = {k: v for k, v in record["identity"].items() if k != "dataset_roots"}
         assert made == recorded, sidecar
+
+
+def test_an_encoders_line_says_whether_its_latent_holds_the_task(tmp_path):
+    # The probe of each frozen encoder the runs read: an arm-only latent's rows are said to
+    # measure the arm; one that holds the goals and objects is summarised, not called arm-only.
+    from types import SimpleNamespace
+
+    from ccfit.report.page import encoder_notes
+
+    def probe(name: str, task_r2: list[float]) -> None:
+        (tmp_path / "probe" / name).mkdir(parents=True)
+        rows = [{"position": "hand", "latent_r2": [0.97, 0.95]},
+                {"position": "goal", "latent_r2": task_r2}]  # fmt: skip
+        found = {"encoder": f"{name}.safetensors", "rows": rows}
+        (tmp_path / "probe" / name / "probe.json").write_text(json.dumps(found))
+
+    probe("arm", [0.04, 0.09])
+    probe("task", [0.98, 0.3, 0.9])
+    runs = {k: [SimpleNamespace(config={"encoder": f"frozen:{k}.safetensors"})]
+            for k in ("arm", "task")}  # fmt: skip
+    arm, _, task, _ = encoder_notes(runs, tmp_path)
+    assert "R^2 <= 0.09" in arm and "the arm alone" in arm
+    assert "0.90 at the median, 67% of their coordinates >= 0.5" in task
+    assert "arm alone" not in task

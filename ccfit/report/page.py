@@ -179,11 +179,18 @@ def encoder_notes(run_groups: dict, root: Path) -> list[str]:
         hand = [v for r in found["rows"] if r["position"] == "hand" for v in r["latent_r2"]]
         task = [v for r in found["rows"] if r["position"] != "hand" for v in r["latent_r2"]]
         where = probe.parent.relative_to(root) / "probe.md"
-        text = (f"Rows through the frozen encoder `{found['encoder']}`: its latent gives the hand "
-                f"with held-out R^2 >= {min(hand):.2f} and the goals and objects with R^2 <= "
-                f"{max(task):.2f} ([probe]({where}))")  # fmt: skip
+        text = (
+            f"Rows through the frozen encoder `{found['encoder']}`: its latent gives the "
+            f"hand with held-out R^2 >= {min(hand):.2f} and the goals and objects with R^2 "
+        )
         if max(task) < SEES_TASK_R2:
-            text += ", so they measure what the arm alone tells"
+            text += (
+                f"<= {max(task):.2f} ([probe]({where})), so they measure what the arm alone tells"
+            )
+        else:
+            share = np.mean(np.array(task) >= SEES_TASK_R2)
+            text += (f"{np.median(task):.2f} at the median, {share:.0%} of their coordinates >= "
+                     f"{SEES_TASK_R2} ([probe]({where}))")  # fmt: skip
         lines += [text + ".", ""]
     return lines
 
