@@ -466,3 +466,35 @@ def test_a_run_that_records_a_setting_at_its_legacy_value_groups_with_one_made_b
         "": ["after", "before"],
         "train.episode_steps=100": ["other"],
     }
+
+
+def test_runs_through_two_frozen_encoders_are_two_rows_named_by_their_files(tmp_path):
+    # The encoder is an axis (`+frozen-enc` in the backbone's name), so what tells two encoders'
+    # runs apart is the file's SHA-256; the row names the file, with the hash's head.
+    from ccfit.report.build import group_runs
+    from ccfit.report.runs import find_runs
+
+    for name, sha in (("a", "1" * 64), ("b", "2" * 64)):
+        write_run(tmp_path, name, config(obs="pixels", encoder=f"frozen:{name}.safetensors",
+                                         resolved_encoder_sha256=sha), 1.0)  # fmt: skip
+    groups = group_runs(find_runs([tmp_path]))
+    assert sorted(k[3] for k in groups) == ["encoder=a.safetensors (11111111)",
+                                            "encoder=b.safetensors (22222222)"]  # fmt: skip
+
+
+def test_pwm_and_tdmpc2_are_compared_only_through_the_same_frozen_encoder(tmp_path):
+    # The paper's comparison holds the encoder fixed: with two encoders' runs of each backbone,
+    # each encoder's PWM experts meet its own TD-MPC2 FT, never the other's.
+    from ccfit.report.build import grouped
+    from ccfit.report.orderings import ordering_rows
+
+    for name, sha in (("a", "1" * 64), ("b", "2" * 64)):
+        for model, method in (("pwm", "experts"), ("tdmpc2", "ft")):
+            top = dict(model=model, method=method, encoder=f"frozen:{name}.safetensors",
+                       resolved_encoder_sha256=sha)  # fmt: skip
+            write_run(tmp_path, f"{model}-{name}", config(obs="pixels", **top), 1.0)
+    _, groups = grouped([tmp_path])
+    rows = [row for name, row in ordering_rows(groups) if name.startswith("PWM with experts")]
+    assert len(rows) == 2
+    for row in rows:
+        assert row[1].count("a.safetensors") in (0, 2) and row[1].count("b.safetensors") in (0, 2)

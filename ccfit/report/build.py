@@ -46,6 +46,7 @@ import numpy as np
 from ccdata.errors import InputError
 from ccfit import metrics as M
 from ccfit.analysis import report_routing
+from ccfit.config_base import ENCODER_RECORD
 from ccfit.io import atomic_write_text
 from ccfit.metrics import metrics_from_curves, task_curves
 from ccfit.offline.fit import TRACK
@@ -103,9 +104,13 @@ def group_metrics(runs: list[Run]) -> dict:
         return curves, scratch, metrics_from_curves(curves, ends, scratch, budget)
 
     curves, scratch, mean = averaged(tuple(range(len(runs))))
+    config = runs[0].config
     out = {"seeds": sorted(seeds), "curves": curves, "scratch": scratch,
            "ends": ends, "budget": budget, "runs": [str(r.path) for r in runs],
-           "track": track, "obs": runs[0].config.get("obs")}  # fmt: skip
+           "track": track, "obs": config.get("obs"),
+           # which frozen encoder (its file's hash where recorded): comparisons across
+           # backbones pair only groups through the same one
+           "encoder": config.get(ENCODER_RECORD) or config.get("encoder")}  # fmt: skip
     if mean["bwt"] is None:
         out["bwt_reason"] = M.bwt(curves, ends).reason
     for name, source in METRICS_SHOWN.items():
@@ -152,7 +157,16 @@ def _distinguishing_keys(identities: list[dict[str, Any]]) -> list[str]:
 
 
 def _variant(identity: dict[str, Any], keys: list[str]) -> str:
-    return ", ".join(f"{k}={identity[k]}" for k in keys if k in identity)
+    return ", ".join(_setting(identity, k) for k in keys if k in identity)
+
+
+def _setting(identity: dict[str, Any], key: str) -> str:
+    """`key=value`; runs through two frozen encoders differ in the files' SHA-256 (the encoder
+    is an axis, shown in the backbone's name), which is named by the file and its hash's head."""
+    if key == ENCODER_RECORD and "encoder" in identity:
+        name = str(identity["encoder"]).removeprefix("frozen:")
+        return f"encoder={name} ({str(identity[key])[:8]})"
+    return f"{key}={identity[key]}"
 
 
 def group_runs(runs: list[Run]) -> dict[tuple[str, str, str, str], list[Run]]:
@@ -176,7 +190,9 @@ def group_runs(runs: list[Run]) -> dict[tuple[str, str, str, str], list[Run]]:
     for g in groups:
         backbone, suite, method = g[0].key
         keys = sorted(keys_of[backbone], key=lambda k: (k.count("."), k))
-        out[(backbone, suite, method, _variant(g[0].identity, keys))] = g
+        key = (backbone, suite, method, _variant(g[0].identity, keys))
+        assert key not in out, f"two groups of runs under one label: {key}"
+        out[key] = g
     return dict(sorted(out.items()))
 
 

@@ -192,7 +192,7 @@ def _less_bwt(groups: dict[Key, Group], lower: str, higher: str, pairs: Pairs
                 if other != b or suite_b != suite:
                     continue
                 compared = pairs(set(ma), set(mb))
-                if not compared:
+                if not compared or _encoder(ma) != _encoder(mb):
                     continue
                 label = suite + "".join(f" [{n}: {v}]" for n, v in ((a, va), (b, vb)) if v)
                 members = {f"{a} {m}": ma[m] for m, _ in compared}
@@ -207,6 +207,12 @@ def _less_bwt(groups: dict[Key, Group], lower: str, higher: str, pairs: Pairs
 
                 yield Check(f"{a} vs {b}", label, "bwt", members,
                             [(f"{a} {m}", f"{b} {n}") for m, n in compared], describe)  # fmt: skip
+
+
+def _encoder(methods: dict[str, Group]):
+    """The frozen encoder a scope's groups read (None: none); two backbones compare only
+    through the same one."""
+    return next(iter(methods.values())).get("encoder")
 
 
 def _same_methods(a: set[str], b: set[str]) -> list[tuple[str, str]]:
