@@ -254,6 +254,8 @@ def _cmd_learnability(args: argparse.Namespace) -> None:
 
 
 def _cmd_probe_encoder(args: argparse.Namespace) -> None:
+    import torch
+
     from ccfit.analysis.encoder_probe import markdown, probe_encoder, select_tasks, write_probe
     from ccfit.io import out_dir
 
@@ -262,8 +264,16 @@ def _cmd_probe_encoder(args: argparse.Namespace) -> None:
         raise CliError(
             f"--frames must be at least 10 (a held-out fifth to score), got {args.frames}"
         )
-    result = probe_encoder(args.encoder, tasks, frames=args.frames, seed=args.seed,
-                           suites=suites)  # fmt: skip
+    if args.torch_threads < 0:
+        raise CliError(f"--torch-threads must be >= 0, got {args.torch_threads}")
+    threads = torch.get_num_threads()
+    if args.torch_threads:
+        torch.set_num_threads(args.torch_threads)
+    try:
+        result = probe_encoder(args.encoder, tasks, frames=args.frames, seed=args.seed,
+                               suites=suites)  # fmt: skip
+    finally:
+        torch.set_num_threads(threads)
     print(markdown(result), end="")
     print("-> " + ", ".join(str(p) for p in write_probe(result, out_dir(args.out))))
 
@@ -357,6 +367,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "0.06-0.17 s to collect by task (0.11 on average, on a busy 2-core "
                         "CPU), so all six suites' 18 tasks take about 35 minutes")  # fmt: skip
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--torch-threads", type=int, default=1,
+                   help="CPU threads for torch (default 1, as training's; 0: torch's own "
+                        "count, which beside another job on a small machine runs many times "
+                        "slower)")  # fmt: skip
     p.add_argument("--out", required=True, help="output directory (probe.json, probe.md)")
     p.set_defaults(func=_cmd_probe_encoder)
 

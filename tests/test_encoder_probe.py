@@ -194,6 +194,7 @@ def test_probe_tells_which_block_of_pnpblock_a_frame_shows(encoder_path, tmp_pat
     (["--suites", "Reach", "--tasks", "reach-qq"], "unknown task 'reach-qq'"),
     ([], "give --suites or --tasks"),
     (["--tasks", "reach-xy", "--frames", "5"], "--frames must be at least 10"),
+    (["--tasks", "reach-xy", "--torch-threads", "-1"], "--torch-threads must be >= 0"),
 ])  # fmt: skip
 def test_bad_input_is_one_line_and_exit_2(args, message, encoder_path, tmp_path, capsys):
     code = main(["probe-encoder", str(encoder_path), *args, "--out", str(tmp_path / "p")])
@@ -203,3 +204,27 @@ def test_bad_input_is_one_line_and_exit_2(args, message, encoder_path, tmp_path,
                  "--out", str(tmp_path / "p")])  # fmt: skip
     err = capsys.readouterr().err
     assert code == 2 and "encoder checkpoint not found" in err, err
+
+
+@pytest.mark.parametrize("given, during", [([], 1), (["--torch-threads", "2"], 2)])
+def test_the_probe_runs_on_the_threads_it_is_given_and_gives_them_back(
+        given, during, encoder_path, tmp_path, monkeypatch):  # fmt: skip
+    import torch
+
+    import ccfit.analysis.encoder_probe as probe
+
+    class Probed(Exception):
+        pass
+
+    seen = []
+
+    def fake_probe(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+        raise Probed
+
+    before = torch.get_num_threads()
+    monkeypatch.setattr(probe, "probe_encoder", fake_probe)
+    with pytest.raises(Probed):
+        main(["probe-encoder", str(encoder_path), "--tasks", "reach-xy", *given,
+              "--out", str(tmp_path / "p")])  # fmt: skip
+    assert seen == [during] and torch.get_num_threads() == before

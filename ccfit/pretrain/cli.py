@@ -50,7 +50,7 @@ def add_pretrain_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--image-size", type=int, default=64, help="camera image side of the datasets")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.add_argument("--torch-threads", type=int, default=None,
-                   help="CPU threads for torch (0: torch's default), as "
+                   help="CPU threads for torch (default 1; 0: torch's default), as "
                         "--train.torch_threads")  # fmt: skip
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_pretrain)

@@ -143,8 +143,10 @@ class PretrainConfig(Presets):
     device: str = "auto"
     """'auto' (CUDA when available, else CPU), 'cpu', 'cuda' or 'cuda:N', as `--train.device`
     (resolved when pretraining starts: `ccfit.settings.resolve_execution`)."""
-    torch_threads: int = 0
-    """CPU threads for torch during pretraining (0: leave torch's setting); restored after."""
+    torch_threads: int = 1
+    """CPU threads for torch during pretraining (0: leave torch's setting); restored after. 1,
+    as training's: at torch's own count (2 on a 2-core machine) beside one other job a step took
+    3-5 s, at 1 thread 0.23 s (docs/encoder.md)."""
     seed: int = 0
     """Seeds the initialisation, the episode split, batch sampling and augmentation."""
 
