@@ -217,7 +217,8 @@ def test_pretraining_takes_the_device_and_threads_under_the_same_names():
                               "--torch-threads", "2"])  # fmt: skip
     config = config_from_args(args)
     assert (config.device, config.torch_threads) == ("cuda:1", 2)
-    assert config_from_args(parser.parse_args(["pretrain-encoder"])).torch_threads == 0
+    # one thread unless told otherwise, as training (`--train.torch_threads`)
+    assert config_from_args(parser.parse_args(["pretrain-encoder"])).torch_threads == 1
     execution = resolve_execution(PretrainConfig(device="cpu", torch_threads=2,
                                                  model_preset="smoke"))  # fmt: skip
     assert execution == Execution(torch.device("cpu"), torch_threads=2)
