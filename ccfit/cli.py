@@ -254,10 +254,9 @@ def _cmd_learnability(args: argparse.Namespace) -> None:
 
 
 def _cmd_probe_encoder(args: argparse.Namespace) -> None:
-    import torch
-
     from ccfit.analysis.encoder_probe import markdown, probe_encoder, select_tasks, write_probe
     from ccfit.io import out_dir
+    from ccfit.settings import torch_threads
 
     suites, tasks = select_tasks(args.suites, args.tasks)
     if args.frames < 10:
@@ -266,14 +265,9 @@ def _cmd_probe_encoder(args: argparse.Namespace) -> None:
         )
     if args.torch_threads < 0:
         raise CliError(f"--torch-threads must be >= 0, got {args.torch_threads}")
-    threads = torch.get_num_threads()
-    if args.torch_threads:
-        torch.set_num_threads(args.torch_threads)
-    try:
+    with torch_threads(args.torch_threads):
         result = probe_encoder(args.encoder, tasks, frames=args.frames, seed=args.seed,
                                suites=suites)  # fmt: skip
-    finally:
-        torch.set_num_threads(threads)
     print(markdown(result), end="")
     print("-> " + ", ".join(str(p) for p in write_probe(result, out_dir(args.out))))
 

@@ -11,8 +11,10 @@ step and the evaluator the resolved precision.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -159,3 +161,17 @@ def resolve_autocast(setting: str, device: torch.device) -> str:
     if setting == "auto":
         return "bf16" if native_bf16(device) else "off"
     return setting
+
+
+@contextlib.contextmanager
+def torch_threads(count: int) -> Iterator[None]:
+    """Run the block on `count` CPU threads for torch (0: leave torch's setting), and give
+    torch back the count it had (a command run in-process, e.g. from the tests, leaves no
+    trace)."""
+    before = torch.get_num_threads()
+    if count > 0:
+        torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

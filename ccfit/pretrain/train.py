@@ -32,7 +32,7 @@ from ccfit.pretrain.contrastive import episode_contrast, other_frames
 from ccfit.pretrain.data import FrameStore, check_datasets, load_frames, split_episodes
 from ccfit.pretrain.foreground import Foreground, weighted_image_loss
 from ccfit.pretrain.model import Autoencoder, evaluate_reconstruction
-from ccfit.settings import resolve_execution
+from ccfit.settings import resolve_execution, torch_threads
 
 # ============================================================================== training
 
@@ -98,12 +98,8 @@ def pretrain_encoder(
         return done["metrics"]
     check_datasets(config)
     execution = resolve_execution(config)
-    threads = torch.get_num_threads()
-    execution.set_threads()
-    try:
+    with torch_threads(execution.torch_threads):
         return _pretrain(config, out, execution.device, progress, on_step)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def batch_loss(model: Autoencoder, config: PretrainConfig, store: FrameStore, pairs: np.ndarray,
