@@ -252,6 +252,7 @@ VALID_SUITES = "Reach, Grasp, BinPnP, PnPBlock, DrawerPnP, PnPBoxClose or 'all'"
     (["--model", "dreamerv3"], "model 'dreamerv3' does not build the shared pixel encoder; "
                                "models that do: pwm, tdmpc2"),
     (["--model", "nope"], "unknown model 'nope'; valid: {models}"),
+    (["--batch-from", "task"], "PretrainConfig: batch_from must be one of ('all', 'suite')"),
 ])  # fmt: skip
 def test_bad_input_is_one_line_and_exit_2(args, message, tmp_path, monkeypatch, capsys):
     """With no dataset in LeRobot's cache ($HF_LEROBOT_HOME, read when LeRobot is imported)."""
@@ -361,6 +362,28 @@ def test_split_is_seeded_per_task_and_disjoint():
     assert len(split_episodes(eps[:1] + eps[10:11], 0.1, seed=0)[1]) == 1
 
 
+def test_batch_sampler_draws_one_suite_per_batch_in_proportion():
+    from ccfit.pretrain.data import BatchSampler, FrameStore
+
+    lengths = {"Reach": [30, 10], "Grasp": [20]}  # frames: Reach 40, Grasp 20
+    eps = [{"suite": s, "task_id": f"{s}-{i}"} for s, ls in lengths.items() for i in range(len(ls))]
+    sizes = [n for ls in lengths.values() for n in ls]
+    store = FrameStore([np.zeros((n, 1, 1, 1), np.uint8) for n in sizes],
+                       [np.zeros((n, 7), np.float32) for n in sizes], eps)  # fmt: skip
+    pairs = store.index([0, 1, 2])
+    suite_of = np.array([e["suite"] for e in eps])
+    # 'all' draws exactly as uniform indexing into the pairs did (encoders made before it)
+    a, b = np.random.default_rng(0), np.random.default_rng(0)
+    assert np.array_equal(BatchSampler(store, pairs, "all")(16, a), pairs[b.integers(0, 60, 16)])
+    sample, rng = BatchSampler(store, pairs, "suite"), np.random.default_rng(0)
+    batches = [sample(8, rng) for _ in range(600)]
+    assert all(len(set(suite_of[batch[:, 0]])) == 1 for batch in batches)
+    reach = np.mean([suite_of[batch[0, 0]] == "Reach" for batch in batches])
+    assert abs(reach - 40 / 60) < 0.06  # in proportion to the suites' frames
+    counts = np.bincount(np.concatenate(batches)[:, 0], minlength=3) / (600 * 8)
+    assert np.allclose(counts, [30 / 60, 10 / 60, 20 / 60], atol=0.04)  # each frame as likely
+
+
 def test_config_and_parser():
     from ccfit.models.tdmpc2 import TDMPC2Config
 
@@ -372,10 +395,13 @@ def test_config_and_parser():
     assert (config.steps, config.seed, config.suites) == (7, 3, ("Reach", "Grasp"))
     assert callable(args.func)
     args = parser.parse_args(["pretrain-encoder", "--decoder-channels", "32", "--augment-shift",
-                              "0", "--lr", "1e-3", "--batch-size", "8"])  # fmt: skip
+                              "0", "--lr", "1e-3", "--batch-size", "8",
+                              "--batch-from", "suite"])  # fmt: skip
     config = config_from_args(args)
     assert (config.decoder_channels, config.augment_shift, config.lr, config.batch_size,
             config.steps) == (32, 0, 1e-3, 8, PretrainConfig.preset("cpu").steps)  # fmt: skip
+    assert config.batch_from == "suite" and "batch_from" in config.identity()
+    assert "batch_from" not in PretrainConfig.preset("cpu").identity()  # older encoders' value
     # the model named as `ccfit run` names it, or as scripts have
     for spelt in ("--model.type", "--model"):
         assert parser.parse_args(["pretrain-encoder", spelt, "pwm"]).model == "pwm"

@@ -17,7 +17,8 @@ _TRAINING_OVERRIDES = {"steps": int, "batch_size": int, "lr": float, "decoder_ch
                        "augment_shift": int, "policies": str, "explore_frame_stride": int,
                        "foreground_weight": float, "foreground_threshold": float,
                        "keypoints": int, "contrastive_coef": float,
-                       "contrastive_temperature": float, "proprio_coef": float}  # fmt: skip
+                       "contrastive_temperature": float, "proprio_coef": float,
+                       "batch_from": str}  # fmt: skip
 """PretrainConfig fields a command line may set over the preset's values (see its docstrings)."""
 
 

@@ -23,11 +23,15 @@ _NOT_IDENTITY = ("device", "torch_threads", "checkpoint_interval", "log_interval
 """Config fields that may change between a run and its resumption (they do not change what is
 learnt, up to floating-point differences across devices)."""
 
+BATCH_FROM = ("all", "suite")
+"""Where a batch's frames come from (`PretrainConfig.batch_from`)."""
+
 LEGACY_SETTINGS = {
     "policies": ["oracle"],
     "foreground_weight": 0.0,
     "keypoints": 0,
     "contrastive_coef": 0.0,
+    "batch_from": "all",
 }
 """Settings added after encoders were made, at the value that reproduces those encoders (a
 sidecar that leaves one out was made at it)."""
@@ -96,7 +100,13 @@ class PretrainConfig(Presets):
     steps: int = 20_000
     """Gradient steps."""
     batch_size: int = 64
-    """Frames per gradient step, sampled uniformly from the training episodes' frames."""
+    """Frames per gradient step, sampled uniformly from the training episodes' frames (of one
+    suite at a time where `batch_from` is 'suite')."""
+    batch_from: str = "all"
+    """'all': each batch drawn from every suite's frames; 'suite': each from one suite's (the
+    suite drawn in proportion to its training frames, so every frame stays equally likely), so
+    that the contrastive term's other episodes show the same scene and only the layout (where
+    the objects and the goal are, which colours) tells them apart."""
     lr: float = 5e-4
     """Adam learning rate (encoder and decoder)."""
     grad_clip_norm: float = 20.0
@@ -189,6 +199,7 @@ class PretrainConfig(Presets):
             (0.0 <= self.holdout < 1.0, "holdout must be in [0, 1)"),
             (self.torch_threads >= 0, "torch_threads must be >= 0"),
             (self.seed >= 0, "seed must be >= 0"),
+            (self.batch_from in BATCH_FROM, f"batch_from must be one of {BATCH_FROM}"),
         ]
         for ok, msg in checks:
             if not ok:

@@ -194,3 +194,26 @@ def split_episodes(episodes: list[dict], fraction: float, seed: int) -> tuple[li
         held = [int(rng.integers(len(episodes)))]
     held_set = set(held)
     return [i for i in range(len(episodes)) if i not in held_set], sorted(held)
+
+
+class BatchSampler:
+    """Draws a training batch of (episode, frame) pairs from `pairs`: uniformly over all of
+    them ('all'), or uniformly within one suite, the suite drawn in proportion to its frames
+    ('suite': every frame as likely as under 'all', a batch's frames from one scene)."""
+
+    def __init__(self, store: FrameStore, pairs: np.ndarray, batch_from: str) -> None:
+        self.pairs = pairs
+        self.groups: list[np.ndarray] = []
+        if batch_from == "suite":
+            suite_of = np.array([ep["suite"] for ep in store.episodes])[pairs[:, 0]]
+            self.groups = [np.flatnonzero(suite_of == s) for s in dict.fromkeys(suite_of)]
+        elif batch_from != "all":
+            raise ValueError(f"unknown batch_from {batch_from!r}")
+        sizes = np.array([len(g) for g in self.groups], dtype=np.float64)
+        self.weights = sizes / sizes.sum() if self.groups else None
+
+    def __call__(self, size: int, rng: np.random.Generator) -> np.ndarray:
+        if not self.groups:
+            return self.pairs[rng.integers(0, len(self.pairs), size)]
+        group = self.groups[rng.choice(len(self.groups), p=self.weights)]
+        return self.pairs[group[rng.integers(0, len(group), size)]]

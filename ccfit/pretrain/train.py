@@ -29,7 +29,13 @@ from ccfit.pretrain.config import (
     PretrainConfig,
 )
 from ccfit.pretrain.contrastive import episode_contrast, other_frames
-from ccfit.pretrain.data import FrameStore, check_datasets, load_frames, split_episodes
+from ccfit.pretrain.data import (
+    BatchSampler,
+    FrameStore,
+    check_datasets,
+    load_frames,
+    split_episodes,
+)
 from ccfit.pretrain.foreground import Foreground, weighted_image_loss
 from ccfit.pretrain.model import Autoencoder, evaluate_reconstruction
 from ccfit.settings import resolve_execution, torch_threads
@@ -205,12 +211,13 @@ def _pretrain(config: PretrainConfig, out: Path, device: torch.device, progress:
             "initial_heldout": initial,
         }, ckpt_path)  # fmt: skip
 
+    sample = BatchSampler(store, train_pairs, config.batch_from)
     start = time.perf_counter()
     bar = tqdm(total=config.steps, initial=step, desc="pretrain-encoder", unit="step",
                disable=not progress)  # fmt: skip
     try:
         while step < config.steps:
-            pairs = train_pairs[rng.integers(0, len(train_pairs), config.batch_size)]
+            pairs = sample(config.batch_size, rng)
             loss = batch_loss(model, config, store, pairs, rng, foreground, (mean, std), device)
             opt.zero_grad(set_to_none=True)
             loss.backward()
