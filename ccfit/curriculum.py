@@ -47,6 +47,7 @@ from ccfit.runner import CurriculumRunner, Restored, Track, run_reference
 from ccfit.runner import restore as restore_run
 from ccfit.settings import resolve_execution
 from ccfit.train.eval_worker import parallel_on, yield_to_training
+from ccfit.train.evaluate import submit_request
 from ccfit.train.loop import Trainer
 from ccfit.train.records import RunLogger
 from ccfit.train.resources import check_disk
@@ -166,10 +167,9 @@ class OnlineTrack(Track):
                                         restored.method, compiled=resolved["resolved_compile"],
                                         execution=self.execution)  # fmt: skip
         self.evaluator.heads.update(enumerate(self.stored))
-        for request in self.logger.settle(restored.pending)[1]:  # the weights it saved with
-            self.evaluator.submit(request["tasks"], stage=request["stage"],
-                                  global_step=request["global_step"],
-                                  task_step=request["task_step"])  # fmt: skip
+        # With the weights it saved with; a task's end evaluation keeps its own episode count.
+        for request in self.logger.settle(restored.pending)[1]:
+            submit_request(self.evaluator, request)
         return self.logger
 
     def learn_task(self, index: int, folder: Path, resumed: bool,

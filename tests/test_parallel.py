@@ -23,7 +23,9 @@ except ImportError:  # tests/ imported as a package
     from tests.short_episodes import EPISODE_STEPS, ccfit_command
 
 TRAIN = {"steps": 100, "seed_steps": 50, "eval_interval": 50, "checkpoint_interval": 50,
-         "eval_episodes": 2, "episode_steps": EPISODE_STEPS}  # fmt: skip
+         "eval_episodes": 2, "end_eval_episodes": 3, "episode_steps": EPISODE_STEPS}  # fmt: skip
+"""A task's end plays more episodes than the evaluations during it: a resumed run that replays
+an end evaluation still in flight must replay it with its own count."""
 
 
 def _config(parallel: str, method: str = "packnet", env_workers: str = "auto"

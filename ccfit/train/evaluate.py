@@ -181,6 +181,17 @@ def eval_record(task_id: str, task_index: int, stage: int, global_step: int,
     }  # fmt: skip
 
 
+def submit_request(evaluator, request: dict) -> None:
+    """Submit an evaluation `request` as an evaluator's `pending` lists it (tasks, stage,
+    global_step, task_step and, where it names them, episodes): a fresh one, or one a
+    checkpoint or a curriculum's state held when the run stopped. Only a request that names
+    its episodes passes them on, so an evaluator written to the interface before
+    `end_eval_episodes` (a test double) still serves the others."""
+    more = {"episodes": request["episodes"]} if request.get("episodes") else {}
+    evaluator.submit(request["tasks"], stage=request["stage"], global_step=request["global_step"],
+                     task_step=request["task_step"], **more)  # fmt: skip
+
+
 class Evaluator:
     """Evaluation of a run: the tasks that can be evaluated (their heads), their fixed
     layouts, and the environments they play on. Requests are `submit`ted and their records

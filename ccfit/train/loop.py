@@ -44,7 +44,7 @@ from ccfit.replay import ReplayBuffer
 from ccfit.replay_store import ROWS_DIR, load_rows, save_rows
 from ccfit.run_files import CHECKPOINT
 from ccfit.settings import Execution, resolve_execution
-from ccfit.train.evaluate import ACTION_TAG, TRAIN_TAG, Evaluator
+from ccfit.train.evaluate import ACTION_TAG, TRAIN_TAG, Evaluator, submit_request
 from ccfit.train.records import RunLogger
 from ccfit.train.update import UpdateStep, load_backbone_optimizer_state
 
@@ -343,12 +343,7 @@ class Trainer:
         self.last_eval = self.task_step
 
     def _submit(self, request: dict) -> None:
-        # Only a request that names its episodes passes them on, so an evaluator written to
-        # the interface before `end_eval_episodes` (a test double) still serves the others.
-        more = {"episodes": request["episodes"]} if request.get("episodes") else {}
-        self.evaluator.submit(request["tasks"], stage=request["stage"],
-                              global_step=request["global_step"],
-                              task_step=request["task_step"], **more)  # fmt: skip
+        submit_request(self.evaluator, request)
 
     def _collect(self, until: int | None = -1) -> int:
         """Log the evaluation records that are ready, in order; `until`: first wait for every
