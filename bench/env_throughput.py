@@ -3,6 +3,8 @@
 Prints JSON. Both paths step the same scene with the same seeded random actions; the baseline
 renders the three views through Meta-World's MujocoEnv.render() at its default settings
 (4096 shadow map, 4x MSAA, reflections, skybox), the benchmark through ccdata's renderer.
+`render_ms` breaks one render down: milliseconds per camera at three image sizes, and at 64 px
+with the arm's meshes (geom group 1) hidden, which tells what a frame's cost goes to.
 """
 
 from __future__ import annotations
@@ -65,6 +67,36 @@ def metaworld_render_steps(task_id: str, steps: int, seed: int = 0) -> float:
     return rate
 
 
+def render_ms(task_id: str, repeats: int = 30) -> dict:
+    """Median ms per camera render (scene update + draw + read back), by image size, and at
+    64 px with geom group 1 (the Sawyer's meshes) hidden."""
+
+    def per_camera(size: int, hide_arm: bool) -> dict:
+        env = ccdata.make_env(task_id, seed=0, image_size=size)
+        env.reset()
+        renderer, data = env._renderer._renderer, env.scene.data
+        option = mujoco.MjvOption()
+        option.geomgroup[1] = not hide_arm
+        out = {}
+        for camera in ccdata.CAMERAS:
+            times = []
+            for _ in range(repeats + 1):  # the first one warms up
+                start = time.perf_counter()
+                renderer.update_scene(data, camera=camera, scene_option=option)
+                renderer.render()
+                times.append(time.perf_counter() - start)
+            out[camera] = round(1000 * statistics.median(times[1:]), 2)
+        env.close()
+        return out
+
+    model = ccdata.make_env(task_id, seed=0, render=False).scene.model
+    return {
+        **{f"{size}px": per_camera(size, False) for size in (16, 64, 256)},
+        "64px_arm_meshes_hidden": per_camera(64, True),
+        "mesh_faces": int(model.mesh_facenum.sum()),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--task", default="reach-xyz")
@@ -88,6 +120,7 @@ def main() -> None:
         "metaworld_render_steps_per_s_runs": theirs,
         "speedup_vs_metaworld_render": statistics.median(ours) / statistics.median(theirs),
         "state_only_agent_steps_per_s": physics,
+        "render_ms": render_ms(args.task),
         "targets": {"agent_steps_per_s": 35, "speedup": 8},
         "cpu_count": os.cpu_count(),
         "machine": platform.machine(),

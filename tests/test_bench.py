@@ -117,3 +117,18 @@ def test_startup_times_the_first_steps_and_the_job_and_records_what_auto_chose(t
     assert run["end_eval_episodes"] is None  # the task's end plays the job's 1, not the cpu 40
     assert report["medians"]["warm"]["auto"]["wall_s"] == run["wall_s"]
     assert "--train.steps=120" in report["job"]
+
+
+def test_env_throughput_breaks_a_render_down_by_size_and_the_arms_meshes():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "env_throughput", ROOT / "bench" / "env_throughput.py"
+    )
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    report = bench.render_ms("reach-xy", repeats=1)
+    cameras = {"topview", "frontview", "gripperPOV"}
+    for key in ("16px", "64px", "256px", "64px_arm_meshes_hidden"):
+        assert set(report[key]) == cameras and all(v > 0 for v in report[key].values())
+    assert report["mesh_faces"] > 10_000  # the Sawyer's meshes are in the scene
