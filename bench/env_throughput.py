@@ -89,11 +89,13 @@ def render_ms(task_id: str, repeats: int = 30) -> dict:
         env.close()
         return out
 
-    model = ccdata.make_env(task_id, seed=0, render=False).scene.model
+    state_only = ccdata.make_env(task_id, seed=0, render=False)
+    faces = int(state_only.scene.model.mesh_facenum.sum())
+    state_only.close()
     return {
         **{f"{size}px": per_camera(size, False) for size in (16, 64, 256)},
         "64px_arm_meshes_hidden": per_camera(64, True),
-        "mesh_faces": int(model.mesh_facenum.sum()),
+        "mesh_faces": faces,
     }
 
 
