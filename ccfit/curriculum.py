@@ -22,6 +22,8 @@ Run directory:
     curriculum.pt        state after the last finished task (model, stored heads, method, RNG)
     stages/after-<k>.pt  with --keep-stages, that state after each task k (`ccfit.branch`)
     branch.json          a run branched from another after its first tasks (`ccfit.branch`)
+    first_task.json      a run that started from its sweep's shared first task
+                         (`ccfit.first_task`)
     metrics.json         BWT, FWT and the standard metrics of this run
 """
 
@@ -40,9 +42,15 @@ from ccdata.processes import worker_pool
 from ccfit.branch import RECORD as BRANCH_RECORD
 from ccfit.branch import STAGES, Branch, keep_stage, read_branch, start_branch
 from ccfit.config import CurriculumConfig
-from ccfit.continual.base import ContinualMethod
+from ccfit.continual.base import ContinualMethod, method_config
+from ccfit.first_task import (
+    first_task_done,
+    first_task_lock,
+    mark_done,
+    start_from_first_task,
+)
 from ccfit.models.base import WorldModel
-from ccfit.run_files import METRICS_JSON, ONLINE, ONLINE_STATE, REFERENCE_DONE
+from ccfit.run_files import CHECKPOINT, METRICS_JSON, ONLINE, ONLINE_STATE, REFERENCE_DONE, task_dir
 from ccfit.runner import CurriculumRunner, Restored, Track, run_reference
 from ccfit.runner import restore as restore_run
 from ccfit.settings import resolve_execution
@@ -100,20 +108,27 @@ class OnlineTrack(Track):
     config_class = CurriculumConfig
 
     def __init__(self, cfg: CurriculumConfig, callbacks: list[StageCallback] = (),
-                 keep_stages: bool = False, branch: Branch | None = None) -> None:  # fmt: skip
+                 keep_stages: bool = False, branch: Branch | None = None,
+                 first_root: Path | None = None, first_only: bool = False) -> None:  # fmt: skip
         """`keep_stages`: keep the state after each task (`ccfit.branch`; a run that kept some
         keeps the rest when resumed without it); `branch`: start the run as a branch of
-        another run (a new run directory; a resumed branch needs no `branch`)."""
+        another run (a new run directory; a resumed branch needs no `branch`); `first_root`:
+        start the first task from the one shared in `first_root/<key>`, trained there first
+        if no run has (`ccfit.first_task`; where the method shares it); `first_only`: this is
+        that shared first task (`CurriculumRunner.run_first_task`)."""
         super().__init__(cfg)
         self.callbacks = list(callbacks)
         self.keep_stages = keep_stages
         self.branch = branch
+        self.first_root = None if first_root is None else Path(first_root)
+        self.first_only = first_only
         self.evaluator = self.logger = None
 
     @classmethod
     def in_sweep(cls, cfg: CurriculumConfig, keep_stages: bool = False,
-                 callbacks: list[StageCallback] = ()) -> OnlineTrack:  # fmt: skip
-        return cls(cfg, callbacks, keep_stages)
+                 callbacks: list[StageCallback] = (),
+                 first_root: Path | None = None) -> OnlineTrack:  # fmt: skip
+        return cls(cfg, callbacks, keep_stages, first_root=first_root)
 
     @property
     def budget(self) -> int:
@@ -152,12 +167,36 @@ class OnlineTrack(Track):
         check_disk(self.plan, out)
         out.mkdir(parents=True, exist_ok=True)
         check_saved_config(out, resolved)
+        if self.first_only:  # the shared first task: no reference of its own
+            self.defer_scratch, self.scratch_job = False, None
+            return
+        if self._starts_from_shared_first_task(restored):
+            self._start_from_shared_first_task()
         # With compiled hot paths and tasks left after this one, the reference starts when this
         # process has trained its first task: the compiled graphs are then in Inductor's cache,
         # which the reference's process reads instead of compiling them beside this one.
         self.defer_scratch = (bool(resolved["resolved_compile"])
                               and len(cfg.tasks) - restored.completed > 1)  # fmt: skip
         self.scratch_job = None if self.defer_scratch else start_scratch(cfg, reference)
+
+    def _starts_from_shared_first_task(self, restored: Restored) -> bool:
+        """A run given `first_root` whose method shares the first task, before it began it."""
+        cfg = self.cfg
+        return (self.first_root is not None and restored.completed == 0
+                and type(restored.method).shares_first_task and cfg.train.stop_score is None
+                and not (task_dir(self.out, 0, cfg.tasks[0]) / CHECKPOINT).exists())  # fmt: skip
+
+    def _start_from_shared_first_task(self) -> None:
+        """The shared first task trained (by FT: every sharing method trains it alike) if no
+        run has, then copied into this run's first task folder."""
+        shared = self.first_root / self.reference_key()
+        with first_task_lock(shared):
+            if first_task_done(shared) is None:
+                ft = dataclasses.replace(self.cfg, method=method_config("ft"))
+                track = OnlineTrack(ft, first_only=True)
+                CurriculumRunner(track, shared, progress=self.progress).run_first_task()
+                mark_done(shared, task_dir(shared, 0, ft.tasks[0]))
+            start_from_first_task(shared, self.out, task_dir(self.out, 0, self.cfg.tasks[0]))
 
     def open(self, resolved: dict, restored: Restored) -> RunLogger:
         cfg = self.cfg
@@ -193,13 +232,15 @@ class OnlineTrack(Track):
             logger=self.logger, method=self.restored.method, run_dir=folder,
             global_offset=index * train.steps, progress=self.progress,
             stored_heads_loss=lambda batch, j: model.loss(batch, stored[j]).total,
-            backbone_optim=backbone_optim,
+            backbone_optim=backbone_optim, stop_before_close=self.first_only,
         )  # fmt: skip
         try:
             # The task's last evaluation runs on while the next task trains.
             trainer.run(wait=False)
         finally:
             env.close()
+        if self.first_only:
+            return trainer.step.optim
         if self.defer_scratch:
             self.scratch_job, self.defer_scratch = start_scratch(cfg, self.reference), False
         heads.requires_grad_(False)

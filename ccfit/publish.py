@@ -33,6 +33,7 @@ from pathlib import Path
 
 from ccdata.errors import InputError
 from ccfit.analysis.learnability import finished_task_runs, write_learnability
+from ccfit.first_task import FIRST_RECORD
 from ccfit.portable import portable, portable_json
 from ccfit.report import group_metrics, group_runs, write_overview_of, write_report
 from ccfit.report.cost import run_cost
@@ -48,8 +49,9 @@ from ccfit.run_files import (
     SWEEP_JSON,
 )
 
-RUN_FILES = (CONFIG, METRICS_JSON, METRICS_JSONL, COST, "routing.jsonl")
-"""What a published run keeps (those of them it has): settings, metrics, records, cost."""
+RUN_FILES = (CONFIG, METRICS_JSON, METRICS_JSONL, COST, "routing.jsonl", FIRST_RECORD)
+"""What a published run keeps (those of them it has): settings, metrics, records, cost, and
+where its first task came from (`ccfit.first_task`)."""
 SCRATCH_FILES = (CONFIG, REFERENCE_DONE, METRICS_JSONL, COST)
 MAX_FILE_BYTES = 2_000_000
 """A published file larger than this is refused: results are for small files only."""

@@ -92,10 +92,12 @@ class Track(abc.ABC):
         self.progress = True
 
     @classmethod
-    def in_sweep(cls, cfg: Any, keep_stages: bool = False, callbacks: list = ()) -> Track:
+    def in_sweep(cls, cfg: Any, keep_stages: bool = False, callbacks: list = (),
+                 first_root: Path | None = None) -> Track:  # fmt: skip
         """The track of one run of a sweep (`ccfit.sweep.jobs`); `keep_stages`: the run keeps
         its state after each task, and `callbacks` (`ccfit.analysis.stage_callbacks`) are
-        called after each, where the track can."""
+        called after each, where the track can; `first_root`: its first task starts from the
+        one its seed's runs share there (`ccfit.first_task`), where the track can."""
         return cls(cfg)
 
     @property
@@ -301,6 +303,24 @@ class CurriculumRunner:
         result.update(track.describe(), scratch_dir=str(reference))
         atomic_write_json(out / METRICS_JSON, result)
         return result
+
+    def run_first_task(self) -> None:
+        """Only the first task's steps, checkpointed before the method closes the task (the
+        part `ccfit.first_task` shares between methods; the track stops there); resumes what
+        `out` holds. No reference, no metrics."""
+        track, out = self.track, self.out
+        with RunCost(out):
+            resolved = track.begin(out, self.progress)
+            restored = restore(track, out, self.device, resolved)
+            track.prepare(resolved, restored, self.scratch_root / track.reference_key())
+            folder = task_dir(out, 0, track.cfg.tasks[0])
+            try:
+                track.open(resolved, restored)
+                restored.model.begin_task(0, track.budget)
+                restored.method.before_task(0, restored.model.backbone)
+                track.learn_task(0, folder, (folder / CHECKPOINT).exists(), None)
+            finally:
+                track.close()
 
     def _save(self, completed: int, model: WorldModel, method: ContinualMethod,
               backbone_optim: dict | None, extra: dict) -> None:  # fmt: skip

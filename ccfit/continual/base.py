@@ -102,6 +102,11 @@ class ContinualMethod:
     """Registry name, set by `register_method`."""
     config_class: type[MethodConfig]
     """Its options, set by `register_method`."""
+    shares_first_task: bool = False
+    """Its hooks leave the first task's training as plain fine-tuning leaves it, up to
+    `after_task` (no state changes, no random numbers drawn), so runs of it may start from a
+    first task trained once for every such method (`ccfit.first_task`; the contract test
+    runs each method that says so both ways)."""
 
     def __init__(self, cfg: MethodConfig, num_tasks: int, seed: int = 0) -> None:
         if num_tasks < 1:

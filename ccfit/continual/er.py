@@ -99,6 +99,8 @@ class ExperienceReplayConfig(MethodConfig):
 class ExperienceReplay(ContinualMethod):
     """Reservoir-sampled replay of earlier tasks' windows through the backbone loss."""
 
+    shares_first_task = True
+
     cfg: ExperienceReplayConfig
 
     def __init__(self, cfg: ExperienceReplayConfig, num_tasks: int, seed: int = 0) -> None:

@@ -64,6 +64,8 @@ class EWCConfig(MethodConfig):
 class EWC(ContinualMethod):
     """Quadratic penalty anchoring important backbone parameters."""
 
+    shares_first_task = True
+
     cfg: EWCConfig
 
     def __init__(self, cfg: EWCConfig, num_tasks: int, seed: int = 0) -> None:

@@ -15,3 +15,5 @@ class FineTuneConfig(MethodConfig):
 @register_method("ft", FineTuneConfig)
 class FineTune(ContinualMethod):
     """No hook does anything; forgetting is whatever plain training causes."""
+
+    shares_first_task = True

@@ -93,6 +93,8 @@ class PackNetConfig(MethodConfig):
 class PackNet(ContinualMethod):
     """Parameter isolation by magnitude pruning, per-task masks and frozen copies."""
 
+    shares_first_task = True
+
     cfg: PackNetConfig
 
     def __init__(self, cfg: PackNetConfig, num_tasks: int, seed: int = 0) -> None:

@@ -2,7 +2,8 @@ r"""`ccfit sweep`: a grid of continual runs, here or on SLURM, and the report ov
 
     ccfit sweep --suites Reach,Grasp --methods ft,er,ewc,packnet --seeds 0,1,2 --preset cpu \
         --out runs/sweep1 [--models M1,M2] [--launcher slurm] [--max-parallel 4] \
-        [--obs pixels --train.steps=2000 --model.FIELD=VALUE ...] [--keep-stages]
+        [--obs pixels --train.steps=2000 --model.FIELD=VALUE ...] [--keep-stages] \
+        [--share-first-task]
     ccfit sweep --track offline --suites Reach --methods ft,ewc \
         --out runs/offline1                    # `ccfit fit` runs on the suite datasets
     ccfit sweep --status runs/sweep1
@@ -39,7 +40,7 @@ from ccfit.sweep.grid import (
     import_plugins,
     read_record,
 )
-from ccfit.sweep.jobs import report_current
+from ccfit.sweep.jobs import RunJob, report_current
 from ccfit.sweep.launch import launch_local, launch_slurm, plan_work, slurm_active, sweep_lock
 from ccfit.sweep.status import hours_to_go, print_status, sweep_status
 
@@ -109,6 +110,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="online runs keep their state after each task (stages/after-K.pt), to "
                         "branch from (`ccfit run --branch-from`); not part of a run's identity; "
                         "a run that kept stages keeps them when resumed without it")  # fmt: skip
+    p.add_argument("--share-first-task", action="store_true",
+                   help="runs of one seed whose methods leave the first task as FT trains it "
+                        "(ft, er, ewc, packnet) train it once, in RUNS/first/, and each closes "
+                        "it with its own method (`ccfit.first_task`): the same records, one "
+                        "first task's training less per such method; not part of a run's "
+                        "identity")  # fmt: skip
     p.add_argument("--dry-run", action="store_true", help="print what would run; write nothing")
     p.add_argument("--status", metavar="RUNS", help="show the state of the sweep in RUNS")
     p.add_argument("--wait", action="store_true", help="SLURM: block until the report job ended")
@@ -140,6 +147,10 @@ def cmd_sweep(argv: list[str]) -> int:
     if args.keep_stages and args.track == "offline":
         raise InputError("--keep-stages keeps online runs' states after each task; the offline "
                          "track has none to branch from")  # fmt: skip
+    if args.share_first_task and args.track == "offline":
+        raise InputError("--share-first-task shares online runs' first task; an offline "
+                         "run's first task is a fit of its dataset, cheap to repeat")  # fmt: skip
+    run_job = RunJob(args.keep_stages, args.share_first_task)
     if args.models is None:
         args.models = (DEFAULT_OFFLINE_MODEL if args.track == "offline" else DEFAULT_MODEL,)
     grid = Grid(args.suites, args.models, args.methods, args.seeds, args.preset,
@@ -167,9 +178,9 @@ def cmd_sweep(argv: list[str]) -> int:
         # a config asking for torch's default thread count shares the cores among the jobs
         threads = max(1, cores // parallel)
         with sweep_lock(sweep):
-            launch_local(sweep, work, submissions, parallel, threads, args.keep_stages)
+            launch_local(sweep, work, submissions, parallel, threads, run_job)
         return 0 if report_current(sweep) else EXIT_RUNS_MISSING
-    entry = launch_slurm(sweep, work, submissions, settings, args.keep_stages)
+    entry = launch_slurm(sweep, work, submissions, settings, run_job)
     for name, job in entry["jobs"].items():
         print(f"  {job}  {name}")
     print(

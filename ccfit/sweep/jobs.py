@@ -22,6 +22,7 @@ import submitit
 
 from ccdata.errors import InputError
 from ccdata.slurm import code_version
+from ccfit.first_task import FIRST
 from ccfit.io import atomic_write_json
 from ccfit.run_files import (
     CHECKPOINT,
@@ -100,10 +101,14 @@ class ScratchJob(_Job):
 class RunJob(_Job):
     """Train (or resume) one continual run; its from-scratch reference must exist already (on
     SLURM the run's job waits for the reference's with `afterany`, then checks here).
-    keep_stages: an online run keeps its state after each task (`ccfit run --keep-stages`)."""
+    keep_stages: an online run keeps its state after each task (`ccfit run --keep-stages`);
+    share_first_task: it starts from the first task its seed's runs share, in RUNS/first
+    (`ccfit.first_task`; runs of one seed that arrive together wait for the first to train
+    it)."""
 
-    def __init__(self, keep_stages: bool = False) -> None:
+    def __init__(self, keep_stages: bool = False, share_first_task: bool = False) -> None:
         self.keep_stages = keep_stages
+        self.share_first_task = share_first_task
 
     def __call__(self, config: dict, run_dir: str, scratch_root: str, scratch_key: str,
                  plugins: list[str], code: dict, threads: int | None = None) -> dict:  # fmt: skip
@@ -117,7 +122,8 @@ class RunJob(_Job):
             return _summary(json.loads(metrics.read_text()))
         cfg = config_from_dict(config)
         # The analyses its model offers, as `ccfit run` records them (offline: none run).
-        track = track_of(config).in_sweep(cfg, self.keep_stages, stage_callbacks(cfg))
+        first = Path(scratch_root).parent / FIRST if self.share_first_task else None
+        track = track_of(config).in_sweep(cfg, self.keep_stages, stage_callbacks(cfg), first)
         key = track.reference_key()
         if key != scratch_key:  # e.g. seed_dataset 'auto' found another dataset here
             raise RuntimeError(

@@ -89,9 +89,10 @@ def sweep_lock(sweep: Sweep):
 
 
 def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel: int,
-                 threads: int | None = None, keep_stages: bool = False) -> None:  # fmt: skip
+                 threads: int | None = None, run_job: RunJob | None = None) -> None:  # fmt: skip
     """Run `work` here, at most `max_parallel` jobs at once, then the sweep's report.
-    keep_stages: the runs keep their state after each task (`RunJob`)."""
+    run_job: the job each run is (its options: `RunJob`; None: the default)."""
+    run_job = run_job or RunJob()
     entry = {"launcher": "local", "time": _now(), "code": sweep.code, "pid": os.getpid(),
              "jobs": {}}  # fmt: skip
     submissions.append(entry)
@@ -118,7 +119,7 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
     for run in work.runs:
         if run.scratch_key in work.scratch and f"scratch:{run.scratch_key}" not in calls:
             calls[f"scratch:{run.scratch_key}"] = scratch_call(run.scratch_key)
-        calls[f"run:{run.name}"] = (RunJob(keep_stages), alone(run.config),
+        calls[f"run:{run.name}"] = (run_job, alone(run.config),
                                     str(sweep.run_dir(run)), str(sweep.root / SCRATCH),
                                     run.scratch_key, plugins, code, threads)  # fmt: skip
     for name in calls:
@@ -193,9 +194,10 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
 
 
 def launch_slurm(sweep: Sweep, work: Work, submissions: list[dict], settings: SlurmSettings,
-                 keep_stages: bool = False) -> dict:  # fmt: skip
+                 run_job: RunJob | None = None) -> dict:  # fmt: skip
     """Submit `work` as SLURM jobs and return at once; returns the submission entry.
-    keep_stages: the runs keep their state after each task (`RunJob`)."""
+    run_job: the job each run is (its options: `RunJob`; None: the default)."""
+    run_job = run_job or RunJob()
     for tasks, what in ((len(work.scratch), "from-scratch references"), (len(work.runs), "runs")):
         check_array_size(tasks, f"{tasks} {what} to submit")
     folder = sweep.root / "slurm"
@@ -234,7 +236,7 @@ def launch_slurm(sweep: Sweep, work: Work, submissions: list[dict], settings: Sl
                 executor.update_parameters(job_name="ccfit-run", dependency=after(needed))
                 n = len(work.runs)
                 submitted = executor.map_array(
-                    RunJob(keep_stages),
+                    run_job,
                     [r.config for r in work.runs],
                     [str(sweep.run_dir(r)) for r in work.runs],
                     [str(sweep.root / SCRATCH)] * n,

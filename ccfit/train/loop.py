@@ -76,6 +76,10 @@ class Trainer:
         that ran to its budget goes on as the longer run would have from there.
     backbone_optim: the previous task's `backbone_optimizer_state`, which this task's
         world-model optimiser starts from (`keep_backbone_optimizer`; None: fresh).
+    stop_before_close: when the task's steps are done, checkpoint and return before the
+        method closes the task (`ccfit.first_task`: the part every method shares); a run
+        resumed from that checkpoint closes it. Not with `stop_score` (a task it ended early
+        would train on when resumed).
     """
 
     def __init__(
@@ -87,7 +91,10 @@ class Trainer:
         global_offset: int = 0, progress: bool = True,
         stored_heads_loss: Callable[[Batch, int], torch.Tensor] | None = None,
         extendable: bool = False, backbone_optim: dict | None = None,
+        stop_before_close: bool = False,
     ) -> None:  # fmt: skip
+        if stop_before_close and config.stop_score is not None:
+            raise ValueError("stop_before_close with stop_score: a resumed run would train on")
         self.env, self.model, self.heads, self.buffer = env, model, heads, buffer
         self.evaluator = evaluator
         evaluator.heads[task_index] = heads
@@ -97,6 +104,7 @@ class Trainer:
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.global_offset, self.progress = global_offset, progress
         self.extendable = extendable
+        self.stop_before_close = stop_before_close
         self.device = model.device
         self.execution = execution or resolve_execution(config, model.device)
         self.step = UpdateStep(model, heads, method, stored_heads_loss,
@@ -186,6 +194,10 @@ class Trainer:
                 if (self._episode is None and self.task_step % cfg.eval_interval != 0
                         and (self._wall_clock_due() or self._owed_checkpoint_due())):  # fmt: skip
                     self._checkpoint()
+            if not self.finished and self.stop_before_close:
+                self._cut_episode()
+                self._checkpoint()  # waits for every evaluation before this step
+                return None
             if not self.finished:
                 self._cut_episode()
                 self._finish_task()

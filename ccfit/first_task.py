@@ -1,0 +1,113 @@
+"""One first task for every method: runs that differ only in the method train it once.
+
+Until its first task's steps are done, a run of FT, ER, EWC or PackNet computes the same
+thing: nothing is stored yet, EWC has no Fisher, PackNet has pruned nothing, so their hooks
+leave training as plain fine-tuning leaves it. A method first acts when the task closes
+(`after_task`: ER keeps the task's replay, EWC its Fisher, PackNet prunes and retrains). A
+method says so with `ContinualMethod.shares_first_task`, and the contract test holds it to
+it: a run started from the shared first task equals, record for record, the run that trained
+its own (tests/test_first_task.py).
+
+So a sweep's runs of one seed (`ccfit sweep --share-first-task`) share the part up to the
+close. `RUNS/first/<key>` (the key of their shared from-scratch reference: everything but the
+method) holds FT's run trained through task 0's steps and checkpointed before the task
+closes; each run copies that checkpoint, less FT's method state, into its own task folder with
+the stage-0 records and the TensorBoard scalars, and resumes from it as from any checkpoint:
+its own method closes the task, and the end-of-task evaluation is its own.
+
+    first/<key>/            config.json (FT's), metrics.jsonl, tb/, tasks/0-<task>/
+    first/<key>/first.json  written last: the checkpoint's sha256, what training it cost
+    <run>/first_task.json   the shared folder it started from and that record
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import json
+import os
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import torch
+
+from ccdata.atomic import atomic_write_text
+from ccfit.io import atomic_torch_save, atomic_write_json, read_run_json
+from ccfit.replay_store import ROWS_DIR
+from ccfit.run_files import CHECKPOINT, COST
+from ccfit.train.records import METRICS, TENSORBOARD, record_stage
+
+FIRST = "first"
+"""A sweep's folder of shared first tasks, beside its `scratch` folder."""
+FIRST_DONE = "first.json"
+FIRST_RECORD = "first_task.json"
+
+
+def first_task_done(shared: Path) -> dict | None:
+    """The shared folder's record (None: not trained to its close yet)."""
+    path = Path(shared) / FIRST_DONE
+    return read_run_json(path, leave_out="the shared first task") if path.exists() else None
+
+
+@contextlib.contextmanager
+def first_task_lock(shared: Path) -> Iterator[None]:
+    """Held while a shared first task is trained or read: concurrent runs of one seed wait
+    for the first to train it."""
+    shared = Path(shared)
+    shared.parent.mkdir(parents=True, exist_ok=True)
+    with open(shared.parent / f".{shared.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def mark_done(shared: Path, folder: Path) -> dict:
+    """Record the shared first task trained: `folder` (its task folder) holds the checkpoint
+    taken before the task closes."""
+    checkpoint = Path(folder) / CHECKPOINT
+    cost = Path(shared) / COST
+    record = {
+        "task_folder": str(Path(folder).relative_to(shared)),
+        "state_sha256": hashlib.sha256(checkpoint.read_bytes()).hexdigest(),
+        "cost": json.loads(cost.read_text()) if cost.exists() else None,
+    }
+    atomic_write_json(Path(shared) / FIRST_DONE, record)
+    return record
+
+
+def start_from_first_task(shared: Path, out: Path, folder: Path) -> None:
+    """Make run directory `out` resume its first task (task folder `folder`) from the shared
+    one: the checkpoint without the shared run's method state (the run's own method, fresh
+    from `before_task(0)`, is what that state would be), the replay rows it lists (hard links
+    where the file system allows), the stage-0 records and TensorBoard scalars."""
+    shared, out, folder = Path(shared), Path(out), Path(folder)
+    record = first_task_done(shared)
+    if record is None:
+        raise RuntimeError(f"{shared}: the shared first task is not finished")
+    source = shared / record["task_folder"]
+    state = torch.load(source / CHECKPOINT, map_location="cpu", weights_only=False)
+    state.pop("method", None)
+    shutil.rmtree(folder, ignore_errors=True)
+    (folder / ROWS_DIR).mkdir(parents=True)
+    for entry in state["replay_files"]:
+        _link_or_copy(source / ROWS_DIR / entry["file"], folder / ROWS_DIR / entry["file"])
+    records = read_run_json(shared / METRICS, lines=True) if (shared / METRICS).exists() else []
+    atomic_write_text(out / METRICS, "".join(json.dumps(r, sort_keys=True) + "\n"
+                                             for r in records if record_stage(r) == 0))  # fmt: skip
+    shutil.rmtree(out / TENSORBOARD, ignore_errors=True)
+    if (shared / TENSORBOARD).is_dir():
+        shutil.copytree(shared / TENSORBOARD, out / TENSORBOARD)
+    # The checkpoint last: until it is there the run starts its first task afresh.
+    atomic_torch_save(state, folder / CHECKPOINT)
+    atomic_write_json(out / FIRST_RECORD, {"shared": shared.name, **record})
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:  # another file system, or one without hard links
+        shutil.copyfile(src, dst)

@@ -1,0 +1,148 @@
+"""Runs of one seed share their first task (`ccfit.first_task`).
+
+The contract, over every registered method that says it shares the first task: a run started
+from the shared first task equals the run that trained its own, record for record and weight
+for weight. A method that does not share it trains its own; the shared task is trained once;
+`ccfit sweep --share-first-task` wires it through."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+import ccfit.curriculum as C
+from ccfit.cli import main
+from ccfit.config import CurriculumConfig
+from ccfit.config_parse import resolve
+from ccfit.continual import METHODS, method_names
+from ccfit.continual.ft import FineTune
+from ccfit.curriculum import Curriculum, OnlineTrack
+from ccfit.first_task import FIRST_DONE, FIRST_RECORD
+from ccfit.runner import CurriculumRunner
+from ccfit.train import METRICS
+
+try:
+    from short_episodes import EPISODE_STEPS
+except ImportError:  # tests/ imported as a package
+    from tests.short_episodes import EPISODE_STEPS
+
+SUITE = "Reach"
+# 110 steps of 25-step episodes: the first task ends inside an episode, which the shared part
+# cuts before its checkpoint.
+TRAIN = {"steps": 110, "seed_steps": 50, "eval_interval": 55, "checkpoint_interval": 50,
+         "episode_steps": EPISODE_STEPS}  # fmt: skip
+SHARING = [m for m in method_names() if METHODS[m].shares_first_task]
+
+
+def _config(method: str, model: str = "tdmpc2", parallel: str = "off") -> CurriculumConfig:
+    return resolve(CurriculumConfig, {
+        "suite": SUITE, "preset": "smoke", "seed_dataset": None,
+        "train": {**TRAIN, "parallel": parallel}, "method": {"type": method},
+        "model": {"type": model},
+    })  # fmt: skip
+
+
+def _records(run_dir: Path) -> list[dict]:
+    return [json.loads(x) for x in (run_dir / METRICS).read_text().splitlines() if x.strip()]
+
+
+def _shared(first: Path) -> list[Path]:
+    """The shared first tasks in `first` (beside their lock files)."""
+    return [p for p in first.iterdir() if not p.name.startswith(".")]
+
+
+def _run(cfg: CurriculumConfig, out: Path, scratch: Path, first: Path | None = None) -> dict:
+    track = OnlineTrack(cfg, first_root=first)
+    return CurriculumRunner(track, out, scratch, progress=False).run()
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    torch.set_num_threads(1)
+    return tmp_path_factory.mktemp("first")
+
+
+def test_the_methods_that_close_their_first_task_only_share_it():
+    assert {"ft", "er", "ewc", "packnet"} <= set(SHARING)
+    assert "experts" not in SHARING  # its first task trains group 0's experts alone
+
+
+# TD-MPC2 under every sharing method in `make test`; evaluation in a worker (requests in
+# flight where the shared part stops) and the other models in the integration tier.
+CASES = [pytest.param("tdmpc2", m, "off", id=f"tdmpc2-{m}") for m in SHARING] + [
+    pytest.param(model, m, parallel, id=f"{model}-{m}-{parallel}", marks=pytest.mark.integration)
+    for model, m, parallel in [("tdmpc2", "packnet", "on"), ("tdmpc2", "er", "on"),
+                               *(("dreamerv3", m, "off") for m in SHARING), ("pwm", "ft", "off")]
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("model", "method", "parallel"), CASES)
+def test_a_run_from_the_shared_first_task_equals_one_that_trained_its_own(root, model, method,
+                                                                         parallel):  # fmt: skip
+    cfg = _config(method, model, parallel)
+    name = f"{model}-{method}-{parallel}"
+    own = _run(cfg, root / f"own-{name}", root / "scratch")
+    shared = _run(cfg, root / f"shared-{name}", root / "scratch", first=root / "first")
+    assert (root / f"shared-{name}" / FIRST_RECORD).is_file()
+    assert not (root / f"own-{name}" / FIRST_RECORD).exists()
+    assert _records(root / f"shared-{name}") == _records(root / f"own-{name}")
+    assert {k: shared[k] for k in ("bwt", "fwt")} == {k: own[k] for k in ("bwt", "fwt")}
+    states = [torch.load(root / f"{kind}-{name}" / C.STATE, map_location="cpu",
+                         weights_only=False) for kind in ("own", "shared")]  # fmt: skip
+    for key, tensor in states[0]["model"].items():
+        assert torch.equal(tensor, states[1]["model"][key]), key
+
+
+def test_the_shared_first_task_is_trained_once(root):
+    first = root / "first"
+    _run(_config("ft"), root / "once-ft", root / "scratch", first=first)
+    (shared,) = [p for p in _shared(first) if "tdmpc2" in p.name]
+    done = (shared / FIRST_DONE).stat().st_mtime_ns
+    _run(_config("ewc"), root / "again-ewc", root / "scratch", first=root / "first")
+    assert (shared / FIRST_DONE).stat().st_mtime_ns == done
+    record = json.loads((root / "again-ewc" / FIRST_RECORD).read_text())
+    assert record["shared"] == shared.name and len(record["state_sha256"]) == 64
+
+
+def test_a_method_that_does_not_share_it_trains_its_own(root, monkeypatch):
+    monkeypatch.setattr(FineTune, "shares_first_task", False)
+    out = root / "alone-ft"
+    _run(_config("ft"), out, root / "scratch", first=root / "first-unused")
+    assert not (out / FIRST_RECORD).exists() and not (root / "first-unused").exists()
+
+
+@pytest.mark.integration
+def test_a_sweep_shares_the_first_task_of_each_seed(tmp_path):
+    torch.set_num_threads(1)
+    out = tmp_path / "sweep"
+    argv = ["sweep", "--suites", SUITE, "--methods", "ft,packnet", "--seeds", "0",
+            "--preset", "smoke", "--seed_dataset", "null", "--max-parallel", "1",
+            "--share-first-task", "--out", str(out)]  # fmt: skip
+    argv += [f"--train.{k}={v}" for k, v in TRAIN.items()]
+    assert main(argv) == 0
+    runs = sorted(p for p in out.iterdir() if (p / "metrics.json").is_file())
+    assert len(runs) == 2 and all((p / FIRST_RECORD).is_file() for p in runs)
+    (shared,) = _shared(out / "first")
+    assert (shared / FIRST_DONE).is_file()
+    alone = Curriculum(_config("packnet"), tmp_path / "alone", tmp_path / "scratch",
+                       progress=False).run()  # fmt: skip
+    published = json.loads(next(p for p in runs if "packnet" in p.name).joinpath(
+        "metrics.json").read_text())  # fmt: skip
+    assert (published["bwt"], published["fwt"]) == (alone["bwt"], alone["fwt"])
+
+
+def test_an_offline_sweep_cannot_share_it(tmp_path, capsys):
+    argv = ["sweep", "--track", "offline", "--suites", SUITE, "--methods", "ft", "--seeds",
+            "0", "--share-first-task", "--out", str(tmp_path / "off")]  # fmt: skip
+    assert main(argv) == 2
+    assert "--share-first-task" in capsys.readouterr().err
+
+
+def test_its_helpers_need_a_finished_shared_task(tmp_path):
+    from ccfit.first_task import start_from_first_task
+
+    with pytest.raises(RuntimeError, match="not finished"):
+        start_from_first_task(tmp_path / "none", tmp_path / "run", tmp_path / "run" / "t")
