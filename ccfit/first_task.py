@@ -101,9 +101,9 @@ def start_from_first_task(shared: Path, out: Path, folder: Path) -> None:
     shutil.rmtree(out / TENSORBOARD, ignore_errors=True)
     if (shared / TENSORBOARD).is_dir():
         shutil.copytree(shared / TENSORBOARD, out / TENSORBOARD)
-    # The checkpoint last: until it is there the run starts its first task afresh.
-    atomic_torch_save(state, folder / CHECKPOINT)
     atomic_write_json(out / FIRST_RECORD, {"shared": shared.name, **record})
+    # The checkpoint last: until it is there the run starts from the shared task again.
+    atomic_torch_save(state, folder / CHECKPOINT)
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:
