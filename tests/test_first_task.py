@@ -8,6 +8,8 @@ for weight. A method that does not share it trains its own; the shared task is t
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -29,6 +31,7 @@ try:
 except ImportError:  # tests/ imported as a package
     from tests.short_episodes import EPISODE_STEPS
 
+BENCH = Path(__file__).resolve().parents[1] / "bench" / "first_task.py"
 SUITE = "Reach"
 # 110 steps of 25-step episodes: the first task ends inside an episode, which the shared part
 # cuts before its checkpoint.
@@ -132,6 +135,12 @@ def test_a_sweep_shares_the_first_task_of_each_seed(tmp_path):
     published = json.loads(next(p for p in runs if "packnet" in p.name).joinpath(
         "metrics.json").read_text())  # fmt: skip
     assert (published["bwt"], published["fwt"]) == (alone["bwt"], alone["fwt"])
+    bench = subprocess.run([sys.executable, str(BENCH), str(out)], capture_output=True,
+                           text=True, check=True)  # fmt: skip
+    saved = json.loads(bench.stdout)
+    (first,) = saved["shared_first_tasks"]
+    assert first["runs"] == 2 and first["saved_cpu_s"] == first["cpu_s"] > 0
+    assert saved["without_sharing_over_with"] > 1.0
 
 
 def test_an_offline_sweep_cannot_share_it(tmp_path, capsys):

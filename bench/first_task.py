@@ -1,0 +1,69 @@
+"""What `ccfit sweep --share-first-task` saved a sweep, from the sweep's own cost records.
+Prints JSON.
+
+    python bench/first_task.py ../runs/results/grasp-dreamerv3-3s
+
+Each shared first task (`RUNS/first/<key>/first.json`) records what training it cost; each run
+that started from it says so (`first_task.json`). Without sharing, every such run but the one
+that trained it would have trained it again, so the sweep would have cost its CPU seconds
+(runs' and references' `cost.json`, the shared training counted in the run whose process
+trained it) plus (runs started from it - 1) x its cost. The ratio is that over what it cost.
+Counted over the runs and references with a cost so far: a sweep part-way gives its ratio so
+far.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+FIRST, FIRST_DONE, FIRST_RECORD, COST, SCRATCH = (
+    "first", "first.json", "first_task.json", "cost.json", "scratch")  # fmt: skip
+
+
+def _cpu_s(path: Path) -> float:
+    return float(json.loads(path.read_text())["cpu_s"]) if path.is_file() else 0.0
+
+
+def saving(root: Path) -> dict:
+    """The sweep in `root`: its CPU seconds, those its shared first tasks saved, the ratio."""
+    runs = [p.parent for p in sorted(root.glob(f"*/{COST}"))]
+    spent = sum(_cpu_s(r / COST) for r in runs)
+    spent += sum(_cpu_s(p) for p in sorted((root / SCRATCH).glob(f"*/{COST}")))
+    started: dict[str, int] = {}
+    for run in runs:
+        if (run / FIRST_RECORD).is_file():
+            name = json.loads((run / FIRST_RECORD).read_text())["shared"]
+            started[name] = started.get(name, 0) + 1
+    shared = []
+    for done in sorted((root / FIRST).glob(f"*/{FIRST_DONE}")):
+        cost = json.loads(done.read_text()).get("cost") or {}
+        n = started.get(done.parent.name, 0)
+        shared.append({"shared": done.parent.name, "cpu_s": cost.get("cpu_s"), "runs": n,
+                       "saved_cpu_s": max(n - 1, 0) * float(cost.get("cpu_s") or 0.0)})  # fmt: skip
+    saved = sum(s["saved_cpu_s"] for s in shared)
+    return {
+        "sweep": root.name,
+        "runs_with_cost": len(runs),
+        "cpu_h": round(spent / 3600, 3),
+        "saved_cpu_h": round(saved / 3600, 3),
+        "without_sharing_over_with": round((spent + saved) / spent, 3) if spent else None,
+        "shared_first_tasks": shared,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("runs", type=Path, help="a sweep's folder (`ccfit sweep --out`)")
+    args = p.parse_args(argv)
+    if not (args.runs / "sweep.json").is_file():
+        print(f"error: {args.runs} holds no sweep (sweep.json missing)", file=sys.stderr)
+        return 2
+    print(json.dumps(saving(args.runs), indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
