@@ -22,7 +22,8 @@ from ccfit.config_parse import resolve
 from ccfit.continual import METHODS, method_names
 from ccfit.continual.ft import FineTune
 from ccfit.curriculum import Curriculum, OnlineTrack
-from ccfit.first_task import FIRST_DONE, FIRST_RECORD
+from ccfit.first_task import FIRST_DONE, FIRST_RECORD, start_from_first_task
+from ccfit.run_files import CHECKPOINT
 from ccfit.runner import CurriculumRunner
 from ccfit.train import METRICS
 
@@ -110,6 +111,26 @@ def test_the_shared_first_task_is_trained_once(root):
     assert record["shared"] == shared.name and len(record["state_sha256"]) == 64
 
 
+def test_a_start_from_it_killed_before_its_checkpoint_starts_again(root):
+    first = root / "first"
+    _run(_config("ft"), root / "once-ft", root / "scratch", first=first)
+    (shared,) = [p for p in _shared(first) if "tdmpc2" in p.name]
+    out = root / "killed"
+    folder = out / "tasks" / "0-reach-xy"
+    out.mkdir()
+    start_from_first_task(shared, out, folder)
+    (folder / CHECKPOINT).unlink()  # killed after the records, before the checkpoint
+    start_from_first_task(shared, out, folder)
+    source = torch.load(shared / "tasks" / "0-reach-xy" / CHECKPOINT, weights_only=False)
+    state = torch.load(folder / CHECKPOINT, weights_only=False)
+    assert "method" in source and "method" not in state  # the run's own method closes it
+    assert state["task_step"] == source["task_step"] == TRAIN["steps"]
+    assert all(torch.equal(v, state["model"][k]) for k, v in source["model"].items())
+    assert sorted(p.name for p in (folder / "replay").iterdir()) == sorted(
+        f["file"] for f in state["replay_files"])  # fmt: skip
+    assert _records(out) == [r for r in _records(shared) if r["stage"] == 0]
+
+
 def test_a_method_that_does_not_share_it_trains_its_own(root, monkeypatch):
     monkeypatch.setattr(FineTune, "shares_first_task", False)
     out = root / "alone-ft"
@@ -151,7 +172,5 @@ def test_an_offline_sweep_cannot_share_it(tmp_path, capsys):
 
 
 def test_its_helpers_need_a_finished_shared_task(tmp_path):
-    from ccfit.first_task import start_from_first_task
-
     with pytest.raises(RuntimeError, match="not finished"):
         start_from_first_task(tmp_path / "none", tmp_path / "run", tmp_path / "run" / "t")
