@@ -171,3 +171,32 @@ def test_a_job_the_controller_lists_reads_its_live_state_whatever_accounting_say
         assert set(states.values()) <= {"PENDING", "RUNNING", "CONFIGURING"}, states
     finally:
         subprocess.run([scancel, array], check=False)
+
+
+@pytest.mark.integration
+def test_a_sweep_through_slurm_shares_the_first_task_of_a_seed(tmp_path, capsys):
+    """`--share-first-task` on SLURM: the seed's runs start together (one array), the first to
+    take the lock trains the shared first task while the other waits for it, both start from
+    it, and the FT run equals an uninterrupted run of its config trained alone."""
+    from ccfit.curriculum import Curriculum
+    from ccfit.first_task import FIRST, FIRST_RECORD
+    from ccfit.sweep.jobs import config_from_dict
+
+    root = tmp_path / "runs"
+    args = toy_args(root, "ft,ewc", "--train.steps=300", "--train.seed_steps=100",
+                    "--train.eval_interval=100", "--share-first-task")  # fmt: skip
+    assert main([*args, "--wait"]) == 0
+    assert re.search(r"(?m)^report\s+done", capsys.readouterr().out)
+    sweep, _ = load_sweep(root)
+    shared = [p for p in (root / FIRST).iterdir() if not p.name.startswith(".")]
+    assert len(shared) == 1
+    for run in sweep.runs:
+        record = json.loads((sweep.run_dir(run) / FIRST_RECORD).read_text())
+        assert record["shared"] == shared[0].name
+    [run] = [r for r in sweep.runs if r.config["method"]["type"] == "ft"]
+    alone = Curriculum(config_from_dict(run.config), tmp_path / "alone",
+                       tmp_path / "alone-scratch", progress=False).run()  # fmt: skip
+    result = json.loads((sweep.run_dir(run) / "metrics.json").read_text())
+    for r in (result, alone):
+        r.pop("scratch_dir")
+    assert result == json.loads(json.dumps(alone))
