@@ -7,9 +7,10 @@ Each shared first task (`RUNS/first/<key>/first.json`) records what training it 
 that started from it says so (`first_task.json`). Without sharing, every such run but the one
 that trained it would have trained it again, so the sweep would have cost its CPU seconds
 (runs' and references' `cost.json`, the shared training counted in the run whose process
-trained it) plus (runs started from it - 1) x its cost. The ratio is that over what it cost.
-Counted over the runs and references with a cost so far: a sweep part-way gives its ratio so
-far.
+trained it) plus (runs started from it - 1) x its cost. The ratio is that over what it cost,
+for the whole sweep (references and runs without a shared first task included) and for each
+shared first task's runs. Counted over what has a cost so far: a sweep part-way gives its
+ratios so far.
 """
 
 from __future__ import annotations
@@ -32,17 +33,21 @@ def saving(root: Path) -> dict:
     runs = [p.parent for p in sorted(root.glob(f"*/{COST}"))]
     spent = sum(_cpu_s(r / COST) for r in runs)
     spent += sum(_cpu_s(p) for p in sorted((root / SCRATCH).glob(f"*/{COST}")))
-    started: dict[str, int] = {}
+    started: dict[str, list[float]] = {}
     for run in runs:
         if (run / FIRST_RECORD).is_file():
             name = json.loads((run / FIRST_RECORD).read_text())["shared"]
-            started[name] = started.get(name, 0) + 1
+            started.setdefault(name, []).append(_cpu_s(run / COST))
     shared = []
     for done in sorted((root / FIRST).glob(f"*/{FIRST_DONE}")):
-        cost = json.loads(done.read_text()).get("cost") or {}
-        n = started.get(done.parent.name, 0)
-        shared.append({"shared": done.parent.name, "cpu_s": cost.get("cpu_s"), "runs": n,
-                       "saved_cpu_s": max(n - 1, 0) * float(cost.get("cpu_s") or 0.0)})  # fmt: skip
+        cpu_s = float((json.loads(done.read_text()).get("cost") or {}).get("cpu_s") or 0.0)
+        costs = started.get(done.parent.name, [])
+        saved_s = max(len(costs) - 1, 0) * cpu_s
+        # its runs' CPU seconds (the shared training counted in the one that trained it)
+        shared.append({"shared": done.parent.name, "cpu_s": cpu_s, "runs": len(costs),
+                       "runs_cpu_s": sum(costs), "saved_cpu_s": saved_s,
+                       "runs_without_over_with": round((sum(costs) + saved_s) / sum(costs), 3)
+                       if sum(costs) else None})  # fmt: skip
     saved = sum(s["saved_cpu_s"] for s in shared)
     return {
         "sweep": root.name,
