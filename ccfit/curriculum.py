@@ -192,7 +192,9 @@ class OnlineTrack(Track):
         shared = self.first_root / self.reference_key()
         with first_task_lock(shared):
             if first_task_done(shared) is None:
-                ft = dataclasses.replace(self.cfg, method=method_config("ft"))
+                # Its scalars go to TensorBoard, copied into each run; not a W&B run of its own.
+                log = dataclasses.replace(self.cfg.log, wandb=False)
+                ft = dataclasses.replace(self.cfg, method=method_config("ft"), log=log)
                 track = OnlineTrack(ft, first_only=True)
                 CurriculumRunner(track, shared, progress=self.progress).run_first_task()
                 mark_done(shared, task_dir(shared, 0, ft.tasks[0]))
