@@ -119,7 +119,8 @@ def test_the_shared_first_task_is_trained_once(root):
 
 def test_a_start_from_it_killed_before_its_checkpoint_starts_again(root):
     first = root / "first"
-    _run(_config("ft"), root / "once-ft", root / "scratch", first=first)
+    if not (first.is_dir() and _shared(first)):  # run alone (-k): make one
+        _run(_config("ft"), root / "once-ft", root / "scratch", first=first)
     (shared,) = [p for p in _shared(first) if "tdmpc2" in p.name]
     out = root / "killed"
     folder = out / "tasks" / "0-reach-xy"
