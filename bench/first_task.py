@@ -20,8 +20,8 @@ import json
 import sys
 from pathlib import Path
 
-FIRST, FIRST_DONE, FIRST_RECORD, COST, SCRATCH = (
-    "first", "first.json", "first_task.json", "cost.json", "scratch")  # fmt: skip
+from ccfit.first_task import FIRST, FIRST_DONE, FIRST_RECORD
+from ccfit.run_files import COST, SCRATCH, SWEEP_JSON
 
 
 def _cpu_s(path: Path) -> float:
@@ -63,8 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("runs", type=Path, help="a sweep's folder (`ccfit sweep --out`)")
     args = p.parse_args(argv)
-    if not (args.runs / "sweep.json").is_file():
-        print(f"error: {args.runs} holds no sweep (sweep.json missing)", file=sys.stderr)
+    if not (args.runs / SWEEP_JSON).is_file():
+        print(f"error: {args.runs} holds no sweep ({SWEEP_JSON} missing)", file=sys.stderr)
         return 2
     print(json.dumps(saving(args.runs), indent=2))
     return 0

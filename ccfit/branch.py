@@ -20,18 +20,15 @@ later tasks record for record (tested).
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from ccdata.atomic import atomic_write_text
 from ccfit.config_base import ConfigError, identity
 from ccfit.config_parse import flatten
-from ccfit.io import atomic_write_json, read_run_json
-from ccfit.train.records import METRICS, record_stage
+from ccfit.io import atomic_write_json, file_sha256, read_run_json
+from ccfit.train.records import METRICS, record_stage, write_records
 from ccfit.train.run import CONFIG
 
 STAGES = "stages"
@@ -104,11 +101,10 @@ def start_branch(branch: Branch, resolved: dict, out: Path, num_tasks: int, stat
     out.mkdir(parents=True, exist_ok=True)
     source_metrics = branch.source / METRICS
     records = read_run_json(source_metrics, lines=True) if source_metrics.exists() else []
-    kept = [r for r in records if record_stage(r) < branch.after]
-    atomic_write_text(out / METRICS, "".join(json.dumps(r, sort_keys=True) + "\n" for r in kept))
+    write_records(out / METRICS, [r for r in records if record_stage(r) < branch.after])
     tmp = out / (state + ".tmp")
     shutil.copyfile(stage, tmp)
-    digest = hashlib.sha256(tmp.read_bytes()).hexdigest()
+    digest = file_sha256(tmp)
     os.replace(tmp, out / state)
     # Written last: what a branch killed before this line wrote is written again.
     atomic_write_json(out / BRANCH, {**branch.record(), "state_sha256": digest})

@@ -43,12 +43,8 @@ from ccfit.branch import RECORD as BRANCH_RECORD
 from ccfit.branch import STAGES, Branch, keep_stage, read_branch, start_branch
 from ccfit.config import CurriculumConfig
 from ccfit.continual.base import ContinualMethod, method_config
-from ccfit.first_task import (
-    first_task_done,
-    first_task_lock,
-    mark_done,
-    start_from_first_task,
-)
+from ccfit.first_task import first_task_done, mark_done, start_from_first_task
+from ccfit.io import folder_lock
 from ccfit.models.base import WorldModel
 from ccfit.run_files import CHECKPOINT, METRICS_JSON, ONLINE, ONLINE_STATE, REFERENCE_DONE, task_dir
 from ccfit.runner import CurriculumRunner, Restored, Track, run_reference
@@ -190,7 +186,7 @@ class OnlineTrack(Track):
         """The shared first task trained (by FT: every sharing method trains it alike) if no
         run has, then copied into this run's first task folder."""
         shared = self.first_root / self.reference_key()
-        with first_task_lock(shared):
+        with folder_lock(shared):
             if first_task_done(shared) is None:
                 # Its scalars go to TensorBoard, copied into each run; not a W&B run of its own.
                 log = dataclasses.replace(self.cfg.log, wandb=False)

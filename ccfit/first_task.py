@@ -22,22 +22,17 @@ its own method closes the task, and the end-of-task evaluation is its own.
 
 from __future__ import annotations
 
-import contextlib
-import fcntl
-import hashlib
 import json
 import os
 import shutil
-from collections.abc import Iterator
 from pathlib import Path
 
 import torch
 
-from ccdata.atomic import atomic_write_text
-from ccfit.io import atomic_torch_save, atomic_write_json, read_run_json
+from ccfit.io import atomic_torch_save, atomic_write_json, file_sha256, read_run_json
 from ccfit.replay_store import ROWS_DIR
 from ccfit.run_files import CHECKPOINT, COST
-from ccfit.train.records import METRICS, TENSORBOARD, record_stage
+from ccfit.train.records import METRICS, TENSORBOARD, record_stage, write_records
 
 FIRST = "first"
 """A sweep's folder of shared first tasks, beside its `scratch` folder."""
@@ -48,21 +43,9 @@ FIRST_RECORD = "first_task.json"
 def first_task_done(shared: Path) -> dict | None:
     """The shared folder's record (None: not trained to its close yet)."""
     path = Path(shared) / FIRST_DONE
-    return read_run_json(path, leave_out="the shared first task") if path.exists() else None
-
-
-@contextlib.contextmanager
-def first_task_lock(shared: Path) -> Iterator[None]:
-    """Held while a shared first task is trained or read: concurrent runs of one seed wait
-    for the first to train it."""
-    shared = Path(shared)
-    shared.parent.mkdir(parents=True, exist_ok=True)
-    with open(shared.parent / f".{shared.name}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+    if not path.exists():
+        return None
+    return read_run_json(path, remedy=f"delete {Path(shared)} and run the sweep again")
 
 
 def mark_done(shared: Path, folder: Path) -> dict:
@@ -72,7 +55,7 @@ def mark_done(shared: Path, folder: Path) -> dict:
     cost = Path(shared) / COST
     record = {
         "task_folder": str(Path(folder).relative_to(shared)),
-        "state_sha256": hashlib.sha256(checkpoint.read_bytes()).hexdigest(),
+        "state_sha256": file_sha256(checkpoint),
         "cost": json.loads(cost.read_text()) if cost.exists() else None,
     }
     atomic_write_json(Path(shared) / FIRST_DONE, record)
@@ -96,8 +79,7 @@ def start_from_first_task(shared: Path, out: Path, folder: Path) -> None:
     for entry in state["replay_files"]:
         _link_or_copy(source / ROWS_DIR / entry["file"], folder / ROWS_DIR / entry["file"])
     records = read_run_json(shared / METRICS, lines=True) if (shared / METRICS).exists() else []
-    atomic_write_text(out / METRICS, "".join(json.dumps(r, sort_keys=True) + "\n"
-                                             for r in records if record_stage(r) == 0))  # fmt: skip
+    write_records(out / METRICS, [r for r in records if record_stage(r) == 0])
     shutil.rmtree(out / TENSORBOARD, ignore_errors=True)
     if (shared / TENSORBOARD).is_dir():
         shutil.copytree(shared / TENSORBOARD, out / TENSORBOARD)

@@ -13,6 +13,8 @@ a pickle that would run code, is refused with one line instead of being executed
 from __future__ import annotations
 
 import contextlib
+import fcntl
+import hashlib
 import json
 import random
 from collections.abc import Iterator
@@ -169,3 +171,23 @@ def _set(g, s) -> None:
         g.bit_generator.state = s
     else:
         g.set_state(s)
+
+
+@contextlib.contextmanager
+def folder_lock(folder: str | Path) -> Iterator[None]:
+    """Held while `folder`, which several runs share, is made or read (a from-scratch
+    reference, a shared first task): concurrent runs wait for the first to make it. The lock
+    file `.<name>.lock` lies beside it."""
+    folder = Path(folder)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    with open(folder.parent / f".{folder.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def file_sha256(path: str | Path) -> str:
+    """The SHA-256 of a file's bytes."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()

@@ -18,7 +18,6 @@ the state saved, the task's checkpoint folder removed.
 from __future__ import annotations
 
 import abc
-import fcntl
 import functools
 import hashlib
 import json
@@ -35,6 +34,7 @@ from ccfit.continual.base import ContinualMethod, make_method
 from ccfit.io import (
     atomic_torch_save,
     atomic_write_json,
+    folder_lock,
     load_checkpoint,
     rng_state,
     seed_everything,  # fmt: skip
@@ -233,22 +233,17 @@ def run_reference(track: Track, out: Path, progress: bool = True) -> list[dict]:
     it and the others wait and read its records (a cluster orders them by job dependency
     instead)."""
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     done = out / REFERENCE_DONE
-    with open(out.parent / f".{out.name}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        try:
-            if done.is_file():  # a finished reference made through another encoder file
-                cfg = track.cfg
-                check_same_encoder(out, cfg.encoder, encoder_record(cfg).get(ENCODER_RECORD))
-                return json.loads(done.read_text())
-            records = track.learn_reference(out, progress)
-            atomic_write_json(done, records)
-            (out / CHECKPOINT).unlink(missing_ok=True)
-            shutil.rmtree(out / ROWS_DIR, ignore_errors=True)
-            return records
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+    with folder_lock(out):
+        if done.is_file():  # a finished reference made through another encoder file
+            cfg = track.cfg
+            check_same_encoder(out, cfg.encoder, encoder_record(cfg).get(ENCODER_RECORD))
+            return json.loads(done.read_text())
+        records = track.learn_reference(out, progress)
+        atomic_write_json(done, records)
+        (out / CHECKPOINT).unlink(missing_ok=True)
+        shutil.rmtree(out / ROWS_DIR, ignore_errors=True)
+        return records
 
 
 class CurriculumRunner:

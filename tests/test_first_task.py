@@ -16,13 +16,14 @@ import pytest
 import torch
 
 import ccfit.curriculum as C
+from ccdata.errors import InputError
 from ccfit.cli import main
 from ccfit.config import CurriculumConfig
 from ccfit.config_parse import resolve
 from ccfit.continual import METHODS, method_names
 from ccfit.continual.ft import FineTune
 from ccfit.curriculum import Curriculum, OnlineTrack
-from ccfit.first_task import FIRST_DONE, FIRST_RECORD, start_from_first_task
+from ccfit.first_task import FIRST_DONE, FIRST_RECORD, first_task_done, start_from_first_task
 from ccfit.run_files import CHECKPOINT
 from ccfit.runner import CurriculumRunner
 from ccfit.train import METRICS
@@ -176,6 +177,14 @@ def test_an_offline_sweep_cannot_share_it(tmp_path, capsys):
             "0", "--share-first-task", "--out", str(tmp_path / "off")]  # fmt: skip
     assert main(argv) == 2
     assert "--share-first-task" in capsys.readouterr().err
+
+
+def test_a_damaged_shared_record_is_one_message_naming_the_remedy(tmp_path):
+    shared = tmp_path / "first" / "key"
+    shared.mkdir(parents=True)
+    (shared / FIRST_DONE).write_text("{not json")
+    with pytest.raises(InputError, match=r"first\.json: missing or corrupt .*delete .*key"):
+        first_task_done(shared)
 
 
 def test_its_helpers_need_a_finished_shared_task(tmp_path):

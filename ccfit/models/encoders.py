@@ -19,7 +19,6 @@ sidecar recording how they were made.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 from pathlib import Path
 
@@ -27,6 +26,7 @@ import torch
 from torch import nn
 
 from ccdata.atomic import atomic_write
+from ccfit.io import file_sha256
 from ccfit.models.layers import Mish, NormedLinear, SimNorm, mlp
 
 
@@ -294,7 +294,7 @@ def save_encoder(encoder: nn.Module, cfg, path: str | Path, metadata: dict | Non
 
 def weights_sha256(path: str | Path) -> str:
     """The SHA-256 of an encoder file's bytes: what names its weights wherever it lies."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    return file_sha256(path)
 
 
 def read_encoder_sidecar(path: str | Path) -> dict:

@@ -86,8 +86,7 @@ class RunLogger:
         records = self.read_evals()
         kept = [r for r in records if predicate(r)]
         if len(kept) != len(records):
-            atomic_write_text(self.jsonl, "".join(json.dumps(r, sort_keys=True) + "\n"
-                                                  for r in kept))  # fmt: skip
+            write_records(self.jsonl, kept)
 
     def rewind(self, global_step: int) -> None:
         """Forget what was logged after `global_step` (a resumed run redoes those steps)."""
@@ -150,6 +149,11 @@ class RunLogger:
         if self._wandb is not None:
             self._wandb.finish()
             self._wandb = None
+
+
+def write_records(path: Path, records: Sequence[dict]) -> None:
+    """`records` as a run's metrics.jsonl (one JSON object a line), written atomically."""
+    atomic_write_text(path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
 
 
 def record_stage(record: dict) -> int:
