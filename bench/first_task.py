@@ -1,16 +1,16 @@
-"""What `ccfit sweep --share-first-task` saved a sweep, from the sweep's own cost records.
-Prints JSON.
+"""What sharing first tasks (`ccfit sweep`'s default) saved a sweep, from the sweep's own cost
+records. Prints JSON.
 
     python bench/first_task.py ../runs/results/grasp-dreamerv3-3s
 
-Each shared first task (`RUNS/first/<key>/first.json`) records what training it cost; each run
-that started from it says so (`first_task.json`). Without sharing, every such run but the one
-that trained it would have trained it again, so the sweep would have cost its CPU seconds
-(runs' and references' `cost.json`, the shared training counted in the run whose process
-trained it) plus (runs started from it - 1) x its cost. The ratio is that over what it cost,
-for the whole sweep (references and runs without a shared first task included) and for each
-shared first task's runs. Counted over what has a cost so far: a sweep part-way gives its
-ratios so far.
+Each shared first task (`RUNS/first/<key>/first.json`) records what training it cost and who
+trained it; each run that started from it says so (`first_task.json`). Without sharing, every
+such run would have trained it, where once was done, so the sweep would have cost its CPU
+seconds (runs', references' and shared first tasks' `cost.json`; a shared first task that a
+run's process trained is counted in that run's) plus (runs started from it - 1) x its cost. The
+ratio is that over what it cost, for the whole sweep (references and runs without a shared
+first task included) and for each shared first task's runs. Counted over what has a cost so
+far: a sweep part-way gives its ratios so far.
 """
 
 from __future__ import annotations
@@ -40,14 +40,20 @@ def saving(root: Path) -> dict:
             started.setdefault(name, []).append(_cpu_s(run / COST))
     shared = []
     for done in sorted((root / FIRST).glob(f"*/{FIRST_DONE}")):
-        cpu_s = float((json.loads(done.read_text()).get("cost") or {}).get("cpu_s") or 0.0)
+        record = json.loads(done.read_text())
+        cpu_s = float((record.get("cost") or {}).get("cpu_s") or 0.0)
         costs = started.get(done.parent.name, [])
         saved_s = max(len(costs) - 1, 0) * cpu_s
-        # its runs' CPU seconds (the shared training counted in the one that trained it)
+        # its runs' CPU seconds and the shared training's, counted once
+        with_it = sum(costs)
+        if record.get("trained_by") == "job":
+            spent += cpu_s
+            with_it += cpu_s
         shared.append({"shared": done.parent.name, "cpu_s": cpu_s, "runs": len(costs),
-                       "runs_cpu_s": sum(costs), "saved_cpu_s": saved_s,
-                       "runs_without_over_with": round((sum(costs) + saved_s) / sum(costs), 3)
-                       if sum(costs) else None})  # fmt: skip
+                       "trained_by": record.get("trained_by", "run"), "runs_cpu_s": with_it,
+                       "saved_cpu_s": saved_s,
+                       "runs_without_over_with": round((with_it + saved_s) / with_it, 3)
+                       if with_it else None})  # fmt: skip
     saved = sum(s["saved_cpu_s"] for s in shared)
     return {
         "sweep": root.name,

@@ -183,18 +183,11 @@ class OnlineTrack(Track):
                 and not (task_dir(self.out, 0, cfg.tasks[0]) / CHECKPOINT).exists())  # fmt: skip
 
     def _start_from_shared_first_task(self) -> None:
-        """The shared first task trained (by FT: every sharing method trains it alike) if no
-        run has, then copied into this run's first task folder."""
+        """The shared first task trained if no run or job has, then copied into this run's
+        first task folder."""
         shared = self.first_root / self.reference_key()
-        with folder_lock(shared):
-            if first_task_done(shared) is None:
-                # Its scalars go to TensorBoard, copied into each run; not a W&B run of its own.
-                log = dataclasses.replace(self.cfg.log, wandb=False)
-                ft = dataclasses.replace(self.cfg, method=method_config("ft"), log=log)
-                track = OnlineTrack(ft, first_only=True)
-                CurriculumRunner(track, shared, progress=self.progress).run_first_task()
-                mark_done(shared, task_dir(shared, 0, ft.tasks[0]))
-            start_from_first_task(shared, self.out, task_dir(self.out, 0, self.cfg.tasks[0]))
+        train_shared_first_task(self.cfg, shared, self.progress)
+        start_from_first_task(shared, self.out, task_dir(self.out, 0, self.cfg.tasks[0]))
 
     def open(self, resolved: dict, restored: Restored) -> RunLogger:
         cfg = self.cfg
@@ -307,6 +300,25 @@ def _scratch_worker(cfg: CurriculumConfig, out: Path) -> None:
     """The from-scratch reference in a worker process, behind the curriculum's own."""
     yield_to_training()
     run_reference(OnlineTrack(cfg), out, progress=False)
+
+
+def train_shared_first_task(cfg: CurriculumConfig, shared: Path, progress: bool = False,
+                            trained_by: str = "run") -> dict:  # fmt: skip
+    """The first task that `cfg`'s runs of every sharing method share (`ccfit.first_task`),
+    trained into `shared` unless it is there already; returns its record. FT trains it: every
+    sharing method trains it alike. Whoever comes first (`trained_by`: a sweep's 'job' for it,
+    or a 'run') trains it under the folder's lock while the others wait; an interrupted one
+    resumes."""
+    with folder_lock(shared):
+        record = first_task_done(shared)
+        if record is None:
+            # Its scalars go to TensorBoard, copied into each run; not a W&B run of its own.
+            log = dataclasses.replace(cfg.log, wandb=False)
+            ft = dataclasses.replace(cfg, method=method_config("ft"), log=log)
+            CurriculumRunner(OnlineTrack(ft, first_only=True), shared,
+                             progress=progress).run_first_task()  # fmt: skip
+            record = mark_done(shared, task_dir(shared, 0, ft.tasks[0]), trained_by)
+    return record
 
 
 def start_scratch(cfg: CurriculumConfig, out: Path) -> Future | None:

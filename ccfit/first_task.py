@@ -8,15 +8,18 @@ method says so with `ContinualMethod.shares_first_task`, and the contract test h
 it: a run started from the shared first task equals, record for record, the run that trained
 its own (tests/test_first_task.py).
 
-So a sweep's runs of one seed (`ccfit sweep --share-first-task`) share the part up to the
+So a sweep's runs of one seed (`ccfit sweep`, by default) share the part up to the
 close. `RUNS/first/<key>` (the key of their shared from-scratch reference: everything but the
-method) holds FT's run trained through task 0's steps and checkpointed before the task
-closes; each run copies that checkpoint, less FT's method state, into its own task folder with
-the stage-0 records and the TensorBoard scalars, and resumes from it as from any checkpoint:
-its own method closes the task, and the end-of-task evaluation is its own.
+method) holds FT's run trained through task 0's steps and checkpointed before the task closes,
+by a job of its own that the seed's runs wait for (or, where none ran, by the first run to need
+it while the others wait on the folder's lock); each run copies that checkpoint, less FT's
+method state, into its own task folder with the stage-0 records and the TensorBoard scalars,
+and resumes from it as from any checkpoint: its own method closes the task, and the end-of-task
+evaluation is its own.
 
     first/<key>/            config.json (FT's), metrics.jsonl, tb/, tasks/0-<task>/
-    first/<key>/first.json  written last: the checkpoint's sha256, what training it cost
+    first/<key>/first.json  written last: the checkpoint's sha256, what training it cost,
+                            whether a job of its own or a run trained it
     <run>/first_task.json   the shared folder it started from and that record
 """
 
@@ -31,13 +34,11 @@ import torch
 
 from ccfit.io import atomic_torch_save, atomic_write_json, file_sha256, read_run_json
 from ccfit.replay_store import ROWS_DIR
-from ccfit.run_files import CHECKPOINT, COST
+from ccfit.run_files import CHECKPOINT, COST, FIRST, FIRST_DONE, FIRST_RECORD
 from ccfit.train.records import METRICS, TENSORBOARD, record_stage, write_records
 
-FIRST = "first"
-"""A sweep's folder of shared first tasks, beside its `scratch` folder."""
-FIRST_DONE = "first.json"
-FIRST_RECORD = "first_task.json"
+__all__ = ["FIRST", "FIRST_DONE", "FIRST_RECORD", "first_task_done", "mark_done",
+           "start_from_first_task"]  # fmt: skip
 
 
 def first_task_done(shared: Path) -> dict | None:
@@ -48,15 +49,17 @@ def first_task_done(shared: Path) -> dict | None:
     return read_run_json(path, remedy=f"delete {Path(shared)} and run the sweep again")
 
 
-def mark_done(shared: Path, folder: Path) -> dict:
+def mark_done(shared: Path, folder: Path, trained_by: str) -> dict:
     """Record the shared first task trained: `folder` (its task folder) holds the checkpoint
-    taken before the task closes."""
+    taken before the task closes; `trained_by`: 'job' (a sweep's job of its own, whose cost
+    no run counts) or 'run' (a run's process, whose cost.json counts it)."""
     checkpoint = Path(folder) / CHECKPOINT
     cost = Path(shared) / COST
     record = {
         "task_folder": str(Path(folder).relative_to(shared)),
         "state_sha256": file_sha256(checkpoint),
         "cost": json.loads(cost.read_text()) if cost.exists() else None,
+        "trained_by": trained_by,
     }
     atomic_write_json(Path(shared) / FIRST_DONE, record)
     return record

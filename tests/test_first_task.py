@@ -3,7 +3,7 @@
 The contract, over every registered method that says it shares the first task: a run started
 from the shared first task equals the run that trained its own, record for record and weight
 for weight. A method that does not share it trains its own; the shared task is trained once;
-`ccfit sweep --share-first-task` wires it through."""
+`ccfit sweep` (sharing by default) wires it through."""
 
 from __future__ import annotations
 
@@ -152,13 +152,19 @@ def test_a_sweep_shares_the_first_task_of_each_seed(tmp_path):
     out = tmp_path / "sweep"
     argv = ["sweep", "--suites", SUITE, "--methods", "ft,packnet", "--seeds", "0",
             "--preset", "smoke", "--seed_dataset", "null", "--max-parallel", "1",
-            "--share-first-task", "--out", str(out)]  # fmt: skip
+            "--out", str(out)]  # fmt: skip
     argv += [f"--train.{k}={v}" for k, v in TRAIN.items()]
-    assert main(argv) == 0
+    assert main(argv) == 0  # sharing is the default online
     runs = sorted(p for p in out.iterdir() if (p / "metrics.json").is_file())
     assert len(runs) == 2 and all((p / FIRST_RECORD).is_file() for p in runs)
     (shared,) = _shared(out / "first")
     assert (shared / FIRST_DONE).is_file()
+    # trained by a job of its own before either run started
+    (entry,) = json.loads((out / "sweep.json").read_text())["submissions"]
+    order = sorted(entry["jobs"], key=lambda n: entry["jobs"][n]["start"])
+    assert entry["jobs"][f"first:{shared.name}"]["state"] == "COMPLETED"
+    assert order.index(f"first:{shared.name}") < min(
+        order.index(n) for n in entry["jobs"] if n.startswith("run:"))  # fmt: skip
     alone = Curriculum(_config("packnet"), tmp_path / "alone", tmp_path / "scratch",
                        progress=False).run()  # fmt: skip
     published = json.loads(next(p for p in runs if "packnet" in p.name).joinpath(

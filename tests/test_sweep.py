@@ -20,6 +20,7 @@ from ccdata.errors import InputError
 from ccfit.branch import stage_path
 from ccfit.cli import main
 from ccfit.config_base import ConfigError
+from ccfit.continual.er import ExperienceReplay
 from ccfit.sweep.cli import EXIT_RUNS_MISSING
 from ccfit.sweep.grid import (
     Grid,
@@ -211,8 +212,38 @@ def test_dry_run_writes_nothing(tmp_path, capsys):
                                str(out_dir), "--dry-run", *TOY)  # fmt: skip
     assert code == 0, err
     assert not out_dir.exists()
-    assert "would run: 2 from-scratch references, 4 runs, then the report" in out
+    assert ("would run: 2 from-scratch references, 2 shared first tasks, 4 runs, then the "
+            "report") in out  # fmt: skip
     assert "  Grasp-toy-er-state-smoke-s0" in out
+    code, out, err = sweep_cli(capsys, "--suites", "Reach", "--methods", "ft,er", "--out",
+                               str(out_dir), "--dry-run", "--no-share-first-task",
+                               *TOY)  # fmt: skip
+    assert code == 0 and "would run: 1 from-scratch references, 2 runs, then" in out, err
+
+
+def test_the_plan_shares_a_first_task_where_runs_would_start_from_it(tmp_path, monkeypatch):
+    grid = Grid(("Reach",), ("toy",), ("ft", "ewc", "er"), (0, 1), "smoke", RUN_ARGS,
+                ("test_seam",))  # fmt: skip
+    sweep = expand(grid, tmp_path)
+    keys = list(dict.fromkeys(r.scratch_key for r in sweep.runs))
+    work = plan_work(sweep, {}, share_first_task=True)
+    assert list(work.first) == keys  # one per seed, in the grid's order
+    assert not plan_work(sweep, {}, share_first_task=False).first
+    # a seed whose sharing runs began (a task checkpoint) or whose first task is done: none;
+    # runs of a method that does not share it (ER, made to) need none
+    monkeypatch.setattr(ExperienceReplay, "shares_first_task", False)
+    began = [r for r in sweep.runs if r.scratch_key == keys[0] and r.config["method"]["type"]
+             in ("ft", "ewc")]  # fmt: skip
+    for run in began:
+        (sweep.run_dir(run) / "tasks" / "0-reach-xy").mkdir(parents=True)
+        (sweep.run_dir(run) / "tasks" / "0-reach-xy" / "checkpoint.pt").write_bytes(b"")
+    (sweep.first_dir(keys[1])).mkdir(parents=True)
+    assert list(plan_work(sweep, {}, share_first_task=True).first) == [keys[1]]
+    (sweep.first_dir(keys[1]) / "first.json").write_text("{}")
+    assert not plan_work(sweep, {}, share_first_task=True).first
+    # one queued by an earlier submission is not planned again
+    shutil.rmtree(sweep.first_dir(keys[1]))
+    assert not plan_work(sweep, {f"first:{keys[1]}": "7"}, share_first_task=True).first
 
 
 def test_slurm_launcher_without_sbatch_is_one_line(tmp_path, capsys, monkeypatch):
@@ -321,13 +352,14 @@ def test_local_sweep_trains_once_and_resubmits_only_unfinished_work(tmp_path, ca
     assert {s["state"] for s in states.values()} == {"done"}
     assert states["report"]["detail"] == ""
     code, out, _ = sweep_cli(capsys, "--status", str(root))
-    assert code == 0 and out.endswith("0 pending, 0 running, 4 done, 0 failed, 0 not submitted\n")
+    assert code == 0 and out.endswith("0 pending, 0 running, 5 done, 0 failed, 0 not submitted\n")
 
 
 @pytest.mark.integration
 def test_a_local_sweep_finishes_seed_after_seed(tmp_path, capsys):
-    """One job at a time, the jobs start seed-major, each reference just before its runs:
-    stopped at any point, the sweep holds every method of the seeds it finished."""
+    """One job at a time, the jobs start seed-major, each shared first task and reference just
+    before their runs: stopped at any point, the sweep holds every method of the seeds it
+    finished."""
     root = tmp_path / "runs"
     code, _, err = sweep_cli(
         capsys,
@@ -354,8 +386,8 @@ def test_a_local_sweep_finishes_seed_after_seed(tmp_path, capsys):
         + (":" + n.split("-")[2] if n.startswith("run:") else "")
         for _, _, n in started
     ]
-    assert order[:6] == ["scratch:s0", "run:s0:ft", "run:s0:er", "scratch:s1", "run:s1:ft",
-                         "run:s1:er"]  # fmt: skip
+    assert order[:8] == ["first:s0", "scratch:s0", "run:s0:ft", "run:s0:er", "first:s1",
+                         "scratch:s1", "run:s1:ft", "run:s1:er"]  # fmt: skip
     # Each reference's job recorded what it cost, and the report counts the two once.
     from ccfit.train.cost import read_cost
 
@@ -484,7 +516,10 @@ def test_a_failed_reference_fails_its_runs_unstarted(tmp_path, capsys):
     error = entry["jobs"][f"scratch:{sweep.runs[0].scratch_key}"]["error"]
     assert error.startswith(("NotADirectoryError: ", "FileExistsError: ")), error
     states = sweep_status(root)
-    assert [s["state"] for s in states.values()] == ["failed", "failed", "failed", "done"]
+    # its shared first task trained: the runs failed for their reference alone
+    assert [(n.split(":")[0], s["state"]) for n, s in states.items()] == [
+        ("scratch", "failed"), ("first", "done"), ("run", "failed"), ("run", "failed"),
+        ("report", "done")]  # fmt: skip
     assert states["report"]["detail"] == "lists 2 of 2 runs missing"
     assert not any(sweep.run_dir(r).exists() for r in sweep.runs)
     (root / "report" / "status.json").write_text('{"done": [], "miss')  # damaged: bad input

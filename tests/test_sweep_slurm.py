@@ -67,9 +67,11 @@ def test_a_sweep_through_slurm_is_preempted_and_ends_as_an_uninterrupted_run(tmp
     from ccfit.sweep.jobs import config_from_dict
 
     root = tmp_path / "runs"
+    # Each run trains its own first task, to be preempted in it.
     args = toy_args(root, "ft,er", "--partition", "low", "--train.steps=300",
                     "--train.seed_steps=100", "--train.eval_interval=300",
-                    "--train.checkpoint_interval=100", "--keep-stages")  # fmt: skip
+                    "--train.checkpoint_interval=100", "--keep-stages",
+                    "--no-share-first-task")  # fmt: skip
     # submitted with --wait: it returns once the report job ended, with the status
     waited = []
     submitter = threading.Thread(target=lambda: waited.append(main([*args, "--wait"])))
@@ -175,21 +177,25 @@ def test_a_job_the_controller_lists_reads_its_live_state_whatever_accounting_say
 
 @pytest.mark.integration
 def test_a_sweep_through_slurm_shares_the_first_task_of_a_seed(tmp_path, capsys):
-    """`--share-first-task` on SLURM: the seed's runs start together (one array), the first to
-    take the lock trains the shared first task while the other waits for it, both start from
-    it, and the FT run equals an uninterrupted run of its config trained alone."""
+    """Sharing the first task on SLURM (the default): a job of its own trains it, the runs'
+    array waits for it, both runs start from it, and the FT run equals an uninterrupted run of
+    its config trained alone."""
     from ccfit.curriculum import Curriculum
     from ccfit.first_task import FIRST, FIRST_RECORD
     from ccfit.sweep.jobs import config_from_dict
 
     root = tmp_path / "runs"
     args = toy_args(root, "ft,ewc", "--train.steps=300", "--train.seed_steps=100",
-                    "--train.eval_interval=100", "--share-first-task")  # fmt: skip
+                    "--train.eval_interval=100")  # fmt: skip
     assert main([*args, "--wait"]) == 0
-    assert re.search(r"(?m)^report\s+done", capsys.readouterr().out)
-    sweep, _ = load_sweep(root)
+    out = capsys.readouterr().out
+    assert re.search(r"(?m)^report\s+done", out) and re.search(r"(?m)^first:\S+\s+done", out)
+    sweep, record = load_sweep(root)
     shared = [p for p in (root / FIRST).iterdir() if not p.name.startswith(".")]
     assert len(shared) == 1
+    [entry] = record["submissions"]
+    assert entry["jobs"][f"first:{shared[0].name}"]  # trained by its own job
+    assert "shared first task" in _log(root, entry["jobs"][f"first:{shared[0].name}"])
     for run in sweep.runs:
         record = json.loads((sweep.run_dir(run) / FIRST_RECORD).read_text())
         assert record["shared"] == shared[0].name

@@ -3,7 +3,7 @@ r"""`ccfit sweep`: a grid of continual runs, here or on SLURM, and the report ov
     ccfit sweep --suites Reach,Grasp --methods ft,er,ewc,packnet --seeds 0,1,2 --preset cpu \
         --out runs/sweep1 [--models M1,M2] [--launcher slurm] [--max-parallel 4] \
         [--obs pixels --train.steps=2000 --model.FIELD=VALUE ...] [--keep-stages] \
-        [--share-first-task]
+        [--no-share-first-task]
     ccfit sweep --track offline --suites Reach --methods ft,ewc \
         --out runs/offline1                    # `ccfit fit` runs on the suite datasets
     ccfit sweep --status runs/sweep1
@@ -110,12 +110,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="online runs keep their state after each task (stages/after-K.pt), to "
                         "branch from (`ccfit run --branch-from`); not part of a run's identity; "
                         "a run that kept stages keeps them when resumed without it")  # fmt: skip
-    p.add_argument("--share-first-task", action="store_true",
+    p.add_argument("--share-first-task", action=argparse.BooleanOptionalAction, default=None,
                    help="runs of one seed whose methods leave the first task as FT trains it "
-                        "(ft, er, ewc, packnet) train it once, in RUNS/first/, and each closes "
-                        "it with its own method (`ccfit.first_task`): the same records, one "
-                        "first task's training less per such method; not part of a run's "
-                        "identity")  # fmt: skip
+                        "(ft, er, ewc, packnet) train it once, as a job of its own into "
+                        "RUNS/first/, and each closes it with its own method "
+                        "(`ccfit.first_task`): the same records, one first task's training "
+                        "less per such method; not part of a run's identity (default: on "
+                        "online; the offline track has none to share)")  # fmt: skip
     p.add_argument("--dry-run", action="store_true", help="print what would run; write nothing")
     p.add_argument("--status", metavar="RUNS", help="show the state of the sweep in RUNS")
     p.add_argument("--wait", action="store_true", help="SLURM: block until the report job ended")
@@ -150,6 +151,8 @@ def cmd_sweep(argv: list[str]) -> int:
     if args.share_first_task and args.track == "offline":
         raise InputError("--share-first-task shares online runs' first task; an offline "
                          "run's first task is a fit of its dataset, cheap to repeat")  # fmt: skip
+    if args.share_first_task is None:
+        args.share_first_task = args.track == "online"
     run_job = RunJob(args.keep_stages, args.share_first_task)
     if args.models is None:
         args.models = (DEFAULT_OFFLINE_MODEL if args.track == "offline" else DEFAULT_MODEL,)
@@ -166,7 +169,7 @@ def cmd_sweep(argv: list[str]) -> int:
         raise InputError(f"jobs of a SLURM submission are still queued or running in "
                          f"{sweep.root} ({', '.join(sorted(set(active.values()))[:5])}): wait "
                          f"for them or scancel them")  # fmt: skip
-    work = plan_work(sweep, active)
+    work = plan_work(sweep, active, args.share_first_task)
     for note in dict.fromkeys(n for run in sweep.runs for n in curriculum_notes(run.config)):
         print(f"ccfit sweep: note: {note}", file=sys.stderr)
     _print_plan(sweep, work, args.dry_run)
@@ -206,13 +209,16 @@ def _print_plan(sweep, work, dry_run: bool) -> None:
         print("nothing to submit: every run is done or queued" if work.active or work.finished
               else "nothing to submit")  # fmt: skip
         return
+    first = f"{len(work.first)} shared first tasks, " if work.first else ""
     print(
-        f"{verb}: {len(work.scratch)} from-scratch references, {len(work.runs)} runs"
+        f"{verb}: {len(work.scratch)} from-scratch references, {first}{len(work.runs)} runs"
         f"{', then the report' if work.report else ''}"
     )
     if dry_run:
         for key in work.scratch:
             print(f"  scratch/{key}")
+        for key in work.first:
+            print(f"  first/{key}")
         for run in work.runs:
             print(f"  {run.name}")
     sys.stdout.flush()

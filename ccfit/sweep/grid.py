@@ -27,6 +27,8 @@ from ccdata.slurm import code_version
 from ccfit.config_base import LEGACY_VALUES, identity
 from ccfit.io import atomic_write_json
 from ccfit.run_files import (
+    FIRST,
+    FIRST_DONE,
     METRICS_JSON,
     OFFLINE,
     ONLINE,
@@ -137,6 +139,13 @@ class Sweep:
 
     def scratch_done(self, key: str) -> bool:
         return (self.scratch_dir(key) / REFERENCE_DONE).is_file()
+
+    def first_dir(self, key: str) -> Path:
+        """The first task shared by the runs of scratch key `key` (`ccfit.first_task`)."""
+        return self.root / FIRST / key
+
+    def first_done(self, key: str) -> bool:
+        return (self.first_dir(key) / FIRST_DONE).is_file()
 
     def scratch_configs(self) -> dict[str, dict]:
         """Scratch key -> the config of the first run that needs it (the method is ignored)."""

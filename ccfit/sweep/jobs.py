@@ -98,13 +98,33 @@ class ScratchJob(_Job):
         return {"scratch_dir": scratch_dir, "evaluations": len(evals)}
 
 
+class FirstTaskJob(_Job):
+    """Train the first task that one seed's runs share (`ccfit.first_task`) into
+    RUNS/first/<key>, the key of their from-scratch reference; the runs start when it ended
+    (one that finds it missing trains it itself)."""
+
+    def __call__(self, config: dict, first_dir: str, plugins: list[str], code: dict,
+                 threads: int | None = None) -> dict:  # fmt: skip
+        from ccfit.curriculum import OnlineTrack, train_shared_first_task
+
+        job_start(f"shared first task {first_dir}", plugins, code, threads)
+        cfg = config_from_dict(config)
+        key = OnlineTrack(cfg).reference_key()
+        submitted = Path(first_dir).name
+        if key != submitted:  # e.g. seed_dataset 'auto' found another dataset here
+            raise RuntimeError(f"the runs' from-scratch key is {key} here but was {submitted} "
+                               f"at submission: run the sweep again")  # fmt: skip
+        record = train_shared_first_task(cfg, Path(first_dir), trained_by="job")
+        return {"first_dir": first_dir, "state_sha256": record["state_sha256"]}
+
+
 class RunJob(_Job):
     """Train (or resume) one continual run; its from-scratch reference must exist already (on
     SLURM the run's job waits for the reference's with `afterany`, then checks here).
     keep_stages: an online run keeps its state after each task (`ccfit run --keep-stages`);
     share_first_task: it starts from the first task its seed's runs share, in RUNS/first
-    (`ccfit.first_task`; runs of one seed that arrive together wait for the first to train
-    it)."""
+    (`ccfit.first_task`; trained by a `FirstTaskJob` before the runs start, or by the first
+    run that finds it missing while the others wait)."""
 
     def __init__(self, keep_stages: bool = False, share_first_task: bool = False) -> None:
         self.keep_stages = keep_stages
@@ -138,12 +158,16 @@ class RunJob(_Job):
         return _summary(CurriculumRunner(track, run_dir, scratch_root, progress=False).run())
 
 
-def resume_point(run_dir: Path) -> str:
-    """Where a run continues from: its saved curriculum state (online or offline) and task
-    checkpoint, if any."""
+def saved_states(run_dir: Path) -> list[Path]:
+    """A run's saved curriculum state (online or offline) and task checkpoints: empty before
+    it began."""
     states = [run_dir / ONLINE_STATE, run_dir / OFFLINE_STATE]
-    found = [p for p in [*states, *sorted(run_dir.glob(f"tasks/*/{CHECKPOINT}"))]
-             if p.is_file()]  # fmt: skip
+    return [p for p in [*states, *sorted(run_dir.glob(f"tasks/*/{CHECKPOINT}"))] if p.is_file()]
+
+
+def resume_point(run_dir: Path) -> str:
+    """Where a run continues from: its saved states (`saved_states`), if any."""
+    found = saved_states(run_dir)
     if not found:
         return "starting fresh"
     return "resuming from " + ", ".join(str(p.relative_to(run_dir)) for p in found)

@@ -1,17 +1,20 @@
 """Running a sweep's unfinished work: a local process pool, or SLURM arrays through submitit.
 
-Jobs are named `scratch:<key>`, `run:<name>` and `report`. Both launchers take the same plan
-(`plan_work`): the references not yet trained, the runs without metrics.json, and a report.
+Jobs are named `scratch:<key>`, `first:<key>`, `run:<name>` and `report`. Both launchers take
+the same plan (`plan_work`): the references not yet trained, with `--share-first-task` the
+shared first tasks that runs not yet begun will start from (`ccfit.first_task`), the runs
+without metrics.json, and a report.
 
 Local: at most `max_parallel` jobs at once in spawned processes (one each, so every job starts
-clean); a run starts only once its reference is done; the report runs last. States are kept in
-sweep.json as they change, so `--status` can read them from another shell.
+clean); a run starts only once its reference (and its shared first task) is done; the report
+runs last. States are kept in sweep.json as they change, so `--status` can read them from
+another shell.
 
-SLURM: the references as one array, the runs as a second array that waits for them
-(`afterany`: with `afterok` a failed reference would leave the runs pending forever; each run
-checks that its reference exists), and a report job after both. Submitting returns at once.
-Jobs already queued or running from an earlier submission are not submitted again; new jobs
-wait for them where they need them.
+SLURM: the references and the shared first tasks as arrays, the runs as an array that waits
+for them (`afterany`: with `afterok` a failed reference would leave the runs pending forever;
+each run checks that its reference exists, and trains a missing first task itself), and a
+report job after all. Submitting returns at once. Jobs already queued or running from an
+earlier submission are not submitted again; new jobs wait for them where they need them.
 """
 
 from __future__ import annotations
@@ -28,9 +31,16 @@ from datetime import UTC, datetime
 from ccdata.errors import InputError
 from ccdata.processes import one_line, worker_pool
 from ccdata.slurm import SlurmSettings, active_jobs, check_array_size, submitting
-from ccfit.run_files import SCRATCH
+from ccfit.run_files import ONLINE, SCRATCH
 from ccfit.sweep.grid import RunSpec, Sweep, write_record
-from ccfit.sweep.jobs import ReportJob, RunJob, ScratchJob, report_current
+from ccfit.sweep.jobs import (
+    FirstTaskJob,
+    ReportJob,
+    RunJob,
+    ScratchJob,
+    report_current,
+    saved_states,
+)
 
 
 @dataclass
@@ -39,6 +49,8 @@ class Work:
 
     scratch: list[str] = field(default_factory=list)
     """Scratch keys to train."""
+    first: dict[str, dict] = field(default_factory=dict)
+    """Shared first tasks to train: scratch key -> the config of a run that starts from it."""
     runs: list[RunSpec] = field(default_factory=list)
     """Runs to train or resume."""
     report: bool = False
@@ -50,11 +62,24 @@ class Work:
 
     @property
     def empty(self) -> bool:
-        return not (self.scratch or self.runs or self.report)
+        return not (self.scratch or self.first or self.runs or self.report)
 
 
-def plan_work(sweep: Sweep, active: dict[str, str]) -> Work:
-    """The unfinished work of `sweep`, leaving out what the jobs in `active` are doing."""
+def starts_from_shared_first_task(sweep: Sweep, run: RunSpec) -> bool:
+    """Whether `run`, sharing first tasks, will start from its seed's: an online run of a
+    method that shares it, not begun (the run decides the same:
+    `OnlineTrack._starts_from_shared_first_task`)."""
+    from ccfit.continual.base import METHODS
+
+    config = run.config
+    return (sweep.grid.track == ONLINE and METHODS[config["method"]["type"]].shares_first_task
+            and config["train"].get("stop_score") is None
+            and not saved_states(sweep.run_dir(run)))  # fmt: skip
+
+
+def plan_work(sweep: Sweep, active: dict[str, str], share_first_task: bool = False) -> Work:
+    """The unfinished work of `sweep`, leaving out what the jobs in `active` are doing;
+    `share_first_task`: runs start from their seed's shared first task (`ccfit.first_task`)."""
     work = Work(active=dict(active))
     for run in sweep.runs:
         if sweep.run_done(run):
@@ -63,6 +88,13 @@ def plan_work(sweep: Sweep, active: dict[str, str]) -> Work:
             work.runs.append(run)
     keys = dict.fromkeys(r.scratch_key for r in work.runs)
     work.scratch = [k for k in keys if not sweep.scratch_done(k) and f"scratch:{k}" not in active]
+    if share_first_task:
+        for run in work.runs:
+            key = run.scratch_key
+            if (key not in work.first and not sweep.first_done(key)
+                    and f"first:{key}" not in active
+                    and starts_from_shared_first_task(sweep, run)):  # fmt: skip
+                work.first[key] = run.config
     work.report = bool(work.scratch or work.runs) or (
         "report" not in active and not active and not report_current(sweep)
     )
@@ -112,32 +144,36 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
         return (ScratchJob(), alone(sweep.scratch_configs()[key]), str(sweep.scratch_dir(key)),
                 plugins, code, threads)  # fmt: skip
 
-    # In the grid's (seed-major) order, each reference just before the first run that needs
-    # it: the pool starts jobs in this order as they become ready, so a seed's runs go before
-    # the next seed's reference and a partly run sweep holds whole seeds.
+    def first_call(key: str) -> tuple:
+        return (FirstTaskJob(), alone(work.first[key]), str(sweep.first_dir(key)), plugins,
+                code, threads)  # fmt: skip
+
+    # In the grid's (seed-major) order, each shared first task and reference just before the
+    # first run that needs it: the pool starts jobs in this order as they become ready, so a
+    # seed's runs go before the next seed's reference and a partly run sweep holds whole seeds.
     calls: dict[str, tuple] = {}
+    waiting_on: dict[str, list[str]] = {}
     for run in work.runs:
-        if run.scratch_key in work.scratch and f"scratch:{run.scratch_key}" not in calls:
-            calls[f"scratch:{run.scratch_key}"] = scratch_call(run.scratch_key)
-        calls[f"run:{run.name}"] = (run_job, alone(run.config),
-                                    str(sweep.run_dir(run)), str(sweep.root / SCRATCH),
-                                    run.scratch_key, plugins, code, threads)  # fmt: skip
+        name, key = f"run:{run.name}", run.scratch_key
+        waiting_on[name] = []
+        for kind, needed, call in (("first", work.first, first_call),
+                                   ("scratch", work.scratch, scratch_call)):  # fmt: skip
+            if key in needed:
+                calls.setdefault(f"{kind}:{key}", call(key))
+                waiting_on[name].append(f"{kind}:{key}")
+        calls[name] = (run_job, alone(run.config), str(sweep.run_dir(run)),
+                       str(sweep.root / SCRATCH), key, plugins, code, threads)  # fmt: skip
     for name in calls:
         jobs[name] = {"state": "PENDING"}
-    waiting_on = {f"run:{r.name}": f"scratch:{r.scratch_key}" for r in work.runs
-                  if f"scratch:{r.scratch_key}" in calls}  # fmt: skip
     errors: dict[str, str] = {}
     log_dir = sweep.root / "local"
     total, ended = len(calls), 0
     write_record(sweep, submissions)
 
     def ready() -> list[str]:
-        return [
-            n
-            for n, j in jobs.items()
-            if j["state"] == "PENDING"
-            and jobs.get(waiting_on.get(n, ""), {"state": "COMPLETED"})["state"] == "COMPLETED"
-        ]
+        done = {n for n, j in jobs.items() if j["state"] == "COMPLETED"}
+        return [n for n, j in jobs.items()
+                if j["state"] == "PENDING" and done.issuperset(waiting_on.get(n, []))]  # fmt: skip
 
     pool = worker_pool(max_parallel, max_tasks_per_child=1)
     running: dict = {}
@@ -147,10 +183,12 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
                 fn, *args = calls[name]
                 running[pool.submit(fn, *args)] = name
                 jobs[name].update(state="RUNNING", start=_now())
-            for name, j in jobs.items():  # a failed reference fails its runs unstarted
-                dep = jobs.get(waiting_on.get(name, ""))
-                if j["state"] == "PENDING" and dep and dep["state"] == "FAILED":
-                    j.update(state="FAILED", error=f"its reference {waiting_on[name]} failed")
+            for name, j in jobs.items():  # a failed reference or first task fails its runs
+                failed = [d for d in waiting_on.get(name, ()) if jobs[d]["state"] == "FAILED"]
+                if j["state"] == "PENDING" and failed:
+                    kind = failed[0].split(":")[0]
+                    what = {"scratch": "its reference", "first": "its shared first task"}[kind]
+                    j.update(state="FAILED", error=f"{what} {failed[0]} failed")
                     errors[name.split(":", 1)[1]] = j["error"]
                     ended += 1
                     print(f"[{ended}/{total}] failed {name}: {j['error']}", flush=True)
@@ -198,8 +236,10 @@ def launch_slurm(sweep: Sweep, work: Work, submissions: list[dict], settings: Sl
     """Submit `work` as SLURM jobs and return at once; returns the submission entry.
     run_job: the job each run is (its options: `RunJob`; None: the default)."""
     run_job = run_job or RunJob()
-    for tasks, what in ((len(work.scratch), "from-scratch references"), (len(work.runs), "runs")):
-        check_array_size(tasks, f"{tasks} {what} to submit")
+    arrays = ((work.scratch, "from-scratch references"), (work.first, "shared first tasks"),
+              (work.runs, "runs"))  # fmt: skip
+    for items, what in arrays:
+        check_array_size(len(items), f"{len(items)} {what} to submit")
     folder = sweep.root / "slurm"
     folder.mkdir(parents=True, exist_ok=True)
     entry = {"launcher": "slurm", "time": _now(), "code": sweep.code, "folder": "slurm",
@@ -230,9 +270,22 @@ def launch_slurm(sweep: Sweep, work: Work, submissions: list[dict], settings: Sl
                 for key, job in zip(work.scratch, submitted, strict=True):
                     scratch_ids[key] = jobs[f"scratch:{key}"] = job.job_id
                 write_record(sweep, submissions)
+            first_ids = {k: work.active[f"first:{k}"] for k in {r.scratch_key for r in work.runs}
+                         if f"first:{k}" in work.active}  # fmt: skip
+            if work.first:
+                executor.update_parameters(job_name="ccfit-first", dependency=None)
+                keys = list(work.first)
+                n = len(keys)
+                submitted = executor.map_array(
+                    FirstTaskJob(), [work.first[k] for k in keys],
+                    [str(sweep.first_dir(k)) for k in keys], [plugins] * n, [code] * n,
+                    [None] * n)  # fmt: skip
+                for key, job in zip(keys, submitted, strict=True):
+                    first_ids[key] = jobs[f"first:{key}"] = job.job_id
+                write_record(sweep, submissions)
             if work.runs:
-                needed = [scratch_ids[r.scratch_key] for r in work.runs
-                          if r.scratch_key in scratch_ids]  # fmt: skip
+                needed = [ids[r.scratch_key] for r in work.runs for ids in (scratch_ids, first_ids)
+                          if r.scratch_key in ids]  # fmt: skip
                 executor.update_parameters(job_name="ccfit-run", dependency=after(needed))
                 n = len(work.runs)
                 submitted = executor.map_array(

@@ -12,13 +12,14 @@ from __future__ import annotations
 import json
 import os
 import statistics
+from collections.abc import Iterable
 from pathlib import Path
 
 from ccdata.slurm import check_slurm, job_states
 from ccfit.config_base import suite_tasks
 from ccfit.report import SUMMARY_JSON
 from ccfit.report.cost import run_cost
-from ccfit.run_files import REPORT
+from ccfit.run_files import FIRST, REPORT
 from ccfit.sweep.grid import STATUS_JSON, Sweep, load_sweep
 from ccfit.sweep.jobs import read_report_status
 from ccfit.train.records import METRICS
@@ -29,11 +30,22 @@ _PENDING = {"PENDING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "SUSPENDED", "
 _RUNNING = {"RUNNING", "COMPLETING", "CONFIGURING", "SIGNALING", "STAGE_OUT", "RESIZING"}
 
 
-def units(sweep: Sweep) -> dict[str, tuple[bool, Path, int | None]]:
+def units(sweep: Sweep, submitted: Iterable[str] = ()) -> dict[str, tuple[bool, Path, int | None]]:
     """Every job name of the sweep -> (whether its output exists, its directory, the global
-    steps it trains when that is known)."""
-    out = {name: (done, directory, total)
-           for name, (done, directory, total, _) in _training_units(sweep).items()}  # fmt: skip
+    steps it trains when that is known); the shared first tasks (`ccfit.first_task`) that are
+    in `submitted` (job names) or on disk."""
+    training = {name: unit[:3] for name, unit in _training_units(sweep).items()}
+    keys = {n.split(":", 1)[1] for n in submitted if n.startswith("first:")}
+    if (sweep.root / FIRST).is_dir():
+        keys |= {p.name for p in (sweep.root / FIRST).iterdir() if p.is_dir()}
+    configs = sweep.scratch_configs()
+    first = {f"first:{key}": (sweep.first_done(key), sweep.first_dir(key),
+                              _total_steps(configs.get(key, {}), reference=True))
+             for key in sorted(keys)}  # fmt: skip
+    # References, shared first tasks, runs: the order they start in.
+    out = {n: u for n, u in training.items() if n.startswith("scratch:")}
+    out.update(first)
+    out.update((n, u) for n, u in training.items() if not n.startswith("scratch:"))
     # The report's own lines list its gaps. Only the sweep's report job writes status.json; a
     # report that `ccfit report` or `ccfit publish` wrote (a published folder's) has a summary.
     report = sweep.root / REPORT
@@ -177,7 +189,7 @@ def sweep_status(root: str | Path) -> dict[str, dict]:
         check_slurm()
         states = job_states(sweep.root / "slurm", slurm_ids)
     out = {}
-    for name, (done, directory, total) in units(sweep).items():
+    for name, (done, directory, total) in units(sweep, latest).items():
         entry, job = latest.get(name, ({}, None))
         if done:
             out[name] = {"state": "done", "job": _job_id(entry, job, name), "detail": ""}
