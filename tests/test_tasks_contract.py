@@ -16,6 +16,7 @@ import ccdata
 from ccdata.env import DEFAULT_EPISODE_STEPS as EPISODE_STEPS
 from ccdata.policies import make_policy
 from ccdata.suites import SUITES, get_suite
+from ccdata.tasks import base as scene_base
 
 TASK_IDS = list(ccdata.TASKS)
 
@@ -94,6 +95,22 @@ def test_same_seed_same_episode_and_reset_randomises(task_id):
     # The goal or an object start must move between seeds.
     assert not np.allclose(states[0], states[1]) or not np.allclose(states[1], states[2])
     env.close()
+
+
+@pytest.mark.parametrize("task_id", TASK_IDS)
+def test_an_environment_from_the_compiled_scene_plays_as_one_compiled_afresh(task_id, monkeypatch):
+    """A process compiles each scene once and gives every environment a copy
+    (`SceneEnv._initialize_simulation`): one made after another played (moving the goal sites
+    of its own copy), in a process that built the other tasks before, plays the episode that
+    an environment compiled from its file plays."""
+    played = ccdata.make_env(task_id, render=False)
+    episode_digest(played, seed=5)
+    compiled = len(scene_base._COMPILED)
+    from_cache = rollout_digest(task_id, seed=9)
+    assert len(scene_base._COMPILED) == compiled  # found, not compiled again
+    monkeypatch.setattr(scene_base, "_COMPILED", {})
+    assert rollout_digest(task_id, seed=9) == from_cache
+    played.close()
 
 
 @pytest.mark.integration

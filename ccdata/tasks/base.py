@@ -9,6 +9,7 @@ objects in `reset_model` from `self.np_random`, and scores states in `evaluate_s
 
 from __future__ import annotations
 
+import copy
 from typing import Any, ClassVar
 
 import mujoco
@@ -16,6 +17,9 @@ import numpy as np
 from metaworld.asset_path_utils import full_V3_path_for
 from metaworld.sawyer_xyz_env import SawyerXYZEnv
 from scipy.spatial.transform import Rotation
+
+_COMPILED: dict[tuple, mujoco.MjModel] = {}
+"""Each scene's compiled model, by what built it (`SceneEnv._initialize_simulation`)."""
 
 STATE_DIM = 39
 """Privileged state: hand (3), gripper (1), two objects pos+quat (14), previous 18, goal (3)."""
@@ -129,10 +133,18 @@ class SceneEnv(SawyerXYZEnv):
         return full_V3_path_for(self.base_xml)
 
     def _initialize_simulation(self) -> tuple[mujoco.MjModel, mujoco.MjData]:
-        spec = mujoco.MjSpec.from_file(self.fullpath)
-        add_benchmark_cameras(spec)
-        self.edit_spec(spec)
-        model = spec.compile()
+        # Compiling the scene (its meshes) costs about 3x copying the compiled model, and a run
+        # makes an environment per evaluation episode; an environment changes its own model
+        # (goal sites), so each gets a copy of the pristine one. What `edit_spec` reads is set
+        # on the instance by then, so the class and the instance's attributes key the cache.
+        key = (type(self).__qualname__, self.fullpath, repr(sorted(vars(self).items())))
+        pristine = _COMPILED.get(key)
+        if pristine is None:
+            spec = mujoco.MjSpec.from_file(self.fullpath)
+            add_benchmark_cameras(spec)
+            self.edit_spec(spec)
+            pristine = _COMPILED[key] = spec.compile()
+        model = copy.copy(pristine)
         return model, mujoco.MjData(model)
 
     # --- what a family provides -------------------------------------------------------------
