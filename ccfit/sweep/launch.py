@@ -156,9 +156,11 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
     for run in work.runs:
         name, key = f"run:{run.name}", run.scratch_key
         waiting_on[name] = []
-        for kind, needed, call in (("first", work.first, first_call),
-                                   ("scratch", work.scratch, scratch_call)):  # fmt: skip
-            if key in needed:
+        # A run already begun needs no shared first task, only its reference.
+        starts = key in work.first and starts_from_shared_first_task(sweep, run)
+        for kind, needed, call in (("first", starts, first_call),
+                                   ("scratch", key in work.scratch, scratch_call)):  # fmt: skip
+            if needed:
                 calls.setdefault(f"{kind}:{key}", call(key))
                 waiting_on[name].append(f"{kind}:{key}")
         calls[name] = (run_job, alone(run.config), str(sweep.run_dir(run)),
