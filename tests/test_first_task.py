@@ -157,6 +157,8 @@ def test_a_sweep_shares_the_first_task_of_each_seed(tmp_path):
     assert main(argv) == 0  # sharing is the default online
     runs = sorted(p for p in out.iterdir() if (p / "metrics.json").is_file())
     assert len(runs) == 2 and all((p / FIRST_RECORD).is_file() for p in runs)
+    # neither run trained it: a job of its own did
+    assert [json.loads((p / FIRST_RECORD).read_text())["trained_by"] for p in runs] == ["job"] * 2
     (shared,) = _shared(out / "first")
     assert (shared / FIRST_DONE).is_file()
     # trained by a job of its own before either run started

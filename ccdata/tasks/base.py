@@ -137,7 +137,7 @@ class SceneEnv(SawyerXYZEnv):
         # makes an environment per evaluation episode; an environment changes its own model
         # (goal sites), so each gets a copy of the pristine one. What `edit_spec` reads is set
         # on the instance by then, so the class and the instance's attributes key the cache.
-        key = (type(self).__qualname__, self.fullpath, repr(sorted(vars(self).items())))
+        key = (type(self).__qualname__, repr(sorted(vars(self).items())))  # fullpath among them
         pristine = _COMPILED.get(key)
         if pristine is None:
             spec = mujoco.MjSpec.from_file(self.fullpath)

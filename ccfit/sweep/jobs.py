@@ -73,6 +73,14 @@ def job_start(what: str, plugins: list[str], code: dict, threads: int | None) ->
               f"{running['git']})", file=sys.stderr, flush=True)  # fmt: skip
 
 
+def check_key(key: str, submitted: str) -> None:
+    """A job's from-scratch key as computed where it runs must be the one it was submitted
+    with (it differs where e.g. seed_dataset 'auto' found another dataset here)."""
+    if key != submitted:
+        raise RuntimeError(f"the run's from-scratch key is {key} here but was {submitted} at "
+                           f"submission: run the sweep again")  # fmt: skip
+
+
 class _Job(submitit.helpers.Checkpointable):
     def checkpoint(self, *args, **kwargs) -> submitit.helpers.DelayedSubmission:
         """Preempted or timed out: requeue the same call; it resumes from its directory."""
@@ -109,11 +117,7 @@ class FirstTaskJob(_Job):
 
         job_start(f"shared first task {first_dir}", plugins, code, threads)
         cfg = config_from_dict(config)
-        key = OnlineTrack(cfg).reference_key()
-        submitted = Path(first_dir).name
-        if key != submitted:  # e.g. seed_dataset 'auto' found another dataset here
-            raise RuntimeError(f"the runs' from-scratch key is {key} here but was {submitted} "
-                               f"at submission: run the sweep again")  # fmt: skip
+        check_key(OnlineTrack(cfg).reference_key(), Path(first_dir).name)
         record = train_shared_first_task(cfg, Path(first_dir), trained_by="job")
         return {"first_dir": first_dir, "state_sha256": record["state_sha256"]}
 
@@ -144,12 +148,7 @@ class RunJob(_Job):
         # The analyses its model offers, as `ccfit run` records them (offline: none run).
         first = Path(scratch_root).parent / FIRST if self.share_first_task else None
         track = track_of(config).in_sweep(cfg, self.keep_stages, stage_callbacks(cfg), first)
-        key = track.reference_key()
-        if key != scratch_key:  # e.g. seed_dataset 'auto' found another dataset here
-            raise RuntimeError(
-                f"the run's from-scratch key is {key} here but was "
-                f"{scratch_key} at submission: run the sweep again"
-            )
+        check_key(track.reference_key(), scratch_key)
         done = Path(scratch_root) / scratch_key / REFERENCE_DONE
         if not done.is_file():
             raise ScratchMissing(f"from-scratch reference {done.parent} did not finish (see its "
