@@ -157,6 +157,18 @@ class _Pool(ProcessPoolExecutor):
     def submit(self, fn, /, *args, **kwargs):
         return super().submit(_Reported(fn), *args, **kwargs)
 
+    def kill_workers(self) -> None:
+        """Shut the pool down and SIGKILL its workers now (Python 3.14's method of this name).
+        A plain `shutdown(wait=False)` leaves the running jobs running, and the interpreter's
+        exit then waits for them: an interrupted launcher would hang until they end."""
+        workers = list((self._processes or {}).values())
+        self.shutdown(wait=False, cancel_futures=True)
+        for worker in workers:
+            if worker.is_alive():
+                worker.kill()
+        for worker in workers:
+            worker.join()
+
 
 class _Reported:
     """`fn` run in a worker, with what it raises sent back to the caller. An exception that

@@ -283,6 +283,37 @@ def test_cost_md_counts_each_groups_hours_and_machines_and_each_reference_once(t
     assert "From-scratch references without a cost.json: 1 of 1" in text
 
 
+def test_cost_md_counts_a_shared_first_task_a_job_trained_once(tmp_path):
+    """A seed's first task that a sweep's job trained is in no run's cost.json: cost.md counts
+    it once from the record of the runs that started from it; one a run trained is not counted
+    again (that run's cost.json holds it)."""
+    from ccfit.report.cost import COST_MD
+
+    machine = {"cpu": "Some CPU", "cpu_capability": "AVX2", "cores": 2}
+    by_job = {
+        "shared": "Reach-tdmpc2-s0",
+        "trained_by": "job",
+        "state_sha256": "a",
+        "cost": {"wall_s": 1.0, "cpu_s": 1800.0, "segments": 1, "machines": [machine]},
+    }
+    by_run = {**by_job, "shared": "Reach-tdmpc2-s1", "trained_by": "run",
+              "cost": {**by_job["cost"], "cpu_s": 7200.0}}  # fmt: skip
+    for name, record in (("ft-s0", by_job), ("er-s0", by_job), ("ft-s1", by_run)):
+        method, seed = name.split("-s")
+        run = write_run(tmp_path, name, config(method=method, seed=int(seed)), 1.0)
+        (run / "first_task.json").write_text(json.dumps(record))
+    write_report([tmp_path], tmp_path / "out")
+    text = (tmp_path / "out" / COST_MD).read_text()
+    table = text.split("## Shared first tasks trained by a job of their own")[1].splitlines()
+    assert "| tdmpc2 | Reach | 1 | 0.50 | 0.50 | Some CPU (AVX2, 2 cores) x1 |" in table
+    assert "| all | | 1 | | 0.50 | |" in table
+    # none trained by a job: no table
+    for name in ("ft-s0", "er-s0"):
+        (tmp_path / name / "first_task.json").write_text(json.dumps(by_run))
+    write_report([tmp_path], tmp_path / "out")
+    assert "Shared first tasks" not in (tmp_path / "out" / COST_MD).read_text()
+
+
 def test_curve_plot_keeps_green_and_red_for_forward_transfer(tmp_path, monkeypatch):
     """The composed task's FWT shading is green/red; no task curve or forgetting shading may use
     those colours (the default colour cycle gives the third task green and the fourth red)."""

@@ -11,8 +11,11 @@ import itertools
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -536,3 +539,50 @@ def test_a_config_of_no_track_is_one_line():
     for config in ({}, {"train": {}, "fit": {}}):
         with pytest.raises(InputError, match="not a ccfit run's config"):
             track_of(config)
+
+
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is `pid` (Linux's /proc)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # ended while read
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads processes from /proc")
+def test_an_interrupted_local_sweep_ends_its_running_jobs_with_it(tmp_path):
+    """SIGINT to the launcher alone (`kill -INT`; a terminal's Ctrl-C reaches the workers
+    too): the launcher ends at once, its running job killed with it and recorded as
+    interrupted, instead of the launcher waiting at exit for that job to end."""
+    root = tmp_path / "runs"
+    long = [a for a in TOY if not a.startswith("--train.steps=")] + ["--train.steps=10000000"]
+    argv = ["sweep", "--suites", "Reach", "--methods", "ft", "--out", str(root), *long]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    launcher = subprocess.Popen([sys.executable, "-m", "ccfit.cli", *argv], env=env,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and launcher.poll() is None:
+            if any(root.glob("*/*/config.json")):  # a job has begun training
+                break
+            time.sleep(0.1)
+        assert launcher.poll() is None, launcher.stderr.read()[-2000:]
+        workers = [p for p in _children(launcher.pid) if "resource_tracker" not in
+                   Path(f"/proc/{p}/cmdline").read_bytes().decode(errors="replace")]  # fmt: skip
+        assert workers, "no job running in 300 s"
+        os.kill(launcher.pid, signal.SIGINT)
+        launcher.wait(timeout=60)  # before: until the 10M-step job ended
+    finally:
+        launcher.kill()
+        launcher.communicate()
+    for pid in workers:
+        assert not Path(f"/proc/{pid}").exists() or \
+            "Z" in Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]  # fmt: skip
+    [entry] = load_sweep(root)[1]["submissions"]
+    states = {n.split(":")[0]: j["state"] for n, j in entry["jobs"].items()}
+    assert "INTERRUPTED" in states.values() and "COMPLETED" not in states.values(), states

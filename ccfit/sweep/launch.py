@@ -220,7 +220,7 @@ def launch_local(sweep: Sweep, work: Work, submissions: list[dict], max_parallel
             if j["state"] in ("PENDING", "RUNNING"):
                 j["state"] = "INTERRUPTED"
         write_record(sweep, submissions)
-        pool.shutdown(wait=False, cancel_futures=True)
+        pool.kill_workers()  # each interrupted job resumes from its last checkpoint
         raise
     pool.shutdown()
     jobs["report"] = {"state": "RUNNING", "start": _now()}
