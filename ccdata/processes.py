@@ -154,14 +154,21 @@ def worker_pool(max_workers: int, initializer: Callable | None = None, initargs:
 class _Pool(ProcessPoolExecutor):
     """A `ProcessPoolExecutor` whose jobs run as `_Reported`."""
 
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._started: dict = {}  # pid -> process: `shutdown` forgets them, `kill_workers` not
+
     def submit(self, fn, /, *args, **kwargs):
-        return super().submit(_Reported(fn), *args, **kwargs)
+        future = super().submit(_Reported(fn), *args, **kwargs)
+        self._started.update(self._processes or {})  # submitting starts the workers
+        return future
 
     def kill_workers(self) -> None:
-        """Shut the pool down and SIGKILL its workers now (Python 3.14's method of this name).
-        A plain `shutdown(wait=False)` leaves the running jobs running, and the interpreter's
-        exit then waits for them: an interrupted launcher would hang until they end."""
-        workers = list((self._processes or {}).values())
+        """Shut the pool down and SIGKILL its workers now (Python 3.14's method of this name),
+        also after a `shutdown(wait=False)`. That alone leaves the running jobs running, and the
+        interpreter's exit then waits for them: an interrupted launcher would hang until they
+        end."""
+        workers = list({**self._started, **(self._processes or {})}.values())
         self.shutdown(wait=False, cancel_futures=True)
         for worker in workers:
             if worker.is_alive():

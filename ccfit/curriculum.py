@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from concurrent.futures import Future
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -119,6 +119,7 @@ class OnlineTrack(Track):
         self.first_root = None if first_root is None else Path(first_root)
         self.first_only = first_only
         self.evaluator = self.logger = None
+        self.scratch_job: ReferenceJob | None = None
 
     @classmethod
     def in_sweep(cls, cfg: CurriculumConfig, keep_stages: bool = False,
@@ -264,6 +265,8 @@ class OnlineTrack(Track):
 
     def close(self) -> None:
         try:
+            if self.scratch_job is not None:  # done, unless the curriculum stopped early
+                self.scratch_job.stop()
             if self.evaluator is not None:
                 self.evaluator.close()
         finally:
@@ -321,7 +324,26 @@ def train_shared_first_task(cfg: CurriculumConfig, shared: Path, progress: bool 
     return record
 
 
-def start_scratch(cfg: CurriculumConfig, out: Path) -> Future | None:
+@dataclass
+class ReferenceJob:
+    """The from-scratch reference training in a worker process beside the curriculum."""
+
+    pool: ProcessPoolExecutor
+    future: Future
+
+    def result(self):
+        """Wait for it; raises what the worker raised."""
+        return self.future.result()
+
+    def stop(self) -> None:
+        """Kill its worker unless it has finished: the curriculum stopped early (Ctrl-C, an
+        error), and the interpreter's exit would otherwise wait for the whole reference. The
+        reference resumes from its last checkpoint when the run is rerun."""
+        if not self.future.done():
+            self.pool.kill_workers()
+
+
+def start_scratch(cfg: CurriculumConfig, out: Path) -> ReferenceJob | None:
     """The from-scratch reference trained in a worker process beside the curriculum
     (`--train.parallel`), unless it is done already; its evaluation stays in that worker."""
     if (out / REFERENCE_DONE).is_file() or not parallel_on(cfg.train.parallel):
@@ -330,7 +352,7 @@ def start_scratch(cfg: CurriculumConfig, out: Path) -> Future | None:
     pool = worker_pool(1)
     future = pool.submit(_scratch_worker, alone, out)
     pool.shutdown(wait=False)  # the worker ends with its one job
-    return future
+    return ReferenceJob(pool, future)
 
 
 # ======================================================================= loading a run

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import time
 from pathlib import Path
@@ -18,8 +19,10 @@ from ccfit.config_parse import resolve
 from ccfit.curriculum import Curriculum
 
 try:
+    from process_tree import PROC, ended, workers
     from short_episodes import EPISODE_STEPS, ccfit_command
 except ImportError:  # tests/ imported as a package
+    from tests.process_tree import PROC, ended, workers
     from tests.short_episodes import EPISODE_STEPS, ccfit_command
 
 TRAIN = {"steps": 100, "seed_steps": 50, "eval_interval": 50, "checkpoint_interval": 50,
@@ -234,3 +237,31 @@ def test_the_evaluation_worker_and_the_reference_run_behind_training(tmp_path):
         pool.shutdown()
     assert int(note.read_text()) == behind
     assert os.getpriority(os.PRIO_PROCESS, 0) == mine  # the training process keeps its own
+
+
+@pytest.mark.skipif(not PROC.is_dir(), reason="reads processes from /proc")
+def test_an_interrupted_run_ends_its_reference_with_it(tmp_path):
+    """Ctrl-C that reaches the run's process alone (SIGINT to it, as a launcher sends): the run
+    stops at once, its from-scratch reference's worker with it, instead of the interpreter's
+    exit waiting for the whole reference to train."""
+    out, scratch = tmp_path / "run", tmp_path / "scratch"
+    argv = ["run", "--suite", "Reach", "--preset", "smoke", "--seed_dataset", "null",
+            "--out", str(out), "--scratch-root", str(scratch), "--quiet", "--train.parallel=on",
+            "--train.steps=10000000", "--train.eval_interval=1000000"]  # fmt: skip
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    proc = subprocess.Popen(ccfit_command(argv), env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 300
+        while not list(scratch.glob("*/config.json")) and time.monotonic() < deadline:
+            assert proc.poll() is None, proc.stderr.read()[-2000:]
+            time.sleep(0.1)
+        running = workers(proc.pid)
+        assert running, "no reference worker in 300 s"
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=120)  # before: until the 10M-step reference ended
+    finally:
+        proc.kill()
+        _, err = proc.communicate()
+    assert "interrupted; rerun the same command to resume" in err.decode()
+    assert all(ended(pid) for pid in running)

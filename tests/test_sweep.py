@@ -15,7 +15,6 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
 
@@ -36,6 +35,11 @@ from ccfit.sweep.grid import (
 from ccfit.sweep.jobs import RunJob, ScratchMissing, config_from_dict, write_status
 from ccfit.sweep.launch import plan_work
 from ccfit.sweep.status import hours_to_go, sweep_status
+
+try:
+    from process_tree import PROC, ended, workers
+except ImportError:  # tests/ imported as a package
+    from tests.process_tree import PROC, ended, workers
 
 TOY_RUN = ("--seed_dataset", "null", "--train.steps=100", "--train.seed_steps=50",
            "--train.eval_interval=100", "--train.checkpoint_interval=100")  # fmt: skip
@@ -541,20 +545,7 @@ def test_a_config_of_no_track_is_one_line():
             track_of(config)
 
 
-def _children(pid: int) -> list[int]:
-    """The processes whose parent is `pid` (Linux's /proc)."""
-    found = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:  # ended while read
-            continue
-        if int(fields[1]) == pid:
-            found.append(int(stat.parent.name))
-    return found
-
-
-@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads processes from /proc")
+@pytest.mark.skipif(not PROC.is_dir(), reason="reads processes from /proc")
 def test_an_interrupted_local_sweep_ends_its_running_jobs_with_it(tmp_path):
     """SIGINT to the launcher alone (`kill -INT`; a terminal's Ctrl-C reaches the workers
     too): the launcher ends at once, its running job killed with it and recorded as
@@ -572,17 +563,14 @@ def test_an_interrupted_local_sweep_ends_its_running_jobs_with_it(tmp_path):
                 break
             time.sleep(0.1)
         assert launcher.poll() is None, launcher.stderr.read()[-2000:]
-        workers = [p for p in _children(launcher.pid) if "resource_tracker" not in
-                   Path(f"/proc/{p}/cmdline").read_bytes().decode(errors="replace")]  # fmt: skip
-        assert workers, "no job running in 300 s"
+        running = workers(launcher.pid)
+        assert running, "no job running in 300 s"
         os.kill(launcher.pid, signal.SIGINT)
         launcher.wait(timeout=60)  # before: until the 10M-step job ended
     finally:
         launcher.kill()
         launcher.communicate()
-    for pid in workers:
-        assert not Path(f"/proc/{pid}").exists() or \
-            "Z" in Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]  # fmt: skip
+    assert all(ended(pid) for pid in running)
     [entry] = load_sweep(root)[1]["submissions"]
     states = {n.split(":")[0]: j["state"] for n, j in entry["jobs"].items()}
     assert "INTERRUPTED" in states.values() and "COMPLETED" not in states.values(), states
