@@ -256,8 +256,9 @@ def test_an_interrupted_run_ends_its_reference_with_it(tmp_path):
         while not list(scratch.glob("*/config.json")) and time.monotonic() < deadline:
             assert proc.poll() is None, proc.stderr.read()[-2000:]
             time.sleep(0.1)
+        assert list(scratch.glob("*/config.json")), "no reference began in 300 s"
         running = workers(proc.pid)
-        assert running, "no reference worker in 300 s"
+        assert running
         proc.send_signal(signal.SIGINT)
         proc.wait(timeout=120)  # before: until the 10M-step reference ended
     finally:

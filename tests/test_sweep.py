@@ -563,8 +563,9 @@ def test_an_interrupted_local_sweep_ends_its_running_jobs_with_it(tmp_path):
                 break
             time.sleep(0.1)
         assert launcher.poll() is None, launcher.stderr.read()[-2000:]
+        assert any(root.glob("*/*/config.json")), "no job began in 300 s"
         running = workers(launcher.pid)
-        assert running, "no job running in 300 s"
+        assert running
         os.kill(launcher.pid, signal.SIGINT)
         launcher.wait(timeout=60)  # before: until the 10M-step job ended
     finally:

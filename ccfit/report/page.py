@@ -11,6 +11,7 @@ computed from the files under the folder, so it is rebuilt byte for byte from th
 
 from __future__ import annotations
 
+import itertools
 import json
 from collections import defaultdict
 from pathlib import Path
@@ -224,8 +225,25 @@ AGGREGATE_TEXT = (
     "rliable's interquartile mean (IQM) of each method's per-seed BWT and FWT over the suites "
     "it ran on the same seeds (seeds x suites, the middle half of the values), with its 95% "
     "stratified-bootstrap CI: one number per method and backbone that one suite or one seed "
-    "cannot swing. Only where a method ran two suites or more on two seeds or more."
+    "cannot swing. Over the most suites that share two seeds or more, on those seeds (a suite "
+    "run on more seeds counts on the shared ones only)."
 )
+
+
+def _shared_seeds(seeds_of: dict[str, list[int]]) -> tuple[list[str], list[int]]:
+    """The most suites of `seeds_of` (suite -> its seeds) that share two seeds or more, and
+    the seeds they share (most shared seeds among as many suites; suites in `SUITES` order).
+    A suite run on more seeds than the others counts on the shared ones only."""
+    names = [s for s in SUITES if s in seeds_of]
+    best: tuple[list[str], list[int]] = ([], [])
+    for n in range(len(names), 1, -1):
+        for chosen in itertools.combinations(names, n):
+            shared = sorted(set.intersection(*(set(seeds_of[s]) for s in chosen)))
+            if len(shared) >= 2 and len(shared) > len(best[1]):
+                best = (list(chosen), shared)
+        if best[0]:
+            return best
+    return best
 
 
 def aggregate_table(groups: dict) -> list[str]:
@@ -242,13 +260,8 @@ def aggregate_table(groups: dict) -> list[str]:
         defined = {s: g for s, g in by_suite.items()
                    if all(v is not None for x in ("bwt", "fwt")
                           for v in g[f"{x}_per_seed"].values())}  # fmt: skip
-        # the suites run on the most seeds, on the seeds they share (a 1-seed suite aside)
-        most = max((len(g["seeds"]) for g in defined.values()), default=0)
-        defined = {s: g for s, g in defined.items() if len(g["seeds"]) == most}
-        seeds = sorted(set.intersection(*(set(g["seeds"]) for g in defined.values()))
-                       if defined else ())  # fmt: skip
-        suites = [s for s in SUITES if s in defined]
-        if len(suites) < 2 or len(seeds) < 2:
+        suites, seeds = _shared_seeds({s: g["seeds"] for s, g in defined.items()})
+        if len(suites) < 2:
             continue
         cell = []
         for x in ("bwt", "fwt"):
