@@ -266,3 +266,38 @@ def test_an_interrupted_run_ends_its_reference_with_it(tmp_path):
         _, err = proc.communicate()
     assert "interrupted; rerun the same command to resume" in err.decode()
     assert all(ended(pid) for pid in running)
+
+
+@pytest.mark.skipif(not PROC.is_dir(), reason="reads processes from /proc")
+def test_closing_with_an_evaluation_in_flight_kills_the_worker():
+    """A run that stops early (Ctrl-C, an error) closes its evaluator with an evaluation
+    running; its checkpoint lists that request for the resumed run, so the worker is killed,
+    not waited for (before: `ccfit train` beside a sweep took over 9 minutes to exit after
+    SIGINT). This evaluation never ends by itself: a fresh policy does not pick the cube up, and
+    its episode is a billion steps long."""
+    import threading
+
+    from ccfit.train.run import build_model, make_evaluator
+
+    cfg = resolve(CurriculumConfig, {
+        "suite": "Grasp", "preset": "smoke", "seed_dataset": None, "method": {"type": "ft"},
+        "train": {**TRAIN, "parallel": "on", "episode_steps": 10**9,
+                  "buffer_capacity": 10**9 + 1},
+    })  # fmt: skip
+    before = set(workers(os.getpid()))
+    model = build_model(cfg, torch.device("cpu"), [])
+    evaluator = make_evaluator(cfg, model, {0: cfg.tasks[0]}, compiled=[])
+    evaluator.heads[0] = model.new_heads()
+    evaluator.submit([0], stage=0, global_step=0, task_step=0)
+    [(_, future)] = evaluator._queue
+    deadline = time.monotonic() + 120
+    while not future.running() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert future.running(), "the evaluation did not start in 120 s"
+    running = [pid for pid in workers(os.getpid()) if pid not in before]
+    assert running
+    closing = threading.Thread(target=evaluator.close, daemon=True)
+    closing.start()
+    closing.join(timeout=60)  # before: forever
+    assert not closing.is_alive()
+    assert all(ended(pid) for pid in running)

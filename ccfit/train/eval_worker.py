@@ -177,7 +177,14 @@ class AsyncEvaluator:
         return [request for request, _ in self._queue]
 
     def close(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        """End the worker. With a request still in flight the run is stopping early (Ctrl-C, an
+        error, a first task stopped before its end): its checkpoint lists that request for the
+        resumed run to submit again, so the worker is killed instead of waited for (at nice +10
+        beside busy cores an evaluation can take many minutes)."""
+        if any(not future.done() for _, future in self._queue):
+            self._pool.kill_workers()
+        else:
+            self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 def has_view(method) -> bool:
