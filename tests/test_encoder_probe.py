@@ -54,6 +54,27 @@ def test_probe_rows_score_each_varying_position_and_drop_the_rest():
     assert min(by["goal"]["pixels_r2"]) > 0.85
 
 
+def test_a_position_tied_to_another_scores_from_the_other_positions():
+    """pick-cube's goal floats over its cube: a latent that held only the goal would give the
+    cube too, which `others_r2` says; an independent position scores near 0 there. An older
+    probe.json without the column renders without it."""
+    rng = np.random.default_rng(2)
+    state = np.zeros((400, 39))
+    state[:, 0:3] = rng.uniform(-0.3, 0.3, (400, 3))  # hand, independent
+    state[:, 4:6] = rng.uniform(-0.12, 0.12, (400, 2))  # cube x, y
+    state[:, 36:38] = state[:, 4:6] + rng.uniform(-0.03, 0.03, (400, 2))  # goal over it
+    latent = np.concatenate([state[:, 36:38], rng.normal(size=(400, 4))], axis=1)  # goal only
+    rows = {r["position"]: r for r in probe_rows("t", {"latent": latent, "pixels": latent,
+                                                        "state": state})}  # fmt: skip
+    assert min(rows["object"]["latent_r2"]) > 0.8  # the latent "gives" the cube...
+    assert min(rows["object"]["others_r2"]) > 0.8  # ...as the goal alone does
+    assert max(rows["hand"]["others_r2"]) < 0.1
+    table = markdown({"rows": list(rows.values())})
+    assert "from the other positions |" in table.splitlines()[0]
+    old = [{k: v for k, v in r.items() if k != "others_r2"} for r in rows.values()]
+    assert "other positions" not in markdown({"rows": old})
+
+
 def planted_squares(n: int, classes: int = 1, side: int = 16, square: int = 3, seed: int = 0):
     """`n` noisy RGB images (n, 3, side, side), each with a bright square at a random place in
     the colour channel of its class (frame i is of class i % classes): (images, class, the
@@ -162,9 +183,21 @@ def test_probe_reports_the_positions_each_task_varies(encoder_path, tmp_path, ca
     assert rows["reach-xy", "goal"]["axes"] == "xy" and rows["reach-xyz", "goal"]["axes"] == "xyz"
     assert rows["reach-xy", "hand"]["axes"] == "xyz"
     for r in rows.values():
-        assert len(r["latent_r2"]) == len(r["pixels_r2"]) == len(r["axes"])
+        assert len(r["latent_r2"]) == len(r["pixels_r2"]) == len(r["others_r2"]) == len(r["axes"])
     table = (out / "probe.md").read_text()
     assert table in capsys.readouterr().out and table.count("\n") == 2 + len(rows)
+
+
+def test_the_states_alone_are_those_of_the_rendered_frames(encoder_path):
+    """`collect_states` reads the frames `collect` renders (same layouts and walks), so a
+    published probe's `others_r2` can be computed again without its encoder."""
+    from ccfit.analysis.encoder_probe import collect, collect_states
+    from ccfit.models.encoders import load_frozen_encoder
+
+    encoder, _ = load_frozen_encoder(encoder_path)
+    rendered = collect(encoder, "pick-cube", frames=4, image_size=SIZE, walk=30, seed=3)
+    assert np.array_equal(collect_states("pick-cube", frames=4, walk=30, seed=3),
+                          rendered["state"])  # fmt: skip
 
 
 def test_probe_tells_which_block_of_pnpblock_a_frame_shows(encoder_path, tmp_path, capsys):

@@ -8,7 +8,9 @@ encodes them, and fits ridge regressions from the latent to the positions the ta
 vector holds (hand, objects, goal) on the first 80% of the frames, scoring held-out R^2 on the
 rest. The same probe from the frames themselves, average-pooled to a quarter of their side,
 says whether the quantity is visible at all: a quantity the pixels give and the latent does
-not is one the encoder dropped.
+not is one the encoder dropped. A third column scores each position from the true coordinates
+of the task's other positions (`others_r2`): a latent that sees a goal floating over a cube
+gives the cube as well, without seeing it.
 
 Tasks that are one MDP from state (a suite's `same_from_state` group: BinPnP's four bin
 colours, PnPBlock's two blocks) differ only in what the frames show, so for each such group
@@ -47,6 +49,9 @@ TRAIN_FRACTION = 0.8
 POOL = 4
 """The pixel probe's frames are average-pooled by this factor (64 px -> 16 px)."""
 AXES = "xyz"
+MIN_SPREAD = 1e-3
+"""Metres: `others_r2` reads only the coordinates whose spread over the fitted frames is at
+least this."""
 
 
 def ridge_r2(x: np.ndarray, y: np.ndarray, ridge: float = RIDGE) -> list[float | None]:
@@ -64,19 +69,14 @@ def ridge_r2(x: np.ndarray, y: np.ndarray, ridge: float = RIDGE) -> list[float |
             else None for j in range(y.shape[1])]  # fmt: skip
 
 
-def collect(encoder, task_id: str, frames: int, image_size: int, walk: int,
-            seed: int) -> dict[str, np.ndarray]:  # fmt: skip
-    """(latent, pooled pixels, state) of `frames` frames of `task_id`, as the module says.
-
-    Only the frame the walk ends on is rendered (`TaskEnv.render`: the images a rendering
-    env's observation holds, identical arrays): rendering all of the walk's ~15 steps made a
-    frame 2 to 6 times slower (0.4 s a frame on a busy 2-core CPU)."""
+def walked_layouts(task_id: str, frames: int, walk: int, seed: int, image_size: int = 64):
+    """`frames` times, the environment of `task_id` and its observation after a fresh layout
+    (`env.reset(seed=seed * frames + i)`) and a random walk of up to `walk` uniform actions:
+    the probe's frames, the same whether they are rendered or only their states are read."""
     from ccdata.env import TaskEnv
-    from ccfit.obs import obs_to_arrays
 
     rng = np.random.default_rng(seed)
     env = TaskEnv(task_id, image_size=image_size, render=False, render_mode="rgb_array")
-    latents, pixels, states = [], [], []
     try:
         for i in range(frames):
             obs, _ = env.reset(seed=seed * frames + i)
@@ -86,17 +86,38 @@ def collect(encoder, task_id: str, frames: int, image_size: int, walk: int,
                 )
                 if terminated or truncated:
                     break
-            arrays = obs_to_arrays(camera_views(env) | obs, "pixels")
-            with torch.no_grad():
-                z = encoder({k: torch.as_tensor(v)[None] for k, v in arrays.items()})
-                px = torch.as_tensor(arrays["pixels"])[None].float() / 255.0
-                pooled = torch.nn.functional.avg_pool2d(px, POOL)
-            latents.append(z[0].float().numpy())
-            pixels.append(pooled.flatten().numpy())
-            states.append(np.asarray(obs["state"], dtype=np.float64))
+            yield env, obs
     finally:
         env.close()
+
+
+def collect(encoder, task_id: str, frames: int, image_size: int, walk: int,
+            seed: int) -> dict[str, np.ndarray]:  # fmt: skip
+    """(latent, pooled pixels, state) of `frames` frames of `task_id`, as the module says.
+
+    Only the frame the walk ends on is rendered (`TaskEnv.render`: the images a rendering
+    env's observation holds, identical arrays): rendering all of the walk's ~15 steps made a
+    frame 2 to 6 times slower (0.4 s a frame on a busy 2-core CPU)."""
+    from ccfit.obs import obs_to_arrays
+
+    latents, pixels, states = [], [], []
+    for env, obs in walked_layouts(task_id, frames, walk, seed, image_size):
+        arrays = obs_to_arrays(camera_views(env) | obs, "pixels")
+        with torch.no_grad():
+            z = encoder({k: torch.as_tensor(v)[None] for k, v in arrays.items()})
+            px = torch.as_tensor(arrays["pixels"])[None].float() / 255.0
+            pooled = torch.nn.functional.avg_pool2d(px, POOL)
+        latents.append(z[0].float().numpy())
+        pixels.append(pooled.flatten().numpy())
+        states.append(np.asarray(obs["state"], dtype=np.float64))
     return {"latent": np.stack(latents), "pixels": np.stack(pixels), "state": np.stack(states)}
+
+
+def collect_states(task_id: str, frames: int, walk: int, seed: int) -> np.ndarray:
+    """The states of the frames `collect` renders with the same arguments, without rendering
+    (a tenth of the time): what `others_r2` reads."""
+    return np.stack([np.asarray(obs["state"], dtype=np.float64)
+                     for _, obs in walked_layouts(task_id, frames, walk, seed)])  # fmt: skip
 
 
 def camera_views(env) -> dict[str, np.ndarray]:
@@ -108,20 +129,35 @@ def camera_views(env) -> dict[str, np.ndarray]:
     return dict(zip(CAMERAS, views, strict=True))
 
 
+def others_r2(state: np.ndarray, name: str) -> list[float | None]:
+    """Held-out R^2 per coordinate of position `name` from the true coordinates of the task's
+    other positions (`state`): what a latent that held only those would score. Where a task
+    ties two positions (pick-cube's goal floats over its cube; place-cube's cube is in the
+    hand), a latent's score at or below this is no evidence that it sees the position itself."""
+    others = np.concatenate([state[:, dims] for other, dims in POSITIONS.items()
+                             if other != name], axis=1)  # fmt: skip
+    # A coordinate that hardly varies in the fit (a drawer the walk nudged in a few frames)
+    # would be scaled up to unit spread and swing the held-out predictions: it is left out.
+    varies = others[: int(TRAIN_FRACTION * len(others))].std(0) >= MIN_SPREAD
+    return ridge_r2(others[:, varies], state[:, POSITIONS[name]])
+
+
 def probe_rows(task_id: str, data: dict[str, np.ndarray]) -> list[dict]:
-    """One row per position the task's frames vary in: R^2 per coordinate from the latent and
-    from the pooled pixels."""
+    """One row per position the task's frames vary in: R^2 per coordinate from the latent,
+    from the pooled pixels, and from the task's other positions (`others_r2`)."""
     rows = []
     for name, dims in POSITIONS.items():
         target = data["state"][:, dims]
         latent = ridge_r2(data["latent"], target)
         pixels = ridge_r2(data["pixels"], target, RIDGE * 10)  # more inputs than frames
+        others = others_r2(data["state"], name)
         keep = [j for j, r in enumerate(latent) if r is not None]
         if keep:
             rows.append({"task": task_id, "position": name,
                          "axes": "".join(AXES[j] for j in keep),
                          "latent_r2": [latent[j] for j in keep],
-                         "pixels_r2": [pixels[j] for j in keep]})  # fmt: skip
+                         "pixels_r2": [pixels[j] for j in keep],
+                         "others_r2": [others[j] for j in keep]})  # fmt: skip
     return rows
 
 
@@ -217,17 +253,22 @@ def probe_encoder(path: str | Path, task_ids: list[str], frames: int = 1000, wal
 
 
 def markdown(result: dict) -> str:
-    """The probe's tables: R^2 per coordinate, latent against pixels; then, where the probe
+    """The probe's tables: R^2 per coordinate, latent against pixels and against the task's
+    other positions (`others_r2`); then, where the probe
     classified (an older probe.json has no `classification`), the accuracy of telling a
     group's tasks apart."""
 
     def fmt(values: list[float]) -> str:
         return ", ".join(f"{v:.2f}" for v in values)
 
-    lines = ["| task | position | axes | from the latent | from the pixels |",
-             "|---|---|---|---|---|"]  # fmt: skip
+    # An older probe.json has no `others_r2`: its table has no such column.
+    others = all("others_r2" in r for r in result["rows"])
+    lines = ["| task | position | axes | from the latent | from the pixels |"
+             + (" from the other positions |" if others else ""),
+             "|---|---|---|---|---|" + ("---|" if others else "")]  # fmt: skip
     lines += [f"| {r['task']} | {r['position']} | {r['axes']} | {fmt(r['latent_r2'])} | "
-              f"{fmt(r['pixels_r2'])} |" for r in result["rows"]]  # fmt: skip
+              f"{fmt(r['pixels_r2'])} |" + (f" {fmt(r['others_r2'])} |" if others else "")
+              for r in result["rows"]]  # fmt: skip
     classification = result.get("classification") or []
     if classification:
         lines += ["", "| suite | which task of | frames per task | from the latent | "
