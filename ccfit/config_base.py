@@ -142,6 +142,7 @@ LEGACY_VALUES: dict[str, Any] = {
     "train.end_eval_episodes": None, "train.episode_steps": 250,
     "fit.keep_backbone_optimizer": False, "fit.autocast": "off", "model.demo_bc_coef": 0.0,
     "model.imag_cont": "mode", "model.demo_bc_loss": "mse", "model.keypoints": 0,
+    "model.image_trunk": "stacked",
     "model.state_recon_scale": 1.0,
 }  # fmt: skip
 """Settings added after runs were made, each with the value that reproduces what runs did

@@ -84,6 +84,10 @@ class SpatialSoftmax(nn.Module):
         return torch.cat([where.flatten(1), flat.amax(-1)], dim=-1)
 
 
+IMAGE_TRUNKS = ("stacked", "per-camera")
+"""How `PixelEncoder`'s conv stack reads the three cameras (`EncoderSpec.image_trunk`)."""
+
+
 class PixelEncoder(nn.Module):
     """Conv branch on obs['pixels'] (uint8, 9 x S x S) + MLP branch on obs['proprio'], fused.
 
@@ -95,6 +99,11 @@ class PixelEncoder(nn.Module):
     to `enc_dim`, are concatenated with the proprio branch's `enc_dim` features, and a fusion
     MLP maps them to the SimNorm latent. Random shifts (`shift` px) are applied in training
     mode only.
+
+    `trunk` "per-camera" runs the conv stack on each camera's 3 channels apart (the same
+    weights; the features side by side into the projection) instead of on the 9 stacked ones:
+    stacked, the first conv adds up pixels of three views that share only their place in the
+    image. The stack then costs about three times as much after its first layer.
     """
 
     def __init__(
@@ -108,16 +117,21 @@ class PixelEncoder(nn.Module):
         simnorm_dim: int,
         shift: int = 4,
         keypoints: int = 0,
+        trunk: str = "stacked",
     ) -> None:
         super().__init__()
         if image_size < 32:
             raise ValueError(f"image_size must be >= 32, got {image_size}")
+        if trunk not in IMAGE_TRUNKS:
+            raise ValueError(f"image trunk must be one of {IMAGE_TRUNKS}, got {trunk!r}")
         self.image_size, self.proprio_dim, self.shift = image_size, proprio_dim, shift
+        self.views = 3 if trunk == "per-camera" else 1  # conv inputs per frame
+        inputs = 9 // self.views
         c = num_channels
         if keypoints > 0:
             half = (image_size - 7) // 2 + 1  # the first conv's output side
             self.conv = nn.Sequential(
-                nn.Conv2d(9, c, 7, stride=2), nn.ReLU(),
+                nn.Conv2d(inputs, c, 7, stride=2), nn.ReLU(),
                 nn.Conv2d(c, c, 5, stride=1, padding=2), nn.ReLU(),
                 nn.Conv2d(c, keypoints, 3, stride=1, padding=1), SpatialSoftmax(half, half),
             )  # fmt: skip
@@ -126,13 +140,13 @@ class PixelEncoder(nn.Module):
             # conv is padded so that 32 px still works (32 -> 13 -> 5 -> 2 -> 2).
             last_pad = 0 if image_size >= 40 else 1
             self.conv = nn.Sequential(
-                nn.Conv2d(9, c, 7, stride=2), nn.ReLU(),
+                nn.Conv2d(inputs, c, 7, stride=2), nn.ReLU(),
                 nn.Conv2d(c, c, 5, stride=2), nn.ReLU(),
                 nn.Conv2d(c, c, 3, stride=2), nn.ReLU(),
                 nn.Conv2d(c, c, 3, stride=1, padding=last_pad), nn.Flatten(),
             )  # fmt: skip
         with torch.no_grad():
-            flat = self.conv(torch.zeros(1, 9, image_size, image_size)).shape[-1]
+            flat = self.views * self.conv(torch.zeros(1, inputs, image_size, image_size)).shape[-1]
         self.conv_out = flat
         self.image_proj = NormedLinear(flat, enc_dim)
         self.proprio = mlp(proprio_dim, [enc_dim] * max(num_layers - 1, 1), enc_dim, act=Mish())
@@ -150,7 +164,8 @@ class PixelEncoder(nn.Module):
         if self.training and self.shift > 0:
             x = random_shift(x, self.shift)
         x = x.float().div_(255.0).sub_(0.5)  # in place: these are the largest tensors here
-        img = self.image_proj(self.conv(x)).reshape(*lead, -1)
+        features = self.conv(x.reshape(-1, 9 // self.views, s, s)).reshape(len(x), -1)
+        img = self.image_proj(features).reshape(*lead, -1)
         return self.fuse(torch.cat([img, self.proprio(prop.float())], dim=-1))
 
 
@@ -188,11 +203,19 @@ class EncoderSpec:
     """Image features as this many keypoints (`SpatialSoftmax`: each feature map's expected
     position and peak, at half the image's resolution); 0: TD-MPC2's strided conv stack,
     flattened."""
+    image_trunk: str = "stacked"
+    """The conv stack on the 9 channel-stacked channels ('stacked', TD-MPC2's) or on each
+    camera's 3 apart ('per-camera', `PixelEncoder`)."""
 
     def __post_init__(self) -> None:
         if self.obs_mode not in ("state", "pixels"):
             raise ValueError(f"encoder obs_mode must be 'state' or 'pixels', got {self.obs_mode!r}")
-        for f in dataclasses.fields(self)[1:]:
+        if self.image_trunk not in IMAGE_TRUNKS:
+            raise ValueError(f"encoder image_trunk must be one of {IMAGE_TRUNKS}, "
+                             f"got {self.image_trunk!r}")  # fmt: skip
+        for f in dataclasses.fields(self):
+            if f.name in ("obs_mode", "image_trunk"):  # the two that are not counts
+                continue
             value, low = getattr(self, f.name), 0 if f.name in ("image_shift", "keypoints") else 1
             if type(value) is not int or value < low:
                 raise ValueError(f"encoder {f.name} must be an int >= {low}, got {value!r}")
@@ -226,6 +249,7 @@ def build_encoder(cfg) -> nn.Module:
             cfg.simnorm_dim,
             cfg.image_shift,
             cfg.keypoints,
+            cfg.image_trunk,
         )
     raise ValueError(f"unknown obs_mode {cfg.obs_mode!r}; valid: state, pixels")
 

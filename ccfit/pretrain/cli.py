@@ -16,7 +16,7 @@ from ccfit.pretrain.train import pretrain_encoder
 _TRAINING_OVERRIDES = {"steps": int, "batch_size": int, "lr": float, "decoder_channels": int,
                        "augment_shift": int, "policies": str, "explore_frame_stride": int,
                        "foreground_weight": float, "foreground_threshold": float,
-                       "keypoints": int, "contrastive_coef": float,
+                       "keypoints": int, "image_trunk": str, "contrastive_coef": float,
                        "contrastive_temperature": float, "proprio_coef": float,
                        "batch_from": str}  # fmt: skip
 """PretrainConfig fields a command line may set over the preset's values (see its docstrings)."""

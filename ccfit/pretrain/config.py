@@ -11,7 +11,7 @@ from ccdata.errors import InputError
 from ccdata.suites import SUITES
 from ccfit.config_base import ConfigError, Presets
 from ccfit.models import DEFAULT_MODEL
-from ccfit.models.encoders import EncoderSpec
+from ccfit.models.encoders import IMAGE_TRUNKS, EncoderSpec
 from ccfit.models.registry import model_class, model_names
 from ccfit.settings import check_device_name
 
@@ -30,6 +30,7 @@ LEGACY_SETTINGS = {
     "policies": ["oracle"],
     "foreground_weight": 0.0,
     "keypoints": 0,
+    "image_trunk": "stacked",
     "contrastive_coef": 0.0,
     "batch_from": "all",
 }
@@ -97,6 +98,10 @@ class PretrainConfig(Presets):
     """The encoder's image features as this many spatial-softmax keypoints (the model
     config's `keypoints`, recorded in the encoder file; a run through it takes it from
     there); 0: the model preset's own image features."""
+    image_trunk: str = "stacked"
+    """The encoder's conv stack on the 9 channel-stacked channels ('stacked') or on each
+    camera's 3 apart ('per-camera'): the model config's `image_trunk`, recorded in the encoder
+    file as `keypoints` is."""
     steps: int = 20_000
     """Gradient steps."""
     batch_size: int = 64
@@ -192,6 +197,7 @@ class PretrainConfig(Presets):
             (self.proprio_coef >= 0, "proprio_coef must be >= 0"),
             (self.foreground_weight >= 0, "foreground_weight must be >= 0"),
             (self.keypoints >= 0, "keypoints must be >= 0"),
+            (self.image_trunk in IMAGE_TRUNKS, f"image_trunk must be one of {IMAGE_TRUNKS}"),
             (self.contrastive_coef >= 0, "contrastive_coef must be >= 0"),
             (self.contrastive_temperature > 0, "contrastive_temperature must be > 0"),
             (0 < self.foreground_threshold < 1, "foreground_threshold must be in (0, 1)"),
@@ -218,9 +224,11 @@ class PretrainConfig(Presets):
             offering = [n for n in model_names() if "pixel-encoder" in model_class(n).capabilities]
             raise InputError(f"model {self.model!r} does not build the shared pixel encoder; "
                              f"models that do: {', '.join(offering)}")  # fmt: skip
-        keypoints = {"keypoints": self.keypoints} if self.keypoints else {}
+        given = {"keypoints": self.keypoints} if self.keypoints else {}
+        if self.image_trunk != "stacked":
+            given["image_trunk"] = self.image_trunk
         cfg = cls.config_class.preset(self.model_preset, obs_mode="pixels",
-                                      image_size=self.image_size, **keypoints)  # fmt: skip
+                                      image_size=self.image_size, **given)  # fmt: skip
         return EncoderSpec.of(cfg)
 
     def resolved_roots(self) -> dict[str, Path]:

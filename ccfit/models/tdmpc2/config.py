@@ -7,6 +7,7 @@ from typing import Any, ClassVar
 
 from ccdata.env import DEFAULT_EPISODE_STEPS
 from ccfit.config_base import check
+from ccfit.models.encoders import IMAGE_TRUNKS
 from ccfit.models.registry import ModelConfig
 
 Q_RETURN_TYPES = ("all", "min", "avg")
@@ -115,6 +116,10 @@ class TDMPC2Config(ModelConfig):
     """Pixel mode: image features as this many spatial-softmax keypoints
     (`ccfit.models.encoders.SpatialSoftmax`); 0: the official strided conv stack. A frozen
     encoder's own value replaces it (`--encoder frozen:PATH`)."""
+    image_trunk: str = "stacked"
+    """Pixel mode: the conv stack on the 9 channel-stacked channels ('stacked', the
+    official) or on each camera's 3 apart ('per-camera'; `ccfit.models.encoders.PixelEncoder`).
+    A frozen encoder's own value replaces it."""
 
     num_bins: int = 101
     """Bins of the two-hot reward / value distributions."""
@@ -203,6 +208,7 @@ class TDMPC2Config(ModelConfig):
             (0.0 <= self.dropout < 1.0, "dropout must be in [0, 1)"),
             (self.image_shift >= 0, "image_shift must be >= 0"),
             (self.keypoints >= 0, "keypoints must be >= 0"),
+            (self.image_trunk in IMAGE_TRUNKS, f"image_trunk must be one of {IMAGE_TRUNKS}"),
             (self.log_std_min < self.log_std_max, "log_std_min must be below log_std_max"),
             (0.0 < self.rho <= 1.0 and 0.0 < self.tau <= 1.0, "rho and tau must be in (0, 1]"),
             (self.lr > 0 and self.enc_lr_scale > 0, "lr and enc_lr_scale must be > 0"),
