@@ -17,6 +17,7 @@ from ccdata.suites import SUITES
 from ccfit.analysis.encoder_probe import (
     classification_rows,
     markdown,
+    others_r2,
     probe_rows,
     ridge_accuracy,
     ridge_r2,
@@ -69,6 +70,13 @@ def test_a_position_tied_to_another_scores_from_the_other_positions():
     assert min(rows["object"]["latent_r2"]) > 0.8  # the latent "gives" the cube...
     assert min(rows["object"]["others_r2"]) > 0.8  # ...as the goal alone does
     assert max(rows["hand"]["others_r2"]) < 0.1
+    # A coordinate of another position that hardly varies in the fitted frames and jumps in
+    # the held-out ones (a drawer the walk nudged) is left out, not scaled up: the hand's
+    # score stays near 0 instead of far below it.
+    nudged = state.copy()
+    nudged[:320, 38] = 1e-4 * rng.normal(size=320)
+    nudged[320:, 38] = 0.05
+    assert min(others_r2(nudged, "hand")) > -0.1
     table = markdown({"rows": list(rows.values())})
     assert "from the other positions |" in table.splitlines()[0]
     old = [{k: v for k, v in r.items() if k != "others_r2"} for r in rows.values()]

@@ -27,10 +27,14 @@ def test_each_camera_goes_through_the_trunk_alone():
     changed = {**obs, "pixels": obs["pixels"].clone()}
     changed["pixels"][:, 3:6] = 255 - changed["pixels"][:, 3:6]
 
-    def features(encoder, o):
-        x = o["pixels"].float().div(255.0).sub(0.5)
-        views = encoder.views
-        return encoder.conv(x.reshape(-1, 9 // views, 64, 64)).reshape(len(x), views, -1)
+    def features(encoder, o):  # what the conv stack gives inside the encoder's forward
+        seen = []
+        hook = encoder.conv.register_forward_hook(lambda m, i, out: seen.append(out))
+        try:
+            encoder(o)
+        finally:
+            hook.remove()
+        return seen[0].reshape(len(o["pixels"]), encoder.views, -1)
 
     before, after = features(apart, obs), features(apart, changed)
     moved = [not torch.equal(before[:, k], after[:, k]) for k in range(3)]
@@ -58,3 +62,5 @@ def test_a_per_camera_encoder_saves_loads_and_reaches_the_model_config(tmp_path)
         EncoderSpec(**SPEC, image_trunk="per-view")
     with pytest.raises(ValueError, match="image_trunk must be one of"):
         PretrainConfig.preset("smoke", image_trunk="per-view")
+    with pytest.raises(ValueError, match="image_trunk must be one of"):
+        TDMPC2Config.preset("smoke", obs_mode="pixels", image_trunk="per-view")
