@@ -168,3 +168,26 @@ def test_an_encoders_line_says_whether_its_latent_holds_the_task(tmp_path):
     assert "R^2 <= 0.09" in arm and "the arm alone" in arm
     assert "0.90 at the median, 67% of their coordinates >= 0.5" in task
     assert "arm alone" not in task
+    assert "do not give" not in task  # a probe from before `others_r2`: no such clause
+
+
+def test_an_encoders_line_counts_apart_what_the_other_positions_give(tmp_path):
+    # A cube under a goal that floats over it is given by the goal: a latent's R^2 on it says
+    # nothing of its own, so the line summarises the coordinates the others do not give.
+    from types import SimpleNamespace
+
+    from ccfit.report.page import encoder_notes
+
+    rows = [
+        {"position": "hand", "latent_r2": [0.97], "others_r2": [0.0]},
+        {"position": "object", "latent_r2": [0.91, 0.84], "others_r2": [0.94, 0.91]},
+        {"position": "goal", "latent_r2": [0.9, 0.2, 0.6], "others_r2": [0.1, 0.0, None]},
+    ]
+    (tmp_path / "probe" / "e").mkdir(parents=True)
+    found = {"encoder": "e.safetensors", "rows": rows}
+    (tmp_path / "probe" / "e" / "probe.json").write_text(json.dumps(found))
+    runs = {"e": [SimpleNamespace(config={"encoder": "frozen:e.safetensors"})]}
+    line = encoder_notes(runs, tmp_path)[0]
+    assert "0.84 at the median, 80% of their coordinates >= 0.5" in line
+    assert "of the 2 coordinates that the task's other positions do not give" in line
+    assert "0.55 at the median, 50% >= 0.5" in line

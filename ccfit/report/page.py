@@ -192,8 +192,28 @@ def encoder_notes(run_groups: dict, root: Path) -> list[str]:
             share = np.mean(np.array(task) >= SEES_TASK_R2)
             text += (f"{np.median(task):.2f} at the median, {share:.0%} of their coordinates >= "
                      f"{SEES_TASK_R2} ([probe]({where}))")  # fmt: skip
+            text += _on_their_own(found["rows"])
         lines += [text + ".", ""]
     return lines
+
+
+def _on_their_own(rows: list[dict]) -> str:
+    """The goal and object coordinates that the task's other positions do not give (a cube
+    under a goal that floats over it does): where a latent's score is evidence of its own. An
+    older probe without `others_r2` adds nothing."""
+    if not all("others_r2" in r for r in rows):
+        return ""
+    own = [latent for r in rows if r["position"] != "hand"
+           for latent, others in zip(r["latent_r2"], r["others_r2"], strict=True)
+           if others is not None and others < SEES_TASK_R2]  # fmt: skip
+    if not own:
+        return ""
+    share = np.mean(np.array(own) >= SEES_TASK_R2)
+    return (
+        f"; of the {len(own)} coordinates that the task's other positions do not give (R^2 < "
+        f"{SEES_TASK_R2} from them), {np.median(own):.2f} at the median, {share:.0%} >= "
+        f"{SEES_TASK_R2}"
+    )
 
 
 def paper_table(groups: dict) -> list[str]:
