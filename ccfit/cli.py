@@ -265,9 +265,11 @@ def _cmd_probe_encoder(args: argparse.Namespace) -> None:
         )
     if args.torch_threads < 0:
         raise CliError(f"--torch-threads must be >= 0, got {args.torch_threads}")
+    if args.workers < 1:
+        raise CliError(f"--workers must be >= 1, got {args.workers}")
     with torch_threads(args.torch_threads):
         result = probe_encoder(args.encoder, tasks, frames=args.frames, seed=args.seed,
-                               suites=suites)  # fmt: skip
+                               suites=suites, workers=args.workers)  # fmt: skip
     print(markdown(result), end="")
     print("-> " + ", ".join(str(p) for p in write_probe(result, out_dir(args.out))))
 
@@ -359,12 +361,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=1000,
                    help="frames per task, each from a fresh layout (default 1000); one takes "
                         "0.06-0.17 s to collect by task (0.11 on average, on a busy 2-core "
-                        "CPU), so all six suites' 18 tasks take about 35 minutes")  # fmt: skip
+                        "CPU), so all six suites' 18 tasks take about 35 minutes in one "
+                        "process (--workers)")  # fmt: skip
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--torch-threads", type=int, default=1,
                    help="CPU threads for torch (default 1, as training's; 0: torch's own "
                         "count, which beside another job on a small machine runs many times "
                         "slower)")  # fmt: skip
+    p.add_argument("--workers", type=int, default=1,
+                   help="processes collecting frames, a task each at a time (default 1; the "
+                        "result does not depend on it)")  # fmt: skip
     p.add_argument("--out", required=True, help="output directory (probe.json, probe.md)")
     p.set_defaults(func=_cmd_probe_encoder)
 

@@ -196,6 +196,24 @@ def test_probe_reports_the_positions_each_task_varies(encoder_path, tmp_path, ca
     assert table in capsys.readouterr().out and table.count("\n") == 2 + len(rows)
 
 
+@pytest.mark.integration
+def test_workers_collect_the_same_probe_as_one_process(encoder_path, tmp_path, monkeypatch):
+    """`--workers 2` collects each task in a spawned process: the same frames and latents, so
+    the same probe.json, as one process collecting them in turn."""
+    import ccfit.analysis.encoder_probe as probe
+
+    results = []
+    for workers in ("1", "2"):
+        if workers == "2":  # the spawned workers import the module afresh: this is not theirs
+            monkeypatch.setattr(probe, "collect", None)
+        out = tmp_path / f"w{workers}"
+        assert main(["probe-encoder", str(encoder_path), "--tasks", "reach-xy,pick-cube",
+                     "--frames", "10", "--workers", workers, "--out", str(out)]) == 0  # fmt: skip
+        results.append((out / "probe.json").read_text())
+    assert results[0] == results[1]
+    assert {r["task"] for r in json.loads(results[1])["rows"]} == {"reach-xy", "pick-cube"}
+
+
 def test_the_states_alone_are_those_of_the_rendered_frames(encoder_path):
     """`collect_states` reads the frames `collect` renders (same layouts and walks), so a
     published probe's `others_r2` can be computed again without its encoder."""
@@ -236,6 +254,7 @@ def test_probe_tells_which_block_of_pnpblock_a_frame_shows(encoder_path, tmp_pat
     ([], "give --suites or --tasks"),
     (["--tasks", "reach-xy", "--frames", "5"], "--frames must be at least 10"),
     (["--tasks", "reach-xy", "--torch-threads", "-1"], "--torch-threads must be >= 0"),
+    (["--tasks", "reach-xy", "--workers", "0"], "--workers must be >= 1"),
 ])  # fmt: skip
 def test_bad_input_is_one_line_and_exit_2(args, message, encoder_path, tmp_path, capsys):
     code = main(["probe-encoder", str(encoder_path), *args, "--out", str(tmp_path / "p")])

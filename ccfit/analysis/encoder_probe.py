@@ -20,7 +20,8 @@ comes from: a frozen-encoder run sees those tasks differ only through its latent
 A frame takes 0.06 s (reach-xy) to 0.17 s (pnp-cube) to collect, 0.11 s on average over the
 18 tasks of the six suites, measured on a 2-core CPU that ran other jobs (load ~6); there
 `--suites all` took 4.5 minutes end to end at 100 frames a task, and takes about 35 at the
-default 1000.
+default 1000. Tasks are independent (each its own layouts and walks), so `workers` processes
+collect them side by side with the same result.
 
     ccfit probe-encoder ../runs/encoders/encoder-cpu-s0.safetensors --suites all \\
         --frames 1000 --out ../runs/probe
@@ -28,7 +29,9 @@ default 1000.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -226,10 +229,41 @@ def classification_rows(task_ids: list[str], data: dict[str, dict[str, np.ndarra
     return rows
 
 
+def _collect_in_worker(path: str, task_id: str, frames: int, walk: int, seed: int,
+                      threads: int) -> dict[str, np.ndarray]:  # fmt: skip
+    """`collect` in a worker process: the encoder loaded there, on the caller's thread count
+    (so that its latents are the ones a single process computes)."""
+    from ccfit.models.encoders import load_frozen_encoder
+    from ccfit.settings import torch_threads
+
+    encoder, spec = load_frozen_encoder(path)
+    with torch_threads(threads):
+        return collect(encoder, task_id, frames, int(spec["image_size"]), walk, seed)
+
+
+def _collected(path: str | Path, encoder, image_size: int, task_ids: list[str], frames: int,
+               walk: int, seed: int, workers: int) -> Iterator[dict[str, np.ndarray]]:  # fmt: skip
+    """`collect` of each task in `task_ids` order, by `workers` processes at once."""
+    if workers <= 1 or len(task_ids) <= 1:
+        for task_id in task_ids:
+            yield collect(encoder, task_id, frames, image_size, walk, seed)
+        return
+    # Spawned, not forked: each worker gets its own simulator and GL context.
+    pool = ProcessPoolExecutor(min(workers, len(task_ids)), mp_context=get_context("spawn"))
+    try:
+        futures = [pool.submit(_collect_in_worker, str(path), task_id, frames, walk, seed,
+                               torch.get_num_threads()) for task_id in task_ids]  # fmt: skip
+        for future in futures:
+            yield future.result()
+    finally:
+        pool.shutdown(cancel_futures=True)
+
+
 def probe_encoder(path: str | Path, task_ids: list[str], frames: int = 1000, walk: int = 30,
-                  seed: int = 0, suites: Sequence[str] = ()) -> dict:  # fmt: skip
+                  seed: int = 0, suites: Sequence[str] = (), workers: int = 1) -> dict:  # fmt: skip
     """Probe the frozen encoder at `path` on each task (module docstring); `suites`: the
-    suites asked for, recorded."""
+    suites asked for, recorded; `workers`: processes collecting frames (no effect on the
+    result)."""
     from ccfit.models.encoders import load_frozen_encoder, weights_sha256
 
     try:
@@ -238,8 +272,9 @@ def probe_encoder(path: str | Path, task_ids: list[str], frames: int = 1000, wal
         raise InputError(str(err)) from None
     to_classify = {t for _, group in identity_groups(task_ids) for t in group}
     rows, kept = [], {}
-    for task_id in task_ids:
-        data = collect(encoder, task_id, frames, int(spec["image_size"]), walk, seed)
+    collected = _collected(path, encoder, int(spec["image_size"]), task_ids, frames, walk, seed,
+                           workers)  # fmt: skip
+    for task_id, data in zip(task_ids, collected, strict=True):
         rows += probe_rows(task_id, data)
         if task_id in to_classify:  # only these frames are needed again
             kept[task_id] = data
