@@ -408,6 +408,10 @@ def test_config_and_parser():
     args = parser.parse_args(["pretrain-encoder"])
     config = config_from_args(args)
     assert config.decoder_channels == PretrainConfig.preset("cpu").decoder_channels == 16
+    # the recipe's trunk, recorded as the encoder's (a stacked encoder's sidecar has none)
+    assert config.encoder_config().image_trunk == "per-camera"
+    assert config.identity()["image_trunk"] == "per-camera"
+    assert PretrainConfig.preset("paper").image_trunk == "per-camera"
     assert config.suites == tuple(__import__("ccdata").SUITES) and config.model_preset == "cpu"
     enc, ref = config.encoder_config(), TDMPC2Config.preset("cpu", obs_mode="pixels")
     assert (enc.latent_dim, enc.enc_dim, enc.num_channels, enc.num_enc_layers) == (

@@ -49,10 +49,11 @@ OBJECTIVE = (
 
 
 _SEES_THE_TASK = dict(policies=("oracle", "noisy-oracle", "random"), foreground_weight=20.0,
-                     contrastive_coef=1.0, proprio_coef=1.0)  # fmt: skip
+                     contrastive_coef=1.0, proprio_coef=1.0, image_trunk="per-camera")  # fmt: skip
 """The recipe whose latent holds the goal, the objects and their colours, and the hand (the
-proprio weight 1: the contrastive term alone gives the hand up; docs/encoder.md: the levers
-measured); the `smoke` preset keeps the plain autoencoder, for speed."""
+proprio weight 1: the contrastive term alone gives the hand up; the per-camera trunk: stacked,
+the latent keeps one cue per episode, a goal or an object, and the hand less; docs/encoder.md:
+the levers measured); the `smoke` preset keeps the plain autoencoder, for speed."""
 
 # ============================================================================== config
 
@@ -100,8 +101,8 @@ class PretrainConfig(Presets):
     there); 0: the model preset's own image features."""
     image_trunk: str = "stacked"
     """The encoder's conv stack on the 9 channel-stacked channels ('stacked') or on each
-    camera's 3 apart ('per-camera'): the model config's `image_trunk`, recorded in the encoder
-    file as `keypoints` is."""
+    camera's 3 apart ('per-camera', the `cpu` and `paper` presets'): the model config's
+    `image_trunk`, recorded in the encoder file as `keypoints` is."""
     steps: int = 20_000
     """Gradient steps."""
     batch_size: int = 64
