@@ -64,3 +64,25 @@ def test_a_per_camera_encoder_saves_loads_and_reaches_the_model_config(tmp_path)
         PretrainConfig.preset("smoke", image_trunk="per-view")
     with pytest.raises(ValueError, match="image_trunk must be one of"):
         TDMPC2Config.preset("smoke", obs_mode="pixels", image_trunk="per-view")
+
+
+def test_an_encoder_file_from_before_the_trunk_setting_loads_as_stacked(tmp_path):
+    """A weights file whose settings have no `image_trunk` (every encoder made before it)
+    loads as the stacked trunk it was, computing what it computed."""
+    import json
+
+    from safetensors.torch import save_file
+
+    from ccfit.models.encoders import ENCODER_FORMAT
+
+    spec = EncoderSpec(**SPEC)
+    torch.manual_seed(0)
+    encoder = build_encoder(spec).eval()
+    old = {k: v for k, v in spec.__dict__.items() if k != "image_trunk"}
+    path = tmp_path / "old.safetensors"
+    save_file({k: v.contiguous() for k, v in encoder.state_dict().items()}, str(path),
+              metadata={"format": ENCODER_FORMAT, "spec": json.dumps(old)})  # fmt: skip
+    frozen, saved = load_frozen_encoder(path)
+    obs = _obs(3)
+    assert "image_trunk" not in saved and frozen.encoder.views == 1
+    assert torch.equal(frozen(obs), encoder(obs))

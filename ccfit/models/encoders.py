@@ -104,7 +104,7 @@ class PixelEncoder(nn.Module):
     weights; the features side by side into the projection) instead of on the 9 stacked ones:
     stacked, the first conv adds up pixels of three views that share only their place in the
     image. The stack then computes three times as much after its first layer (a `cpu`
-    pretraining step took about 1.1x as long: docs/encoder.md).
+    pretraining step on all six suites took 0.29 s against 0.236: docs/encoder.md).
     """
 
     def __init__(
@@ -127,7 +127,7 @@ class PixelEncoder(nn.Module):
             raise ValueError(f"image trunk must be one of {IMAGE_TRUNKS}, got {trunk!r}")
         self.image_size, self.proprio_dim, self.shift = image_size, proprio_dim, shift
         self.views = 3 if trunk == "per-camera" else 1  # conv inputs per frame
-        inputs = 9 // self.views
+        self.view_channels = inputs = 9 // self.views
         c = num_channels
         if keypoints > 0:
             half = (image_size - 7) // 2 + 1  # the first conv's output side
@@ -165,7 +165,7 @@ class PixelEncoder(nn.Module):
         if self.training and self.shift > 0:
             x = random_shift(x, self.shift)
         x = x.float().div_(255.0).sub_(0.5)  # in place: these are the largest tensors here
-        features = self.conv(x.reshape(-1, 9 // self.views, s, s)).reshape(len(x), -1)
+        features = self.conv(x.reshape(-1, self.view_channels, s, s)).reshape(len(x), -1)
         img = self.image_proj(features).reshape(*lead, -1)
         return self.fuse(torch.cat([img, self.proprio(prop.float())], dim=-1))
 

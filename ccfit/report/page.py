@@ -189,12 +189,17 @@ def encoder_notes(run_groups: dict, root: Path) -> list[str]:
                 f"<= {max(task):.2f} ([probe]({where})), so they measure what the arm alone tells"
             )
         else:
-            share = np.mean(np.array(task) >= SEES_TASK_R2)
-            text += (f"{np.median(task):.2f} at the median, {share:.0%} of their coordinates >= "
+            median, share = _spread(task)
+            text += (f"{median:.2f} at the median, {share:.0%} of their coordinates >= "
                      f"{SEES_TASK_R2} ([probe]({where}))")  # fmt: skip
             text += _on_their_own(found["rows"])
         lines += [text + ".", ""]
     return lines
+
+
+def _spread(r2: list[float]) -> tuple[float, float]:
+    """(median, share >= SEES_TASK_R2) of probe R^2 values."""
+    return float(np.median(r2)), float(np.mean(np.array(r2) >= SEES_TASK_R2))
 
 
 def _on_their_own(rows: list[dict]) -> str:
@@ -208,11 +213,10 @@ def _on_their_own(rows: list[dict]) -> str:
            if others is not None and others < SEES_TASK_R2]  # fmt: skip
     if not own:
         return ""
-    share = np.mean(np.array(own) >= SEES_TASK_R2)
+    median, share = _spread(own)
     return (
         f"; of the {len(own)} coordinates that the task's other positions do not give (R^2 < "
-        f"{SEES_TASK_R2} from them), {np.median(own):.2f} at the median, {share:.0%} >= "
-        f"{SEES_TASK_R2}"
+        f"{SEES_TASK_R2} from them), {median:.2f} at the median, {share:.0%} >= {SEES_TASK_R2}"
     )
 
 
