@@ -150,6 +150,24 @@ def test_a_folder_holding_another_sweep_is_refused(tmp_path, capsys):
     assert "new runs Reach-toy-er-state-smoke-s0" in one_line_error(code, err)
 
 
+def test_a_sweep_grows_by_seeds_in_its_own_folder(tmp_path, capsys):
+    # 3 seeds become 5 where the first 3 ran; other new runs, or fewer seeds, stay refused.
+    import_plugins(["test_seam"])
+    args = ["--suites", "Reach", "--methods", "ft", "--out", str(tmp_path), *TOY]
+    write_record(expand(Grid(("Reach",), ("toy",), ("ft",), (0,), "smoke", TOY_RUN,
+                             ("test_seam",)), tmp_path), [])  # fmt: skip
+    code, out, err = sweep_cli(capsys, *args, "--seeds", "0,1,2", "--dry-run")
+    assert code == 0, err
+    assert f"adding seeds 1, 2 to the sweep in {tmp_path.resolve()}" in err
+    assert "3 runs, 0 finished" in out
+    code, _, err = sweep_cli(capsys, *args, "--seeds", "1")
+    assert "missing runs Reach-toy-ft-state-smoke-s0" in one_line_error(code, err)
+    code, _, err = sweep_cli(capsys, *args, "--seeds", "0,1", "--methods", "ft,er")
+    assert "new runs Reach-toy-er-state-smoke-s0" in one_line_error(code, err)
+    code, _, err = sweep_cli(capsys, *args, "--seeds", "0,1", "--train.checkpoint_interval=50")
+    assert "train.checkpoint_interval is 50, was 100" in one_line_error(code, err)
+
+
 def test_a_sweep_written_before_a_setting_existed_is_the_same_sweep(tmp_path):
     """sweep.json of an older version lacks `train.demo_fraction`: at its legacy value the
     runs, and their from-scratch keys, are the same."""

@@ -161,8 +161,9 @@ def cmd_sweep(argv: list[str]) -> int:
     import_plugins(grid.plugins)
     sweep = expand(grid, out_dir(args.out))
     record = read_record(sweep.root)
-    if record is not None:
-        check_same_sweep(sweep, record)
+    if record is not None and (added := check_same_sweep(sweep, record)):
+        print(f"ccfit sweep: adding seeds {', '.join(map(str, added))} to the sweep in "
+              f"{sweep.root}", file=sys.stderr)  # fmt: skip
     submissions = record.get("submissions", []) if record else []
     active = slurm_active(submissions) if shutil.which("squeue") else {}
     if active and args.launcher == "local":

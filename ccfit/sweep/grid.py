@@ -290,15 +290,29 @@ def run_identity(config: dict) -> dict:
     return {k: v for k, v in identity(config).items() if k != "out"}
 
 
-def check_same_sweep(sweep: Sweep, record: dict) -> None:
-    """Refuse a folder whose sweep.json holds another sweep (other runs or other configs)."""
+def check_same_sweep(sweep: Sweep, record: dict) -> tuple[int, ...]:
+    """Refuse a folder whose sweep.json holds another sweep (other runs or other configs).
+
+    A sweep may grow by seeds: where every recorded run is still in it, unchanged, and every
+    new run is of a seed the record did not have, it is the same sweep with more seeds
+    (returned, to be said), so 3 seeds become 5 in the folder that holds the first 3."""
     theirs = {r["name"]: run_identity(r["config"]) for r in record.get("runs", [])}
     ours = sweep.identity()
     if theirs == ours:
-        return
+        return ()
     where = sweep.root / SWEEP_JSON
     added, removed = sorted(set(ours) - set(theirs)), sorted(set(theirs) - set(ours))
-    if added or removed:
+    changed = [name for name in theirs if name in ours and ours[name] != theirs[name]]
+    old_seeds = {cfg.get("seed") for cfg in theirs.values()}
+    new_seeds = {ours[name].get("seed") for name in added}
+    if added and not removed and not changed and not new_seeds & old_seeds:
+        return tuple(sorted(new_seeds))
+    if changed:
+        key, a, b = _first_difference(theirs[changed[0]], ours[changed[0]])
+        # A setting missing from one side is at its legacy value there.
+        a, b = (LEGACY_VALUES.get(key, v) if v is None else v for v in (a, b))
+        what = f"run {changed[0]}: {key} is {b!r}, was {a!r}"
+    else:
         what = "; ".join(
             filter(
                 None,
@@ -308,12 +322,6 @@ def check_same_sweep(sweep: Sweep, record: dict) -> None:
                 ],
             )
         )
-    else:
-        name = next(n for n in ours if ours[n] != theirs[n])
-        key, a, b = _first_difference(theirs[name], ours[name])
-        # A setting missing from one side is at its legacy value there.
-        a, b = (LEGACY_VALUES.get(key, v) if v is None else v for v in (a, b))
-        what = f"run {name}: {key} is {b!r}, was {a!r}"
     raise InputError(f"{where} holds a different sweep ({what}); use another --out")
 
 
