@@ -95,7 +95,9 @@ class DreamerV3(WorldModel, Prediction):
     # compile:head_update,compile:loss+head_update (two rounds, quiet): update eager 73.7 /
     # 84.1 ms, loss compiled 70.5 / 67.9, head_update compiled 91.9 / 95.3 (its autograd.grad
     # and optimiser steps break the graph; each task's new optimisers retrace it, ~3.5 s), both
-    # 80.5 / 73.5. Acting costs ~0.3 ms either way.
+    # 80.5 / 73.5. Acting costs ~0.3 ms either way. Imagination and the behaviour losses alone
+    # compiled, without head_update's gradients and optimiser steps (a trial at 785a658, same
+    # script, one round, quiet): 106.7 ms against 106.3 for the loss alone (eager 124.5): no gain.
     compile_pays = {"cpu": ("loss",)}
     # A Reach curriculum of 2000 steps per task compiling the loss took 0.85x eager's time
     # from an empty compile cache (docs/performance.md); 10 000, Reach's budget, lies above
