@@ -271,7 +271,7 @@ def _cmd_probe_encoder(args: argparse.Namespace) -> None:
         result = probe_encoder(args.encoder, tasks, frames=args.frames, seed=args.seed,
                                suites=suites, workers=args.workers)  # fmt: skip
     print(markdown(result), end="")
-    print("-> " + ", ".join(str(p) for p in write_probe(result, out_dir(args.out))))
+    print("-> " + ", ".join(str(p) for p in write_probe(result, out_dir(args.out), args.encoder)))
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:

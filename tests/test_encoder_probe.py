@@ -22,6 +22,7 @@ from ccfit.analysis.encoder_probe import (
     ridge_accuracy,
     ridge_r2,
     select_tasks,
+    write_probe,
 )
 from ccfit.cli import main
 
@@ -176,6 +177,38 @@ def encoder_path(tmp_path):
     return path
 
 
+def test_a_probe_folder_holds_its_encoders_sidecar_as_published(encoder_path, tmp_path):
+    """`write_probe` with the probed weights copies their sidecar as encoder.json, named as
+    probed and with no path of this machine, so the folder goes into results/probe/ as is."""
+    from ccfit.models.encoders import build_encoder, save_encoder, sidecar_path
+    from ccfit.models.tdmpc2 import TDMPC2Config
+
+    result = json.loads((PUBLISHED / "all-per-camera" / "probe.json").read_text())
+    cfg = TDMPC2Config.preset("smoke", obs_mode="pixels", image_size=SIZE)
+    first = tmp_path / "first-name.safetensors"
+    save_encoder(build_encoder(cfg), cfg, first, metadata={"config": {"out": str(first)}})
+    renamed = tmp_path / "renamed.safetensors"
+    first.rename(renamed)
+    sidecar_path(first).rename(sidecar_path(renamed))
+    paths = write_probe(result, tmp_path / "probe", renamed)
+    assert [p.name for p in paths] == ["probe.json", "probe.md", "encoder.json"]
+    text = (tmp_path / "probe" / "encoder.json").read_text()
+    published, own = json.loads(text), json.loads(sidecar_path(renamed).read_text())
+    assert str(tmp_path) not in text and published["config"]["out"] == "first-name.safetensors"
+    assert (
+        own["weights"] == "first-name.safetensors" and published["weights"] == "renamed.safetensors"
+    )
+    assert {k: v for k, v in published.items() if k not in ("weights", "config")} == {
+        k: v for k, v in own.items() if k not in ("weights", "config")
+    }
+    older = tmp_path / "older.pt"  # the older single-file format has no sidecar
+    save_encoder(build_encoder(cfg), cfg, older)
+    assert [p.name for p in write_probe(result, tmp_path / "old", older)] == [
+        "probe.json",
+        "probe.md",
+    ]
+
+
 @pytest.mark.integration
 def test_probe_reports_the_positions_each_task_varies(encoder_path, tmp_path, capsys):
     out = tmp_path / "probe"
@@ -194,6 +227,9 @@ def test_probe_reports_the_positions_each_task_varies(encoder_path, tmp_path, ca
         assert len(r["latent_r2"]) == len(r["pixels_r2"]) == len(r["others_r2"]) == len(r["axes"])
     table = (out / "probe.md").read_text()
     assert table in capsys.readouterr().out and table.count("\n") == 2 + len(rows)
+    assert (
+        json.loads((out / "encoder.json").read_text())["weights_sha256"] == result["encoder_sha256"]
+    )
 
 
 @pytest.mark.integration

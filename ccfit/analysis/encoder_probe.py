@@ -29,6 +29,7 @@ collect them side by side with the same result.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
@@ -41,6 +42,7 @@ from ccdata.errors import InputError
 from ccdata.suites import SUITES
 from ccdata.tasks import get_task
 from ccfit.io import atomic_write_json, atomic_write_text
+from ccfit.run_files import PROBED_ENCODER
 
 POSITIONS = {"hand": slice(0, 3), "object": slice(4, 7), "object 2": slice(11, 14),
              "goal": slice(36, 39)}  # fmt: skip
@@ -315,9 +317,22 @@ def markdown(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_probe(result: dict, out: Path) -> tuple[Path, Path]:
-    """probe.json and probe.md in `out`."""
+def write_probe(result: dict, out: Path, encoder: str | Path | None = None) -> list[Path]:
+    """probe.json and probe.md in `out`; with the probed `encoder`'s weights file, also its
+    sidecar as `encoder.json` (how it was pretrained), so `out` is a folder `results/probe/`
+    takes as it is: paths in it as published (`ccfit.portable`) and its weights named as
+    probed (a file renamed since pretraining keeps its first name in its own sidecar)."""
+    from ccfit.models.encoders import sidecar_path
+    from ccfit.portable import portable
+
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "probe.json", result)
     atomic_write_text(out / "probe.md", markdown(result))
-    return out / "probe.json", out / "probe.md"
+    written = [out / "probe.json", out / "probe.md"]
+    side = sidecar_path(encoder) if encoder is not None else None
+    if side is not None and side.is_file():
+        record = {**json.loads(side.read_text()), "weights": Path(encoder).name}
+        text = json.dumps(portable(record), indent=2, sort_keys=True) + "\n"
+        atomic_write_text(out / PROBED_ENCODER, text)
+        written.append(out / PROBED_ENCODER)
+    return written

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ccdata.suites import SUITES
 from ccfit.pretrain.config import LEGACY_SETTINGS
-from ccfit.run_files import REPORT, SWEEP_JSON
+from ccfit.run_files import PROBED_ENCODER, REPORT, SWEEP_JSON
 
 
 def published_folders(root: Path) -> list[Path]:
@@ -73,7 +73,7 @@ def setup_commands(run_groups: dict, root: Path) -> list[str]:
     encoders = frozen_encoders(run_groups)
     lines = []
     for name in sorted(encoders):
-        sidecar = root / "probe" / Path(name).stem / "encoder.json"
+        sidecar = root / "probe" / Path(name).stem / PROBED_ENCODER
         if not sidecar.is_file():
             lines.append(f"# {name}: a frozen encoder whose settings are not published here")
             continue
