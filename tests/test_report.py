@@ -150,6 +150,7 @@ def test_step_budget_and_method_options_split_groups_but_output_paths_and_as_run
 ):
     root = tmp_path / "runs"
     write_run(root, "a", config(out="/x/a", derived_seed=11, resolved_compile=["loss"],
+                                resolved_compile_reason="auto: loss measured faster",
                                 resolved_seed_dataset="/here/Reach",
                                 resolved_seed_dataset_meta={"total_episodes": 8}), 1.0)  # fmt: skip
     write_run(root, "b", config(out="/y/b", derived_seed=12, seed=1, resolved_compile=["plan"],

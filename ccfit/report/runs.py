@@ -11,7 +11,12 @@ from pathlib import Path
 from typing import Any
 
 from ccdata.errors import InputError
-from ccfit.config_base import DATASET_RECORDS, EXECUTION_SETTINGS, drop_legacy_values
+from ccfit.config_base import (
+    COMPILE_REASON,
+    DATASET_RECORDS,
+    EXECUTION_SETTINGS,
+    drop_legacy_values,
+)
 from ccfit.config_parse import flatten
 from ccfit.io import read_run_json
 from ccfit.metrics import check_evaluated, task_curves
@@ -36,11 +41,12 @@ PER_SEED = (
 """Flattened config keys (fnmatch patterns) that differ between the seeds of one experiment
 and so do not split groups: the seed, seeds derived from it, where outputs went, the run (of
 that seed) a branch started from (its `resolved_branch.after` does split them)."""
-AS_RUN = ("resolved_compile", "resolved_seed_dataset", *DATASET_RECORDS, *EXECUTION_SETTINGS)
+AS_RUN = ("resolved_compile", COMPILE_REASON, "resolved_seed_dataset", *DATASET_RECORDS,
+          *EXECUTION_SETTINGS)  # fmt: skip
 """Records of how a run was computed, not of what: which of the model's functions this code
-version compiled (eager and compiled compute the same within float tolerance), where the seed
-dataset lay on the machine that ran it and what the run recorded of its datasets (runs made
-before that record existed have none), how it spread over processes and where it logged. Seeds
+version compiled and why (eager and compiled compute the same within float tolerance), where
+the seed dataset lay on the machine that ran it and what the run recorded of its datasets (runs
+made before that record existed have none), how it spread over processes and where it logged. Seeds
 run by two code versions, on two machines or with and without worker processes still
 average."""
 CURVE_KEYS = {ONLINE: "normalized_return", TRACK: SCORE_KEY}
