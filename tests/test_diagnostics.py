@@ -305,7 +305,7 @@ def test_end_score_reads_each_published_curriculum_both_ways(capsys):
     runs, groups = lines[:-1], lines[-1]["groups"]
     assert len(runs) >= 50 and sum(g["runs"] for g in groups) == len(runs)
     for line in runs:
-        (path,) = results.glob(f"online/*/{line['run']}")
+        path = results / "online" / line["folder"] / line["run"]
         metrics = json.loads((path / "metrics.json").read_text())
         assert line["bwt"] == pytest.approx(metrics["bwt"])
         assert line["end_scores"] == pytest.approx(metrics["end_of_task"][:-1])

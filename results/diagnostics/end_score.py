@@ -12,8 +12,9 @@ without changing it (FT, ER, EWC) moves only by that noise.
 
 One JSON line per finished curriculum (online, every published sweep under the given folders):
 its BWT as published (recomputed from its records) and with each C_i, i < N, taken from the
-evaluation before b_i, and both C_i. The last line averages each (suite, backbone, method)
-group over its seeds.
+evaluation before b_i, and both C_i. The last line averages each (published folder, suite,
+backbone, method) group over its seeds: two folders may hold the same grid under other settings
+(a preset changed between them), and a run is named by its folder and its name.
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ def main(argv=None) -> None:
         as_read = compute_metrics(run.records, run.scratch, n, m["budget"], key)
         before = compute_metrics(shifted, run.scratch, n, m["budget"], key)
         line = {
+            "folder": run.path.parent.name,
             "run": run.path.name,
             "suite": run.config["suite"],
             "backbone": run.backbone,
@@ -72,7 +74,7 @@ def main(argv=None) -> None:
             "end_scores_before_close": end_scores(shifted, ends, key),
         }
         print(json.dumps(line))
-        group = groups[(line["suite"], line["backbone"], line["method"])]
+        group = groups[(line["folder"], line["suite"], line["backbone"], line["method"])]
         for k in ("bwt", "bwt_before_close"):
             group[k].append(line[k])
 
@@ -81,9 +83,9 @@ def main(argv=None) -> None:
         return float(np.mean(kept)) if kept else None
 
     print(json.dumps({"groups": [
-        {"suite": s, "backbone": b, "method": meth, "runs": len(g["bwt"]),
+        {"folder": f, "suite": s, "backbone": b, "method": meth, "runs": len(g["bwt"]),
          "bwt": mean(g["bwt"]), "bwt_before_close": mean(g["bwt_before_close"])}
-        for (s, b, meth), g in sorted(groups.items())
+        for (f, s, b, meth), g in sorted(groups.items())
     ]}))  # fmt: skip
 
 
