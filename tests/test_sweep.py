@@ -379,6 +379,20 @@ def test_local_sweep_trains_once_and_resubmits_only_unfinished_work(tmp_path, ca
     code, out, _ = sweep_cli(capsys, "--status", str(root))
     assert code == 0 and out.endswith("0 pending, 0 running, 5 done, 0 failed, 0 not submitted\n")
 
+    # grown by a seed in its folder: only the new seed's reference and runs train
+    stamps = _mtimes([*metrics, done])
+    grown = [*args[:5], "0,1", *args[6:]]
+    code, out, err = sweep_cli(capsys, *grown)
+    assert code == 0, err
+    assert "adding seeds 1 to the sweep" in err
+    sweep, record = load_sweep(root)
+    assert record["grid"]["seeds"] == [0, 1] and len(sweep.runs) == 4
+    third = record["submissions"][2]["jobs"]
+    assert sorted(n for n in third if n.startswith("run:")) == sorted(
+        f"run:{r.name}" for r in sweep.runs if r.config["seed"] == 1
+    )
+    assert _mtimes([*metrics, done]) == stamps
+
 
 @pytest.mark.integration
 def test_a_local_sweep_finishes_seed_after_seed(tmp_path, capsys):
