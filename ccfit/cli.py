@@ -254,7 +254,13 @@ def _cmd_learnability(args: argparse.Namespace) -> None:
 
 
 def _cmd_probe_encoder(args: argparse.Namespace) -> None:
-    from ccfit.analysis.encoder_probe import markdown, probe_encoder, select_tasks, write_probe
+    from ccfit.analysis.encoder_probe import (
+        markdown,
+        probe_encoder,
+        probed_sidecar,
+        select_tasks,
+        write_probe,
+    )
     from ccfit.io import out_dir
     from ccfit.settings import torch_threads
 
@@ -267,11 +273,12 @@ def _cmd_probe_encoder(args: argparse.Namespace) -> None:
         raise CliError(f"--torch-threads must be >= 0, got {args.torch_threads}")
     if args.workers < 1:
         raise CliError(f"--workers must be >= 1, got {args.workers}")
+    sidecar = probed_sidecar(args.encoder)  # read first: a damaged one stops before the probe
     with torch_threads(args.torch_threads):
         result = probe_encoder(args.encoder, tasks, frames=args.frames, seed=args.seed,
                                suites=suites, workers=args.workers)  # fmt: skip
     print(markdown(result), end="")
-    print("-> " + ", ".join(str(p) for p in write_probe(result, out_dir(args.out), args.encoder)))
+    print("-> " + ", ".join(str(p) for p in write_probe(result, out_dir(args.out), sidecar)))
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:

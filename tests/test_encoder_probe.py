@@ -19,6 +19,7 @@ from ccfit.analysis.encoder_probe import (
     markdown,
     others_r2,
     probe_rows,
+    probed_sidecar,
     ridge_accuracy,
     ridge_r2,
     select_tasks,
@@ -177,9 +178,9 @@ def encoder_path(tmp_path):
     return path
 
 
-def test_a_probe_folder_holds_its_encoders_sidecar_as_published(encoder_path, tmp_path):
-    """`write_probe` with the probed weights copies their sidecar as encoder.json, named as
-    probed and with no path of this machine, so the folder goes into results/probe/ as is."""
+def test_a_probe_folder_holds_its_encoders_sidecar_as_published(tmp_path):
+    """The probed weights' sidecar goes beside the probe as encoder.json, named as probed and
+    with no path of this machine, so the folder goes into results/probe/ as is."""
     from ccfit.models.encoders import build_encoder, save_encoder, sidecar_path
     from ccfit.models.tdmpc2 import TDMPC2Config
 
@@ -190,23 +191,29 @@ def test_a_probe_folder_holds_its_encoders_sidecar_as_published(encoder_path, tm
     renamed = tmp_path / "renamed.safetensors"
     first.rename(renamed)
     sidecar_path(first).rename(sidecar_path(renamed))
-    paths = write_probe(result, tmp_path / "probe", renamed)
+    paths = write_probe(result, tmp_path / "probe", probed_sidecar(renamed))
     assert [p.name for p in paths] == ["probe.json", "probe.md", "encoder.json"]
     text = (tmp_path / "probe" / "encoder.json").read_text()
     published, own = json.loads(text), json.loads(sidecar_path(renamed).read_text())
     assert str(tmp_path) not in text and published["config"]["out"] == "first-name.safetensors"
-    assert (
-        own["weights"] == "first-name.safetensors" and published["weights"] == "renamed.safetensors"
-    )
-    assert {k: v for k, v in published.items() if k not in ("weights", "config")} == {
-        k: v for k, v in own.items() if k not in ("weights", "config")
-    }
+    assert own["weights"] == "first-name.safetensors"
+    assert published["weights"] == "renamed.safetensors"
+    same = ("format", "spec", "weights_sha256")
+    assert {k: published[k] for k in same} == {k: own[k] for k in same}
     older = tmp_path / "older.pt"  # the older single-file format has no sidecar
     save_encoder(build_encoder(cfg), cfg, older)
-    assert [p.name for p in write_probe(result, tmp_path / "old", older)] == [
-        "probe.json",
-        "probe.md",
-    ]
+    assert probed_sidecar(older) is None
+
+
+def test_a_damaged_sidecar_stops_the_probe_in_one_line(encoder_path, tmp_path, capsys):
+    from ccfit.models.encoders import sidecar_path
+
+    sidecar_path(encoder_path).write_text("{not json")
+    code = main(["probe-encoder", str(encoder_path), "--tasks", "reach-xy", "--frames", "10",
+                 "--out", str(tmp_path / "probe")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "cannot read encoder sidecar" in err
+    assert not (tmp_path / "probe").exists()  # stopped before the probe ran
 
 
 @pytest.mark.integration

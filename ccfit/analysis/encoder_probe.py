@@ -317,22 +317,33 @@ def markdown(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_probe(result: dict, out: Path, encoder: str | Path | None = None) -> list[Path]:
-    """probe.json and probe.md in `out`; with the probed `encoder`'s weights file, also its
-    sidecar as `encoder.json` (how it was pretrained), so `out` is a folder `results/probe/`
-    takes as it is: paths in it as published (`ccfit.portable`) and its weights named as
-    probed (a file renamed since pretraining keeps its first name in its own sidecar)."""
-    from ccfit.models.encoders import sidecar_path
+def probed_sidecar(encoder: str | Path) -> dict | None:
+    """The sidecar of the weights file `encoder` (how it was pretrained) as its probe folder
+    keeps it, the weights named as probed (a file renamed since pretraining keeps its first
+    name in its own sidecar); None for a file without one (the older single-file format)."""
+    from ccfit.models.encoders import read_encoder_sidecar, sidecar_path
+
+    if not sidecar_path(encoder).is_file():
+        return None
+    try:
+        record = read_encoder_sidecar(encoder)
+    except ValueError as err:  # a damaged sidecar: the user's to fix, before the probe runs
+        raise InputError(str(err)) from None
+    return {**record, "weights": Path(encoder).name}
+
+
+def write_probe(result: dict, out: Path, sidecar: dict | None = None) -> list[Path]:
+    """probe.json and probe.md in `out`, and the probed encoder's `sidecar` (`probed_sidecar`)
+    as encoder.json, its paths as published (`ccfit.portable`): a folder `results/probe/`
+    takes as it is."""
     from ccfit.portable import portable
 
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "probe.json", result)
     atomic_write_text(out / "probe.md", markdown(result))
     written = [out / "probe.json", out / "probe.md"]
-    side = sidecar_path(encoder) if encoder is not None else None
-    if side is not None and side.is_file():
-        record = {**json.loads(side.read_text()), "weights": Path(encoder).name}
-        text = json.dumps(portable(record), indent=2, sort_keys=True) + "\n"
+    if sidecar is not None:
+        text = json.dumps(portable(sidecar), indent=2, sort_keys=True) + "\n"
         atomic_write_text(out / PROBED_ENCODER, text)
         written.append(out / PROBED_ENCODER)
     return written
